@@ -1,0 +1,320 @@
+"""``FlowEnv``: the batched TorchRL environment every BEACON env derives from.
+
+The base owns everything that is not physics: batch size, device and dtype, the seeded
+generator, specs, action checking, step counting and truncation, partial resets, blow-up
+handling and the history kept for rendering. A subclass supplies the physics through four
+pure-ish methods on a dict of state tensors (each with a leading batch dimension):
+
+``initial_state(mask)``
+    the state at the start of an episode for the whole batch (``mask`` says which members
+    are being reset, so that costly starts can restrict their work);
+``advance(state, action, count)``
+    the state after one action and the reward earned by it; ``count`` is the number of
+    actions already taken in the episode, per member;
+``observe(state)``
+    the observation tensor ``[*batch, n_obs]``;
+``null_action()``
+    the "no control" action of the benchmark, for the whole batch.
+
+and optionally ``out_of_bounds(state)`` (physical bounds beyond finiteness).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from beacon_torch.params import resolve_params
+
+State = dict[str, torch.Tensor]
+
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def _as_dtype(dtype: Any) -> torch.dtype:
+    if isinstance(dtype, str):
+        dtype = _DTYPES.get(dtype.removeprefix("torch."), dtype)
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    return dtype
+
+
+def _as_batch_size(batch_size: Any) -> torch.Size:
+    if isinstance(batch_size, (bool, np.bool_)):
+        raise TypeError(f"batch_size must be a positive integer, got {batch_size!r}")
+    if isinstance(batch_size, (int, np.integer)):
+        batch_size = (int(batch_size),)
+    try:
+        size = torch.Size(batch_size)
+    except TypeError:
+        raise TypeError(f"batch_size must be a positive integer, got {batch_size!r}") from None
+    if len(size) != 1 or size[0] < 1:
+        raise ValueError(
+            f"batch_size must be a positive integer (a 1-D batch), got {tuple(size)}"
+        )
+    return size
+
+
+def where_members(mask: torch.Tensor, a: State, b: State) -> State:
+    """Per batch member, take ``a`` where ``mask`` is true and ``b`` elsewhere."""
+    out = {}
+    for key, va in a.items():
+        m = mask.view(mask.shape + (1,) * (va.ndim - 1))
+        out[key] = torch.where(m, va, b[key])
+    return out
+
+
+def _finite_members(t: torch.Tensor) -> torch.Tensor:
+    return torch.isfinite(t).flatten(1).all(1) if t.ndim > 1 else torch.isfinite(t)
+
+
+class FlowEnv(EnvBase):
+    """Base of the batched BEACON environments (see the module docstring)."""
+
+    env_id: ClassVar[str] = ""
+    Params: ClassVar[type]
+    episode_length: ClassVar[int]
+    n_obs: ClassVar[int]
+    # continuous: the action dimension; discrete: the number of choices
+    n_actions: ClassVar[int]
+    discrete: ClassVar[bool] = False
+    # reward of the step on which a member leaves its physical bounds (episode ends)
+    blowup_reward: ClassVar[float] = -1.0
+
+    def __init__(
+        self,
+        batch_size: int | tuple[int] = 1,
+        *,
+        device: str | torch.device = "cpu",
+        dtype: str | torch.dtype = torch.float32,
+        seed: int | None = None,
+        check_actions: bool = True,
+        record_history: bool = False,
+        **params: Any,
+    ) -> None:
+        batch_size = _as_batch_size(batch_size)
+        device = torch.device(device)
+        super().__init__(device=device, batch_size=batch_size)
+        self.dtype = _as_dtype(dtype)
+        self.n_envs = batch_size[0]
+        self.params = resolve_params(
+            self.Params,
+            params,
+            batch_size=self.n_envs,
+            device=device,
+            dtype=self.dtype,
+            env_id=self.env_id,
+        )
+        # Checking action values needs a host-device synchronisation on accelerators;
+        # a trusted training loop may switch it off there.
+        self.check_actions = check_actions
+        self.record_history = record_history
+        self.render_index = 0
+        self.history: list[State] = []
+        self._make_specs()
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.rng = torch.Generator(device=device)
+        self.set_seed(seed)
+        self._state: State | None = None
+        self._count = torch.zeros(batch_size, dtype=torch.int64, device=device)
+
+    # ------------------------------------------------------------------ physics hooks
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        raise NotImplementedError
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        raise NotImplementedError
+
+    def observe(self, state: State) -> torch.Tensor:
+        raise NotImplementedError
+
+    def null_action(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    def out_of_bounds(self, state: State) -> torch.Tensor:
+        return torch.zeros(self.batch_size, dtype=torch.bool, device=self.device)
+
+    # ------------------------------------------------------------------ helpers
+    def tensor(self, value: Any) -> torch.Tensor:
+        """A tensor on the env's device and dtype."""
+        return torch.as_tensor(value, dtype=self.dtype, device=self.device)
+
+    @property
+    def state(self) -> State:
+        """The current state tensors (read-only view; reset first)."""
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before reading the state")
+        return self._state
+
+    @property
+    def step_count(self) -> torch.Tensor:
+        """Actions taken in the current episode, per member."""
+        return self._count
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        B = self.batch_size
+        dev = self.device
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(*B, self.n_obs), dtype=self.dtype, device=dev),
+            shape=B,
+            device=dev,
+        )
+        if self.discrete:
+            self.action_spec = Categorical(
+                self.n_actions, shape=B, dtype=torch.int64, device=dev
+            )
+        else:
+            self.action_spec = Bounded(
+                low=-1.0, high=1.0, shape=(*B, self.n_actions), dtype=self.dtype, device=dev
+            )
+        self.reward_spec = Unbounded(shape=(*B, 1), dtype=self.dtype, device=dev)
+        flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)  # noqa: E731
+        self.done_spec = Composite(
+            done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev
+        )
+
+    # ------------------------------------------------------------------ seeding
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.rng.manual_seed(int(seed))
+
+    # ------------------------------------------------------------------ actions
+    def check_action(self, action: torch.Tensor | None) -> torch.Tensor:
+        """Validate an action batch and bring it to the env's device/dtype.
+
+        Continuous actions are clipped to [-1, 1]; NaN/inf, a wrong shape or a
+        non-floating dtype raise. Discrete actions must be integers in [0, n).
+        """
+        B = tuple(self.batch_size)
+        name = self.env_id or type(self).__name__
+        if action is None:
+            raise KeyError(f"{name}: the input tensordict has no 'action' entry")
+        if not isinstance(action, torch.Tensor):
+            action = torch.as_tensor(np.asarray(action))
+        if self.discrete:
+            expected = f"shape {B} with integer values in [0, {self.n_actions - 1}]"
+            if action.dtype == torch.bool or action.is_floating_point() or action.is_complex():
+                raise TypeError(f"{name}: action must be an integer tensor of {expected}, got dtype {action.dtype}")
+            if tuple(action.shape) != B:
+                raise ValueError(f"{name}: action must have {expected}, got shape {tuple(action.shape)}")
+            action = action.to(device=self.device, dtype=torch.int64)
+            if self.check_actions and bool(((action < 0) | (action >= self.n_actions)).any()):
+                raise ValueError(f"{name}: action values must be in [0, {self.n_actions - 1}], got {action.tolist()}")
+            return action
+        shape = (*B, self.n_actions)
+        expected = f"shape {shape} with values in [-1, 1]"
+        if not action.is_floating_point():
+            raise TypeError(f"{name}: action must be a floating tensor of {expected}, got dtype {action.dtype}")
+        if tuple(action.shape) != shape:
+            raise ValueError(f"{name}: action must have {expected}, got shape {tuple(action.shape)}")
+        action = action.to(device=self.device, dtype=self.dtype)
+        if self.check_actions and not bool(torch.isfinite(action).all()):
+            raise ValueError(f"{name}: action contains NaN or inf; expected {expected}")
+        # Out-of-range values are clipped to the spec rather than rejected: exploration
+        # noise routinely leaves the box and the benchmark's actuators saturate.
+        return action.clamp(-1.0, 1.0)
+
+    # ------------------------------------------------------------------ TorchRL API
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None:
+            mask = tensordict.get("_reset", None)
+        with torch.no_grad():
+            if mask is not None:
+                mask = mask.reshape(self.batch_size).to(self.device)
+            init = self.initial_state(mask)
+            if mask is None or self._state is None:
+                self._state = init
+                self._count = torch.zeros_like(self._count)
+            else:
+                self._state = where_members(mask, init, self._state)
+                self._count = torch.where(mask, torch.zeros_like(self._count), self._count)
+            obs = self.observe(self._state)
+        self._obs = obs
+        if self.record_history:
+            member = self.render_index
+            if mask is None or bool(mask[member]):
+                self.history = [self._member_state(member)]
+        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
+        return TensorDict(
+            {"observation": obs, "done": false, "terminated": false.clone(), "truncated": false.clone()},
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before step()")
+        action = self.check_action(tensordict.get("action", None))
+        stepping = tensordict.get("_step", None)
+        old = self._state
+        with torch.no_grad():
+            new, reward = self.advance(old, action, self._count)
+            obs = self.observe(new)
+            reward = reward.reshape(self.n_envs)
+            ok = _finite_members(obs) & torch.isfinite(reward) & ~self.out_of_bounds(new)
+            for value in new.values():
+                if value.is_floating_point() or value.is_complex():
+                    ok = ok & _finite_members(value)
+            # A member that left its bounds keeps its last finite state and observation
+            # and ends its episode; the others are untouched by the selection.
+            new = where_members(ok, new, old)
+            obs = torch.where(ok[:, None], obs, self._obs)
+            reward = torch.where(ok, reward, torch.full_like(reward, self.blowup_reward))
+            count = self._count + 1
+            if stepping is not None:
+                stepping = stepping.reshape(self.batch_size).to(self.device)
+                new = where_members(stepping, new, old)
+                obs = torch.where(stepping[:, None], obs, self._obs)
+                count = torch.where(stepping, count, self._count)
+        self._state, self._obs, self._count = new, obs, count
+        if self.record_history:
+            self.history.append(self._member_state(self.render_index))
+        terminated = (~ok)[:, None]
+        truncated = (count >= self.episode_length)[:, None]
+        return TensorDict(
+            {
+                "observation": obs,
+                "reward": reward[:, None],
+                "done": terminated | truncated,
+                "terminated": terminated,
+                "truncated": truncated,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    # ------------------------------------------------------------------ rendering
+    def _member_state(self, index: int) -> State:
+        return {k: v[index].detach().clone() for k, v in self._state.items()}
+
+    def render(self) -> np.ndarray:
+        """An RGB frame (``H x W x 3`` uint8) of member ``render_index``.
+
+        With ``record_history=True`` the frame shows the episode so far (trajectories,
+        space-time diagrams); without it, only the current state.
+        """
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before render()")
+        history = self.history if self.record_history and self.history else [
+            self._member_state(self.render_index)
+        ]
+        history = [{k: v.cpu() for k, v in s.items()} for s in history]
+        return self.render_frame(history)
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(id={self.env_id!r}, batch_size={tuple(self.batch_size)}, "
+            f"device={self.device}, dtype={self.dtype}, params={self.params})"
+        )

@@ -1,0 +1,1 @@
+"""One module per BEACON environment: a Params dataclass, the right-hand side, the env."""

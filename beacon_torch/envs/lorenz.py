@@ -1,0 +1,89 @@
+"""lorenz-v0: keep the Lorenz attractor in the x < 0 lobe (Beintema et al. 2020).
+
+    dx/dt = sigma (y - x)
+    dy/dt = x (rho - z) - y + u
+    dz/dt = x y - beta z
+
+One low-storage RK4 step of dt = 0.05 per action, 500 actions, start (10, 10, 10).
+The forcing u is -1, 0 or +1 (discrete actions 0, 1, 2) in ``lorenz-v0`` and any value in
+[-1, 1] in ``lorenz-continuous-v0``. Reward +1 for each step that ends with x < 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, State
+from beacon_torch.numerics import lsrk4_step
+from beacon_torch.params import param
+
+DT = 0.05
+EPISODE_LENGTH = 500
+START = (10.0, 10.0, 10.0)
+
+
+@dataclass(frozen=True)
+class LorenzParams:
+    sigma: float = param(10.0, low=0.0, high=1e3, low_open=True, doc="Prandtl-like ratio")
+    rho: float = param(28.0, low=0.0, high=1e6, low_open=True, doc="Rayleigh-number ratio")
+    beta: float = param(8.0 / 3.0, low=0.0, high=1e3, low_open=True, doc="geometric factor")
+
+
+def lorenz_rhs(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> torch.Tensor:
+    """Time derivative of the forced Lorenz system; ``xyz`` is ``[B, 3]``, ``u`` ``[B]``."""
+    x, y, z = xyz.unbind(-1)
+    return torch.stack((p.sigma * (y - x), x * (p.rho - z) - y + u, x * y - p.beta * z), -1)
+
+
+class LorenzEnv(FlowEnv):
+    """Batched lorenz-v0 (discrete forcing in {-1, 0, +1})."""
+
+    env_id = "lorenz-v0"
+    Params = LorenzParams
+    episode_length = EPISODE_LENGTH
+    n_obs = 6
+    n_actions = 3
+    discrete = True
+
+    def forcing(self, action: torch.Tensor) -> torch.Tensor:
+        return (action - 1).to(self.dtype)
+
+    def null_action(self) -> torch.Tensor:
+        return torch.ones(self.batch_size, dtype=torch.int64, device=self.device)
+
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        xyz = self.tensor(START).expand(self.n_envs, 3).clone()
+        return {"xyz": xyz, "u": torch.zeros_like(xyz[:, 0])}
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        u = self.forcing(action)
+        xyz = lsrk4_step(lambda s, t: lorenz_rhs(s, u, self.params), state["xyz"], 0.0, DT)
+        reward = (xyz[:, 0] < 0).to(self.dtype)
+        return {"xyz": xyz, "u": u}, reward
+
+    def observe(self, state: State) -> torch.Tensor:
+        xyz = state["xyz"]
+        return torch.cat((xyz, lorenz_rhs(xyz, state["u"], self.params)), -1)
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import lorenz_frame
+
+        xyz = torch.stack([s["xyz"] for s in history]).double().numpy()
+        return lorenz_frame(xyz, float(history[-1]["u"]), t=DT * (len(history) - 1))
+
+
+class LorenzContinuousEnv(LorenzEnv):
+    """lorenz-continuous-v0: the same system with a forcing u = action in [-1, 1]."""
+
+    env_id = "lorenz-continuous-v0"
+    n_actions = 1
+    discrete = False
+
+    def forcing(self, action: torch.Tensor) -> torch.Tensor:
+        return action[:, 0]
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)

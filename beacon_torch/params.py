@@ -1,0 +1,157 @@
+"""Physical parameters of an environment: declaration and validation.
+
+Each env declares a frozen dataclass whose fields are made with :func:`param`; the field
+metadata says which values are admissible. :func:`resolve_params` turns the user's
+keyword arguments into an instance of that dataclass, rejecting unknown names, wrong
+types, non-finite and out-of-range values with an error that names the parameter.
+
+A value is either a scalar, shared by the whole batch, or one value per batch member
+(a 1-D sequence, array or tensor of the batch's length). Per-member values become tensors
+on the env's device and dtype; scalars stay Python numbers so that the kernels broadcast
+them for free.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from typing import Any
+
+import numpy as np
+import torch
+
+_KINDS = ("real", "int", "complex")
+
+
+def param(
+    default: Any,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    kind: str = "real",
+    per_member: bool = True,
+    doc: str = "",
+) -> Any:
+    """Declare one parameter of an env's ``Params`` dataclass.
+
+    ``low``/``high`` bound the value (the modulus, for complex parameters); ``*_open``
+    excludes the bound itself. ``per_member=False`` forbids a per-member sequence, for
+    parameters that fix the grid or the number of actuators.
+    """
+    if kind not in _KINDS:
+        raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
+    meta = dict(
+        low=low,
+        high=high,
+        low_open=low_open,
+        high_open=high_open,
+        kind=kind,
+        per_member=per_member,
+        doc=doc,
+    )
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def describe(params_cls: type) -> list[dict[str, Any]]:
+    """Name, default, admissible range and description of each parameter (for docs/CLI)."""
+    rows = []
+    for f in dataclasses.fields(params_cls):
+        m = f.metadata
+        rows.append(dict(name=f.name, default=f.default, range=_range_text(m), doc=m["doc"]))
+    return rows
+
+
+def _range_text(m) -> str:
+    lo = "-inf" if m["low"] is None else f"{m['low']:g}"
+    hi = "inf" if m["high"] is None else f"{m['high']:g}"
+    left = "(" if (m["low_open"] or m["low"] is None) else "["
+    right = ")" if (m["high_open"] or m["high"] is None) else "]"
+    text = f"{left}{lo}, {hi}{right}"
+    return f"|value| in {text}" if m["kind"] == "complex" else text
+
+
+def _check_scalar(name: str, value: Any, m, where: str = "") -> complex | float | int:
+    kind = m["kind"]
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"parameter {name!r}{where} must be a {kind} number, got a bool")
+    if kind == "complex":
+        if not isinstance(value, numbers.Complex):
+            raise TypeError(f"parameter {name!r}{where} must be a complex number, got {type(value).__name__}")
+        value = complex(value)
+        finite = math.isfinite(value.real) and math.isfinite(value.imag)
+        size = abs(value)
+    elif kind == "int":
+        if not isinstance(value, numbers.Integral):
+            if isinstance(value, numbers.Real) and float(value).is_integer():
+                value = int(value)
+            else:
+                raise TypeError(f"parameter {name!r}{where} must be an integer, got {value!r}")
+        value = int(value)
+        finite, size = True, value
+    else:
+        if not isinstance(value, numbers.Real):
+            raise TypeError(f"parameter {name!r}{where} must be a real number, got {type(value).__name__}")
+        value = float(value)
+        finite, size = math.isfinite(value), value
+    if not finite:
+        raise ValueError(f"parameter {name!r}{where} must be finite, got {value!r}")
+    low, high = m["low"], m["high"]
+    too_low = low is not None and (size <= low if m["low_open"] else size < low)
+    too_high = high is not None and (size >= high if m["high_open"] else size > high)
+    if too_low or too_high:
+        raise ValueError(f"parameter {name!r}{where} must be in {_range_text(m)}, got {value!r}")
+    return value
+
+
+def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
+    if isinstance(value, torch.Tensor) and value.ndim == 0:
+        value = value.item()
+    elif isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"parameter {name!r} must be a {m['kind']} number, got a string")
+    if isinstance(value, (torch.Tensor, np.ndarray, list, tuple)):
+        if not m["per_member"]:
+            raise TypeError(f"parameter {name!r} must be one number for the whole batch, got a sequence")
+        values = value.detach().cpu().tolist() if isinstance(value, torch.Tensor) else np.asarray(value).tolist()
+        if np.ndim(values) != 1 or len(values) != n:
+            shape = tuple(np.shape(values))
+            raise ValueError(
+                f"parameter {name!r} must be a number or one value per batch member "
+                f"(shape ({n},)), got shape {shape}"
+            )
+        checked = [_check_scalar(name, v, m, f"[{i}]") for i, v in enumerate(values)]
+        if m["kind"] == "complex":
+            cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
+            return torch.tensor(checked, dtype=cdtype, device=device)
+        if m["kind"] == "int":
+            return torch.tensor(checked, dtype=torch.int64, device=device)
+        return torch.tensor(checked, dtype=dtype, device=device)
+    return _check_scalar(name, value, m)
+
+
+def resolve_params(
+    params_cls: type,
+    overrides: dict[str, Any],
+    *,
+    batch_size: int,
+    device: torch.device,
+    dtype: torch.dtype,
+    env_id: str = "",
+) -> Any:
+    """Validate ``overrides`` against ``params_cls`` and return the params instance."""
+    fields = {f.name: f for f in dataclasses.fields(params_cls)}
+    unknown = sorted(set(overrides) - set(fields))
+    if unknown:
+        label = f" of {env_id}" if env_id else ""
+        raise TypeError(
+            f"unknown parameter {unknown[0]!r}{label}; the parameters are: {', '.join(fields)}"
+        )
+    values = {}
+    for name, f in fields.items():
+        value = overrides.get(name, f.default)
+        values[name] = _check_value(name, value, f.metadata, batch_size, device, dtype)
+    return params_cls(**values)

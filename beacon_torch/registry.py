@@ -1,0 +1,48 @@
+"""Environment ids and their classes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from beacon_torch.base import FlowEnv
+from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
+from beacon_torch.envs.vortex import VortexEnv
+
+ENVS: dict[str, type[FlowEnv]] = {
+    cls.env_id: cls for cls in (LorenzEnv, LorenzContinuousEnv, VortexEnv)
+}
+
+
+def list_envs() -> list[str]:
+    """The registered environment ids, sorted."""
+    return sorted(ENVS)
+
+
+def env_class(env_id: str) -> type[FlowEnv]:
+    if not isinstance(env_id, str):
+        raise TypeError(f"env id must be a string, got {type(env_id).__name__}")
+    try:
+        return ENVS[env_id]
+    except KeyError:
+        raise ValueError(
+            f"unknown env id {env_id!r}; available: {', '.join(list_envs())}"
+        ) from None
+
+
+def make(
+    env_id: str,
+    batch_size: int = 1,
+    *,
+    device: Any = "cpu",
+    dtype: Any = "float32",
+    seed: int | None = None,
+    **params: Any,
+) -> FlowEnv:
+    """Build a batched BEACON environment.
+
+    ``batch_size`` members are stepped together; ``device`` and ``dtype`` (float32 or
+    float64) place the state; ``seed`` seeds the env's own generator; the remaining
+    keyword arguments are the env's physical parameters (see ``docs/envs``) and the
+    base options ``check_actions`` and ``record_history``.
+    """
+    return env_class(env_id)(batch_size, device=device, dtype=dtype, seed=seed, **params)
