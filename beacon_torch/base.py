@@ -141,6 +141,18 @@ class FlowEnv(EnvBase):
         return torch.zeros(self.batch_size, dtype=torch.bool, device=self.device)
 
     # ------------------------------------------------------------------ helpers
+    def random_action(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """A uniformly random action batch (from ``generator``, not the env's own, so
+        that a random policy does not shift the env's random stream)."""
+        if self.discrete:
+            return torch.randint(
+                self.n_actions, tuple(self.batch_size), generator=generator, device=self.device
+            )
+        u = torch.rand(
+            (self.n_envs, self.n_actions), generator=generator, dtype=self.dtype, device=self.device
+        )
+        return 2.0 * u - 1.0
+
     def tensor(self, value: Any) -> torch.Tensor:
         """A tensor on the env's device and dtype."""
         return torch.as_tensor(value, dtype=self.dtype, device=self.device)
@@ -274,6 +286,8 @@ class FlowEnv(EnvBase):
                 stepping = stepping.reshape(self.batch_size).to(self.device)
                 new = where_members(stepping, new, old)
                 obs = torch.where(stepping[:, None], obs, self._obs)
+                reward = torch.where(stepping, reward, torch.zeros_like(reward))
+                ok = ok | ~stepping
                 count = torch.where(stepping, count, self._count)
         self._state, self._obs, self._count = new, obs, count
         if self.record_history:

@@ -47,10 +47,10 @@ class VortexParams:
     re: float = param(50.0, low=0.0, high=1e4, low_open=True, doc="Reynolds number")
     w: float = param(50.0, low=0.0, high=1e6, doc="weight of the actuation cost in the reward")
     a0: complex = param(
-        complex(-0.00385, -0.00378), high=10.0, kind="complex", doc="initial flow amplitude A0"
+        complex(-0.00385, -0.00378), low=0.0, high=10.0, kind="complex", doc="initial flow amplitude A0"
     )
     y0: complex = param(
-        complex(0.00118, -0.00131), high=10.0, kind="complex", doc="initial cylinder amplitude Y0"
+        complex(0.00118, -0.00131), low=0.0, high=10.0, kind="complex", doc="initial cylinder amplitude Y0"
     )
 
 

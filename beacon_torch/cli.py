@@ -1,0 +1,169 @@
+"""The ``beacon-torch`` command.
+
+    beacon-torch list                 the environment ids and their parameters
+    beacon-torch run ENV [options]    an uncontrolled and a random-policy episode:
+                                      scores, a plot, optionally an animation
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+
+from beacon_torch import evaluate
+from beacon_torch.params import describe
+from beacon_torch.registry import ENVS, env_class, list_envs, make
+
+
+class CliError(Exception):
+    """An error of the user's arguments: reported as one line, no traceback."""
+
+
+def _parse_value(text: str) -> Any:
+    for cast in (int, float, complex):
+        try:
+            return cast(text.replace(" ", ""))
+        except ValueError:
+            pass
+    if "," in text:
+        return [_parse_value(t) for t in text.split(",")]
+    return text
+
+
+def _parse_params(items: Sequence[str]) -> dict[str, Any]:
+    params = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise CliError(f"--param expects NAME=VALUE, got {item!r}")
+        params[name.strip()] = _parse_value(value.strip())
+    return params
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    for env_id in list_envs():
+        cls = ENVS[env_id]
+        kind = f"{cls.n_actions} discrete actions" if cls.discrete else f"{cls.n_actions}-D continuous action"
+        print(f"{env_id}: {kind}, {cls.n_obs} observations, {cls.episode_length} steps")
+        for row in describe(cls.Params):
+            print(f"    {row['name']} = {row['default']!r}  {row['range']}  {row['doc']}")
+    return 0
+
+
+def _plot_run(path: Path, env_id: str, null_rewards: torch.Tensor, rand_rewards: torch.Tensor) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    steps = torch.arange(1, null_rewards.shape[-1] + 1).numpy()
+    ax.plot(steps, null_rewards[0].cumsum(-1).numpy(), "k--", label="uncontrolled")
+    cum = rand_rewards.cumsum(-1)
+    mean, std = cum.mean(0).numpy(), cum.std(0, unbiased=False).numpy()
+    ax.plot(steps, mean, color="C0", label=f"random policy (mean of {cum.shape[0]})")
+    ax.fill_between(steps, mean - std, mean + std, color="C0", alpha=0.3, lw=0)
+    ax.set_xlabel("actions")
+    ax.set_ylabel("cumulative reward")
+    ax.set_title(env_id)
+    ax.grid(alpha=0.4)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    env_class(args.env)  # an unknown id fails here, before anything is built
+    if args.batch_size < 1:
+        raise CliError(f"--batch-size must be a positive integer, got {args.batch_size}")
+    params = _parse_params(args.param)
+    kwargs = dict(device=args.device, dtype=args.dtype, seed=args.seed, **params)
+    out = Path(args.out or f"runs/{args.env}")
+    out.mkdir(parents=True, exist_ok=True)
+
+    results = {}
+    rewards = {}
+    for name, batch in (("uncontrolled", 1), ("random", args.batch_size)):
+        env = make(args.env, batch, **kwargs)
+        policy = evaluate.null_policy(env) if name == "uncontrolled" else evaluate.random_policy(env, args.seed)
+        start = time.perf_counter()
+        rollout = evaluate.episode(env, policy)
+        elapsed = time.perf_counter() - start
+        score = evaluate.scores(rollout)
+        rewards[name] = rollout["next", "reward"][..., 0].to(torch.float64).cpu()
+        results[name] = dict(
+            members=batch,
+            mean=score.mean().item(),
+            std=score.std(unbiased=False).item(),
+            min=score.min().item(),
+            max=score.max().item(),
+            transitions_per_s=batch * rollout.shape[-1] / elapsed,
+        )
+        r = results[name]
+        spread = f" +- {r['std']:.4g} (min {r['min']:.4g}, max {r['max']:.4g})" if batch > 1 else ""
+        print(
+            f"{args.env} {name:>12}: score {r['mean']:.6g}{spread}"
+            f"  [{batch} x {rollout.shape[-1]} steps, {r['transitions_per_s']:.0f} transitions/s]"
+        )
+
+    plot = out / "run.png"
+    _plot_run(plot, args.env, rewards["uncontrolled"], rewards["random"])
+    (out / "scores.json").write_text(json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2))
+    print(f"plot: {plot}\nscores: {out / 'scores.json'}")
+
+    if args.gif:
+        from beacon_torch.render import save_animation
+
+        env = make(args.env, 1, record_history=True, **kwargs)
+        every = args.gif_every or max(1, env.episode_length // 100)
+        frames = []
+        env.reset()
+        frames.append(env.render())
+
+        def grab(step: int) -> None:
+            if step % every == 0:
+                frames.append(env.render())
+
+        evaluate.episode(env, evaluate.null_policy(env), frame_hook=grab)
+        gif = save_animation(frames, args.gif)
+        print(f"animation ({len(frames)} frames of the uncontrolled episode): {gif}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="beacon-torch", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("list", help="list the environments and their parameters").set_defaults(func=cmd_list)
+
+    run = sub.add_parser("run", help="uncontrolled and random-policy episodes of an env")
+    run.add_argument("env", help="environment id (see 'beacon-torch list')")
+    run.add_argument("--batch-size", type=int, default=16, help="members of the random-policy batch")
+    run.add_argument("--seed", type=int, default=0)
+    run.add_argument("--device", default="cpu")
+    run.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    run.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="an env parameter (repeatable)")
+    run.add_argument("--out", help="output directory (default runs/ENV)")
+    run.add_argument("--gif", metavar="PATH", help="write an animation of the uncontrolled episode")
+    run.add_argument("--gif-every", type=int, default=0, help="render every N-th step (default: about 100 frames)")
+    run.set_defaults(func=cmd_run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (CliError, ValueError, TypeError) as err:
+        print(f"beacon-torch: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""Whole-episode rollouts and their scores."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from tensordict import TensorDictBase
+
+from beacon_torch.base import FlowEnv
+
+Policy = Callable[[TensorDictBase], TensorDictBase]
+
+
+def null_policy(env: FlowEnv) -> Policy:
+    """The benchmark's "no control" action, held for the whole episode."""
+    return lambda td: td.set("action", env.null_action())
+
+
+def random_policy(env: FlowEnv, seed: int = 0) -> Policy:
+    """Uniformly random actions from a generator of its own, seeded by ``seed``."""
+    g = torch.Generator(device=env.device)
+    g.manual_seed(seed)
+    return lambda td: td.set("action", env.random_action(g))
+
+
+def episode(env: FlowEnv, policy: Policy, *, frame_hook: Callable[[int], None] | None = None) -> TensorDictBase:
+    """One full episode of every batch member, as TorchRL's ``rollout`` returns it
+    (``[batch, episode_length]``). ``frame_hook(step)`` runs after each step (rendering)."""
+    callback = None
+    if frame_hook is not None:
+        callback = lambda env_, td: frame_hook(int(env_.step_count[env_.render_index]))  # noqa: E731
+    return env.rollout(
+        env.episode_length,
+        policy=policy,
+        break_when_any_done=False,
+        # members whose episode ended (a blow-up) stop stepping; the others go on
+        break_when_all_done=True,
+        callback=callback,
+    )
+
+
+def scores(rollout: TensorDictBase) -> torch.Tensor:
+    """Episode score (sum of rewards up to the end of the first episode) of each member,
+    in float64. Steps after a member's end repeat its last entry in TorchRL's rollout
+    and are not counted."""
+    reward = rollout["next", "reward"][..., 0].to(torch.float64)
+    done = rollout["next", "done"][..., 0].to(torch.int64)
+    in_episode = (done.cumsum(-1) - done) == 0
+    return (reward * in_episode).sum(-1)

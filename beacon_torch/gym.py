@@ -1,0 +1,196 @@
+"""Gymnasium interop: ``import beacon_torch.gym`` registers every env as ``beacon/<id>``.
+
+``gymnasium.make("beacon/lorenz-v0")`` gives :class:`BeaconGymEnv`, a standard single
+environment with numpy observations over a batch-of-one :class:`~beacon_torch.FlowEnv`.
+``gymnasium.make_vec("beacon/lorenz-v0", num_envs=64)`` gives :class:`BeaconVectorEnv`,
+which steps all copies in one batched tensor operation (next-step autoreset, gymnasium's
+default). Environment parameters pass through as keyword arguments of either call.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+from tensordict import TensorDict
+
+from beacon_torch.base import FlowEnv
+from beacon_torch.registry import list_envs, make
+
+NAMESPACE = "beacon"
+RENDER_FPS = 20
+
+
+def gym_id(env_id: str) -> str:
+    return f"{NAMESPACE}/{env_id}"
+
+
+def _spaces(env: FlowEnv) -> tuple[spaces.Space, spaces.Space]:
+    np_dtype = np.float64 if env.dtype == torch.float64 else np.float32
+    obs = spaces.Box(-np.inf, np.inf, shape=(env.n_obs,), dtype=np_dtype)
+    if env.discrete:
+        act = spaces.Discrete(env.n_actions)
+    else:
+        act = spaces.Box(-1.0, 1.0, shape=(env.n_actions,), dtype=np_dtype)
+    return obs, act
+
+
+def _batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
+    """numpy/python actions of a gymnasium caller as the env's action batch."""
+    a = np.asarray(action)
+    if env.discrete:
+        if a.dtype.kind not in "iu":
+            raise TypeError(
+                f"{env.env_id}: action must be an integer in [0, {env.n_actions - 1}], got {action!r}"
+            )
+        if a.size != batch:
+            raise ValueError(f"{env.env_id}: expected {batch} discrete action(s), got shape {a.shape}")
+        return torch.as_tensor(a.reshape(batch).astype(np.int64))
+    if a.dtype.kind not in "fiu":
+        raise TypeError(f"{env.env_id}: action must be floats in [-1, 1], got dtype {a.dtype}")
+    expected = (batch, env.n_actions) if batch > 1 else (env.n_actions,)
+    if a.shape != expected and a.shape != (batch, env.n_actions):
+        raise ValueError(f"{env.env_id}: action must have shape {expected}, got {a.shape}")
+    return torch.as_tensor(a.reshape(batch, env.n_actions).astype(np.float64))
+
+
+class BeaconGymEnv(gymnasium.Env):
+    """A single BEACON environment behind the standard ``gymnasium.Env`` interface."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
+
+    def __init__(self, env_id: str, render_mode: str | None = None, dtype: Any = "float32", **params: Any):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        self.env = make(env_id, batch_size=1, dtype=dtype, record_history=render_mode is not None, **params)
+        self.observation_space, self.action_space = _spaces(self.env)
+        self._np_dtype = self.observation_space.dtype
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.env.set_seed(seed)
+        td = self.env.reset()
+        return td["observation"][0].cpu().numpy().astype(self._np_dtype), {}
+
+    def step(self, action):
+        a = _batched_action(self.env, action, 1)
+        td = self.env.step(TensorDict({"action": a}, batch_size=self.env.batch_size))["next"]
+        obs = td["observation"][0].cpu().numpy().astype(self._np_dtype)
+        return (
+            obs,
+            float(td["reward"][0, 0]),
+            bool(td["terminated"][0, 0]),
+            bool(td["truncated"][0, 0]),
+            {},
+        )
+
+    def render(self):
+        if self.render_mode == "rgb_array":
+            return self.env.render()
+        return None
+
+
+class BeaconVectorEnv(VectorEnv):
+    """``num_envs`` copies of a BEACON env stepped as one batch (next-step autoreset).
+
+    As in gymnasium's own vector envs, the step after a copy's episode ended resets that
+    copy (its action is ignored) and returns its first observation with zero reward.
+    """
+
+    metadata = {
+        "render_modes": ["rgb_array"],
+        "render_fps": RENDER_FPS,
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+    }
+
+    def __init__(
+        self,
+        env_id: str,
+        num_envs: int = 1,
+        render_mode: str | None = None,
+        dtype: Any = "float32",
+        device: Any = "cpu",
+        **params: Any,
+    ):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.env = make(
+            env_id,
+            batch_size=num_envs,
+            dtype=dtype,
+            device=device,
+            record_history=render_mode is not None,
+            **params,
+        )
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.single_observation_space, self.single_action_space = _spaces(self.env)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._np_dtype = self.single_observation_space.dtype
+        self._autoreset = np.zeros(num_envs, dtype=bool)
+
+    def _obs(self, td) -> np.ndarray:
+        return td["observation"].cpu().numpy().astype(self._np_dtype)
+
+    def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
+        if isinstance(seed, (list, tuple)):
+            seed = seed[0]
+        super().reset(seed=seed)
+        if seed is not None:
+            self.env.set_seed(seed)
+        mask = None if options is None else options.get("reset_mask")
+        if mask is None:
+            td = self.env.reset()
+            self._autoreset[:] = False
+        else:
+            mask = np.asarray(mask, dtype=bool).reshape(self.num_envs)
+            td = self.env.reset(TensorDict({"_reset": torch.as_tensor(mask)[:, None]}, batch_size=self.env.batch_size))
+            self._autoreset[mask] = False
+        return self._obs(td), {}
+
+    def step(self, actions):
+        a = _batched_action(self.env, actions, self.num_envs)
+        td = self.env.step(TensorDict({"action": a}, batch_size=self.env.batch_size))["next"]
+        obs = self._obs(td)
+        reward = td["reward"][:, 0].cpu().numpy().astype(np.float64)
+        terminated = td["terminated"][:, 0].cpu().numpy().copy()
+        truncated = td["truncated"][:, 0].cpu().numpy().copy()
+        if self._autoreset.any():
+            mask = torch.as_tensor(self._autoreset)[:, None]
+            reset = self.env.reset(TensorDict({"_reset": mask}, batch_size=self.env.batch_size))
+            obs[self._autoreset] = self._obs(reset)[self._autoreset]
+            reward[self._autoreset] = 0.0
+            terminated[self._autoreset] = False
+            truncated[self._autoreset] = False
+        self._autoreset = terminated | truncated
+        return obs, reward, terminated, truncated, {}
+
+    def render(self):
+        if self.render_mode == "rgb_array":
+            return self.env.render()
+        return None
+
+
+def register() -> None:
+    """Register every BEACON env id with gymnasium (idempotent)."""
+    for env_id in list_envs():
+        name = gym_id(env_id)
+        if name in gymnasium.registry:
+            continue
+        gymnasium.register(
+            id=name,
+            entry_point="beacon_torch.gym:BeaconGymEnv",
+            vector_entry_point="beacon_torch.gym:BeaconVectorEnv",
+            kwargs={"env_id": env_id},
+        )
+
+
+register()

@@ -1,0 +1,117 @@
+"""Matplotlib frames of the environments and animations of episodes.
+
+Kept apart from the physics: the env modules hand plain numpy arrays to the drawing
+functions here. Figures are made with the object-oriented API on an Agg canvas, so
+rendering never touches pyplot's global state or needs a display.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+FRAME_SIZE = (6.4, 4.0)  # inches
+FRAME_DPI = 80
+ACTION_COLOR = "#d62728"
+
+
+def new_figure(size: tuple[float, float] = FRAME_SIZE, dpi: int = FRAME_DPI) -> Figure:
+    fig = Figure(figsize=size, dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def to_rgb(fig: Figure) -> np.ndarray:
+    """The figure as an ``H x W x 3`` uint8 array."""
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def action_bars(
+    ax,
+    values: Sequence[float],
+    labels: Sequence[str],
+    limits: Sequence[tuple[float, float]],
+) -> None:
+    """Vertical bars of the applied actions, each drawn within its own range.
+
+    A bar grows from zero when its range straddles zero (a signed forcing), else from
+    the bottom of its range (a gain).
+    """
+    n = len(values)
+    for i, (v, (lo, hi)) in enumerate(zip(values, limits)):
+        base = 0.0 if lo < 0.0 < hi else lo
+        frac = lambda x: (min(max(x, lo), hi) - lo) / (hi - lo)  # noqa: E731
+        ax.bar(i, 1.0, color="#eeeeee", edgecolor="#999999", width=0.6)
+        ax.bar(i, frac(v) - frac(base), bottom=frac(base), color=ACTION_COLOR, width=0.6)
+        ax.hlines(frac(base), i - 0.3, i + 0.3, color="#555555", lw=0.8)
+        ax.text(i, 1.03, f"{v:+.3g}", ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(range(n), labels, fontsize=8)
+    ax.set_ylim(0.0, 1.15)
+    ax.set_yticks([])
+    ax.set_xlim(-0.6, n - 0.4)
+    ax.set_title("action", fontsize=9)
+
+
+def lorenz_frame(xyz: np.ndarray, u: float, t: float) -> np.ndarray:
+    """The attractor trajectory so far (``xyz``: ``[T, 3]``) with the forcing bar."""
+    fig = new_figure()
+    ax = fig.add_axes((0.0, 0.0, 0.8, 0.92), projection="3d")
+    x, y, z = xyz.T
+    ax.plot(x, y, z, lw=0.7, color="#1f77b4")
+    color = "#2ca02c" if x[-1] < 0 else "#7f7f7f"
+    ax.scatter([x[-1]], [y[-1]], [z[-1]], color=color, s=30, depthshade=False)
+    ax.set_xlim(-25, 25)
+    ax.set_ylim(-30, 30)
+    ax.set_zlim(0, 50)
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    fig.suptitle(f"lorenz   t = {t:.2f}   x {'<' if x[-1] < 0 else '>='} 0", fontsize=10)
+    bars = fig.add_axes((0.84, 0.12, 0.13, 0.7))
+    action_bars(bars, [u], ["u"], [(-1.0, 1.0)])
+    return to_rgb(fig)
+
+
+def vortex_frame(ay: np.ndarray, k: float, phi: float, t: float) -> np.ndarray:
+    """The orbits of A and Y in their complex planes (``ay``: ``[T, 4]``) and the
+    gain and phase bars."""
+    fig = new_figure()
+    for j, (name, cols) in enumerate((("A", (0, 1)), ("Y", (2, 3)))):
+        ax = fig.add_axes((0.1 + 0.37 * j, 0.14, 0.27, 0.66))
+        re, im = ay[:, cols[0]], ay[:, cols[1]]
+        ax.plot(re, im, lw=0.7, color="#1f77b4")
+        ax.scatter([re[-1]], [im[-1]], color=ACTION_COLOR, s=20, zorder=3)
+        lim = max(1e-3, 1.1 * float(np.abs(ay[:, list(cols)]).max()))
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"Re {name}", fontsize=8)
+        ax.set_ylabel(f"Im {name}", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.ticklabel_format(style="sci", scilimits=(-2, 2))
+        ax.locator_params(nbins=4)
+        ax.set_title(f"{name}-plane", fontsize=9)
+    fig.suptitle(f"vortex   t = {t:.1f}", fontsize=10)
+    bars = fig.add_axes((0.83, 0.14, 0.15, 0.65))
+    action_bars(bars, [k, phi], ["k", "phi"], [(0.0, 0.3), (-math.pi, math.pi)])
+    return to_rgb(fig)
+
+
+def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20) -> Path:
+    """Write RGB frames to an animated GIF."""
+    from PIL import Image
+
+    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+    if not images:
+        raise ValueError("no frames to write")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    duration = max(1, round(1000 / fps))
+    images[0].save(path, save_all=True, append_images=images[1:], duration=duration, loop=0)
+    return path
