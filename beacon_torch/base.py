@@ -165,6 +165,14 @@ class FlowEnv(EnvBase):
         return self._state
 
     @property
+    def observation(self) -> torch.Tensor:
+        """The latest observation of every member (after a partial reset, TorchRL's
+        ``reset`` returns zeros for the members that were not reset; this does not)."""
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before reading the observation")
+        return self._obs
+
+    @property
     def step_count(self) -> torch.Tensor:
         """Actions taken in the current episode, per member."""
         return self._count

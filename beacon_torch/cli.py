@@ -127,10 +127,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         frames.append(env.render())
 
         def grab(step: int) -> None:
-            if step % every == 0:
+            if step % every == 0 and step < env.episode_length:
                 frames.append(env.render())
 
         evaluate.episode(env, evaluate.null_policy(env), frame_hook=grab)
+        frames.append(env.render())  # the end of the episode, whatever the stride
         gif = save_animation(frames, args.gif)
         print(f"animation ({len(frames)} frames of the uncontrolled episode): {gif}")
     return 0

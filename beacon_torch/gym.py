@@ -137,8 +137,8 @@ class BeaconVectorEnv(VectorEnv):
         self._np_dtype = self.single_observation_space.dtype
         self._autoreset = np.zeros(num_envs, dtype=bool)
 
-    def _obs(self, td) -> np.ndarray:
-        return td["observation"].cpu().numpy().astype(self._np_dtype)
+    def _obs(self) -> np.ndarray:
+        return self.env.observation.cpu().numpy().astype(self._np_dtype)
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
         if isinstance(seed, (list, tuple)):
@@ -148,25 +148,25 @@ class BeaconVectorEnv(VectorEnv):
             self.env.set_seed(seed)
         mask = None if options is None else options.get("reset_mask")
         if mask is None:
-            td = self.env.reset()
+            self.env.reset()
             self._autoreset[:] = False
         else:
             mask = np.asarray(mask, dtype=bool).reshape(self.num_envs)
-            td = self.env.reset(TensorDict({"_reset": torch.as_tensor(mask)[:, None]}, batch_size=self.env.batch_size))
+            self.env.reset(TensorDict({"_reset": torch.as_tensor(mask)[:, None]}, batch_size=self.env.batch_size))
             self._autoreset[mask] = False
-        return self._obs(td), {}
+        return self._obs(), {}
 
     def step(self, actions):
         a = _batched_action(self.env, actions, self.num_envs)
         td = self.env.step(TensorDict({"action": a}, batch_size=self.env.batch_size))["next"]
-        obs = self._obs(td)
+        obs = self._obs()
         reward = td["reward"][:, 0].cpu().numpy().astype(np.float64)
         terminated = td["terminated"][:, 0].cpu().numpy().copy()
         truncated = td["truncated"][:, 0].cpu().numpy().copy()
         if self._autoreset.any():
             mask = torch.as_tensor(self._autoreset)[:, None]
-            reset = self.env.reset(TensorDict({"_reset": mask}, batch_size=self.env.batch_size))
-            obs[self._autoreset] = self._obs(reset)[self._autoreset]
+            self.env.reset(TensorDict({"_reset": mask}, batch_size=self.env.batch_size))
+            obs[self._autoreset] = self._obs()[self._autoreset]
             reward[self._autoreset] = 0.0
             terminated[self._autoreset] = False
             truncated[self._autoreset] = False

@@ -1,0 +1,19 @@
+"""Regenerate the frames shown in the env pages: `.venv/bin/python docs/make_images.py`."""
+
+from pathlib import Path
+
+from PIL import Image
+
+import beacon_torch
+from beacon_torch import evaluate
+
+OUT = Path(__file__).parent / "img"
+
+if __name__ == "__main__":
+    OUT.mkdir(exist_ok=True)
+    for env_id, steps in (("lorenz-v0", 300), ("vortex-v0", 300)):
+        env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True)
+        policy = evaluate.random_policy(env, seed=0)
+        env.rollout(steps, policy=policy)
+        Image.fromarray(env.render()).save(OUT / f"{env_id}.png")
+        print(OUT / f"{env_id}.png")

@@ -1,0 +1,46 @@
+"""The beacon-torch command."""
+
+import json
+import subprocess
+import sys
+
+from PIL import Image
+
+from beacon_torch.cli import main
+
+
+def test_run_reports_scores_and_writes_a_plot(tmp_path, capsys):
+    assert main(["run", "lorenz-v0", "--batch-size", "4", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "uncontrolled: score 207" in out
+    scores = json.loads((tmp_path / "scores.json").read_text())
+    assert scores["uncontrolled"]["mean"] == 207.0
+    assert scores["random"]["members"] == 4
+    with Image.open(tmp_path / "run.png") as im:
+        assert im.size[0] > 300
+
+
+def test_run_with_parameters_and_gif(tmp_path):
+    gif = tmp_path / "v.gif"
+    args = ["run", "vortex-v0", "--batch-size", "2", "--out", str(tmp_path), "--param", "w=10", "--gif", str(gif), "--gif-every", "200"]
+    assert main(args) == 0
+    with Image.open(gif) as im:
+        assert im.n_frames == 1 + 800 // 200
+    assert json.loads((tmp_path / "scores.json").read_text())["params"] == {"w": "10"}
+
+
+def test_bad_arguments_get_one_line(tmp_path, capsys):
+    assert main(["run", "nope-v0", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "unknown env id 'nope-v0'" in err
+    assert main(["run", "vortex-v0", "--param", "re=-4", "--out", str(tmp_path)]) == 2
+    assert "'re'" in capsys.readouterr().err
+    assert main(["run", "vortex-v0", "--param", "re", "--out", str(tmp_path)]) == 2
+    assert "NAME=VALUE" in capsys.readouterr().err
+    assert main(["run", "vortex-v0", "--batch-size", "0", "--out", str(tmp_path)]) == 2
+    assert "--batch-size" in capsys.readouterr().err
+
+
+def test_list_and_console_script():
+    proc = subprocess.run([sys.executable, "-m", "beacon_torch.cli", "list"], capture_output=True, text=True, check=True)
+    assert "lorenz-v0: 3 discrete actions" in proc.stdout and "rho = 28.0" in proc.stdout

@@ -1,0 +1,238 @@
+"""Behaviour of the batched TorchRL environments that users rely on."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded, Categorical, Unbounded
+from torchrl.envs.utils import check_env_specs
+
+import beacon_torch
+from beacon_torch import evaluate
+
+from conftest import run_actions
+
+
+@pytest.mark.parametrize("batch_size", [1, 8])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_check_env_specs(env_id, batch_size, dtype):
+    env = beacon_torch.make(env_id, batch_size, dtype=dtype, seed=0)
+    check_env_specs(env, break_when_any_done="both")
+
+
+def test_specs_have_the_documented_types_and_shapes(env_id):
+    env = beacon_torch.make(env_id, 5)
+    cls = type(env)
+    obs_spec = env.observation_spec["observation"]
+    assert isinstance(obs_spec, Unbounded) and obs_spec.shape == (5, cls.n_obs)
+    assert env.reward_spec.shape == (5, 1) and env.reward_spec.dtype == torch.float32
+    if cls.discrete:
+        assert isinstance(env.action_spec, Categorical)
+        assert env.action_spec.shape == (5,) and env.action_spec.space.n == cls.n_actions
+    else:
+        assert isinstance(env.action_spec, Bounded)
+        assert env.action_spec.shape == (5, cls.n_actions)
+        assert env.action_spec.space.low.min() == -1 and env.action_spec.space.high.max() == 1
+    for key in ("done", "terminated", "truncated"):
+        assert env.full_done_spec[key].shape == (5, 1)
+        assert env.full_done_spec[key].dtype == torch.bool
+
+
+def test_episode_truncates_at_its_length(env_id):
+    env = beacon_torch.make(env_id, 3)
+    r = evaluate.episode(env, evaluate.random_policy(env))
+    n = env.episode_length
+    assert r.shape == (3, n)
+    assert r["next", "truncated"][:, -1].all() and r["next", "done"][:, -1].all()
+    assert not r["next", "done"][:, :-1].any()
+    assert not r["next", "terminated"].any()
+    assert torch.isfinite(r["next", "observation"]).all() and torch.isfinite(r["next", "reward"]).all()
+    assert env.step_count.tolist() == [n] * 3
+
+
+def test_rollout_keeps_going_with_auto_reset(env_id):
+    env = beacon_torch.make(env_id, 2)
+    n = env.episode_length
+    r = env.rollout(n + 3, break_when_any_done=False)
+    assert r.shape == (2, n + 3)
+    assert env.step_count.tolist() == [3, 3]
+    # the step after truncation starts from the reset observation
+    first = env.reset()["observation"]
+    torch.testing.assert_close(r["observation"][:, n], first)
+
+
+def test_partial_reset_resets_only_the_masked_members(env_id):
+    env = beacon_torch.make(env_id, 4, dtype=torch.float64, seed=1)
+    td = env.reset()
+    start = td["observation"].clone()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(7):
+        td["action"] = env.random_action(g)
+        td = env.step(td)["next"]
+    before = {k: v.clone() for k, v in env.state.items()}
+    obs_before = td["observation"].clone()
+    mask = torch.tensor([True, False, True, False])
+    out = env.reset(td.clone().set("_reset", mask[:, None]))
+    for k, v in env.state.items():
+        torch.testing.assert_close(v[~mask], before[k][~mask], rtol=0, atol=0)
+    assert env.step_count.tolist() == [0, 7, 0, 7]
+    torch.testing.assert_close(out["observation"][mask], start[mask], rtol=0, atol=0)
+    torch.testing.assert_close(out["observation"][~mask], obs_before[~mask], rtol=0, atol=0)
+    assert not out["done"].any()
+
+
+def test_members_are_independent(env_id):
+    """A member's trajectory does not depend on what the other members do."""
+    env1 = beacon_torch.make(env_id, 1, dtype=torch.float64, seed=0)
+    env3 = beacon_torch.make(env_id, 3, dtype=torch.float64, seed=0)
+    g = torch.Generator().manual_seed(5)
+    actions3 = [env3.random_action(g) for _ in range(20)]
+    obs3, rew3 = run_actions(env3, actions3)
+    obs1, rew1 = run_actions(env1, [a[1:2] for a in actions3])
+    torch.testing.assert_close(obs1[0], obs3[1], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(rew1[0], rew3[1], rtol=1e-12, atol=1e-12)
+
+
+def test_same_seed_same_rollout_and_generator_is_per_instance(env_id):
+    a = beacon_torch.make(env_id, 4, seed=123)
+    b = beacon_torch.make(env_id, 4, seed=123)
+    ra = evaluate.episode(a, evaluate.random_policy(a, seed=9))
+    rb = evaluate.episode(b, evaluate.random_policy(b, seed=9))
+    assert (ra == rb).all()
+    # the env's generator is its own and set_seed re-seeds it
+    x = torch.rand(3, generator=a.rng)
+    a.set_seed(123)
+    assert torch.equal(torch.rand(3, generator=a.rng), torch.rand(3, generator=b.rng))
+    assert not torch.equal(x, torch.rand(3, generator=b.rng))
+
+
+def test_step_before_reset_is_an_error(env_id):
+    env = beacon_torch.make(env_id, 2)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(TensorDict({"action": env.null_action()}, batch_size=[2]))
+
+
+# ---------------------------------------------------------------- bad actions
+def _step(env, action):
+    env.reset()
+    if action.shape[:1] != env.batch_size:
+        # a TensorDict of the env's batch cannot even hold such an action; the env's
+        # checker still names the expected shape for callers that bypass TensorDicts
+        return env.check_action(action)
+    return env.step(TensorDict({"action": action}, batch_size=env.batch_size))
+
+
+@pytest.mark.parametrize("env_id", ["lorenz-v0"])
+@pytest.mark.parametrize(
+    "action, exc, words",
+    [
+        (torch.tensor([1, 1, 1]), ValueError, ["shape (2,)", "[0, 2]", "(3,)"]),
+        (torch.tensor([[1], [1]]), ValueError, ["shape (2,)"]),
+        (torch.tensor([1.0, 0.0]), TypeError, ["integer", "float32"]),
+        (torch.tensor([True, False]), TypeError, ["integer", "bool"]),
+        (torch.tensor([3, 0]), ValueError, ["[0, 2]", "[3, 0]"]),
+        (torch.tensor([0, -1]), ValueError, ["[0, 2]"]),
+    ],
+)
+def test_bad_discrete_actions(env_id, action, exc, words):
+    env = beacon_torch.make(env_id, 2)
+    with pytest.raises(exc) as info:
+        _step(env, action)
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+@pytest.mark.parametrize(
+    "env_id, action, exc, words",
+    [
+        ("vortex-v0", torch.zeros(2, 3), ValueError, ["(2, 2)", "[-1, 1]", "(2, 3)"]),
+        ("vortex-v0", torch.zeros(2), ValueError, ["(2, 2)"]),
+        ("vortex-v0", torch.zeros(2, 2, dtype=torch.int64), TypeError, ["floating", "int64"]),
+        ("vortex-v0", torch.tensor([[0.0, float("nan")], [0.0, 0.0]]), ValueError, ["NaN", "(2, 2)"]),
+        ("lorenz-continuous-v0", torch.tensor([[float("inf")], [0.0]]), ValueError, ["inf", "(2, 1)"]),
+    ],
+)
+def test_bad_continuous_actions(env_id, action, exc, words):
+    env = beacon_torch.make(env_id, 2)
+    with pytest.raises(exc) as info:
+        _step(env, action)
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+def test_missing_action_is_an_error():
+    env = beacon_torch.make("vortex-v0", 2)
+    env.reset()
+    with pytest.raises(KeyError, match="action"):
+        env.step(TensorDict({}, batch_size=[2]))
+
+
+@pytest.mark.parametrize("env_id", ["vortex-v0", "lorenz-continuous-v0"])
+def test_out_of_range_continuous_actions_are_clipped(env_id):
+    env = beacon_torch.make(env_id, 2, dtype=torch.float64)
+    n = env.n_actions
+    big = torch.tensor([[5.0] * n, [-7.0] * n], dtype=torch.float64)
+    edge = big.clamp(-1, 1)
+    obs_big, rew_big = run_actions(env, [big] * 5)
+    obs_edge, rew_edge = run_actions(env, [edge] * 5)
+    assert torch.equal(obs_big, obs_edge) and torch.equal(rew_big, rew_edge)
+
+
+def test_other_float_precisions_are_accepted():
+    env = beacon_torch.make("vortex-v0", 2, dtype=torch.float32)
+    out = _step(env, torch.zeros(2, 2, dtype=torch.float64))
+    assert out["next", "observation"].dtype == torch.float32
+
+
+# ---------------------------------------------------------------- blow-up
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_blow_up_ends_that_member_only(dtype):
+    """rho = 1e6 makes the explicit step unstable: that member overflows within a few
+    steps, terminates with the penalty, keeps a finite observation, and the others go on
+    exactly as in a batch without it."""
+    rho = [28.0, 28.0, 1e6, 28.0]
+    env = beacon_torch.make("lorenz-v0", 4, dtype=dtype, rho=rho)
+    ref = beacon_torch.make("lorenz-v0", 4, dtype=dtype)
+    g = torch.Generator().manual_seed(0)
+    actions = [env.random_action(g) for _ in range(60)]
+
+    td = env.reset()
+    done_at = None
+    rewards, obs = [], []
+    for i, a in enumerate(actions):
+        td["action"] = a
+        out = env.step(td)["next"]
+        assert torch.isfinite(out["observation"]).all() and torch.isfinite(out["reward"]).all()
+        if out["terminated"][2, 0] and done_at is None:
+            done_at = i
+            assert out["reward"][2, 0].item() == env.blowup_reward
+            assert out["done"][2, 0]
+        assert not out["terminated"][[0, 1, 3]].any()
+        rewards.append(out["reward"].clone())
+        obs.append(out["observation"].clone())
+        td = out
+    assert done_at is not None, "the rho=1e6 member never blew up"
+
+    ref_obs, ref_rew = run_actions(ref, actions)
+    keep = [0, 1, 3]
+    assert torch.equal(torch.stack(obs, 1)[keep], ref_obs[keep])
+    assert torch.equal(torch.stack(rewards, 1)[keep], ref_rew[keep])
+
+
+def test_blown_member_can_be_reset_and_continue():
+    env = beacon_torch.make("lorenz-v0", 2, dtype=torch.float64, rho=[28.0, 1e6])
+    r = env.rollout(200, break_when_any_done=False)
+    term = r["next", "terminated"][1, :, 0]
+    assert term.any()
+    assert torch.isfinite(r["next", "observation"]).all()
+    # after each termination the rollout reset the member: its next observation is the start
+    first = int(term.nonzero()[0])
+    torch.testing.assert_close(r["observation"][1, first + 1], r["observation"][1, 0])
+
+
+# ---------------------------------------------------------------- devices
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_runs_on_cuda(env_id):
+    env = beacon_torch.make(env_id, 8, device="cuda")
+    r = env.rollout(10)
+    assert r.device.type == "cuda"
+    check_env_specs(env)

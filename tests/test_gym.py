@@ -1,0 +1,102 @@
+"""Gymnasium interop: registration, the single env, the vector env."""
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import beacon_torch
+import beacon_torch.gym  # noqa: F401  (registers the ids)
+
+from conftest import ALL_ENVS
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_every_env_is_registered_and_passes_check_env(env_id):
+    env = gymnasium.make(f"beacon/{env_id}", render_mode="rgb_array")
+    check_env(env.unwrapped, skip_render_check=False)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape and obs.dtype == np.float32
+    frame = env.render()
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
+    env.close()
+
+
+def test_gym_env_reproduces_the_uncontrolled_score():
+    env = gymnasium.make("beacon/lorenz-v0", dtype="float64")
+    obs, _ = env.reset(seed=0)
+    assert obs.dtype == np.float64
+    total, steps, truncated = 0.0, 0, False
+    while not truncated:
+        obs, reward, terminated, truncated, _ = env.step(1)
+        assert not terminated
+        total += reward
+        steps += 1
+    assert (total, steps) == (207.0, 500)
+
+
+def test_gym_parameters_pass_through_and_are_validated():
+    env = gymnasium.make("beacon/vortex-v0", re=60.0)
+    assert env.unwrapped.env.params.re == 60.0
+    with pytest.raises(ValueError, match="'re'"):
+        gymnasium.make("beacon/vortex-v0", re=-1.0)
+
+
+def test_gym_bad_actions():
+    env = gymnasium.make("beacon/vortex-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"\(2,\)"):
+        env.step(np.zeros(3, dtype=np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.array([np.nan, 0.0], dtype=np.float32))
+    env = gymnasium.make("beacon/lorenz-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(TypeError, match="integer"):
+        env.step(0.5)
+    with pytest.raises(ValueError, match=r"\[0, 2\]"):
+        env.step(3)
+
+
+@pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0"])
+def test_vector_env_is_the_batched_env(env_id):
+    venv = gymnasium.make_vec(f"beacon/{env_id}", num_envs=4, dtype="float64")
+    assert isinstance(venv.unwrapped, beacon_torch.gym.BeaconVectorEnv)
+    obs, _ = venv.reset(seed=0)
+    assert obs.shape == (4, venv.single_observation_space.shape[0])
+    ref = beacon_torch.make(env_id, 4, dtype=torch.float64)
+    td = ref.reset()
+    venv.action_space.seed(0)
+    for _ in range(5):
+        actions = venv.action_space.sample()
+        obs, reward, terminated, truncated, _ = venv.step(actions)
+        td["action"] = torch.as_tensor(actions)
+        td = ref.step(td)["next"]
+        np.testing.assert_array_equal(obs, td["observation"].numpy())
+        np.testing.assert_array_equal(reward, td["reward"][:, 0].numpy())
+    assert reward.shape == terminated.shape == truncated.shape == (4,)
+
+
+def test_vector_env_autoresets_on_the_next_step():
+    venv = gymnasium.make_vec("beacon/lorenz-v0", num_envs=3)
+    first, _ = venv.reset(seed=0)
+    ones = np.ones(3, dtype=np.int64)
+    for _ in range(499):
+        obs, reward, terminated, truncated, _ = venv.step(ones)
+        assert not truncated.any()
+    obs, reward, terminated, truncated, _ = venv.step(ones)
+    assert truncated.all() and not terminated.any()
+    obs, reward, terminated, truncated, _ = venv.step(ones)
+    np.testing.assert_array_equal(obs, first)
+    np.testing.assert_array_equal(reward, 0.0)
+    assert not (terminated | truncated).any()
+
+
+def test_vector_env_partial_reset_mask():
+    venv = gymnasium.make_vec("beacon/vortex-v0", num_envs=3)
+    first, _ = venv.reset(seed=0)
+    for _ in range(4):
+        obs, *_ = venv.step(np.zeros((3, 2), dtype=np.float32))
+    again, _ = venv.reset(options={"reset_mask": np.array([False, True, False])})
+    np.testing.assert_array_equal(again[1], first[1])
+    np.testing.assert_array_equal(again[[0, 2]], obs[[0, 2]])

@@ -1,0 +1,38 @@
+"""The README's two commands are the ones CI and users run."""
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def readme_commands():
+    text = (ROOT / "README.md").read_text()
+    first_section = text.split("\n## ", 2)[1]
+    return re.findall(r"```(?:bash|sh)\n(.*?)\n```", first_section, flags=re.S)
+
+
+def test_readme_gives_exactly_two_commands():
+    commands = readme_commands()
+    assert len(commands) == 2
+    assert all("\n" not in c for c in commands)
+    assert all(c.startswith("bash scripts/setup.sh && ") for c in commands)
+    assert "beacon-torch run" in commands[0] or "beacon-torch train" in commands[0]
+    assert "pytest" in commands[1]
+
+
+def test_ci_runs_the_readme_test_command():
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert readme_commands()[1] in ci
+
+
+def test_setup_installs_exactly_torch_2_13_0_first():
+    lines = [line for line in (ROOT / "scripts" / "setup.sh").read_text().splitlines() if "pip install" in line]
+    assert "torch==2.13.0" in lines[0]
+    assert "-e '.[test]'" in lines[1]
+
+
+def test_readme_links_the_docs():
+    text = (ROOT / "README.md").read_text()
+    for page in ("docs/quickstart.md", "docs/envs/lorenz.md", "docs/envs/vortex.md"):
+        assert page in text and (ROOT / page).is_file()

@@ -1,0 +1,99 @@
+"""Construction-time validation of env parameters and options."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import beacon_torch
+
+
+def test_defaults_are_the_papers_tables():
+    env = beacon_torch.make("lorenz-v0")
+    assert (env.params.sigma, env.params.rho, env.params.beta) == (10.0, 28.0, 8.0 / 3.0)
+    env = beacon_torch.make("vortex-v0")
+    assert (env.params.re, env.params.w) == (50.0, 50.0)
+
+
+def test_parameters_are_keyword_arguments():
+    env = beacon_torch.make("lorenz-v0", rho=20, beta=np.float64(2.5))
+    assert env.params.rho == 20.0 and isinstance(env.params.rho, float)
+    assert env.params.beta == 2.5
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs, exc, words",
+    [
+        ("lorenz-v0", {"rhoo": 3.0}, TypeError, ["rhoo", "sigma, rho, beta"]),
+        ("vortex-v0", {"Re": 50.0}, TypeError, ["'Re'", "re, w"]),
+        ("lorenz-v0", {"rho": "28"}, TypeError, ["'rho'", "string"]),
+        ("lorenz-v0", {"rho": True}, TypeError, ["'rho'", "bool"]),
+        ("lorenz-v0", {"sigma": None}, TypeError, ["'sigma'"]),
+        ("lorenz-v0", {"sigma": 1 + 2j}, TypeError, ["'sigma'", "real"]),
+        ("lorenz-v0", {"rho": math.nan}, ValueError, ["'rho'", "finite"]),
+        ("lorenz-v0", {"beta": math.inf}, ValueError, ["'beta'", "finite"]),
+        ("lorenz-v0", {"sigma": 0.0}, ValueError, ["'sigma'", "(0, 1000]"]),
+        ("lorenz-v0", {"rho": -1.0}, ValueError, ["'rho'", "-1.0"]),
+        ("vortex-v0", {"re": 1e9}, ValueError, ["'re'", "10000"]),
+        ("vortex-v0", {"w": -0.1}, ValueError, ["'w'", "[0,"]),
+        ("vortex-v0", {"a0": 100.0}, ValueError, ["'a0'", "|value|"]),
+        ("vortex-v0", {"y0": complex(math.nan, 0)}, ValueError, ["'y0'", "finite"]),
+        ("lorenz-v0", {"rho": [28.0, 29.0, 30.0]}, ValueError, ["'rho'", "(2,)", "(3,)"]),
+        ("lorenz-v0", {"rho": [28.0, -1.0]}, ValueError, ["'rho'[1]"]),
+        ("lorenz-v0", {"rho": [[28.0, 28.0]]}, ValueError, ["'rho'", "(1, 2)"]),
+    ],
+)
+def test_bad_parameters_raise_naming_the_parameter(env_id, kwargs, exc, words):
+    with pytest.raises(exc) as info:
+        beacon_torch.make(env_id, 2, **kwargs)
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+def test_per_member_parameters_become_batch_tensors():
+    env = beacon_torch.make("lorenz-v0", 3, dtype=torch.float64, rho=torch.tensor([10.0, 28.0, 99.0]))
+    assert isinstance(env.params.rho, torch.Tensor)
+    assert env.params.rho.dtype == torch.float64 and env.params.rho.shape == (3,)
+    env = beacon_torch.make("vortex-v0", 2, a0=[0.01, 0.02j])
+    assert env.params.a0.dtype == torch.complex64
+
+
+def test_zero_dim_tensors_are_scalars():
+    env = beacon_torch.make("lorenz-v0", 4, rho=torch.tensor(20.0))
+    assert env.params.rho == 20.0
+
+
+@pytest.mark.parametrize(
+    "kwargs, exc, words",
+    [
+        ({"batch_size": 0}, ValueError, ["batch_size", "positive"]),
+        ({"batch_size": -3}, ValueError, ["batch_size"]),
+        ({"batch_size": (2, 3)}, ValueError, ["batch_size", "1-D"]),
+        ({"batch_size": 2.5}, TypeError, ["batch_size"]),
+        ({"batch_size": True}, TypeError, ["batch_size"]),
+        ({"dtype": torch.float16}, ValueError, ["dtype", "float32", "float64"]),
+        ({"dtype": "double-ish"}, ValueError, ["dtype"]),
+    ],
+)
+def test_bad_options_raise(kwargs, exc, words):
+    with pytest.raises(exc) as info:
+        beacon_torch.make("lorenz-v0", **kwargs)
+    for word in words:
+        assert word in str(info.value)
+
+
+def test_unknown_env_id_lists_the_known_ones():
+    with pytest.raises(ValueError, match="unknown env id 'lorenz-v9'.*lorenz-v0"):
+        beacon_torch.make("lorenz-v9")
+
+
+def test_list_envs():
+    assert beacon_torch.list_envs() == ["lorenz-continuous-v0", "lorenz-v0", "vortex-v0"]
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64", torch.float32, torch.float64, "torch.float64"])
+def test_dtype_spellings(dtype):
+    env = beacon_torch.make("vortex-v0", 2, dtype=dtype)
+    td = env.rollout(3)
+    assert td["observation"].dtype == env.dtype == td["next", "reward"].dtype

@@ -1,0 +1,46 @@
+"""Frames and animations."""
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import beacon_torch
+from beacon_torch import evaluate
+from beacon_torch.render import save_animation
+
+from conftest import ALL_ENVS
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_render_frame_shows_the_state(env_id):
+    env = beacon_torch.make(env_id, 2, record_history=True)
+    env.reset()
+    blank_ish = env.render()
+    evaluate.episode(env, evaluate.random_policy(env))
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert frame.shape == blank_ish.shape
+    # the trajectory drawn over a whole episode changes the picture substantially
+    assert (frame != blank_ish).any(axis=2).mean() > 0.02
+    assert len(env.history) == env.episode_length + 1
+
+
+def test_render_without_history_draws_the_current_state():
+    env = beacon_torch.make("vortex-v0", 3)
+    env.rollout(5)
+    assert env.history == []
+    assert env.render().shape[2] == 3
+
+
+def test_render_before_reset_is_an_error():
+    with pytest.raises(RuntimeError, match="reset"):
+        beacon_torch.make("lorenz-v0").render()
+
+
+def test_save_animation_writes_every_frame(tmp_path):
+    frames = [np.full((20, 30, 3), 40 * i, dtype=np.uint8) for i in range(5)]
+    path = save_animation(frames, tmp_path / "sub" / "a.gif", fps=10)
+    with Image.open(path) as im:
+        assert im.n_frames == 5 and im.size == (30, 20)
+    with pytest.raises(ValueError, match="no frames"):
+        save_animation([], tmp_path / "b.gif")
