@@ -121,29 +121,15 @@ def _step(env, action):
     return env.step(TensorDict({"action": action}, batch_size=env.batch_size))
 
 
-@pytest.mark.parametrize("env_id", ["lorenz-v0"])
-@pytest.mark.parametrize(
-    "action, exc, words",
-    [
-        (torch.tensor([1, 1, 1]), ValueError, ["shape (2,)", "[0, 2]", "(3,)"]),
-        (torch.tensor([[1], [1]]), ValueError, ["shape (2,)"]),
-        (torch.tensor([1.0, 0.0]), TypeError, ["integer", "float32"]),
-        (torch.tensor([True, False]), TypeError, ["integer", "bool"]),
-        (torch.tensor([3, 0]), ValueError, ["[0, 2]", "[3, 0]"]),
-        (torch.tensor([0, -1]), ValueError, ["[0, 2]"]),
-    ],
-)
-def test_bad_discrete_actions(env_id, action, exc, words):
-    env = beacon_torch.make(env_id, 2)
-    with pytest.raises(exc) as info:
-        _step(env, action)
-    for word in words:
-        assert word in str(info.value), (word, str(info.value))
-
-
 @pytest.mark.parametrize(
     "env_id, action, exc, words",
     [
+        ("lorenz-v0", torch.tensor([1, 1, 1]), ValueError, ["shape (2,)", "[0, 2]", "(3,)"]),
+        ("lorenz-v0", torch.tensor([[1], [1]]), ValueError, ["shape (2,)"]),
+        ("lorenz-v0", torch.tensor([1.0, 0.0]), TypeError, ["integer", "float32"]),
+        ("lorenz-v0", torch.tensor([True, False]), TypeError, ["integer", "bool"]),
+        ("lorenz-v0", torch.tensor([3, 0]), ValueError, ["[0, 2]", "[3, 0]"]),
+        ("lorenz-v0", torch.tensor([0, -1]), ValueError, ["[0, 2]"]),
         ("vortex-v0", torch.zeros(2, 3), ValueError, ["(2, 2)", "[-1, 1]", "(2, 3)"]),
         ("vortex-v0", torch.zeros(2), ValueError, ["(2, 2)"]),
         ("vortex-v0", torch.zeros(2, 2, dtype=torch.int64), TypeError, ["floating", "int64"]),
@@ -151,7 +137,7 @@ def test_bad_discrete_actions(env_id, action, exc, words):
         ("lorenz-continuous-v0", torch.tensor([[float("inf")], [0.0]]), ValueError, ["inf", "(2, 1)"]),
     ],
 )
-def test_bad_continuous_actions(env_id, action, exc, words):
+def test_bad_actions_name_the_expected_shape_and_range(env_id, action, exc, words):
     env = beacon_torch.make(env_id, 2)
     with pytest.raises(exc) as info:
         _step(env, action)
