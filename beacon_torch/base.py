@@ -116,6 +116,7 @@ class FlowEnv(EnvBase):
         self.record_history = record_history
         self.render_index = 0
         self.history: list[State] = []
+        self.setup()
         self._make_specs()
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
@@ -125,6 +126,10 @@ class FlowEnv(EnvBase):
         self._count = torch.zeros(batch_size, dtype=torch.int64, device=device)
 
     # ------------------------------------------------------------------ physics hooks
+    def setup(self) -> None:
+        """Derive what the parameters fix (grid, sizes, masks) before the specs are
+        built; ``n_obs``/``n_actions`` may be set here when the parameters decide them."""
+
     def initial_state(self, mask: torch.Tensor | None) -> State:
         raise NotImplementedError
 
@@ -152,6 +157,11 @@ class FlowEnv(EnvBase):
             (self.n_envs, self.n_actions), generator=generator, dtype=self.dtype, device=self.device
         )
         return 2.0 * u - 1.0
+
+    def member(self, value: Any) -> Any:
+        """A parameter shaped to broadcast against ``[batch, n]`` fields: a per-member
+        tensor becomes ``[batch, 1]``, a scalar stays a scalar."""
+        return value[:, None] if isinstance(value, torch.Tensor) else value
 
     def tensor(self, value: Any) -> torch.Tensor:
         """A tensor on the env's device and dtype."""

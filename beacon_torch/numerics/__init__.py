@@ -5,6 +5,36 @@ writes into tensors that autograd may need. That keeps the kernels testable on t
 compilable and differentiable.
 """
 
-from beacon_torch.numerics.integrators import LSRK4_A, LSRK4_B, LSRK4_C, lsrk4_step
+from beacon_torch.numerics.fluxes import (
+    minmod,
+    rusanov,
+    third_derivative,
+    tvd_derivative,
+    tvd_faces,
+    van_leer,
+)
+from beacon_torch.numerics.integrators import (
+    LSRK4_A,
+    LSRK4_B,
+    LSRK4_C,
+    ab2_step,
+    bdf2_explicit_step,
+    interpolated_action,
+    lsrk4_step,
+)
 
-__all__ = ["LSRK4_A", "LSRK4_B", "LSRK4_C", "lsrk4_step"]
+__all__ = [
+    "LSRK4_A",
+    "LSRK4_B",
+    "LSRK4_C",
+    "ab2_step",
+    "bdf2_explicit_step",
+    "interpolated_action",
+    "lsrk4_step",
+    "minmod",
+    "rusanov",
+    "third_derivative",
+    "tvd_derivative",
+    "tvd_faces",
+    "van_leer",
+]

@@ -56,3 +56,28 @@ def lsrk4_step(
         k = a * k + dt * rhs(u, t + c * dt)
         u = u + b * k
     return u
+
+
+def ab2_step(u: torch.Tensor, f: torch.Tensor, f_prev: torch.Tensor, dt: float) -> torch.Tensor:
+    """Second-order Adams-Bashforth: u + dt/2 (3 f^n - f^(n-1)).
+
+    The published code starts every episode with f^(-1) = 0 (a first step of 3/2 dt f),
+    which the envs reproduce by passing zeros after a reset.
+    """
+    return u + 0.5 * dt * (3.0 * f - f_prev)
+
+
+def bdf2_explicit_step(u: torch.Tensor, u_prev: torch.Tensor, f: torch.Tensor, dt: float) -> torch.Tensor:
+    """Second-order backward differences with an explicit right-hand side f = f(u^n):
+    u^(n+1) = (4 u^n - u^(n-1) + 2 dt f) / 3."""
+    return (4.0 * u - u_prev + 2.0 * dt * f) / 3.0
+
+
+def interpolated_action(
+    previous: torch.Tensor, new: torch.Tensor, substep: int, n_interp: int
+) -> torch.Tensor:
+    """The action applied at ``substep`` (0, 1, ...) of an action period: linear from the
+    previous action to the new one over the first ``n_interp`` substeps,
+    alpha = min(substep / n_interp, 1), then held."""
+    alpha = min(substep / n_interp, 1.0) if n_interp > 0 else 1.0
+    return previous + alpha * (new - previous)

@@ -1,0 +1,91 @@
+"""burgers-v0: damp the noise convected by the inviscid Burgers equation (BEACON paper).
+
+    u_t + u u_x = -amp a(t) delta(x - x_p)
+
+on [0, L] with a noisy inlet u(0) = u_target + U(-sigma, sigma) (one draw per action)
+and a zero-gradient outlet. TVD convective derivative (van Leer limiter), explicit
+second-order backward differences in time, 62 substeps of dt = 0.2 dx per action,
+200 actions. The actuator is a point source at x_p; the agent sees the 5 cells just
+upstream of it and is rewarded on the flatness of the field downstream.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, State
+from beacon_torch.numerics import bdf2_explicit_step, tvd_derivative, van_leer
+from beacon_torch.params import param
+
+DX = 0.004
+DT = 0.2 * DX
+SUBSTEPS = int(0.05 / DT)  # 62: the published code truncates 62.5
+EPISODE_LENGTH = 200
+N_OBS = 5
+
+
+@dataclass(frozen=True)
+class BurgersParams:
+    L: float = param(2.0, low=0.1, high=100.0, per_member=False, doc="domain length")
+    u_target: float = param(0.5, low=0.0, high=10.0, low_open=True, doc="mean inflow and target velocity")
+    sigma: float = param(0.1, low=0.0, high=10.0, doc="half-width of the uniform inlet noise")
+    amp: float = param(10.0, low=0.0, high=1e8, doc="actuator amplitude (action scaling)")
+    ctrl_pos: float = param(1.0, low=0.0, high=100.0, low_open=True, per_member=False, doc="actuator position x_p")
+
+    def __post_init__(self):
+        if not (N_OBS + 1) * DX <= self.ctrl_pos <= self.L - 2 * DX:
+            raise ValueError(
+                f"parameter 'ctrl_pos' must lie in [{(N_OBS + 1) * DX:g}, L - {2 * DX:g}] "
+                f"(L = {self.L:g}), got {self.ctrl_pos!r}"
+            )
+
+
+class BurgersEnv(FlowEnv):
+    """Batched burgers-v0 (1 continuous action: the point forcing)."""
+
+    env_id = "burgers-v0"
+    Params = BurgersParams
+    episode_length = EPISODE_LENGTH
+    n_obs = N_OBS
+    n_actions = 1
+
+    def setup(self) -> None:
+        p = self.params
+        self.n_cells = int(round(p.L / DX))
+        self.ctrl = int(p.ctrl_pos / DX)
+        source = torch.zeros(self.n_cells - 2, dtype=self.dtype, device=self.device)
+        source[self.ctrl - 1] = 1.0  # interior cells start at index 1
+        self._source = source
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)
+
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        u = torch.ones((self.n_envs, self.n_cells), dtype=self.dtype, device=self.device)
+        u = u * self.member(self.params.u_target)
+        return {"u": u, "u_prev": u.clone()}
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        p = self.params
+        noise = 2.0 * torch.rand(self.n_envs, generator=self.rng, dtype=self.dtype, device=self.device) - 1.0
+        inlet = (p.u_target + p.sigma * noise)[:, None]
+        forcing = (self.member(p.amp) * action) * self._source  # [B, n-2]
+        u, u_prev = state["u"], state["u_prev"]
+        for _ in range(SUBSTEPS):
+            ui = u[:, 1:-1]
+            f = -ui * tvd_derivative(u, DX, van_leer) - forcing
+            interior = bdf2_explicit_step(ui, u_prev[:, 1:-1], f, DT)
+            u, u_prev = torch.cat((inlet, interior, interior[:, -1:]), -1), u
+        reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
+        return {"u": u, "u_prev": u_prev}, reward
+
+    def observe(self, state: State) -> torch.Tensor:
+        return state["u"][:, self.ctrl - N_OBS : self.ctrl]
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import burgers_frame
+
+        raise NotImplementedError

@@ -1,0 +1,150 @@
+"""sloshing-v0: calm the free surface of a shaken tank (BEACON paper, "Sloshing").
+
+Shallow-water (Saint-Venant) equations in the tank frame, driven by the tank's
+acceleration amp * u(t):
+
+    h_t + q_x = 0
+    q_t + (q^2 / h + g h^2 / 2)_x = -amp u
+
+Finite volumes with Rusanov fluxes and wall ghost cells, Adams-Bashforth 2 in time,
+50 substeps of dt = 0.001 per action with the action interpolated over the first 10,
+200 actions. Every episode starts from the state left by a fixed 2-time-unit excitation
+of the tank at rest (:func:`excited_state`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, State
+from beacon_torch.cache import cached
+from beacon_torch.numerics import ab2_step, interpolated_action, rusanov
+from beacon_torch.params import param
+
+CELLS_PER_UNIT = 80
+DT = 1e-3
+SUBSTEPS = 50
+N_INTERP = 10
+DT_ACT = DT * SUBSTEPS
+EPISODE_LENGTH = 200
+EXCITATION_ACTIONS = 40  # 2 time units
+H_MIN, H_MAX = -5.0, 2.0  # the published code's blow-up bounds
+
+
+@dataclass(frozen=True)
+class SloshingParams:
+    L: float = param(2.5, low=0.1, high=50.0, per_member=False, doc="tank length")
+    amp: float = param(5.0, low=0.0, high=1e6, doc="acceleration amplitude (action scaling)")
+    alpha: float = param(5e-4, low=0.0, high=1e3, doc="weight of the actuation in the reward")
+    g: float = param(9.81, low=0.0, high=1e4, low_open=True, doc="gravity")
+
+
+def excitation(t: float) -> float:
+    """The published excitation signal as an action: 0.5 (cos(pi t) + 3 cos(4 pi t)),
+    clipped to the action box [-1, 1] like any action passed through the env's step
+    (the raw signal peaks at 2)."""
+    return min(1.0, max(-1.0, 0.5 * (math.cos(math.pi * t) + 3.0 * math.cos(4.0 * math.pi * t))))
+
+
+def shallow_water_rhs(h: torch.Tensor, q: torch.Tensor, accel: torch.Tensor, g, dx: float):
+    """(dh/dt, dq/dt) at the interior cells of ghosted fields ``[B, n+2]``."""
+    flux_q = q * q / h + 0.5 * g * h * h
+    speed = (q / h).abs() + torch.sqrt(g * h)
+    c = torch.maximum(speed[:, :-1], speed[:, 1:])
+    face_h = rusanov(h[:, :-1], h[:, 1:], q[:, :-1], q[:, 1:], c)
+    face_q = rusanov(q[:, :-1], q[:, 1:], flux_q[:, :-1], flux_q[:, 1:], c)
+    fh = -(face_h[:, 1:] - face_h[:, :-1]) / dx
+    fq = -(face_q[:, 1:] - face_q[:, :-1]) / dx - accel[:, None]
+    return fh, fq
+
+
+def with_walls(h_in: torch.Tensor, q_in: torch.Tensor):
+    """Ghosted fields from interior ones: h mirrored, q = 0 in the ghost cells."""
+    zero = torch.zeros_like(q_in[:, :1])
+    h = torch.cat((h_in[:, :1], h_in, h_in[:, -1:]), -1)
+    q = torch.cat((zero, q_in, zero), -1)
+    return h, q
+
+
+def run_actions(state: State, actions: list[torch.Tensor], p: SloshingParams, dx: float) -> State:
+    """Advance ``state`` through a sequence of action batches (each ``[B]``)."""
+    h, q = state["h"], state["q"]
+    fh_prev, fq_prev, u_prev = state["fh_prev"], state["fq_prev"], state["u_prev"]
+    for u in actions:
+        for i in range(SUBSTEPS):
+            accel = p.amp * interpolated_action(u_prev, u, i, N_INTERP)
+            gh, gq = with_walls(h, q)
+            fh, fq = shallow_water_rhs(gh, gq, accel, p.g, dx)
+            h, q = ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT)
+            fh_prev, fq_prev = fh, fq
+        u_prev = u
+    return {"h": h, "q": q, "fh_prev": fh_prev, "fq_prev": fq_prev, "u_prev": u_prev}
+
+
+def excited_state(p: SloshingParams, n_envs: int, dtype: torch.dtype, device) -> State:
+    """The tank after the published excitation: from rest (h = 1, q = 0) 40 actions
+    :func:`excitation` (t = 0, 0.05, ...), interpolated like any action; the published
+    code stores this state and starts every episode from it."""
+    n = int(round(p.L * CELLS_PER_UNIT))
+    dx = p.L / n
+    h = torch.ones((n_envs, n), dtype=dtype, device=device)
+    zero = torch.zeros_like(h)
+    state = {"h": h, "q": zero, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+    actions = [torch.full((n_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)]
+    return run_actions(state, actions, p, dx)
+
+
+class SloshingEnv(FlowEnv):
+    """Batched sloshing-v0 (1 continuous action: the tank acceleration)."""
+
+    env_id = "sloshing-v0"
+    Params = SloshingParams
+    episode_length = EPISODE_LENGTH
+    n_obs = 100
+    n_actions = 1
+    blowup_reward = -1.0
+
+    def setup(self) -> None:
+        self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
+        self.dx = self.params.L / self.n_cells
+        self.n_obs = (self.n_cells + 1) // 2  # q in every second cell
+        self._start = self._excited()
+
+    def _excited(self) -> State:
+        p = self.params
+        if any(isinstance(v, torch.Tensor) for v in (p.amp, p.g)):
+            start = excited_state(p, self.n_envs, torch.float64, self.device)
+        else:
+            key = dict(version=1, L=p.L, amp=p.amp, g=p.g)
+            start = cached("sloshing-excited", key, lambda: excited_state(p, 1, torch.float64, "cpu"))
+            start = {k: v.expand(self.n_envs, *v.shape[1:]) for k, v in start.items()}
+        # generated in float64 like the published code, then cast
+        return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)
+
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        zero = torch.zeros_like(self._start["h"])
+        # the published reset reloads h and q only: the AB2 history and the previous
+        # action start from zero
+        return {"h": self._start["h"], "q": self._start["q"], "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        p = self.params
+        u = action[:, 0]
+        new = run_actions(state, [u], p, self.dx)
+        h = new["h"]
+        reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
+        return new, reward
+
+    def observe(self, state: State) -> torch.Tensor:
+        return state["q"][:, ::2]
+
+    def out_of_bounds(self, state: State) -> torch.Tensor:
+        h = state["h"]
+        return ((h < H_MIN) | (h > H_MAX)).any(-1)
