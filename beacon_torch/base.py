@@ -60,13 +60,14 @@ def _as_batch_size(batch_size: Any) -> torch.Size:
     return size
 
 
+def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per batch member (leading dimension), ``a`` where ``mask`` is true, else ``b``."""
+    return torch.where(mask.view(mask.shape + (1,) * (a.ndim - 1)), a, b)
+
+
 def where_members(mask: torch.Tensor, a: State, b: State) -> State:
-    """Per batch member, take ``a`` where ``mask`` is true and ``b`` elsewhere."""
-    out = {}
-    for key, va in a.items():
-        m = mask.view(mask.shape + (1,) * (va.ndim - 1))
-        out[key] = torch.where(m, va, b[key])
-    return out
+    """Per batch member, take the state ``a`` where ``mask`` is true and ``b`` elsewhere."""
+    return {key: select(mask, va, b[key]) for key, va in a.items()}
 
 
 def _finite_members(t: torch.Tensor) -> torch.Tensor:
@@ -83,8 +84,16 @@ class FlowEnv(EnvBase):
     # continuous: the action dimension; discrete: the number of choices
     n_actions: ClassVar[int]
     discrete: ClassVar[bool] = False
+    # where the action is read from and the observation and reward written to
+    # (nested keys for multi-agent variants)
+    action_key: ClassVar[str | tuple[str, ...]] = "action"
+    observation_key: ClassVar[str | tuple[str, ...]] = "observation"
+    reward_key: ClassVar[str | tuple[str, ...]] = "reward"
     # reward of the step on which a member leaves its physical bounds (episode ends)
     blowup_reward: ClassVar[float] = -1.0
+    # False where the physics draws from the env's generator (noisy inflows, random
+    # starts): members then depend on the seed and on the batch size
+    deterministic: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -149,19 +158,25 @@ class FlowEnv(EnvBase):
     def random_action(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """A uniformly random action batch (from ``generator``, not the env's own, so
         that a random policy does not shift the env's random stream)."""
+        shape = (*self.batch_size, *self.action_shape)
         if self.discrete:
-            return torch.randint(
-                self.n_actions, tuple(self.batch_size), generator=generator, device=self.device
-            )
-        u = torch.rand(
-            (self.n_envs, self.n_actions), generator=generator, dtype=self.dtype, device=self.device
-        )
+            return torch.randint(self.n_actions, shape, generator=generator, device=self.device)
+        u = torch.rand(shape, generator=generator, dtype=self.dtype, device=self.device)
         return 2.0 * u - 1.0
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        """Per-member shape of the action: ``()`` for discrete, ``(n_actions,)`` else."""
+        return () if self.discrete else (self.n_actions,)
 
     def member(self, value: Any) -> Any:
         """A parameter shaped to broadcast against ``[batch, n]`` fields: a per-member
         tensor becomes ``[batch, 1]``, a scalar stays a scalar."""
         return value[:, None] if isinstance(value, torch.Tensor) else value
+
+    def value_of(self, value: Any, index: int) -> float:
+        """A parameter's value for batch member ``index`` (scalar or per-member)."""
+        return float(value[index]) if isinstance(value, torch.Tensor) else float(value)
 
     def tensor(self, value: Any) -> torch.Tensor:
         """A tensor on the env's device and dtype."""
@@ -196,19 +211,25 @@ class FlowEnv(EnvBase):
             shape=B,
             device=dev,
         )
-        if self.discrete:
-            self.action_spec = Categorical(
-                self.n_actions, shape=B, dtype=torch.int64, device=dev
-            )
-        else:
-            self.action_spec = Bounded(
-                low=-1.0, high=1.0, shape=(*B, self.n_actions), dtype=self.dtype, device=dev
-            )
+        self.action_spec = self._action_leaf_spec((*B, *self.action_shape))
         self.reward_spec = Unbounded(shape=(*B, 1), dtype=self.dtype, device=dev)
         flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)  # noqa: E731
         self.done_spec = Composite(
             done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev
         )
+
+    def _action_leaf_spec(self, shape: tuple[int, ...]):
+        if self.discrete:
+            return Categorical(self.n_actions, shape=shape, dtype=torch.int64, device=self.device)
+        return Bounded(low=-1.0, high=1.0, shape=shape, dtype=self.dtype, device=self.device)
+
+    def _pack(self, obs: torch.Tensor, reward: torch.Tensor | None) -> dict:
+        """TensorDict entries of an observation and a reward (multi-agent variants nest
+        them)."""
+        out = {"observation": obs}
+        if reward is not None:
+            out["reward"] = reward[:, None]
+        return out
 
     # ------------------------------------------------------------------ seeding
     def _set_seed(self, seed: int | None) -> None:
@@ -229,17 +250,17 @@ class FlowEnv(EnvBase):
             raise KeyError(f"{name}: the input tensordict has no 'action' entry")
         if not isinstance(action, torch.Tensor):
             action = torch.as_tensor(np.asarray(action))
+        shape = (*B, *self.action_shape)
         if self.discrete:
-            expected = f"shape {B} with integer values in [0, {self.n_actions - 1}]"
+            expected = f"shape {shape} with integer values in [0, {self.n_actions - 1}]"
             if action.dtype == torch.bool or action.is_floating_point() or action.is_complex():
                 raise TypeError(f"{name}: action must be an integer tensor of {expected}, got dtype {action.dtype}")
-            if tuple(action.shape) != B:
+            if tuple(action.shape) != shape:
                 raise ValueError(f"{name}: action must have {expected}, got shape {tuple(action.shape)}")
             action = action.to(device=self.device, dtype=torch.int64)
             if self.check_actions and bool(((action < 0) | (action >= self.n_actions)).any()):
                 raise ValueError(f"{name}: action values must be in [0, {self.n_actions - 1}], got {action.tolist()}")
             return action
-        shape = (*B, self.n_actions)
         expected = f"shape {shape} with values in [-1, 1]"
         if not action.is_floating_point():
             raise TypeError(f"{name}: action must be a floating tensor of {expected}, got dtype {action.dtype}")
@@ -268,6 +289,16 @@ class FlowEnv(EnvBase):
                 self._state = where_members(mask, init, self._state)
                 self._count = torch.where(mask, torch.zeros_like(self._count), self._count)
             obs = self.observe(self._state)
+            started = _finite_members(obs)
+            for value in self._state.values():
+                if value.is_floating_point():
+                    started = started & _finite_members(value)
+        if not bool(started.all()):
+            bad = (~started).nonzero()[:, 0].tolist()
+            raise ValueError(
+                f"{self.env_id}: the initial state of batch member(s) {bad} is not finite; "
+                f"check their parameters ({self.params})"
+            )
         self._obs = obs
         if self.record_history:
             member = self.render_index
@@ -275,7 +306,7 @@ class FlowEnv(EnvBase):
                 self.history = [self._member_state(member)]
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return TensorDict(
-            {"observation": obs, "done": false, "terminated": false.clone(), "truncated": false.clone()},
+            {**self._pack(obs, None), "done": false, "terminated": false.clone(), "truncated": false.clone()},
             batch_size=self.batch_size,
             device=self.device,
         )
@@ -283,28 +314,27 @@ class FlowEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before step()")
-        action = self.check_action(tensordict.get("action", None))
+        action = self.check_action(tensordict.get(self.action_key, None))
         stepping = tensordict.get("_step", None)
         old = self._state
         with torch.no_grad():
             new, reward = self.advance(old, action, self._count)
             obs = self.observe(new)
-            reward = reward.reshape(self.n_envs)
-            ok = _finite_members(obs) & torch.isfinite(reward) & ~self.out_of_bounds(new)
+            ok = _finite_members(obs) & _finite_members(reward) & ~self.out_of_bounds(new)
             for value in new.values():
                 if value.is_floating_point() or value.is_complex():
                     ok = ok & _finite_members(value)
             # A member that left its bounds keeps its last finite state and observation
             # and ends its episode; the others are untouched by the selection.
             new = where_members(ok, new, old)
-            obs = torch.where(ok[:, None], obs, self._obs)
-            reward = torch.where(ok, reward, torch.full_like(reward, self.blowup_reward))
+            obs = select(ok, obs, self._obs)
+            reward = select(ok, reward, torch.full_like(reward, self.blowup_reward))
             count = self._count + 1
             if stepping is not None:
                 stepping = stepping.reshape(self.batch_size).to(self.device)
                 new = where_members(stepping, new, old)
-                obs = torch.where(stepping[:, None], obs, self._obs)
-                reward = torch.where(stepping, reward, torch.zeros_like(reward))
+                obs = select(stepping, obs, self._obs)
+                reward = select(stepping, reward, torch.zeros_like(reward))
                 ok = ok | ~stepping
                 count = torch.where(stepping, count, self._count)
         self._state, self._obs, self._count = new, obs, count
@@ -314,8 +344,7 @@ class FlowEnv(EnvBase):
         truncated = (count >= self.episode_length)[:, None]
         return TensorDict(
             {
-                "observation": obs,
-                "reward": reward[:, None],
+                **self._pack(obs, reward),
                 "done": terminated | truncated,
                 "terminated": terminated,
                 "truncated": truncated,

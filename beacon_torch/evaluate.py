@@ -14,14 +14,14 @@ Policy = Callable[[TensorDictBase], TensorDictBase]
 
 def null_policy(env: FlowEnv) -> Policy:
     """The benchmark's "no control" action, held for the whole episode."""
-    return lambda td: td.set("action", env.null_action())
+    return lambda td: td.set(env.action_key, env.null_action())
 
 
 def random_policy(env: FlowEnv, seed: int = 0) -> Policy:
     """Uniformly random actions from a generator of its own, seeded by ``seed``."""
     g = torch.Generator(device=env.device)
     g.manual_seed(seed)
-    return lambda td: td.set("action", env.random_action(g))
+    return lambda td: td.set(env.action_key, env.random_action(g))
 
 
 def episode(env: FlowEnv, policy: Policy, *, frame_hook: Callable[[int], None] | None = None) -> TensorDictBase:
@@ -44,7 +44,11 @@ def scores(rollout: TensorDictBase) -> torch.Tensor:
     """Episode score (sum of rewards up to the end of the first episode) of each member,
     in float64. Steps after a member's end repeat its last entry in TorchRL's rollout
     and are not counted."""
-    reward = rollout["next", "reward"][..., 0].to(torch.float64)
+    if ("next", "agents", "reward") in rollout.keys(include_nested=True):
+        # multi-agent variants: the team's score, the mean of the agents' rewards
+        reward = rollout["next", "agents", "reward"][..., 0].to(torch.float64).mean(-1)
+    else:
+        reward = rollout["next", "reward"][..., 0].to(torch.float64)
     done = rollout["next", "done"][..., 0].to(torch.int64)
     in_episode = (done.cumsum(-1) - done) == 0
     return (reward * in_episode).sum(-1)

@@ -32,12 +32,18 @@ def gym_id(env_id: str) -> str:
 
 def _spaces(env: FlowEnv) -> tuple[spaces.Space, spaces.Space]:
     np_dtype = np.float64 if env.dtype == torch.float64 else np.float32
-    obs = spaces.Box(-np.inf, np.inf, shape=(env.n_obs,), dtype=np_dtype)
+    obs_shape = tuple(env.full_observation_spec[env.observation_key].shape[1:])
+    obs = spaces.Box(-np.inf, np.inf, shape=obs_shape, dtype=np_dtype)
     if env.discrete:
         act = spaces.Discrete(env.n_actions)
     else:
-        act = spaces.Box(-1.0, 1.0, shape=(env.n_actions,), dtype=np_dtype)
+        act = spaces.Box(-1.0, 1.0, shape=env.action_shape, dtype=np_dtype)
     return obs, act
+
+
+def _team_reward(env: FlowEnv, td) -> torch.Tensor:
+    """``[batch]`` rewards; for multi-agent variants, the mean over the agents."""
+    return td[env.reward_key].reshape(env.n_envs, -1).to(torch.float64).mean(-1)
 
 
 def _batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
@@ -53,10 +59,11 @@ def _batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
         return torch.as_tensor(a.reshape(batch).astype(np.int64))
     if a.dtype.kind not in "fiu":
         raise TypeError(f"{env.env_id}: action must be floats in [-1, 1], got dtype {a.dtype}")
-    expected = (batch, env.n_actions) if batch > 1 else (env.n_actions,)
-    if a.shape != expected and a.shape != (batch, env.n_actions):
+    full = (batch, *env.action_shape)
+    expected = full if batch > 1 else env.action_shape
+    if a.shape != expected and a.shape != full:
         raise ValueError(f"{env.env_id}: action must have shape {expected}, got {a.shape}")
-    return torch.as_tensor(a.reshape(batch, env.n_actions).astype(np.float64))
+    return torch.as_tensor(a.reshape(full).astype(np.float64))
 
 
 class BeaconGymEnv(gymnasium.Env):
@@ -77,15 +84,15 @@ class BeaconGymEnv(gymnasium.Env):
         if seed is not None:
             self.env.set_seed(seed)
         td = self.env.reset()
-        return td["observation"][0].cpu().numpy().astype(self._np_dtype), {}
+        return td[self.env.observation_key][0].cpu().numpy().astype(self._np_dtype), {}
 
     def step(self, action):
         a = _batched_action(self.env, action, 1)
-        td = self.env.step(TensorDict({"action": a}, batch_size=self.env.batch_size))["next"]
-        obs = td["observation"][0].cpu().numpy().astype(self._np_dtype)
+        td = self.env.step(TensorDict({self.env.action_key: a}, batch_size=self.env.batch_size))["next"]
+        obs = td[self.env.observation_key][0].cpu().numpy().astype(self._np_dtype)
         return (
             obs,
-            float(td["reward"][0, 0]),
+            float(_team_reward(self.env, td)[0]),
             bool(td["terminated"][0, 0]),
             bool(td["truncated"][0, 0]),
             {},
@@ -158,9 +165,9 @@ class BeaconVectorEnv(VectorEnv):
 
     def step(self, actions):
         a = _batched_action(self.env, actions, self.num_envs)
-        td = self.env.step(TensorDict({"action": a}, batch_size=self.env.batch_size))["next"]
+        td = self.env.step(TensorDict({self.env.action_key: a}, batch_size=self.env.batch_size))["next"]
         obs = self._obs()
-        reward = td["reward"][:, 0].cpu().numpy().astype(np.float64)
+        reward = _team_reward(self.env, td).cpu().numpy()
         terminated = td["terminated"][:, 0].cpu().numpy().copy()
         truncated = td["truncated"][:, 0].cpu().numpy().copy()
         if self._autoreset.any():

@@ -5,11 +5,23 @@ from __future__ import annotations
 from typing import Any
 
 from beacon_torch.base import FlowEnv
+from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
+from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
+from beacon_torch.envs.sloshing import SloshingEnv
 from beacon_torch.envs.vortex import VortexEnv
 
 ENVS: dict[str, type[FlowEnv]] = {
-    cls.env_id: cls for cls in (LorenzEnv, LorenzContinuousEnv, VortexEnv)
+    cls.env_id: cls
+    for cls in (
+        LorenzEnv,
+        LorenzContinuousEnv,
+        VortexEnv,
+        BurgersEnv,
+        SloshingEnv,
+        ShkadovEnv,
+        ShkadovSeparableEnv,
+    )
 }
 
 

@@ -115,3 +115,84 @@ def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20
     duration = max(1, round(1000 / fps))
     images[0].save(path, save_all=True, append_images=images[1:], duration=duration, loop=0)
     return path
+
+
+def _profile_axes(fig, with_bars_width: float = 0.16):
+    ax = fig.add_axes((0.09, 0.14, 0.86 - with_bars_width, 0.74))
+    bars = fig.add_axes((0.97 - with_bars_width + 0.04, 0.14, with_bars_width - 0.05, 0.64))
+    return ax, bars
+
+
+def burgers_frame(x: np.ndarray, u: np.ndarray, x_ctrl: float, u_target: float, action: float, t: float) -> np.ndarray:
+    """The velocity profile, the target, the actuator position and its bar."""
+    fig = new_figure()
+    ax, bars = _profile_axes(fig)
+    ax.plot(x, u, lw=1.0, color="#1f77b4")
+    ax.axhline(u_target, color="#555555", lw=0.6, ls="--")
+    ax.axvline(x_ctrl, color=ACTION_COLOR, lw=1.2)
+    ax.set_xlim(x[0], x[-1])
+    ax.set_ylim(u_target - 0.35, u_target + 0.35)
+    ax.set_xlabel("x")
+    ax.set_ylabel("u")
+    ax.set_title(f"burgers   t = {t:.2f}", fontsize=10)
+    action_bars(bars, [action], ["a"], [(-1.0, 1.0)])
+    return to_rgb(fig)
+
+
+def sloshing_frame(x: np.ndarray, h: np.ndarray, action: float, t: float) -> np.ndarray:
+    """The free surface in the tank and the acceleration bar."""
+    fig = new_figure()
+    ax, bars = _profile_axes(fig)
+    ax.fill_between(x, 0.0, h, color="#9ecae1")
+    ax.plot(x, h, lw=1.0, color="#08519c")
+    ax.axhline(1.0, color="#555555", lw=0.6, ls="--")
+    ax.set_xlim(x[0], x[-1])
+    ax.set_ylim(0.0, 2.0)
+    ax.set_xlabel("x")
+    ax.set_ylabel("h")
+    ax.set_title(f"sloshing   t = {t:.2f}", fontsize=10)
+    action_bars(bars, [action], ["accel."], [(-1.0, 1.0)])
+    return to_rgb(fig)
+
+
+def shkadov_frame(
+    x: np.ndarray,
+    h_history: np.ndarray,
+    jets_x: Sequence[float],
+    jet_half_width: float,
+    actions: Sequence[float],
+    dt_act: float,
+) -> np.ndarray:
+    """The film height with a bar per jet over it, and below it the space-time diagram
+    of h over the episode so far (``h_history``: ``[T, n]``)."""
+    fig = new_figure(size=(6.4, 5.2))
+    ax = fig.add_axes((0.09, 0.56, 0.88, 0.36))
+    h = h_history[-1]
+    ax.plot(x, h, lw=0.8, color="#1f77b4")
+    ax.axhline(1.0, color="#555555", lw=0.5, ls="--")
+    top = max(2.0, float(h.max()) * 1.05)
+    scale = 0.5 * (top - 1.0)
+    for xj, a in zip(jets_x, actions):
+        ax.axvspan(xj - jet_half_width, xj + jet_half_width, color="#dddddd", lw=0)
+        ax.bar(xj, a * scale, bottom=1.0, width=2 * jet_half_width, color=ACTION_COLOR, alpha=0.8)
+    ax.set_xlim(x[0], x[-1])
+    ax.set_ylim(0.0, top)
+    ax.set_ylabel("h")
+    ax.set_title(f"shkadov   t = {dt_act * (len(h_history) - 1):.2f}   (red: jet actions)", fontsize=10)
+    st = fig.add_axes((0.09, 0.09, 0.88, 0.36))
+    t_end = max(dt_act * (len(h_history) - 1), dt_act)
+    st.imshow(
+        h_history,
+        aspect="auto",
+        origin="lower",
+        extent=(x[0], x[-1], 0.0, t_end),
+        cmap="viridis",
+        vmin=0.5,
+        vmax=max(1.5, float(h_history.max())),
+        interpolation="nearest",
+    )
+    for xj in jets_x:
+        st.axvline(xj, color="white", lw=0.5, alpha=0.6)
+    st.set_xlabel("x")
+    st.set_ylabel("t")
+    return to_rgb(fig)

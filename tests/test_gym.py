@@ -9,12 +9,12 @@ from gymnasium.utils.env_checker import check_env
 import beacon_torch
 import beacon_torch.gym  # noqa: F401  (registers the ids)
 
-from conftest import ALL_ENVS
+from conftest import ALL_ENVS, FAST
 
 
 @pytest.mark.parametrize("env_id", ALL_ENVS)
 def test_every_env_is_registered_and_passes_check_env(env_id):
-    env = gymnasium.make(f"beacon/{env_id}", render_mode="rgb_array")
+    env = gymnasium.make(f"beacon/{env_id}", render_mode="rgb_array", **FAST.get(env_id, {}))
     check_env(env.unwrapped, skip_render_check=False)
     obs, info = env.reset(seed=0)
     assert obs.shape == env.observation_space.shape and obs.dtype == np.float32
@@ -58,22 +58,24 @@ def test_gym_bad_actions():
         env.step(3)
 
 
-@pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0"])
+@pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0", "burgers-v0", "shkadov-separable-v0"])
 def test_vector_env_is_the_batched_env(env_id):
-    venv = gymnasium.make_vec(f"beacon/{env_id}", num_envs=4, dtype="float64")
+    kw = FAST.get(env_id, {})
+    venv = gymnasium.make_vec(f"beacon/{env_id}", num_envs=4, dtype="float64", **kw)
     assert isinstance(venv.unwrapped, beacon_torch.gym.BeaconVectorEnv)
     obs, _ = venv.reset(seed=0)
-    assert obs.shape == (4, venv.single_observation_space.shape[0])
-    ref = beacon_torch.make(env_id, 4, dtype=torch.float64)
+    assert obs.shape == (4, *venv.single_observation_space.shape)
+    ref = beacon_torch.make(env_id, 4, dtype=torch.float64, seed=0, **kw)
     td = ref.reset()
     venv.action_space.seed(0)
     for _ in range(5):
         actions = venv.action_space.sample()
         obs, reward, terminated, truncated, _ = venv.step(actions)
-        td["action"] = torch.as_tensor(actions)
+        td[ref.action_key] = torch.as_tensor(actions)
         td = ref.step(td)["next"]
-        np.testing.assert_array_equal(obs, td["observation"].numpy())
-        np.testing.assert_array_equal(reward, td["reward"][:, 0].numpy())
+        np.testing.assert_array_equal(obs, td[ref.observation_key].numpy())
+        team = td[ref.reward_key].reshape(4, -1).double().mean(-1)
+        np.testing.assert_allclose(reward, team.numpy(), rtol=1e-12)
     assert reward.shape == terminated.shape == truncated.shape == (4,)
 
 

@@ -64,3 +64,130 @@ def test_lsrk4_is_batched_and_differentiable():
     factor = (out / u).detach()
     torch.testing.assert_close(u.grad, factor, rtol=1e-14, atol=0)
     assert abs(factor[0].item() - math.exp(-0.1)) < 1e-6
+
+
+# ---------------------------------------------------------------- 1-D operators
+from beacon_torch.numerics import (  # noqa: E402
+    ab2_step,
+    bdf2_explicit_step,
+    interpolated_action,
+    minmod,
+    rusanov,
+    third_derivative,
+    tvd_derivative,
+    tvd_faces,
+    van_leer,
+)
+
+
+def test_limiter_values():
+    r = torch.tensor([-2.0, -1.0, 0.0, 0.5, 1.0, 3.0, 1e6], dtype=torch.float64)
+    torch.testing.assert_close(van_leer(r), torch.tensor([0, 0, 0, 2 / 3, 1, 1.5, 2 * 1e6 / (1 + 1e6)], dtype=torch.float64))
+    torch.testing.assert_close(minmod(r), torch.tensor([0, 0, 0, 0.5, 1, 1, 1], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("limiter", [van_leer, minmod])
+def test_tvd_faces_on_monotone_and_extremal_data(limiter):
+    # linear data: r = 1, phi(1) = 1, so faces are the exact midpoints (but the first,
+    # which has no upstream neighbour and is first-order upwind)
+    f = torch.arange(8, dtype=torch.float64)[None] * 0.3
+    faces = tvd_faces(f, limiter)
+    torch.testing.assert_close(faces[0, 1:], (f[0, 1:-1] + f[0, 2:]) / 2)
+    assert faces[0, 0] == f[0, 0]
+    # at a local maximum r < 0: the limiter falls back to the upwind value
+    peak = torch.tensor([[0.0, 1.0, 3.0, 1.0, 0.0]], dtype=torch.float64)
+    faces = tvd_faces(peak, limiter)
+    assert faces[0, 2] == 3.0
+    # monotone data never give face values outside their two cells (no new extrema)
+    x = torch.linspace(0, 1, 50, dtype=torch.float64)[None]
+    steps = torch.tanh(20 * (x - 0.5)) + 0.1 * x
+    faces = tvd_faces(steps, limiter)
+    lo = torch.minimum(steps[:, :-1], steps[:, 1:])
+    hi = torch.maximum(steps[:, :-1], steps[:, 1:])
+    assert ((faces >= lo - 1e-12) & (faces <= hi + 1e-12)).all()
+
+
+@pytest.mark.parametrize("limiter", [van_leer, minmod])
+def test_tvd_derivative_is_second_order_on_smooth_monotone_data(limiter):
+    errors = []
+    for n in (50, 100, 200, 400):
+        x = torch.linspace(0.0, 1.0, n, dtype=torch.float64)[None]
+        dx = 1.0 / (n - 1)
+        d = tvd_derivative(torch.exp(x), dx, limiter)
+        # away from the first cells, whose upwind fallback is first order
+        errors.append((d - torch.exp(x[:, 1:-1]))[:, 5:].abs().max().item())
+    orders = [math.log2(errors[i] / errors[i + 1]) for i in range(3)]
+    assert all(o > 1.8 for o in orders), orders
+
+
+def test_tvd_derivative_is_in_flux_form():
+    g = torch.Generator().manual_seed(0)
+    f = torch.rand((3, 40), generator=g, dtype=torch.float64)
+    dx = 0.1
+    faces = tvd_faces(f, van_leer)
+    total = (tvd_derivative(f, dx, van_leer) * dx).sum(-1)
+    torch.testing.assert_close(total, faces[:, -1] - faces[:, 0], rtol=0, atol=1e-13)
+
+
+def test_rusanov_is_consistent_and_upwinds_linear_advection():
+    u = torch.tensor([0.3, -1.2], dtype=torch.float64)
+    torch.testing.assert_close(rusanov(u, u, 2 * u, 2 * u, torch.tensor(5.0)), 2 * u)
+    a = 1.5
+    ul, ur = torch.tensor([1.0]), torch.tensor([4.0])
+    assert rusanov(ul, ur, a * ul, a * ur, torch.tensor(a)).item() == pytest.approx(a * 1.0)
+    assert rusanov(ul, ur, -a * ul, -a * ur, torch.tensor(a)).item() == pytest.approx(-a * 4.0)
+
+
+def test_third_derivative_exact_on_cubics_and_second_order_inside():
+    x = torch.linspace(-1.0, 2.0, 31, dtype=torch.float64)[None]
+    dx = 0.1
+    d = third_derivative(2 * x**3 - x**2 + 5, dx)
+    assert d.shape == (1, 29)
+    torch.testing.assert_close(d, torch.full_like(d, 12.0), rtol=0, atol=1e-8)
+    errors = []
+    for n in (40, 80, 160):
+        x = torch.linspace(0.0, 1.0, n, dtype=torch.float64)[None]
+        dx = 1.0 / (n - 1)
+        d = third_derivative(torch.sin(3 * x), dx)[:, :-2]  # the one-sided stencil
+        errors.append((d + 27 * torch.cos(3 * x[:, 1:-3])).abs().max().item())
+    orders = [math.log2(errors[i] / errors[i + 1]) for i in range(2)]
+    assert all(1.8 < o < 2.3 for o in orders), orders
+
+
+def test_ab2_is_second_order():
+    errors = []
+    for n in (20, 40, 80):
+        dt = 1.0 / n
+        u = torch.tensor([1.0], dtype=torch.float64)
+        f_prev = -torch.exp(torch.tensor([dt], dtype=torch.float64))  # exact f at t = -dt
+        for _ in range(n):
+            f = -u
+            u, f_prev = ab2_step(u, f, f_prev, dt), f
+        errors.append(abs(u.item() - math.exp(-1.0)))
+    orders = [math.log2(errors[i] / errors[i + 1]) for i in range(2)]
+    assert all(1.8 < o < 2.2 for o in orders), orders
+
+
+def test_explicit_bdf2_is_consistent_and_first_order():
+    # the right-hand side lags one level behind the implicit BDF2, which costs an order
+    errors = []
+    for n in (50, 100, 200):
+        dt = 1.0 / n
+        u_prev = torch.tensor([math.exp(dt)], dtype=torch.float64)
+        u = torch.tensor([1.0], dtype=torch.float64)
+        for _ in range(n):
+            u, u_prev = bdf2_explicit_step(u, u_prev, -u, dt), u
+        errors.append(abs(u.item() - math.exp(-1.0)))
+    orders = [math.log2(errors[i] / errors[i + 1]) for i in range(2)]
+    assert all(0.9 < o < 1.2 for o in orders), orders
+    # a constant state is a fixed point
+    c = torch.full((2, 3), 0.5, dtype=torch.float64)
+    assert torch.equal(bdf2_explicit_step(c, c, torch.zeros_like(c), 0.1), c)
+
+
+def test_interpolated_action():
+    prev, new = torch.tensor([0.0, 1.0]), torch.tensor([1.0, -1.0])
+    torch.testing.assert_close(interpolated_action(prev, new, 0, 10), prev)
+    torch.testing.assert_close(interpolated_action(prev, new, 5, 10), torch.tensor([0.5, 0.0]))
+    torch.testing.assert_close(interpolated_action(prev, new, 10, 10), new)
+    torch.testing.assert_close(interpolated_action(prev, new, 49, 10), new)

@@ -42,6 +42,21 @@ def test_parameters_are_keyword_arguments():
         ("lorenz-v0", {"rho": [28.0, 29.0, 30.0]}, ValueError, ["'rho'", "(2,)", "(3,)"]),
         ("lorenz-v0", {"rho": [28.0, -1.0]}, ValueError, ["'rho'[1]"]),
         ("lorenz-v0", {"rho": [[28.0, 28.0]]}, ValueError, ["'rho'", "(1, 2)"]),
+        ("burgers-v0", {"ctrl_pos": 1.9999}, ValueError, ["'ctrl_pos'", "L - 0.008"]),
+        ("burgers-v0", {"ctrl_pos": 0.01}, ValueError, ["'ctrl_pos'"]),
+        ("burgers-v0", {"L": [2.0, 2.0]}, TypeError, ["'L'", "whole batch"]),
+        ("burgers-v0", {"sigma": -0.1}, ValueError, ["'sigma'"]),
+        ("burgers-v0", {"u_target": [0.5, 0.0]}, ValueError, ["'u_target'[1]"]),
+        ("sloshing-v0", {"g": 0.0}, ValueError, ["'g'"]),
+        ("sloshing-v0", {"alpha": float("nan")}, ValueError, ["'alpha'", "finite"]),
+        ("sloshing-v0", {"L": 0.0}, ValueError, ["'L'"]),
+        ("shkadov-v0", {"n_jets": 2.5}, TypeError, ["'n_jets'", "integer"]),
+        ("shkadov-v0", {"n_jets": 0}, ValueError, ["'n_jets'"]),
+        ("shkadov-v0", {"n_jets": 50}, ValueError, ["'L0'", "'n_jets'", "580"]),
+        ("shkadov-v0", {"jet_pos": 200.0}, ValueError, ["'jet_pos'"]),
+        ("shkadov-v0", {"delta": [0.1, 0.2]}, TypeError, ["'delta'"]),
+        ("shkadov-v0", {"random_start": -1}, ValueError, ["'random_start'"]),
+        ("shkadov-separable-v0", {"jet_space": 1.0}, ValueError, ["'jet_space'"]),
     ],
 )
 def test_bad_parameters_raise_naming_the_parameter(env_id, kwargs, exc, words):
@@ -89,7 +104,15 @@ def test_unknown_env_id_lists_the_known_ones():
 
 
 def test_list_envs():
-    assert beacon_torch.list_envs() == ["lorenz-continuous-v0", "lorenz-v0", "vortex-v0"]
+    assert beacon_torch.list_envs() == [
+        "burgers-v0",
+        "lorenz-continuous-v0",
+        "lorenz-v0",
+        "shkadov-separable-v0",
+        "shkadov-v0",
+        "sloshing-v0",
+        "vortex-v0",
+    ]
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64", torch.float32, torch.float64, "torch.float64"])

@@ -8,12 +8,12 @@ import beacon_torch
 from beacon_torch import evaluate
 from beacon_torch.render import save_animation
 
-from conftest import ALL_ENVS
+from conftest import ALL_ENVS, make
 
 
 @pytest.mark.parametrize("env_id", ALL_ENVS)
 def test_render_frame_shows_the_state(env_id):
-    env = beacon_torch.make(env_id, 2, record_history=True)
+    env = make(env_id, 2, record_history=True)
     env.reset()
     blank_ish = env.render()
     evaluate.episode(env, evaluate.random_policy(env))

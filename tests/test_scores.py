@@ -7,8 +7,8 @@ import beacon_torch
 from beacon_torch import evaluate
 
 
-def uncontrolled(env_id, batch_size, **params):
-    env = beacon_torch.make(env_id, batch_size, dtype=torch.float64, **params)
+def uncontrolled(env_id, batch_size, seed=None, **params):
+    env = beacon_torch.make(env_id, batch_size, dtype=torch.float64, seed=seed, **params)
     rollout = evaluate.episode(env, evaluate.null_policy(env))
     assert rollout.shape == (batch_size, env.episode_length)
     assert rollout["next", "truncated"][:, -1].all()
@@ -46,3 +46,34 @@ def test_random_policy_is_reproducible_from_its_seed():
     b = evaluate.scores(evaluate.episode(env, evaluate.random_policy(env, seed=3)))
     assert torch.equal(a, b)
     assert a.unique().numel() > 1  # members draw different actions
+
+
+def test_burgers_uncontrolled_mean_over_256_members():
+    score = uncontrolled("burgers-v0", 256, seed=0)
+    assert abs(score.mean().item() + 3.25) <= 0.03 * 3.25, score.mean()
+    # the published spread: std 0.28, range -4.07..-2.48 over 200 episodes
+    assert 0.2 < score.std().item() < 0.4
+    assert score.unique().numel() == 256  # every member draws its own inlet noise
+
+
+SLOSHING_REFERENCE = -2.157
+SLOSHING_OURS = -2.2803  # see docs/envs/sloshing.md: 5.7 % from the reference
+
+
+@pytest.mark.xfail(strict=True, reason="open discrepancy with the published implementation (docs/envs/sloshing.md)")
+def test_sloshing_uncontrolled_score_matches_the_published_one():
+    score = uncontrolled("sloshing-v0", 1)
+    assert abs(score.item() - SLOSHING_REFERENCE) <= 0.02 * abs(SLOSHING_REFERENCE)
+
+
+def test_sloshing_uncontrolled_score_is_the_documented_one():
+    score = uncontrolled("sloshing-v0", 2)
+    assert score[0] == score[1]
+    assert score[0].item() == pytest.approx(SLOSHING_OURS, rel=1e-4)
+
+
+def test_shkadov_uncontrolled_mean_over_16_random_starts():
+    score = uncontrolled("shkadov-v0", 16, seed=0)
+    assert abs(score.mean().item() + 2.32) <= 0.05 * 2.32, score.mean()
+    assert ((score > -2.8) & (score < -1.9)).all(), score
+    assert score.unique().numel() == 16

@@ -51,6 +51,7 @@ class BurgersEnv(FlowEnv):
     episode_length = EPISODE_LENGTH
     n_obs = N_OBS
     n_actions = 1
+    deterministic = False
 
     def setup(self) -> None:
         p = self.params
@@ -66,7 +67,7 @@ class BurgersEnv(FlowEnv):
     def initial_state(self, mask: torch.Tensor | None) -> State:
         u = torch.ones((self.n_envs, self.n_cells), dtype=self.dtype, device=self.device)
         u = u * self.member(self.params.u_target)
-        return {"u": u, "u_prev": u.clone()}
+        return {"u": u, "u_prev": u.clone(), "a": torch.zeros_like(u[:, 0])}
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         p = self.params
@@ -80,7 +81,7 @@ class BurgersEnv(FlowEnv):
             interior = bdf2_explicit_step(ui, u_prev[:, 1:-1], f, DT)
             u, u_prev = torch.cat((inlet, interior, interior[:, -1:]), -1), u
         reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
-        return {"u": u, "u_prev": u_prev}, reward
+        return {"u": u, "u_prev": u_prev, "a": action[:, 0]}, reward
 
     def observe(self, state: State) -> torch.Tensor:
         return state["u"][:, self.ctrl - N_OBS : self.ctrl]
@@ -88,4 +89,9 @@ class BurgersEnv(FlowEnv):
     def render_frame(self, history: list[State]) -> np.ndarray:
         from beacon_torch.render import burgers_frame
 
-        raise NotImplementedError
+        last = history[-1]
+        u = last["u"].double().numpy()
+        x = DX * np.arange(self.n_cells)
+        t = DT * SUBSTEPS * (len(history) - 1)
+        u_target = self.value_of(self.params.u_target, self.render_index)
+        return burgers_frame(x, u, self.ctrl * DX, u_target, float(last["a"]), t)

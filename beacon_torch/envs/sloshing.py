@@ -32,6 +32,7 @@ N_INTERP = 10
 DT_ACT = DT * SUBSTEPS
 EPISODE_LENGTH = 200
 EXCITATION_ACTIONS = 40  # 2 time units
+EXCITATION_AMP = 5.0  # the published amp: the excitation does not follow the amp parameter
 H_MIN, H_MAX = -5.0, 2.0  # the published code's blow-up bounds
 
 
@@ -70,32 +71,34 @@ def with_walls(h_in: torch.Tensor, q_in: torch.Tensor):
     return h, q
 
 
-def run_actions(state: State, actions: list[torch.Tensor], p: SloshingParams, dx: float) -> State:
-    """Advance ``state`` through a sequence of action batches (each ``[B]``)."""
+def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float) -> State:
+    """Advance ``state`` through a sequence of action batches (each ``[B]``) scaled by
+    ``amp`` (a number or ``[B]``)."""
     h, q = state["h"], state["q"]
     fh_prev, fq_prev, u_prev = state["fh_prev"], state["fq_prev"], state["u_prev"]
     for u in actions:
         for i in range(SUBSTEPS):
-            accel = p.amp * interpolated_action(u_prev, u, i, N_INTERP)
+            accel = amp * interpolated_action(u_prev, u, i, N_INTERP)
             gh, gq = with_walls(h, q)
-            fh, fq = shallow_water_rhs(gh, gq, accel, p.g, dx)
+            fh, fq = shallow_water_rhs(gh, gq, accel, g, dx)
             h, q = ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT)
             fh_prev, fq_prev = fh, fq
         u_prev = u
     return {"h": h, "q": q, "fh_prev": fh_prev, "fq_prev": fq_prev, "u_prev": u_prev}
 
 
-def excited_state(p: SloshingParams, n_envs: int, dtype: torch.dtype, device) -> State:
+def excited_state(L: float, g, n_envs: int, dtype: torch.dtype, device) -> State:
     """The tank after the published excitation: from rest (h = 1, q = 0) 40 actions
-    :func:`excitation` (t = 0, 0.05, ...), interpolated like any action; the published
-    code stores this state and starts every episode from it."""
-    n = int(round(p.L * CELLS_PER_UNIT))
-    dx = p.L / n
+    :func:`excitation` (t = 0, 0.05, ...) scaled by the published amplitude 5 and
+    interpolated like any action; the published code stores this state and starts every
+    episode from it. ``g`` is a number or one value per member ``[n_envs, 1]``."""
+    n = int(round(L * CELLS_PER_UNIT))
+    dx = L / n
     h = torch.ones((n_envs, n), dtype=dtype, device=device)
     zero = torch.zeros_like(h)
     state = {"h": h, "q": zero, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
     actions = [torch.full((n_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)]
-    return run_actions(state, actions, p, dx)
+    return run_actions(state, actions, EXCITATION_AMP, g, dx)
 
 
 class SloshingEnv(FlowEnv):
@@ -116,11 +119,12 @@ class SloshingEnv(FlowEnv):
 
     def _excited(self) -> State:
         p = self.params
-        if any(isinstance(v, torch.Tensor) for v in (p.amp, p.g)):
-            start = excited_state(p, self.n_envs, torch.float64, self.device)
+        if isinstance(p.g, torch.Tensor):
+            g = p.g.to(torch.float64)[:, None]
+            start = excited_state(p.L, g, self.n_envs, torch.float64, self.device)
         else:
-            key = dict(version=1, L=p.L, amp=p.amp, g=p.g)
-            start = cached("sloshing-excited", key, lambda: excited_state(p, 1, torch.float64, "cpu"))
+            key = dict(version=1, L=p.L, g=p.g)
+            start = cached("sloshing-excited", key, lambda: excited_state(p.L, p.g, 1, torch.float64, "cpu"))
             start = {k: v.expand(self.n_envs, *v.shape[1:]) for k, v in start.items()}
         # generated in float64 like the published code, then cast
         return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
@@ -137,7 +141,7 @@ class SloshingEnv(FlowEnv):
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         p = self.params
         u = action[:, 0]
-        new = run_actions(state, [u], p, self.dx)
+        new = run_actions(state, [u], p.amp, self.member(p.g), self.dx)
         h = new["h"]
         reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
         return new, reward
@@ -148,3 +152,10 @@ class SloshingEnv(FlowEnv):
     def out_of_bounds(self, state: State) -> torch.Tensor:
         h = state["h"]
         return ((h < H_MIN) | (h > H_MAX)).any(-1)
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import sloshing_frame
+
+        last = history[-1]
+        x = self.dx * (np.arange(self.n_cells) + 0.5)
+        return sloshing_frame(x, last["h"].double().numpy(), float(last["u_prev"]), DT_ACT * (len(history) - 1))

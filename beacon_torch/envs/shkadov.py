@@ -1,0 +1,304 @@
+"""shkadov-v0: flatten a falling liquid film with jets (Belus et al. 2019; BEACON paper).
+
+Shkadov's model of a film falling along a wall, for the height h and the flow rate q:
+
+    h_t = -q_x
+    q_t = -6/5 (q^2 / h)_x + (h (1 + h_xxx) - q / h^2) / (5 delta) - jets
+
+on a domain of L = L0 + jet_space (n_jets + 2) with a noisy inlet
+h(0) = 1 + U(-5e-4, 5e-4), q(0) = 1 and zero-gradient outlet. TVD first derivatives with
+the minmod limiter, the paper's one-sided third derivative, Adams-Bashforth 2 with
+dt = 0.001, 50 substeps per action (interpolated over the first 20), 400 actions.
+Each jet removes flow rate under a parabolic profile 4 units wide (``jet_profiles``).
+
+Every episode starts from a film developed without control for 200 time units
+(:func:`developed_film`, shipped for the default delta and cached for others), advanced
+at each reset by a random number (0..``random_start``) of uncontrolled actions.
+
+``shkadov-separable-v0`` is the same physics with each jet an agent (TorchRL's
+multi-agent convention): per-jet observation, action and reward under ``"agents"``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import Composite, Unbounded
+
+from beacon_torch.base import FlowEnv, State, where_members
+from beacon_torch.cache import cached
+from beacon_torch.numerics import ab2_step, interpolated_action, minmod, third_derivative, tvd_derivative
+from beacon_torch.params import param
+
+CELLS_PER_UNIT = 5
+DX = 1.0 / CELLS_PER_UNIT
+DT = 1e-3
+SUBSTEPS = 50
+N_INTERP = 20
+EPISODE_LENGTH = 400
+NOISE = 5e-4
+JET_HALF_WIDTH = 2.0
+OBS_LENGTH = 10.0  # upstream of each jet, sampled every unit length
+REWARD_LENGTH = 10.0  # downstream of each jet
+GUARD = 1e-8  # in q^2/h and q/h^2, as in the published code
+H_MAX = 25.0  # the published code's blow-up bound on |h|
+# the developed film: 200 time units on a 580-unit domain (L0 = 550, one jet)
+DEVELOP_TIME = 200.0
+DEVELOP_LENGTH = 580.0
+DEVELOP_SEED = 0
+
+
+@dataclass(frozen=True)
+class ShkadovParams:
+    L0: float = param(150.0, low=20.0, high=DEVELOP_LENGTH, per_member=False, doc="domain length before the jets' extension")
+    n_jets: int = param(5, low=1, high=100, kind="int", per_member=False, doc="number of jets")
+    jet_pos: float = param(150.0, low=OBS_LENGTH + 1.0, high=DEVELOP_LENGTH, per_member=False, doc="position of the first jet")
+    jet_space: float = param(10.0, low=2 * JET_HALF_WIDTH, high=100.0, per_member=False, doc="spacing of the jets")
+    delta: float = param(0.1, low=0.01, high=10.0, per_member=False, doc="the film parameter (Re^2 / We)^(1/3) / 15")
+    amp: float = param(5.0, low=0.0, high=1e8, doc="jet amplitude A (action scaling)")
+    random_start: int = param(400, low=0, high=10_000, kind="int", per_member=False, doc="most uncontrolled actions run at each reset")
+
+    @property
+    def length(self) -> float:
+        return self.L0 + self.jet_space * (self.n_jets + 2)
+
+    def __post_init__(self):
+        if self.length > DEVELOP_LENGTH:
+            raise ValueError(
+                f"parameters 'L0', 'jet_space' and 'n_jets' give a domain of {self.length:g} units, "
+                f"longer than the {DEVELOP_LENGTH:g} of the developed film"
+            )
+        last = self.jet_pos + self.jet_space * (self.n_jets - 1)
+        if last + REWARD_LENGTH > self.length - DX:
+            raise ValueError(
+                f"parameter 'jet_pos' = {self.jet_pos:g} puts the last jet's reward region past the "
+                f"domain end ({self.length:g}); it must be at most {self.length - DX - REWARD_LENGTH - self.jet_space * (self.n_jets - 1):g}"
+            )
+
+
+def jet_profiles(centres: list[int], n_cells: int, dtype, device) -> torch.Tensor:
+    """``[n_jets, n_cells]`` parabolic jet profiles v = (k - s)(e - k) / (0.25 (e - s)^2),
+    zero at the jet's edges s, e and 1 at its centre."""
+    half = int(round(JET_HALF_WIDTH / DX))
+    k = torch.arange(n_cells, dtype=dtype, device=device)
+    out = []
+    for c in centres:
+        s, e = c - half, c + half
+        out.append(((k - s) * (e - k) / (0.25 * (e - s) ** 2)).clamp(min=0.0))
+    return torch.stack(out)
+
+
+def shkadov_rhs(h: torch.Tensor, q: torch.Tensor, forcing: torch.Tensor, delta, dx: float):
+    """(dh/dt, dq/dt) at the interior cells; ``forcing`` is the jets' flow-rate removal
+    at the interior cells."""
+    hi, qi = h[:, 1:-1], q[:, 1:-1]
+    dh = -tvd_derivative(q, dx, minmod)
+    dq = (
+        -1.2 * tvd_derivative(q * q / (h + GUARD), dx, minmod)
+        + (hi * (third_derivative(h, dx) + 1.0) - qi / (hi * hi + GUARD)) / (5.0 * delta)
+        - forcing
+    )
+    return dh, dq
+
+
+def run_action(
+    state: State,
+    action: torch.Tensor,
+    profiles: torch.Tensor,
+    delta,
+    dx: float,
+    generator: torch.Generator | None,
+    amp=5.0,
+) -> State:
+    """One action period (``SUBSTEPS`` AB2 steps) of jet amplitudes ``action`` ``[B, n_jets]``;
+    ``amp`` is a number or a ``[B, 1]`` tensor."""
+    h, q = state["h"], state["q"]
+    dh_prev, dq_prev, u_prev = state["dh_prev"], state["dq_prev"], state["u_prev"]
+    B = h.shape[0]
+    noise = 2.0 * torch.rand((SUBSTEPS, B, 1), generator=generator, dtype=h.dtype, device=h.device) - 1.0
+    one = torch.ones_like(h[:, :1])
+    for i in range(SUBSTEPS):
+        u = interpolated_action(u_prev, action, i, N_INTERP)
+        forcing = amp * (u @ profiles)
+        dh, dq = shkadov_rhs(h, q, forcing, delta, dx)
+        hi, qi = ab2_step(h[:, 1:-1], dh, dh_prev, DT), ab2_step(q[:, 1:-1], dq, dq_prev, DT)
+        h = torch.cat((one + NOISE * noise[i], hi, hi[:, -1:]), -1)
+        q = torch.cat((one, qi, qi[:, -1:]), -1)
+        dh_prev, dq_prev = dh, dq
+    return {"h": h, "q": q, "dh_prev": dh_prev, "dq_prev": dq_prev, "u_prev": action}
+
+
+def flat_state(n_envs: int, n_cells: int, n_jets: int, dtype, device) -> State:
+    one = torch.ones((n_envs, n_cells), dtype=dtype, device=device)
+    zero = torch.zeros((n_envs, n_cells - 2), dtype=dtype, device=device)
+    return {"h": one, "q": one.clone(), "dh_prev": zero, "dq_prev": zero.clone(), "u_prev": torch.zeros((n_envs, n_jets), dtype=dtype, device=device)}
+
+
+def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float = DEVELOP_TIME, device="cpu") -> State:
+    """The published initial film: from the flat film (h = q = 1) on a 580-unit domain,
+    ``time`` time units without control, in float64, with the inlet noise drawn from a
+    generator seeded by ``seed``. Returns ``h`` and ``q`` of shape ``[n_cells]``.
+
+    200 time units are 200,000 substeps: minutes on a CPU. The default-delta film ships
+    with the package; others are cached by :func:`beacon_torch.cache.cached`.
+    """
+    n = int(round(DEVELOP_LENGTH / DX))
+    g = torch.Generator(device=device)
+    g.manual_seed(seed)
+    state = flat_state(1, n, 1, torch.float64, device)
+    profiles = torch.zeros((1, n - 2), dtype=torch.float64, device=device)
+    zero = torch.zeros((1, 1), dtype=torch.float64, device=device)
+    for _ in range(int(round(time / (DT * SUBSTEPS)))):
+        state = run_action(state, zero, profiles, delta, DX, g)
+    return {"h": state["h"][0], "q": state["q"][0]}
+
+
+class ShkadovEnv(FlowEnv):
+    """Batched shkadov-v0 (one continuous action per jet)."""
+
+    env_id = "shkadov-v0"
+    Params = ShkadovParams
+    episode_length = EPISODE_LENGTH
+    n_obs = 50
+    n_actions = 5
+    blowup_reward = -1.0
+    deterministic = False
+
+    def setup(self) -> None:
+        p = self.params
+        self.n_cells = int(round(p.length / DX))
+        self.n_jets = p.n_jets
+        self.n_actions = p.n_jets
+        self.n_obs = p.n_jets * int(round(OBS_LENGTH))
+        step = int(round(p.jet_space / DX))
+        self.jet_centres = [int(round(p.jet_pos / DX)) + j * step for j in range(p.n_jets)]
+        profiles = jet_profiles(self.jet_centres, self.n_cells, self.dtype, self.device)
+        self._profiles = profiles[:, 1:-1].contiguous()
+        obs = [c - int(round(OBS_LENGTH / DX)) + CELLS_PER_UNIT * m for c in self.jet_centres for m in range(int(round(OBS_LENGTH)))]
+        self._obs_index = torch.tensor(obs, device=self.device)
+        width = int(round(REWARD_LENGTH / DX))
+        self._reward_index = torch.tensor([[c + m for m in range(width)] for c in self.jet_centres], device=self.device)
+        film = cached("shkadov-film", dict(version=1, delta=p.delta), lambda: developed_film(p.delta))
+        self._film = {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros((self.n_envs, self.n_jets), dtype=self.dtype, device=self.device)
+
+    def _advance_state(self, state: State, action: torch.Tensor) -> State:
+        return run_action(state, action, self._profiles, self.params.delta, DX, self.rng, self.member(self.params.amp))
+
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        state = flat_state(self.n_envs, self.n_cells, self.n_jets, self.dtype, self.device)
+        state["h"] = self._film["h"].expand(self.n_envs, -1).clone()
+        state["q"] = self._film["q"].expand(self.n_envs, -1).clone()
+        if self.params.random_start == 0:
+            return state
+        # each member being reset runs its own random number of uncontrolled actions;
+        # only those members are computed, and each stops at its own count
+        n_run = torch.randint(0, self.params.random_start + 1, (self.n_envs,), generator=self.rng, device=self.device)
+        if mask is not None:
+            n_run = torch.where(mask, n_run, torch.zeros_like(n_run))
+        idx = (n_run > 0).nonzero()[:, 0]
+        if idx.numel() == 0:
+            return state
+        sub = {k: v[idx] for k, v in state.items()}
+        zero = torch.zeros((idx.numel(), self.n_jets), dtype=self.dtype, device=self.device)
+        for a in range(int(n_run.max())):
+            # uncontrolled: no jet forcing, whatever the (per-member) amplitude
+            new = run_action(sub, zero, self._profiles, self.params.delta, DX, self.rng, 0.0)
+            sub = where_members(n_run[idx] > a, new, sub)
+        for k, v in sub.items():
+            state[k] = state[k].index_copy(0, idx, v)
+        return state
+
+    def jet_rewards(self, h: torch.Tensor) -> torch.Tensor:
+        """``[B, n_jets]``: -dx sum (h - 1)^2 over the cells downstream of each jet,
+        normalised by the region's cell count."""
+        region = h[:, self._reward_index]  # [B, n_jets, cells]
+        return -DX * ((region - 1.0) ** 2).sum(-1) / region.shape[-1]
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        new = self._advance_state(state, action)
+        return new, self.jet_rewards(new["h"]).mean(-1)
+
+    def observe(self, state: State) -> torch.Tensor:
+        return state["q"][:, self._obs_index]
+
+    def out_of_bounds(self, state: State) -> torch.Tensor:
+        return (state["h"].abs() > H_MAX).any(-1)
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import shkadov_frame
+
+        x = DX * np.arange(self.n_cells)
+        h = torch.stack([s["h"] for s in history]).double().numpy()
+        actions = history[-1]["u_prev"].double().numpy().ravel()
+        jets_x = [DX * c for c in self.jet_centres]
+        return shkadov_frame(x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS)
+
+
+
+class ShkadovSeparableEnv(ShkadovEnv):
+    """shkadov-separable-v0: the jets as agents sharing the physics.
+
+    Under the ``"agents"`` sub-TensorDict (TorchRL's multi-agent convention, agent
+    dimension after the batch): ``observation`` ``[B, n_jets, 10]`` (the flow rate
+    upstream of each jet), ``action`` ``[B, n_jets, 1]`` and ``reward`` ``[B, n_jets, 1]``
+    (each jet's own downstream flatness; their mean is the shkadov-v0 reward). The done
+    flags are shared, at the root. One policy applied per agent fits any ``n_jets``.
+    """
+
+    env_id = "shkadov-separable-v0"
+    action_key = ("agents", "action")
+    observation_key = ("agents", "observation")
+    reward_key = ("agents", "reward")
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        return (self.n_jets, 1)
+
+    def _make_specs(self) -> None:
+        super()._make_specs()
+        B, dev = self.batch_size, self.device
+        per_agent = int(round(OBS_LENGTH))
+        agents = (*B, self.n_jets)
+        self.observation_spec = Composite(
+            agents=Composite(
+                observation=Unbounded(shape=(*agents, per_agent), dtype=self.dtype, device=dev),
+                shape=agents,
+                device=dev,
+            ),
+            shape=B,
+            device=dev,
+        )
+        self.full_action_spec = Composite(
+            agents=Composite(action=self._action_leaf_spec((*agents, 1)), shape=agents, device=dev),
+            shape=B,
+            device=dev,
+        )
+        self.full_reward_spec = Composite(
+            agents=Composite(
+                reward=Unbounded(shape=(*agents, 1), dtype=self.dtype, device=dev), shape=agents, device=dev
+            ),
+            shape=B,
+            device=dev,
+        )
+
+    def _pack(self, obs: torch.Tensor, reward: torch.Tensor | None) -> dict:
+        agents = {"observation": obs}
+        if reward is not None:
+            agents["reward"] = reward[..., None]
+        return {"agents": TensorDict(agents, batch_size=(*self.batch_size, self.n_jets), device=self.device)}
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros((self.n_envs, self.n_jets, 1), dtype=self.dtype, device=self.device)
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        new = self._advance_state(state, action[..., 0])
+        return new, self.jet_rewards(new["h"])
+
+    def observe(self, state: State) -> torch.Tensor:
+        return super().observe(state).reshape(self.n_envs, self.n_jets, -1)
