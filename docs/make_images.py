@@ -11,8 +11,15 @@ OUT = Path(__file__).parent / "img"
 
 if __name__ == "__main__":
     OUT.mkdir(exist_ok=True)
-    for env_id, steps in (("lorenz-v0", 300), ("vortex-v0", 300)):
-        env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True)
+    cases = (
+        ("lorenz-v0", 300, {}),
+        ("vortex-v0", 300, {}),
+        ("burgers-v0", 100, {}),
+        ("sloshing-v0", 60, {}),
+        ("shkadov-v0", 100, {"random_start": 0}),
+    )
+    for env_id, steps, params in cases:
+        env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True, **params)
         policy = evaluate.random_policy(env, seed=0)
         env.rollout(steps, policy=policy)
         Image.fromarray(env.render()).save(OUT / f"{env_id}.png")

@@ -34,5 +34,6 @@ def test_setup_installs_exactly_torch_2_13_0_first():
 
 def test_readme_links_the_docs():
     text = (ROOT / "README.md").read_text()
-    for page in ("docs/quickstart.md", "docs/envs/lorenz.md", "docs/envs/vortex.md"):
+    pages = ["docs/quickstart.md"] + [f"docs/envs/{name}.md" for name in ("lorenz", "vortex", "burgers", "sloshing", "shkadov")]
+    for page in pages:
         assert page in text and (ROOT / page).is_file()
