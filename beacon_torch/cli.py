@@ -96,7 +96,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         rollout = evaluate.episode(env, policy)
         elapsed = time.perf_counter() - start
         score = evaluate.scores(rollout)
-        rewards[name] = rollout["next", "reward"][..., 0].to(torch.float64).cpu()
+        rewards[name] = evaluate.step_rewards(rollout).cpu()
         results[name] = dict(
             members=batch,
             mean=score.mean().item(),

@@ -40,15 +40,18 @@ def episode(env: FlowEnv, policy: Policy, *, frame_hook: Callable[[int], None] |
     )
 
 
+def step_rewards(rollout: TensorDictBase) -> torch.Tensor:
+    """``[batch, steps]`` rewards in float64; for multi-agent variants the team's reward,
+    the mean over the agents."""
+    if ("next", "agents", "reward") in rollout.keys(include_nested=True):
+        return rollout["next", "agents", "reward"][..., 0].to(torch.float64).mean(-1)
+    return rollout["next", "reward"][..., 0].to(torch.float64)
+
+
 def scores(rollout: TensorDictBase) -> torch.Tensor:
     """Episode score (sum of rewards up to the end of the first episode) of each member,
     in float64. Steps after a member's end repeat its last entry in TorchRL's rollout
     and are not counted."""
-    if ("next", "agents", "reward") in rollout.keys(include_nested=True):
-        # multi-agent variants: the team's score, the mean of the agents' rewards
-        reward = rollout["next", "agents", "reward"][..., 0].to(torch.float64).mean(-1)
-    else:
-        reward = rollout["next", "reward"][..., 0].to(torch.float64)
     done = rollout["next", "done"][..., 0].to(torch.int64)
     in_episode = (done.cumsum(-1) - done) == 0
-    return (reward * in_episode).sum(-1)
+    return (step_rewards(rollout) * in_episode).sum(-1)
