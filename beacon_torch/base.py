@@ -9,14 +9,16 @@ pure-ish methods on a dict of state tensors (each with a leading batch dimension
     the state at the start of an episode for the whole batch (``mask`` says which members
     are being reset, so that costly starts can restrict their work);
 ``advance(state, action, count)``
-    the state after one action and the reward earned by it; ``count`` is the number of
-    actions already taken in the episode, per member;
+    the state after one action and the reward earned by it (``[batch]``, or
+    ``[batch, n_agents]`` for multi-agent variants); ``count`` is the number of actions
+    already taken in the episode, per member;
 ``observe(state)``
-    the observation tensor ``[*batch, n_obs]``;
+    the observation tensor ``[batch, n_obs]`` (``[batch, n_agents, n_obs]``);
 ``null_action()``
     the "no control" action of the benchmark, for the whole batch.
 
-and optionally ``out_of_bounds(state)`` (physical bounds beyond finiteness).
+and optionally ``setup()`` (grid and sizes derived from the parameters, before the
+specs are built) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
 """
 
 from __future__ import annotations
