@@ -7,6 +7,8 @@ from typing import Any
 from beacon_torch.base import FlowEnv
 from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
+from beacon_torch.envs.mixing import MixingContinuousEnv, MixingEnv
+from beacon_torch.envs.rayleigh import RayleighEnv
 from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
 from beacon_torch.envs.sloshing import SloshingEnv
 from beacon_torch.envs.vortex import VortexEnv
@@ -21,6 +23,9 @@ ENVS: dict[str, type[FlowEnv]] = {
         SloshingEnv,
         ShkadovEnv,
         ShkadovSeparableEnv,
+        RayleighEnv,
+        MixingEnv,
+        MixingContinuousEnv,
     )
 }
 

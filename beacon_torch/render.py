@@ -50,7 +50,8 @@ def action_bars(
         ax.bar(i, 1.0, color="#eeeeee", edgecolor="#999999", width=0.6)
         ax.bar(i, frac(v) - frac(base), bottom=frac(base), color=ACTION_COLOR, width=0.6)
         ax.hlines(frac(base), i - 0.3, i + 0.3, color="#555555", lw=0.8)
-        ax.text(i, 1.03, f"{v:+.3g}", ha="center", va="bottom", fontsize=8)
+        if n <= 4:  # more values than that do not fit above the bars
+            ax.text(i, 1.03, f"{v:+.3g}", ha="center", va="bottom", fontsize=8)
     ax.set_xticks(range(n), labels, fontsize=8)
     ax.set_ylim(0.0, 1.15)
     ax.set_yticks([])
@@ -195,4 +196,42 @@ def shkadov_frame(
         st.axvline(xj, color="white", lw=0.5, alpha=0.6)
     st.set_xlabel("x")
     st.set_ylabel("t")
+    return to_rgb(fig)
+
+
+def cavity_frame(
+    name: str,
+    scalar: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    L: float,
+    H: float,
+    actions: Sequence[float],
+    t: float,
+    scalar_label: str,
+    vmin: float,
+    vmax: float,
+    action_labels: Sequence[str] | None = None,
+) -> np.ndarray:
+    """A 2-D cavity: the scalar field (``[nx, ny]``, x first) with velocity arrows at the
+    cell centres (from the ghosted staggered ``u``, ``v``) and the action bars."""
+    fig = new_figure(size=(6.4, 4.6))
+    ax = fig.add_axes((0.06, 0.1, 0.62, 0.8))
+    nx, ny = scalar.shape
+    image = ax.imshow(scalar.T, origin="lower", extent=(0, L, 0, H), cmap="RdBu_r", vmin=vmin, vmax=vmax, interpolation="bilinear")
+    uc = 0.5 * (u[1:-2, 1:-1] + u[2:-1, 1:-1])
+    vc = 0.5 * (v[1:-1, 1:-2] + v[1:-1, 2:-1])
+    step = max(1, nx // 12)
+    xs = (np.arange(nx) + 0.5) * L / nx
+    ys = (np.arange(ny) + 0.5) * H / ny
+    X, Y = np.meshgrid(xs[::step], ys[::step], indexing="ij")
+    if np.abs(uc).max() + np.abs(vc).max() > 0:  # quiver cannot scale an all-zero field
+        ax.quiver(X, Y, uc[::step, ::step], vc[::step, ::step], color="k", alpha=0.7, width=0.004)
+    ax.set_xlim(0, L)
+    ax.set_ylim(0, H)
+    ax.set_title(f"{name}   t = {t:.1f}", fontsize=10)
+    fig.colorbar(image, ax=ax, fraction=0.046, pad=0.02, label=scalar_label)
+    bars = fig.add_axes((0.8, 0.14, 0.18, 0.64))
+    labels = action_labels or [str(i) for i in range(len(actions))]
+    action_bars(bars, list(actions), labels, [(-1.0, 1.0)] * len(actions))
     return to_rgb(fig)

@@ -1,9 +1,10 @@
 """Regenerate the initial states that ship with the package and check them.
 
-    .venv/bin/python benchmarks/initial_states.py [--write]
+    .venv/bin/python benchmarks/initial_states.py [--write] [shkadov] [rayleigh]
 
-shkadov: the film developed for 200 time units (default delta); sloshing: the excited
-tank. Without --write, compares the regenerated states with the shipped/cached ones.
+shkadov: the film developed for 200 time units (default delta), about 50 s here;
+rayleigh: the convection roll developed for 200 time units, about 20 s. Without
+--write, compares the regenerated states with the shipped ones.
 """
 
 from __future__ import annotations
@@ -14,26 +15,36 @@ import time
 import torch
 
 from beacon_torch import cache
-from beacon_torch.envs import shkadov
+from beacon_torch.envs import rayleigh, shkadov
+
+STATES = {
+    "shkadov": ("shkadov-film", dict(version=1, delta=0.1), lambda: shkadov.developed_film(0.1)),
+    "rayleigh": (
+        "rayleigh-convection",
+        dict(version=2, L=1.0, H=1.0, ra=1e4),
+        lambda: rayleigh.developed_convection(rayleigh.RayleighParams()),
+    ),
+}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--write", action="store_true", help="write the states into beacon_torch/data")
+    parser.add_argument("names", nargs="*", default=sorted(STATES), choices=sorted(STATES))
     args = parser.parse_args()
-
-    key = dict(version=1, delta=0.1)
-    start = time.perf_counter()
-    film = shkadov.developed_film(0.1)
-    print(f"shkadov film: {time.perf_counter() - start:.1f} s, h in [{film['h'].min():.4f}, {film['h'].max():.4f}]")
-    path = cache.PACKAGE_DATA / cache.file_name("shkadov-film", key)
-    if args.write:
-        cache.save(film, path)
-        print(f"wrote {path}")
-    elif path.is_file():
-        shipped = torch.load(path, weights_only=True)
-        diff = max((film[k] - shipped[k]).abs().max().item() for k in film)
-        print(f"max difference from the shipped film: {diff:.3e}")
+    for name in args.names:
+        file, key, generate = STATES[name]
+        start = time.perf_counter()
+        state = generate()
+        print(f"{name}: generated in {time.perf_counter() - start:.1f} s")
+        path = cache.PACKAGE_DATA / cache.file_name(file, key)
+        if args.write:
+            cache.save(state, path)
+            print(f"  wrote {path}")
+        elif path.is_file():
+            shipped = torch.load(path, weights_only=True)
+            diff = max((state[k] - shipped[k]).abs().max().item() for k in state)
+            print(f"  max difference from the shipped state: {diff:.3e}")
 
 
 if __name__ == "__main__":

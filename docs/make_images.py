@@ -17,6 +17,8 @@ if __name__ == "__main__":
         ("burgers-v0", 100, {}),
         ("sloshing-v0", 60, {}),
         ("shkadov-v0", 100, {"random_start": 0}),
+        ("rayleigh-v0", 5, {}),
+        ("mixing-v0", 10, {}),
     )
     for env_id, steps, params in cases:
         env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True, **params)

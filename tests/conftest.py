@@ -1,12 +1,23 @@
+import os
+
 import pytest
 import torch
 
 import beacon_torch
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # one intra-op thread per worker: two workers with two threads each on two cores
+    # slow the matrix-heavy 2-D solvers down several times
+    torch.set_num_threads(1)
+
 ALL_ENVS = beacon_torch.list_envs()
 CONTINUOUS_ENVS = [e for e in ALL_ENVS if not beacon_torch.registry.ENVS[e].discrete]
 DISCRETE_ENVS = [e for e in ALL_ENVS if beacon_torch.registry.ENVS[e].discrete]
 DETERMINISTIC_ENVS = [e for e in ALL_ENVS if beacon_torch.registry.ENVS[e].deterministic]
+# the 2-D cavities take tens of seconds an episode: their whole episodes are run by
+# test_scores.py, the behaviour tests that need whole episodes run on the others
+EXPENSIVE_ENVS = {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0"}
+CHEAP_ENVS = [e for e in ALL_ENVS if e not in EXPENSIVE_ENVS]
 
 # cheaper settings for the behaviour tests that run on every env (the published numbers
 # are checked with the defaults in test_scores.py)
@@ -22,6 +33,11 @@ def make(env_id, batch_size=1, **kwargs):
 
 @pytest.fixture(params=ALL_ENVS)
 def env_id(request):
+    return request.param
+
+
+@pytest.fixture(params=CHEAP_ENVS)
+def cheap_env_id(request):
     return request.param
 
 

@@ -11,12 +11,14 @@ from torchrl.envs.utils import check_env_specs
 import beacon_torch
 from beacon_torch import evaluate
 
-from conftest import DETERMINISTIC_ENVS, FAST, make, run_actions
+from conftest import DETERMINISTIC_ENVS, EXPENSIVE_ENVS, FAST, make, run_actions
 
 
 @pytest.mark.parametrize("batch_size", [1, 8])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_check_env_specs(env_id, batch_size, dtype):
+    if env_id in EXPENSIVE_ENVS and dtype == torch.float64:
+        pytest.skip("float32 covers the specs of the 2-D cavities; float64 runs in test_scores.py")
     env = make(env_id, batch_size, dtype=dtype, seed=0)
     check_env_specs(env, break_when_any_done="both")
 
@@ -39,7 +41,8 @@ def test_specs_have_the_documented_types_and_shapes(env_id):
         assert env.full_done_spec[key].dtype == torch.bool
 
 
-def test_episode_truncates_at_its_length(env_id):
+def test_episode_truncates_at_its_length(cheap_env_id):
+    env_id = cheap_env_id
     env = make(env_id, 3)
     r = evaluate.episode(env, evaluate.random_policy(env))
     n = env.episode_length
@@ -51,8 +54,8 @@ def test_episode_truncates_at_its_length(env_id):
     assert env.step_count.tolist() == [n] * 3
 
 
-def test_rollout_keeps_going_with_auto_reset(env_id):
-    env = make(env_id, 2)
+def test_rollout_keeps_going_with_auto_reset(cheap_env_id):
+    env = make(cheap_env_id, 2)
     n = env.episode_length
     r = env.rollout(n + 3, break_when_any_done=False)
     assert r.shape == (2, n + 3)
@@ -94,14 +97,15 @@ def test_members_are_independent(env_id):
     env1 = make(env_id, 1, dtype=torch.float64, seed=0)
     env3 = make(env_id, 3, dtype=torch.float64, seed=0)
     g = torch.Generator().manual_seed(5)
-    actions3 = [env3.random_action(g) for _ in range(20)]
+    actions3 = [env3.random_action(g) for _ in range(5 if env_id in EXPENSIVE_ENVS else 20)]
     obs3, rew3 = run_actions(env3, actions3)
     obs1, rew1 = run_actions(env1, [a[1:2] for a in actions3])
     torch.testing.assert_close(obs1[0], obs3[1], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(rew1[0], rew3[1], rtol=1e-12, atol=1e-12)
 
 
-def test_same_seed_same_rollout_and_generator_is_per_instance(env_id):
+def test_same_seed_same_rollout_and_generator_is_per_instance(cheap_env_id):
+    env_id = cheap_env_id
     a = make(env_id, 4, seed=123)
     b = make(env_id, 4, seed=123)
     ra = evaluate.episode(a, evaluate.random_policy(a, seed=9))
@@ -156,6 +160,11 @@ def _step(env, action):
         ("shkadov-v0", torch.zeros(2, 4), ValueError, ["(2, 5)", "(2, 4)"]),
         ("shkadov-separable-v0", torch.zeros(2, 5), ValueError, ["(2, 5, 1)", "(2, 5)"]),
         ("shkadov-separable-v0", torch.full((2, 5, 1), float("inf")), ValueError, ["inf"]),
+        ("rayleigh-v0", torch.zeros(2, 5), ValueError, ["(2, 10)", "(2, 5)"]),
+        ("rayleigh-v0", torch.full((2, 10), float("nan")), ValueError, ["NaN"]),
+        ("mixing-v0", torch.tensor([4, 0]), ValueError, ["[0, 3]"]),
+        ("mixing-v0", torch.zeros(2, 2), TypeError, ["integer"]),
+        ("mixing-continuous-v0", torch.zeros(2, 4), ValueError, ["(2, 2)", "(2, 4)"]),
     ],
 )
 def test_bad_actions_name_the_expected_shape_and_range(env_id, action, exc, words):

@@ -34,6 +34,6 @@ def test_setup_installs_exactly_torch_2_13_0_first():
 
 def test_readme_links_the_docs():
     text = (ROOT / "README.md").read_text()
-    pages = ["docs/quickstart.md"] + [f"docs/envs/{name}.md" for name in ("lorenz", "vortex", "burgers", "sloshing", "shkadov")]
+    pages = ["docs/quickstart.md"] + [f"docs/envs/{name}.md" for name in ("lorenz", "vortex", "burgers", "sloshing", "shkadov", "rayleigh", "mixing")]
     for page in pages:
         assert page in text and (ROOT / page).is_file()

@@ -57,6 +57,12 @@ def test_parameters_are_keyword_arguments():
         ("shkadov-v0", {"delta": [0.1, 0.2]}, TypeError, ["'delta'"]),
         ("shkadov-v0", {"random_start": -1}, ValueError, ["'random_start'"]),
         ("shkadov-separable-v0", {"jet_space": 1.0}, ValueError, ["'jet_space'"]),
+        ("rayleigh-v0", {"n_sgts": 7}, ValueError, ["'n_sgts'", "divide"]),
+        ("rayleigh-v0", {"ra": 0.0}, ValueError, ["'ra'"]),
+        ("rayleigh-v0", {"ra": [1e4, 1e4]}, TypeError, ["'ra'"]),
+        ("mixing-v0", {"side": 2.0}, ValueError, ["'side'"]),
+        ("mixing-v0", {"pe": -1.0}, ValueError, ["'pe'"]),
+        ("mixing-continuous-v0", {"c0": 0.0}, ValueError, ["'c0'"]),
     ],
 )
 def test_bad_parameters_raise_naming_the_parameter(env_id, kwargs, exc, words):
@@ -108,6 +114,9 @@ def test_list_envs():
         "burgers-v0",
         "lorenz-continuous-v0",
         "lorenz-v0",
+        "mixing-continuous-v0",
+        "mixing-v0",
+        "rayleigh-v0",
         "shkadov-separable-v0",
         "shkadov-v0",
         "sloshing-v0",

@@ -8,10 +8,10 @@ import beacon_torch
 from beacon_torch import evaluate
 from beacon_torch.render import save_animation
 
-from conftest import ALL_ENVS, make
+from conftest import ALL_ENVS, CHEAP_ENVS, make
 
 
-@pytest.mark.parametrize("env_id", ALL_ENVS)
+@pytest.mark.parametrize("env_id", CHEAP_ENVS)
 def test_render_frame_shows_the_state(env_id):
     env = make(env_id, 2, record_history=True)
     env.reset()
@@ -44,3 +44,12 @@ def test_save_animation_writes_every_frame(tmp_path):
         assert im.n_frames == 5 and im.size == (30, 20)
     with pytest.raises(ValueError, match="no frames"):
         save_animation([], tmp_path / "b.gif")
+
+
+@pytest.mark.parametrize("env_id", sorted(set(ALL_ENVS) - set(CHEAP_ENVS)))
+def test_cavity_frames(env_id):
+    env = make(env_id, 1, record_history=True)
+    env.rollout(2)
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.shape[2] == 3 and frame.std() > 10
+    assert len(env.history) == 3

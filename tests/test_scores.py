@@ -77,3 +77,26 @@ def test_shkadov_uncontrolled_mean_over_16_random_starts():
     assert abs(score.mean().item() + 2.32) <= 0.05 * 2.32, score.mean()
     assert ((score > -2.8) & (score < -1.9)).all(), score
     assert score.unique().numel() == 16
+
+
+def test_rayleigh_developed_state_has_the_published_nusselt_number():
+    from beacon_torch.envs.rayleigh import nusselt
+
+    env = beacon_torch.make("rayleigh-v0", 1, dtype=torch.float64)
+    env.reset()
+    assert nusselt(env.state["theta"], env.dy).item() == pytest.approx(2.16, rel=0.01)
+
+
+def test_rayleigh_uncontrolled_score():
+    score = uncontrolled("rayleigh-v0", 2)
+    assert score[0] == score[1]
+    assert score[0].item() == pytest.approx(-216.3, rel=0.02)
+
+
+def test_mixing_constant_actions_score_like_the_published_baseline():
+    env = beacon_torch.make("mixing-v0", 4, dtype=torch.float64)
+    actions = torch.arange(4)
+    rollout = evaluate.episode(env, lambda td: td.set("action", actions))
+    score = evaluate.scores(rollout)
+    assert score[0].item() == pytest.approx(-17.48, rel=0.02)
+    assert (score.max() - score.min()).item() <= 0.01 * abs(score.mean().item())

@@ -1,0 +1,183 @@
+"""mixing-v0: mix a passive scalar in a cavity by moving its walls (BEACON paper,
+section "Mixing").
+
+Lid-driven cavity flow with a passive concentration c:
+
+    div u = 0
+    u_t + (u.grad) u = -grad p + lap u / Re
+    c_t + u.grad c = lap c / Pe
+
+on the shared staggered-grid projection solver (``beacon_torch.numerics.projection``),
+100 cells per unit length, dt = 0.002, 250 substeps per action, 100 actions. Each
+discrete action drives one pair of opposite walls in opposite directions at u_max;
+``mixing-continuous-v0`` sets both pairs' speeds continuously. The reward is minus the
+mean distance of c from its perfectly mixed value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, State
+from beacon_torch.numerics.projection import (
+    NEUMANN,
+    ZERO_GHOST,
+    PoissonSolver,
+    neumann_ghosts,
+    predict,
+    project,
+    scalar_substeps,
+    transport_rk3,
+    wall_velocities,
+)
+from beacon_torch.params import param
+
+CELLS_PER_UNIT = 100
+DT = 0.002
+SUBSTEPS = 250
+EPISODE_LENGTH = 100
+N_PROBES = 4
+HISTORY = 4
+# wall velocities (u_bottom, u_top, v_left, v_right) of the discrete actions, in u_max
+LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 1.0, -1.0))
+# the pressure increment: zero normal gradient but on the top wall, where its ghost is 0
+POISSON_BC = (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST)
+
+
+@dataclass(frozen=True)
+class MixingParams:
+    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length")
+    H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
+    re: float = param(100.0, low=1.0, high=1e3, doc="Reynolds number (viscosity 1 / re)")
+    pe: float = param(1e4, low=1.0, high=1e8, doc="Peclet number (diffusivity 1 / pe)")
+    side: float = param(0.5, low=0.02, high=4.0, per_member=False, doc="side of the initial square patch")
+    c0: float = param(1.0, low=0.0, high=1e3, low_open=True, doc="initial concentration in the patch")
+
+    def __post_init__(self):
+        if self.side > min(self.L, self.H):
+            raise ValueError(f"parameter 'side' = {self.side:g} must fit in the cavity ({self.L:g} x {self.H:g})")
+
+
+def grid(p: MixingParams) -> tuple[int, int, float, float]:
+    nx, ny = int(round(p.L * CELLS_PER_UNIT)), int(round(p.H * CELLS_PER_UNIT))
+    return nx, ny, p.L / nx, p.H / ny
+
+
+def substep(state: State, lids: torch.Tensor, solver: PoissonSolver, nu, kappa, dx: float, dy: float, n_scalar: int) -> State:
+    """One projection substep with wall speeds ``lids`` (``[B, 4]``: u_bottom, u_top,
+    v_left, v_right)."""
+    wall = [lids[:, k : k + 1] for k in range(4)]
+    u, v = wall_velocities(state["u"], state["v"], *wall)
+    u, v = predict(u, v, state["p"], nu, DT, dx, dy)
+    u, v, p = project(u, v, state["p"], solver, DT, dx, dy)
+    c = transport_rk3(state["c"], u, v, kappa, DT, dx, dy, neumann_ghosts, n_scalar)
+    return {**state, "u": u, "v": v, "p": p, "c": c}
+
+
+class MixingEnv(FlowEnv):
+    """Batched mixing-v0 (4 discrete actions: which walls move, which way)."""
+
+    env_id = "mixing-v0"
+    Params = MixingParams
+    episode_length = EPISODE_LENGTH
+    n_obs = 3 * N_PROBES**2 * HISTORY
+    n_actions = 4
+    discrete = True
+
+    def setup(self) -> None:
+        p = self.params
+        self.nx, self.ny, self.dx, self.dy = grid(p)
+        self.u_max = self.member(p.re) * 0.01 / p.L  # the published scaling: 1 at the defaults
+        self.nu, self.kappa = 1.0 / self.member(p.re, 2), 1.0 / self.member(p.pe, 2)
+        pe_min = float(p.pe.min()) if isinstance(p.pe, torch.Tensor) else p.pe
+        self.n_scalar = scalar_substeps(1.0 / pe_min, DT, self.dx, self.dy)
+        self.solver = PoissonSolver(self.nx, self.ny, self.dx, self.dy, POISSON_BC, dtype=self.dtype, device=self.device)
+        self._px = torch.tensor([self.nx // 8 + (self.nx // 4) * k for k in range(N_PROBES)], device=self.device)
+        self._py = torch.tensor([self.ny // 8 + (self.ny // 4) * k for k in range(N_PROBES)], device=self.device)
+        self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
+        self.target = p.side**2 * self.member(p.c0, 2) / (p.L * p.H)
+
+    def walls(self, action: torch.Tensor) -> torch.Tensor:
+        """``[B, 4]`` wall speeds (u_bottom, u_top, v_left, v_right) of an action batch,
+        in units of u_max."""
+        return self._lids[action]
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros(self.batch_size, dtype=torch.int64, device=self.device)
+
+    def probes(self, state: State) -> torch.Tensor:
+        ix, iy = self._px[:, None], self._py[None, :]
+        return torch.cat([state[k][:, ix, iy].flatten(1) for k in ("c", "u", "v")], -1)
+
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        p = self.params
+        B, nx, ny = self.n_envs, self.nx, self.ny
+        zeros = lambda *shape: torch.zeros((B, *shape), dtype=self.dtype, device=self.device)  # noqa: E731
+        c = zeros(nx + 2, ny + 2)
+        # the published patch spans ghosted indices i0 .. i0 + n - 1, i.e. one cell off
+        # the centre towards the origin (25..74 of 0..101 at the defaults)
+        n_side = int(round(p.side / self.dx)), int(round(p.side / self.dy))
+        i0, j0 = int(round((nx - n_side[0]) / 2)), int(round((ny - n_side[1]) / 2))
+        c[:, i0 : i0 + n_side[0], j0 : j0 + n_side[1]] = 1.0
+        c = c * self.member(p.c0, 2)
+        state = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c}
+        history = zeros(HISTORY, 3 * N_PROBES**2)
+        history[:, 0] = self.probes(state)
+        state["probes"] = history
+        state["walls"] = zeros(4)
+        return state
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        walls = self.walls(action)
+        lids = walls * self.u_max
+        new = dict(state)
+        for _ in range(SUBSTEPS):
+            new = substep(new, lids, self.solver, self.nu, self.kappa, self.dx, self.dy, self.n_scalar)
+        new["probes"] = torch.cat((self.probes(new)[:, None], state["probes"][:, :-1]), 1)
+        new["walls"] = walls
+        return new, -(new["c"] - self.target).abs().mean((-2, -1))
+
+    def observe(self, state: State) -> torch.Tensor:
+        return state["probes"].flatten(1)
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import cavity_frame
+
+        last = history[-1]
+        c0 = self.value_of(self.params.c0, self.render_index)
+        return cavity_frame(
+            "mixing",
+            last["c"][1:-1, 1:-1].double().numpy(),
+            last["u"].double().numpy(),
+            last["v"].double().numpy(),
+            self.params.L,
+            self.params.H,
+            last["walls"].double().numpy(),
+            t=DT * SUBSTEPS * (len(history) - 1),
+            scalar_label="c",
+            vmin=0.0,
+            vmax=c0,
+            action_labels=["u_b", "u_t", "v_l", "v_r"],
+        )
+
+
+class MixingContinuousEnv(MixingEnv):
+    """mixing-continuous-v0: a in [-1, 1]^2 drives the bottom/top walls at
+    (+a0, -a0) u_max and the right/left walls at (+a1, -a1) u_max."""
+
+    env_id = "mixing-continuous-v0"
+    n_actions = 2
+    discrete = False
+
+    def walls(self, action: torch.Tensor) -> torch.Tensor:
+        a0, a1 = action[:, 0], action[:, 1]
+        return torch.stack((a0, -a0, -a1, a1), -1)
+
+    def null_action(self) -> torch.Tensor:
+        # the continuous image of discrete action 0 (the paper's constant baseline)
+        a = torch.zeros((self.n_envs, 2), dtype=self.dtype, device=self.device)
+        a[:, 0] = 1.0
+        return a

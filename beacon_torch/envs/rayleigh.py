@@ -1,0 +1,197 @@
+"""rayleigh-v0: suppress Rayleigh-Benard convection with the bottom plate's temperature
+(Beintema et al. 2020; BEACON paper, section "Rayleigh").
+
+Boussinesq flow in an L x H cavity heated from below (theta = +1/2 on average) and cooled
+from above (theta = -1/2), adiabatic sides, no-slip walls:
+
+    div u = 0
+    u_t + (u.grad) u = -grad p + sqrt(Pr / Ra) lap u + theta y
+    theta_t + u.grad theta = lap theta / sqrt(Pr Ra)
+
+on the shared staggered-grid projection solver (``beacon_torch.numerics.projection``),
+50 cells per unit length, dt = 0.01, 200 substeps per action, 100 actions. The agent sets
+the temperatures of n_sgts bottom segments around the mean 1/2; the reward is minus the
+Nusselt number. Every episode starts from the developed single convection roll
+(:func:`developed_convection`, shipped for the defaults).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, State
+from beacon_torch.cache import cached
+from beacon_torch.numerics.projection import (
+    PoissonSolver,
+    predict,
+    project,
+    scalar_substeps,
+    transport_rk3,
+    wall_velocities,
+)
+from beacon_torch.params import param
+
+CELLS_PER_UNIT = 50
+DT = 0.01
+SUBSTEPS = 200
+EPISODE_LENGTH = 100
+PR = 0.71
+T_HOT, T_COLD = 0.5, -0.5
+C = 0.75  # largest temperature fluctuation of a segment
+N_PROBES = 4
+HISTORY = 4  # the current probe vector and the 3 previous ones
+DEVELOP_TIME = 200.0
+DEVELOP_SEED = 0
+PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
+
+
+@dataclass(frozen=True)
+class RayleighParams:
+    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length")
+    H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
+    n_sgts: int = param(10, low=1, high=200, kind="int", per_member=False, doc="number of bottom segments (actions)")
+    ra: float = param(1e4, low=1.0, high=1e6, per_member=False, doc="Rayleigh number")
+
+    def __post_init__(self):
+        nx = int(round(self.L * CELLS_PER_UNIT))
+        if nx % self.n_sgts:
+            raise ValueError(f"parameter 'n_sgts' = {self.n_sgts} must divide the {nx} cells along L = {self.L:g}")
+
+
+def grid(p: RayleighParams) -> tuple[int, int, float, float]:
+    nx, ny = int(round(p.L * CELLS_PER_UNIT)), int(round(p.H * CELLS_PER_UNIT))
+    return nx, ny, p.L / nx, p.H / ny
+
+
+def temperature_ghosts(theta: torch.Tensor, bottom: torch.Tensor) -> torch.Tensor:
+    """Cold top plate, adiabatic sides, bottom cells at the temperatures ``bottom``
+    (``[B, nx]``), all through ghost values."""
+    theta = theta.clone()
+    theta[:, 1:-1, -1] = 2.0 * T_COLD - theta[:, 1:-1, -2]
+    theta[:, 1:-1, 0] = 2.0 * bottom - theta[:, 1:-1, 1]
+    theta[:, 0] = theta[:, 1]
+    theta[:, -1] = theta[:, -2]
+    return theta
+
+
+def substep(state: State, bottom: torch.Tensor, solver: PoissonSolver, nu, kappa: float, dx: float, dy: float) -> State:
+    """One projection substep of the Boussinesq flow with bottom temperatures ``bottom``."""
+    theta = temperature_ghosts(state["theta"], bottom)
+    u, v = wall_velocities(state["u"], state["v"])
+    buoyancy = 0.5 * (theta[:, 1:-1, 1:-2] + theta[:, 1:-1, 2:-1])  # on the interior v faces
+    u, v = predict(u, v, state["p"], nu, DT, dx, dy, buoyancy)
+    u, v, p = project(u, v, state["p"], solver, DT, dx, dy)
+    n = scalar_substeps(kappa, DT, dx, dy)
+    theta = transport_rk3(theta, u, v, kappa, DT, dx, dy, lambda t: temperature_ghosts(t, bottom), n)
+    return {**state, "u": u, "v": v, "p": p, "theta": theta}
+
+
+def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
+    """Instantaneous Nusselt number: the mean over the bottom cells of the first-order
+    temperature gradient to the reference plate temperature 1/2, ``[B]``."""
+    return ((T_HOT - theta[:, 1:-1, 1]) / (0.5 * dy)).mean(-1)
+
+
+def rest_state(n_envs: int, nx: int, ny: int, dtype, device) -> State:
+    zeros = lambda *shape: torch.zeros((n_envs, *shape), dtype=dtype, device=device)  # noqa: E731
+    return {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "theta": zeros(nx + 2, ny + 2)}
+
+
+def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = DEVELOP_TIME, seed: int = DEVELOP_SEED) -> State:
+    """The published initial state: from rest (theta = 0) ``time`` time units without
+    control, in float64, after a perturbation of the temperature of amplitude 1e-6 drawn
+    from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
+    would otherwise never start). Returns ``u``, ``v``, ``p``, ``theta`` without batch
+    dimension."""
+    nx, ny, dx, dy = grid(p)
+    g = torch.Generator().manual_seed(seed)
+    state = rest_state(1, nx, ny, torch.float64, "cpu")
+    state["theta"] = PERTURBATION * (2.0 * torch.rand(state["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
+    solver = PoissonSolver(nx, ny, dx, dy)
+    bottom = torch.full((1, nx), T_HOT, dtype=torch.float64)
+    nu, kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
+    for _ in range(int(round(time / DT))):
+        state = substep(state, bottom, solver, nu, kappa, dx, dy)
+    return {k: v[0] for k, v in state.items()}
+
+
+def normalise(action: torch.Tensor) -> torch.Tensor:
+    """The published normalisation of the segment temperatures: scale by C, remove the
+    mean, and shrink so that no segment departs from it by more than C."""
+    a = C * action
+    a = a - a.mean(-1, keepdim=True)
+    return a / torch.clamp(a.abs().amax(-1, keepdim=True) / C, min=1.0)
+
+
+class RayleighEnv(FlowEnv):
+    """Batched rayleigh-v0 (one continuous action per bottom segment)."""
+
+    env_id = "rayleigh-v0"
+    Params = RayleighParams
+    episode_length = EPISODE_LENGTH
+    n_obs = 3 * N_PROBES**2 * HISTORY
+    n_actions = 10
+    blowup_reward = -1.0
+
+    def setup(self) -> None:
+        p = self.params
+        self.nx, self.ny, self.dx, self.dy = grid(p)
+        self.n_actions = p.n_sgts
+        self.nu, self.kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
+        self.solver = PoissonSolver(self.nx, self.ny, self.dx, self.dy, dtype=self.dtype, device=self.device)
+        self._px = torch.tensor([self.nx // 8 + (self.nx // 4) * k for k in range(N_PROBES)], device=self.device)
+        self._py = torch.tensor([self.ny // 8 + (self.ny // 4) * k for k in range(N_PROBES)], device=self.device)
+        key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
+        start = cached("rayleigh-convection", key, lambda: developed_convection(p))
+        self._start = {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
+
+    def null_action(self) -> torch.Tensor:
+        return torch.zeros((self.n_envs, self.n_actions), dtype=self.dtype, device=self.device)
+
+    def probes(self, state: State) -> torch.Tensor:
+        """theta, u, v at the probe grid, ``[B, 3 * n_probes^2]``."""
+        ix, iy = self._px[:, None], self._py[None, :]
+        return torch.cat([state[k][:, ix, iy].flatten(1) for k in ("theta", "u", "v")], -1)
+
+    def initial_state(self, mask: torch.Tensor | None) -> State:
+        state = {k: v.expand(self.n_envs, *v.shape).clone() for k, v in self._start.items()}
+        history = torch.zeros((self.n_envs, HISTORY, 3 * N_PROBES**2), dtype=self.dtype, device=self.device)
+        history[:, 0] = self.probes(state)
+        state["probes"] = history
+        state["bottom"] = torch.full((self.n_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
+        return state
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        segments = normalise(action)
+        bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
+        new = dict(state)
+        for _ in range(SUBSTEPS):
+            new = substep(new, bottom, self.solver, self.nu, self.kappa, self.dx, self.dy)
+        new["probes"] = torch.cat((self.probes(new)[:, None], state["probes"][:, :-1]), 1)
+        new["bottom"] = bottom
+        return new, -nusselt(new["theta"], self.dy)
+
+    def observe(self, state: State) -> torch.Tensor:
+        return state["probes"].flatten(1)
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import cavity_frame
+
+        last = history[-1]
+        segments = (last["bottom"].double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C
+        return cavity_frame(
+            "rayleigh",
+            last["theta"][1:-1, 1:-1].double().numpy(),
+            last["u"].double().numpy(),
+            last["v"].double().numpy(),
+            self.params.L,
+            self.params.H,
+            segments,
+            t=DT * SUBSTEPS * (len(history) - 1),
+            scalar_label="theta",
+            vmin=T_COLD,
+            vmax=T_HOT,
+        )
