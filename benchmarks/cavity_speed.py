@@ -1,0 +1,69 @@
+"""Speed of the 2-D cavities: one full uncontrolled episode of a batch of cavities.
+
+    .venv/bin/python benchmarks/cavity_speed.py [--batch 16] [--dtype float32] [--out FILE]
+
+Prints transitions per second per env (and the factor over the published code's
+single-environment speed on this kind of machine: rayleigh 13.8/s, mixing 3.7/s), and a
+breakdown of one substep: the direct Poisson solve against the rest of the scheme.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import torch
+
+import beacon_torch
+from beacon_torch import evaluate
+
+PUBLISHED = {"rayleigh-v0": 13.8, "mixing-v0": 3.7}
+
+
+def substep_breakdown(env, repeats: int = 50) -> dict:
+    """Milliseconds per batched substep: the Poisson solve alone, and the whole substep."""
+    rhs = torch.randn((env.n_envs, env.nx, env.ny), dtype=env.dtype, device=env.device)
+    env.solver.solve(rhs)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        env.solver.solve(rhs)
+    poisson = (time.perf_counter() - start) / repeats
+    return {"poisson_ms": 1e3 * poisson}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--dtype", default="float32")
+    parser.add_argument("--out", help="write the results as JSON")
+    args = parser.parse_args()
+    results = {"machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"}
+    for env_id, substeps in (("rayleigh-v0", 200), ("mixing-v0", 250)):
+        env = beacon_torch.make(env_id, args.batch, dtype=args.dtype)
+        start = time.perf_counter()
+        rollout = evaluate.episode(env, evaluate.null_policy(env))
+        elapsed = time.perf_counter() - start
+        rate = rollout.numel() / elapsed
+        row = {
+            "batch": args.batch,
+            "dtype": args.dtype,
+            "episode_s": elapsed,
+            "transitions_per_s": rate,
+            "vs_published": rate / PUBLISHED[env_id],
+            "substep_ms": 1e3 * elapsed / (env.episode_length * substeps),
+            **substep_breakdown(env),
+        }
+        results[env_id] = row
+        print(
+            f"{env_id}: {rate:.1f} transitions/s ({row['vs_published']:.1f}x the published {PUBLISHED[env_id]}/s), "
+            f"{row['substep_ms']:.2f} ms per batched substep of which Poisson {row['poisson_ms']:.2f} ms"
+        )
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(results, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
