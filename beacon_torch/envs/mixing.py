@@ -34,13 +34,12 @@ from beacon_torch.numerics.projection import (
     wall_velocities,
 )
 from beacon_torch.params import param
+from beacon_torch.probes import HISTORY, N_PROBES, Probes
 
 CELLS_PER_UNIT = 100
 DT = 0.002
 SUBSTEPS = 250
 EPISODE_LENGTH = 100
-N_PROBES = 4
-HISTORY = 4
 # wall velocities (u_bottom, u_top, v_left, v_right) of the discrete actions, in u_max
 LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 1.0, -1.0))
 # the pressure increment: zero normal gradient but on the top wall, where its ghost is 0
@@ -95,8 +94,7 @@ class MixingEnv(FlowEnv):
         pe_min = float(p.pe.min()) if isinstance(p.pe, torch.Tensor) else p.pe
         self.n_scalar = scalar_substeps(1.0 / pe_min, DT, self.dx, self.dy)
         self.solver = PoissonSolver(self.nx, self.ny, self.dx, self.dy, POISSON_BC, dtype=self.dtype, device=self.device)
-        self._px = torch.tensor([self.nx // 8 + (self.nx // 4) * k for k in range(N_PROBES)], device=self.device)
-        self._py = torch.tensor([self.ny // 8 + (self.ny // 4) * k for k in range(N_PROBES)], device=self.device)
+        self._probes = Probes(("c", "u", "v"), self.nx, self.ny, self.device)
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
         self.target = p.side**2 * self.member(p.c0, 2) / (p.L * p.H)
 
@@ -107,10 +105,6 @@ class MixingEnv(FlowEnv):
 
     def null_action(self) -> torch.Tensor:
         return torch.zeros(self.batch_size, dtype=torch.int64, device=self.device)
-
-    def probes(self, state: State) -> torch.Tensor:
-        ix, iy = self._px[:, None], self._py[None, :]
-        return torch.cat([state[k][:, ix, iy].flatten(1) for k in ("c", "u", "v")], -1)
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         p = self.params
@@ -124,9 +118,7 @@ class MixingEnv(FlowEnv):
         c[:, i0 : i0 + n_side[0], j0 : j0 + n_side[1]] = 1.0
         c = c * self.member(p.c0, 2)
         state = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c}
-        history = zeros(HISTORY, 3 * N_PROBES**2)
-        history[:, 0] = self.probes(state)
-        state["probes"] = history
+        state["probes"] = self._probes.start(state)
         state["walls"] = zeros(4)
         return state
 
@@ -136,7 +128,7 @@ class MixingEnv(FlowEnv):
         new = dict(state)
         for _ in range(SUBSTEPS):
             new = substep(new, lids, self.solver, self.nu, self.kappa, self.dx, self.dy, self.n_scalar)
-        new["probes"] = torch.cat((self.probes(new)[:, None], state["probes"][:, :-1]), 1)
+        new["probes"] = self._probes.push(state["probes"], new)
         new["walls"] = walls
         return new, -(new["c"] - self.target).abs().mean((-2, -1))
 

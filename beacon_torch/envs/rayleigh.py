@@ -33,6 +33,7 @@ from beacon_torch.numerics.projection import (
     wall_velocities,
 )
 from beacon_torch.params import param
+from beacon_torch.probes import HISTORY, N_PROBES, Probes
 
 CELLS_PER_UNIT = 50
 DT = 0.01
@@ -41,8 +42,6 @@ EPISODE_LENGTH = 100
 PR = 0.71
 T_HOT, T_COLD = 0.5, -0.5
 C = 0.75  # largest temperature fluctuation of a segment
-N_PROBES = 4
-HISTORY = 4  # the current probe vector and the 3 previous ones
 DEVELOP_TIME = 200.0
 DEVELOP_SEED = 0
 PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
@@ -142,8 +141,7 @@ class RayleighEnv(FlowEnv):
         self.n_actions = p.n_sgts
         self.nu, self.kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
         self.solver = PoissonSolver(self.nx, self.ny, self.dx, self.dy, dtype=self.dtype, device=self.device)
-        self._px = torch.tensor([self.nx // 8 + (self.nx // 4) * k for k in range(N_PROBES)], device=self.device)
-        self._py = torch.tensor([self.ny // 8 + (self.ny // 4) * k for k in range(N_PROBES)], device=self.device)
+        self._probes = Probes(("theta", "u", "v"), self.nx, self.ny, self.device)
         key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
         start = cached("rayleigh-convection", key, lambda: developed_convection(p))
         self._start = {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
@@ -151,16 +149,9 @@ class RayleighEnv(FlowEnv):
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, self.n_actions), dtype=self.dtype, device=self.device)
 
-    def probes(self, state: State) -> torch.Tensor:
-        """theta, u, v at the probe grid, ``[B, 3 * n_probes^2]``."""
-        ix, iy = self._px[:, None], self._py[None, :]
-        return torch.cat([state[k][:, ix, iy].flatten(1) for k in ("theta", "u", "v")], -1)
-
     def initial_state(self, mask: torch.Tensor | None) -> State:
         state = {k: v.expand(self.n_envs, *v.shape).clone() for k, v in self._start.items()}
-        history = torch.zeros((self.n_envs, HISTORY, 3 * N_PROBES**2), dtype=self.dtype, device=self.device)
-        history[:, 0] = self.probes(state)
-        state["probes"] = history
+        state["probes"] = self._probes.start(state)
         state["bottom"] = torch.full((self.n_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
         return state
 
@@ -170,7 +161,7 @@ class RayleighEnv(FlowEnv):
         new = dict(state)
         for _ in range(SUBSTEPS):
             new = substep(new, bottom, self.solver, self.nu, self.kappa, self.dx, self.dy)
-        new["probes"] = torch.cat((self.probes(new)[:, None], state["probes"][:, :-1]), 1)
+        new["probes"] = self._probes.push(state["probes"], new)
         new["bottom"] = bottom
         return new, -nusselt(new["theta"], self.dy)
 
