@@ -23,15 +23,14 @@ import torch
 
 from beacon_torch.base import FlowEnv, State
 from beacon_torch.numerics.projection import (
+    GRADIENT,
     NEUMANN,
     ZERO_GHOST,
-    PoissonSolver,
-    neumann_ghosts,
-    predict,
+    Cavity,
+    Ghosts,
     project,
     scalar_substeps,
     transport_rk3,
-    wall_velocities,
 )
 from beacon_torch.params import param
 from beacon_torch.probes import HISTORY, N_PROBES, Probes
@@ -39,6 +38,7 @@ from beacon_torch.probes import HISTORY, N_PROBES, Probes
 CELLS_PER_UNIT = 100
 DT = 0.002
 SUBSTEPS = 250
+UNROLL = 5  # substeps per call of the (compiled) kernel; divides SUBSTEPS
 EPISODE_LENGTH = 100
 # wall velocities (u_bottom, u_top, v_left, v_right) of the discrete actions, in u_max
 LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 1.0, -1.0))
@@ -65,15 +65,14 @@ def grid(p: MixingParams) -> tuple[int, int, float, float]:
     return nx, ny, p.L / nx, p.H / ny
 
 
-def substep(state: State, lids: torch.Tensor, solver: PoissonSolver, nu, kappa, dx: float, dy: float, n_scalar: int) -> State:
-    """One projection substep with wall speeds ``lids`` (``[B, 4]``: u_bottom, u_top,
-    v_left, v_right)."""
-    wall = [lids[:, k : k + 1] for k in range(4)]
-    u, v = wall_velocities(state["u"], state["v"], *wall)
-    u, v = predict(u, v, state["p"], nu, DT, dx, dy)
-    u, v, p = project(u, v, state["p"], solver, DT, dx, dy)
-    c = transport_rk3(state["c"], u, v, kappa, DT, dx, dy, neumann_ghosts, n_scalar)
-    return {**state, "u": u, "v": v, "p": p, "c": c}
+def substep(fields: State, walls, cavity: Cavity, c_ghosts: Ghosts, nu, kappa, n_scalar: int) -> State:
+    """One projection substep on the solver's batch-last fields with the wall-velocity
+    ghost offsets ``walls`` (:meth:`Cavity.walls`)."""
+    dx, dy = cavity.dx, cavity.dy
+    u, v = cavity.predict(fields, walls, nu, DT)
+    u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
+    c = transport_rk3(fields["c"], u, v, kappa, DT, dx, dy, c_ghosts, n_scalar)
+    return {"u": u, "v": v, "p": p, "c": c}
 
 
 class MixingEnv(FlowEnv):
@@ -85,15 +84,20 @@ class MixingEnv(FlowEnv):
     n_obs = 3 * N_PROBES**2 * HISTORY
     n_actions = 4
     discrete = True
+    inductor_options = {"cpp_wrapper": True}
 
     def setup(self) -> None:
         p = self.params
         self.nx, self.ny, self.dx, self.dy = grid(p)
         self.u_max = self.member(p.re) * 0.01 / p.L  # the published scaling: 1 at the defaults
-        self.nu, self.kappa = 1.0 / self.member(p.re, 2), 1.0 / self.member(p.pe, 2)
+        # per-member values broadcast against the solver's batch-last fields
+        self.nu, self.kappa = 1.0 / self.member(p.re, 0), 1.0 / self.member(p.pe, 0)
         pe_min = float(p.pe.min()) if isinstance(p.pe, torch.Tensor) else p.pe
         self.n_scalar = scalar_substeps(1.0 / pe_min, DT, self.dx, self.dy)
-        self.solver = PoissonSolver(self.nx, self.ny, self.dx, self.dy, POISSON_BC, dtype=self.dtype, device=self.device)
+        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, POISSON_BC, dtype=self.dtype, device=self.device)
+        self.solver = self.cavity.solver
+        self._c_ghosts = Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, dtype=self.dtype, device=self.device)
+        self._substeps = self.kernel(substep, unroll=UNROLL)
         self._probes = Probes(("c", "u", "v"), self.nx, self.ny, self.device)
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
         self.target = p.side**2 * self.member(p.c0, 2) / (p.L * p.H)
@@ -124,10 +128,12 @@ class MixingEnv(FlowEnv):
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         walls = self.walls(action)
-        lids = walls * self.u_max
-        new = dict(state)
-        for _ in range(SUBSTEPS):
-            new = substep(new, lids, self.solver, self.nu, self.kappa, self.dx, self.dy, self.n_scalar)
+        lids = (walls * self.u_max).T
+        offsets = self.cavity.walls(*lids, like=lids)
+        fields = self.cavity.fields(state, {"c": (self._c_ghosts, None)})
+        for _ in range(SUBSTEPS // UNROLL):
+            fields = self._substeps(fields, offsets, self.cavity, self._c_ghosts, self.nu, self.kappa, self.n_scalar)
+        new = self.cavity.stored(fields, offsets)
         new["probes"] = self._probes.push(state["probes"], new)
         new["walls"] = walls
         return new, -(new["c"] - self.target).abs().mean((-2, -1))

@@ -25,12 +25,14 @@ import torch
 from beacon_torch.base import FlowEnv, State
 from beacon_torch.cache import cached
 from beacon_torch.numerics.projection import (
-    PoissonSolver,
-    predict,
+    GRADIENT,
+    VALUE,
+    Cavity,
+    Ghosts,
+    edge_offset,
     project,
     scalar_substeps,
     transport_rk3,
-    wall_velocities,
 )
 from beacon_torch.params import param
 from beacon_torch.probes import HISTORY, N_PROBES, Probes
@@ -38,6 +40,7 @@ from beacon_torch.probes import HISTORY, N_PROBES, Probes
 CELLS_PER_UNIT = 50
 DT = 0.01
 SUBSTEPS = 200
+UNROLL = 2  # substeps per call of the (compiled) kernel; divides SUBSTEPS
 EPISODE_LENGTH = 100
 PR = 0.71
 T_HOT, T_COLD = 0.5, -0.5
@@ -65,27 +68,51 @@ def grid(p: RayleighParams) -> tuple[int, int, float, float]:
     return nx, ny, p.L / nx, p.H / ny
 
 
-def temperature_ghosts(theta: torch.Tensor, bottom: torch.Tensor) -> torch.Tensor:
-    """Cold top plate, adiabatic sides, bottom cells at the temperatures ``bottom``
-    (``[B, nx]``), all through ghost values."""
-    theta = theta.clone()
-    theta[:, 1:-1, -1] = 2.0 * T_COLD - theta[:, 1:-1, -2]
-    theta[:, 1:-1, 0] = 2.0 * bottom - theta[:, 1:-1, 1]
-    theta[:, 0] = theta[:, 1]
-    theta[:, -1] = theta[:, -2]
-    return theta
+def temperature_ghosts(nx: int, ny: int, dtype, device) -> Ghosts:
+    """Adiabatic sides; the bottom and top temperatures imposed through the ghosts
+    (their values come as the offset of :func:`temperature_offset`)."""
+    return Ghosts.cells(nx, ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=dtype, device=device)
 
 
-def substep(state: State, bottom: torch.Tensor, solver: PoissonSolver, nu, kappa: float, dx: float, dy: float) -> State:
-    """One projection substep of the Boussinesq flow with bottom temperatures ``bottom``."""
-    theta = temperature_ghosts(state["theta"], bottom)
-    u, v = wall_velocities(state["u"], state["v"])
-    buoyancy = 0.5 * (theta[:, 1:-1, 1:-2] + theta[:, 1:-1, 2:-1])  # on the interior v faces
-    u, v = predict(u, v, state["p"], nu, DT, dx, dy, buoyancy)
-    u, v, p = project(u, v, state["p"], solver, DT, dx, dy)
-    n = scalar_substeps(kappa, DT, dx, dy)
-    theta = transport_rk3(theta, u, v, kappa, DT, dx, dy, lambda t: temperature_ghosts(t, bottom), n)
-    return {**state, "u": u, "v": v, "p": p, "theta": theta}
+def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.Tensor:
+    """The ghost offset of bottom cells at the temperatures ``bottom`` (``[B, nx]``)
+    and the cold top plate, ``[nx + 2, ny + 2, B]``."""
+    low = bottom.T[ghosts.ix][:, None]  # the side ghosts take their neighbour's value
+    return edge_offset(ny + 2, 1, low, T_COLD, bottom)
+
+
+def substep(fields: State, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa: float, n_scalar: int) -> State:
+    """One projection substep of the Boussinesq flow on the solver's batch-last fields
+    (no-slip walls; ``theta_offset`` from :func:`temperature_offset`)."""
+    dx, dy = cavity.dx, cavity.dy
+    theta = fields["theta"]
+    buoyancy = 0.5 * (theta[1:-1, :-1] + theta[1:-1, 1:])  # on the v faces
+    u, v = cavity.predict(fields, None, nu, DT, buoyancy)
+    u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
+    theta = transport_rk3(theta, u, v, kappa, DT, dx, dy, lambda t: theta_ghosts(t, theta_offset), n_scalar)
+    return {"u": u, "v": v, "p": p, "theta": theta}
+
+
+class Convection:
+    """The solver of one cavity size with its temperature boundary conditions: runs
+    substeps on batch-first ghosted states (``u``, ``v``, ``p``, ``theta``)."""
+
+    def __init__(self, p: RayleighParams, dtype, device, step=substep, unroll: int = 1) -> None:
+        self.nx, self.ny, self.dx, self.dy = grid(p)
+        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, dtype=dtype, device=device)
+        self.ghosts = temperature_ghosts(self.nx, self.ny, dtype, device)
+        self.nu, self.kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
+        self.n_scalar = scalar_substeps(self.kappa, DT, self.dx, self.dy)
+        self.step, self.unroll = step, unroll
+
+    def run(self, state: State, bottom: torch.Tensor, n: int) -> State:
+        """``n`` substeps (a multiple of the step's unroll) at bottom temperatures
+        ``bottom`` ``[B, nx]``."""
+        offset = temperature_offset(bottom, self.ghosts, self.ny)
+        fields = self.cavity.fields(state, {"theta": (self.ghosts, offset)})
+        for _ in range(n // self.unroll):
+            fields = self.step(fields, offset, self.cavity, self.ghosts, self.nu, self.kappa, self.n_scalar)
+        return self.cavity.stored(fields, self.cavity.walls(like=offset))
 
 
 def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
@@ -105,15 +132,12 @@ def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = 
     from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
     would otherwise never start). Returns ``u``, ``v``, ``p``, ``theta`` without batch
     dimension."""
-    nx, ny, dx, dy = grid(p)
+    nx, ny, _, _ = grid(p)
     g = torch.Generator().manual_seed(seed)
     state = rest_state(1, nx, ny, torch.float64, "cpu")
     state["theta"] = PERTURBATION * (2.0 * torch.rand(state["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
-    solver = PoissonSolver(nx, ny, dx, dy)
     bottom = torch.full((1, nx), T_HOT, dtype=torch.float64)
-    nu, kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
-    for _ in range(int(round(time / DT))):
-        state = substep(state, bottom, solver, nu, kappa, dx, dy)
+    state = Convection(p, torch.float64, "cpu").run(state, bottom, int(round(time / DT)))
     return {k: v[0] for k, v in state.items()}
 
 
@@ -134,13 +158,15 @@ class RayleighEnv(FlowEnv):
     n_obs = 3 * N_PROBES**2 * HISTORY
     n_actions = 10
     blowup_reward = -1.0
+    inductor_options = {"cpp_wrapper": True}
 
     def setup(self) -> None:
         p = self.params
         self.nx, self.ny, self.dx, self.dy = grid(p)
         self.n_actions = p.n_sgts
-        self.nu, self.kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
-        self.solver = PoissonSolver(self.nx, self.ny, self.dx, self.dy, dtype=self.dtype, device=self.device)
+        self.convection = Convection(p, self.dtype, self.device, self.kernel(substep, unroll=UNROLL), UNROLL)
+        self.cavity = self.convection.cavity
+        self.solver = self.cavity.solver
         self._probes = Probes(("theta", "u", "v"), self.nx, self.ny, self.device)
         key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
         start = cached("rayleigh-convection", key, lambda: developed_convection(p))
@@ -158,9 +184,7 @@ class RayleighEnv(FlowEnv):
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
-        new = dict(state)
-        for _ in range(SUBSTEPS):
-            new = substep(new, bottom, self.solver, self.nu, self.kappa, self.dx, self.dy)
+        new = self.convection.run(state, bottom, SUBSTEPS)
         new["probes"] = self._probes.push(state["probes"], new)
         new["bottom"] = bottom
         return new, -nusselt(new["theta"], self.dy)
