@@ -104,6 +104,17 @@ def shkadov_rhs(h: torch.Tensor, q: torch.Tensor, forcing: torch.Tensor, delta, 
     return dh, dq
 
 
+def shkadov_substep(fields: tuple[torch.Tensor, ...], forcing: torch.Tensor, inlet: torch.Tensor, delta, dx: float) -> tuple[torch.Tensor, ...]:
+    """One AB2 step of ``(h, q, dh_prev, dq_prev)`` with the jets' forcing ``[B, n - 2]``
+    and the inlet film thickness ``inlet`` ``[B, 1]`` (the inlet flow rate is 1)."""
+    h, q, dh_prev, dq_prev = fields
+    dh, dq = shkadov_rhs(h, q, forcing, delta, dx)
+    hi, qi = ab2_step(h[:, 1:-1], dh, dh_prev, DT), ab2_step(q[:, 1:-1], dq, dq_prev, DT)
+    h = torch.cat((inlet, hi, hi[:, -1:]), -1)
+    q = torch.cat((torch.ones_like(inlet), qi, qi[:, -1:]), -1)
+    return h, q, dh, dq
+
+
 def run_action(
     state: State,
     action: torch.Tensor,
@@ -112,24 +123,22 @@ def run_action(
     dx: float,
     generator: torch.Generator | None,
     amp=5.0,
+    step=shkadov_substep,
 ) -> State:
     """One action period (``SUBSTEPS`` AB2 steps) of jet amplitudes ``action`` ``[B, n_jets]``;
-    ``amp`` is a number or a ``[B, 1]`` tensor."""
-    h, q = state["h"], state["q"]
-    dh_prev, dq_prev, u_prev = state["dh_prev"], state["dq_prev"], state["u_prev"]
+    ``amp`` is a number or a ``[B, 1]`` tensor; ``step`` is :func:`shkadov_substep` or
+    its compiled form."""
+    h = state["h"]
     B = h.shape[0]
     noise = 2.0 * torch.rand((SUBSTEPS, B, 1), generator=generator, dtype=h.dtype, device=h.device) - 1.0
-    one = torch.ones_like(h[:, :1])
+    inlet = 1.0 + NOISE * noise
     # the forcing is linear in the jet amplitudes: interpolate it, not the amplitudes,
     # so that the profiles are summed twice per action instead of at every substep
-    forcing_prev, forcing_new = amp * (u_prev @ profiles), amp * (action @ profiles)
+    forcing_prev, forcing_new = amp * (state["u_prev"] @ profiles), amp * (action @ profiles)
+    fields = h, state["q"], state["dh_prev"], state["dq_prev"]
     for i in range(SUBSTEPS):
-        forcing = interpolated_action(forcing_prev, forcing_new, i, N_INTERP)
-        dh, dq = shkadov_rhs(h, q, forcing, delta, dx)
-        hi, qi = ab2_step(h[:, 1:-1], dh, dh_prev, DT), ab2_step(q[:, 1:-1], dq, dq_prev, DT)
-        h = torch.cat((one + NOISE * noise[i], hi, hi[:, -1:]), -1)
-        q = torch.cat((one, qi, qi[:, -1:]), -1)
-        dh_prev, dq_prev = dh, dq
+        fields = step(fields, interpolated_action(forcing_prev, forcing_new, i, N_INTERP), inlet[i], delta, dx)
+    h, q, dh_prev, dq_prev = fields
     return {"h": h, "q": q, "dh_prev": dh_prev, "dq_prev": dq_prev, "u_prev": action}
 
 
@@ -179,6 +188,7 @@ class ShkadovEnv(FlowEnv):
         self.jet_centres = [int(round(p.jet_pos / DX)) + j * step for j in range(p.n_jets)]
         profiles = jet_profiles(self.jet_centres, self.n_cells, self.dtype, self.device)
         self._profiles = profiles[:, 1:-1].contiguous()
+        self._substep = self.kernel(shkadov_substep)
         obs = [c - int(round(OBS_LENGTH / DX)) + CELLS_PER_UNIT * m for c in self.jet_centres for m in range(int(round(OBS_LENGTH)))]
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))
@@ -190,7 +200,7 @@ class ShkadovEnv(FlowEnv):
         return torch.zeros((self.n_envs, self.n_jets), dtype=self.dtype, device=self.device)
 
     def _advance_state(self, state: State, action: torch.Tensor) -> State:
-        return run_action(state, action, self._profiles, self.params.delta, DX, self.rng, self.member(self.params.amp))
+        return run_action(state, action, self._profiles, self.params.delta, DX, self.rng, self.member(self.params.amp), self._substep)
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         state = flat_state(self.n_envs, self.n_cells, self.n_jets, self.dtype, self.device)
@@ -210,7 +220,7 @@ class ShkadovEnv(FlowEnv):
         zero = torch.zeros((idx.numel(), self.n_jets), dtype=self.dtype, device=self.device)
         for a in range(int(n_run.max())):
             # uncontrolled: no jet forcing, whatever the (per-member) amplitude
-            new = run_action(sub, zero, self._profiles, self.params.delta, DX, self.rng, 0.0)
+            new = run_action(sub, zero, self._profiles, self.params.delta, DX, self.rng, 0.0, self._substep)
             sub = where_members(n_run[idx] > a, new, sub)
         for k, v in sub.items():
             state[k] = state[k].index_copy(0, idx, v)

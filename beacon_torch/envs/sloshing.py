@@ -71,19 +71,26 @@ def with_walls(h_in: torch.Tensor, q_in: torch.Tensor):
     return h, q
 
 
-def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float) -> State:
+def sloshing_substep(fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g, dx: float) -> tuple[torch.Tensor, ...]:
+    """One AB2 step of ``(h, q, fh_prev, fq_prev)`` with the tank acceleration
+    ``accel`` ``[B]``."""
+    h, q, fh_prev, fq_prev = fields
+    gh, gq = with_walls(h, q)
+    fh, fq = shallow_water_rhs(gh, gq, accel, g, dx)
+    return ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT), fh, fq
+
+
+def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, step=sloshing_substep) -> State:
     """Advance ``state`` through a sequence of action batches (each ``[B]``) scaled by
-    ``amp`` (a number or ``[B]``)."""
-    h, q = state["h"], state["q"]
-    fh_prev, fq_prev, u_prev = state["fh_prev"], state["fq_prev"], state["u_prev"]
+    ``amp`` (a number or ``[B]``); ``step`` is :func:`sloshing_substep` or its compiled
+    form."""
+    fields = state["h"], state["q"], state["fh_prev"], state["fq_prev"]
+    u_prev = state["u_prev"]
     for u in actions:
         for i in range(SUBSTEPS):
-            accel = amp * interpolated_action(u_prev, u, i, N_INTERP)
-            gh, gq = with_walls(h, q)
-            fh, fq = shallow_water_rhs(gh, gq, accel, g, dx)
-            h, q = ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT)
-            fh_prev, fq_prev = fh, fq
+            fields = step(fields, amp * interpolated_action(u_prev, u, i, N_INTERP), g, dx)
         u_prev = u
+    h, q, fh_prev, fq_prev = fields
     return {"h": h, "q": q, "fh_prev": fh_prev, "fq_prev": fq_prev, "u_prev": u_prev}
 
 
@@ -115,6 +122,7 @@ class SloshingEnv(FlowEnv):
         self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
         self.dx = self.params.L / self.n_cells
         self.n_obs = (self.n_cells + 1) // 2  # q in every second cell
+        self._substep = self.kernel(sloshing_substep)
         self._start = self._excited()
 
     def _excited(self) -> State:
@@ -141,7 +149,7 @@ class SloshingEnv(FlowEnv):
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         p = self.params
         u = action[:, 0]
-        new = run_actions(state, [u], p.amp, self.member(p.g), self.dx)
+        new = run_actions(state, [u], p.amp, self.member(p.g), self.dx, self._substep)
         h = new["h"]
         reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
         return new, reward

@@ -1,0 +1,51 @@
+"""The compiled path: ``make(..., compile=True)`` runs the substeps through
+``torch.compile`` and follows the eager trajectories."""
+
+import pytest
+import torch
+from torch._dynamo.utils import counters
+
+import beacon_torch
+
+from conftest import ALL_ENVS, make, run_actions
+
+# the cavities' substeps are tens of milliseconds eagerly: fewer actions there
+ACTIONS = {"rayleigh-v0": 1, "mixing-v0": 1, "mixing-continuous-v0": 1}
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_compiled_trajectories_follow_the_eager_ones(env_id):
+    eager = make(env_id, 2, dtype=torch.float64, seed=3)
+    compiled = make(env_id, 2, dtype=torch.float64, seed=3, compile=True)
+    assert compiled.compile_options is not None and eager.compile_options is None
+    g = torch.Generator().manual_seed(1)
+    actions = [eager.random_action(g) for _ in range(ACTIONS.get(env_id, 3))]
+    obs_e, rew_e = run_actions(eager, actions)
+    obs_c, rew_c = run_actions(compiled, actions)
+    assert compiled._compiled, "the substeps did not go through torch.compile"
+    torch.testing.assert_close(obs_c, obs_e, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(rew_c, rew_e, rtol=1e-9, atol=1e-12)
+
+
+def test_compilation_happens_once_not_per_step():
+    env = make("burgers-v0", 4, compile=True)
+    g = torch.Generator().manual_seed(0)
+    run_actions(env, [env.random_action(g)])
+    graphs = counters["stats"]["unique_graphs"]
+    run_actions(env, [env.random_action(g) for _ in range(5)])
+    # a second instance of the same shapes reuses the compiled code
+    run_actions(make("burgers-v0", 4, compile=True), [env.random_action(g)])
+    assert counters["stats"]["unique_graphs"] == graphs
+
+
+def test_compile_accepts_torch_compile_options_and_rejects_nonsense():
+    env = beacon_torch.make("lorenz-v0", 2, compile={"mode": "default"})
+    assert env.compile_options["mode"] == "default" and env.compile_options["fullgraph"]
+    with pytest.raises(TypeError, match="compile"):
+        beacon_torch.make("lorenz-v0", 2, compile="yes")
+
+
+def test_compiled_env_rolls_out_through_torchrl():
+    env = make("vortex-v0", 8, compile=True)
+    td = env.rollout(4)
+    assert td.batch_size == (8, 4) and torch.isfinite(td["next", "reward"]).all()
