@@ -3,6 +3,8 @@
     beacon-torch list                 the environment ids and their parameters
     beacon-torch run ENV [options]    an uncontrolled and a random-policy episode:
                                       scores, a plot, optionally an animation
+    beacon-torch bench [options]      transitions per second against the published
+                                      code: a table, CSV, JSON and a plot
 """
 
 from __future__ import annotations
@@ -137,6 +139,31 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from beacon_torch import bench
+
+    envs = args.envs or list(bench.PUBLISHED)
+    for env_id in envs:
+        env_class(env_id)
+    for b in args.batch_sizes or ():
+        if b < 1:
+            raise CliError(f"--batch-sizes must be positive integers, got {b}")
+    results = bench.run(
+        envs,
+        batch_sizes=args.batch_sizes,
+        dtypes=args.dtype,
+        modes=args.mode,
+        device=args.device,
+        steps=args.steps,
+        repeats=args.repeats,
+    )
+    paths = bench.write(results, args.out)
+    print()
+    print(bench.markdown(results))
+    print(f"\nresults: {paths['csv']}, {paths['json']}\nplot: {paths['png']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="beacon-torch", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -153,6 +180,17 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--gif", metavar="PATH", help="write an animation of the uncontrolled episode")
     run.add_argument("--gif-every", type=int, default=0, help="render every N-th step (default: about 100 frames)")
     run.set_defaults(func=cmd_run)
+
+    bench = sub.add_parser("bench", help="transitions per second against the published code")
+    bench.add_argument("--envs", nargs="+", metavar="ENV", help="env ids (default: the seven benchmark envs)")
+    bench.add_argument("--batch-sizes", nargs="+", type=int, metavar="B", help="default 1 16 64 256 1024 (1 16 32 64 for the cavities)")
+    bench.add_argument("--dtype", nargs="+", default=["float32"], choices=["float32", "float64"])
+    bench.add_argument("--mode", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    bench.add_argument("--device", default="cpu")
+    bench.add_argument("--steps", type=int, help="timed steps per repeat (default 20; 2 for the cavities)")
+    bench.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is reported")
+    bench.add_argument("--out", default="runs/bench", help="output directory")
+    bench.set_defaults(func=cmd_bench)
     return parser
 
 

@@ -1,6 +1,6 @@
 """Speed of the 2-D cavities: one full uncontrolled episode of a batch of cavities.
 
-    .venv/bin/python benchmarks/cavity_speed.py [--batch 16] [--dtype float32] [--out FILE]
+    .venv/bin/python benchmarks/cavity_speed.py [--batch 16] [--dtype float32] [--compile] [--envs ...] [--out FILE]
 
 Prints transitions per second per env (and the factor over the published code's
 single-environment speed on this kind of machine: rayleigh 13.8/s, mixing 3.7/s), and a
@@ -20,11 +20,12 @@ import beacon_torch
 from beacon_torch import evaluate
 
 PUBLISHED = {"rayleigh-v0": 13.8, "mixing-v0": 3.7}
+SUBSTEPS = {"rayleigh-v0": 200, "mixing-v0": 250}
 
 
 def substep_breakdown(env, repeats: int = 50) -> dict:
     """Milliseconds per batched substep: the Poisson solve alone, and the whole substep."""
-    rhs = torch.randn((env.n_envs, env.nx, env.ny), dtype=env.dtype, device=env.device)
+    rhs = torch.randn((env.nx, env.ny, env.n_envs), dtype=env.dtype, device=env.device)  # batch last
     env.solver.solve(rhs)
     start = time.perf_counter()
     for _ in range(repeats):
@@ -37,11 +38,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--dtype", default="float32")
+    parser.add_argument("--compile", action="store_true", help="the compiled path (make(..., compile=True)); compilation is timed apart")
+    parser.add_argument("--envs", nargs="+", default=list(PUBLISHED))
     parser.add_argument("--out", help="write the results as JSON")
     args = parser.parse_args()
     results = {"machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"}
-    for env_id, substeps in (("rayleigh-v0", 200), ("mixing-v0", 250)):
-        env = beacon_torch.make(env_id, args.batch, dtype=args.dtype)
+    for env_id in args.envs:
+        substeps = SUBSTEPS[env_id]
+        env = beacon_torch.make(env_id, args.batch, dtype=args.dtype, compile=args.compile)
+        compile_s = 0.0
+        if args.compile:  # compile on a throw-away step, outside the timed episode
+            start = time.perf_counter()
+            env.reset()
+            env.step(env.reset().set("action", env.null_action()))
+            compile_s = time.perf_counter() - start
         start = time.perf_counter()
         rollout = evaluate.episode(env, evaluate.null_policy(env))
         elapsed = time.perf_counter() - start
@@ -49,6 +59,8 @@ def main() -> None:
         row = {
             "batch": args.batch,
             "dtype": args.dtype,
+            "compiled": args.compile,
+            "compile_s": compile_s,
             "episode_s": elapsed,
             "transitions_per_s": rate,
             "vs_published": rate / PUBLISHED[env_id],
@@ -57,7 +69,7 @@ def main() -> None:
         }
         results[env_id] = row
         print(
-            f"{env_id}: {rate:.1f} transitions/s ({row['vs_published']:.1f}x the published {PUBLISHED[env_id]}/s), "
+            f"{env_id} ({'compiled' if args.compile else 'eager'}): {rate:.1f} transitions/s ({row['vs_published']:.1f}x the published {PUBLISHED[env_id]}/s), "
             f"{row['substep_ms']:.2f} ms per batched substep of which Poisson {row['poisson_ms']:.2f} ms"
         )
     if args.out:
