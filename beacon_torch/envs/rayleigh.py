@@ -86,7 +86,7 @@ def substep(fields: State, theta_offset: torch.Tensor, cavity: Cavity, theta_gho
     (no-slip walls; ``theta_offset`` from :func:`temperature_offset`)."""
     dx, dy = cavity.dx, cavity.dy
     theta = fields["theta"]
-    buoyancy = 0.5 * (theta[1:-1, :-1] + theta[1:-1, 1:])  # on the v faces
+    buoyancy = 0.5 * (theta[1:-1, 1:-2] + theta[1:-1, 2:-1])  # on the interior v faces
     u, v = cavity.predict(fields, None, nu, DT, buoyancy)
     u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
     theta = transport_rk3(theta, u, v, kappa, DT, dx, dy, lambda t: theta_ghosts(t, theta_offset), n_scalar)

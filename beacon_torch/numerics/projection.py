@@ -185,22 +185,17 @@ class Ghosts:
         GRADIENT, VALUE or ZERO."""
         return cls(*cls._cell_axis(nx, left, right), *cls._cell_axis(ny, bottom, top), **kw)
 
-    @staticmethod
-    def _face_axis(n: int):
-        # faces 0..n with the walls at 0 and n, one extra position beyond each wall: all
-        # zero but the interior faces, so that the predictor runs over every face
-        return [0, *range(n + 1), n], [0.0, 0.0, *[1.0] * (n - 1), 0.0, 0.0]
-
     @classmethod
     def u_faces(cls, nx: int, ny: int, **kw) -> "Ghosts":
-        """x-face velocity ``[nx + 1, ny, B]`` to ``[nx + 3, ny + 2, B]``: impermeable
-        side walls, tangential velocity on the bottom and top through the ghosts."""
-        return cls(*cls._face_axis(nx), *cls._cell_axis(ny, VALUE, VALUE), **kw)
+        """x-face velocity ``[nx + 1, ny, B]`` to ``[nx + 1, ny + 2, B]``: impermeable
+        side walls (zeroed), tangential velocity on the bottom and top through the
+        ghosts."""
+        return cls(None, [0.0, *[1.0] * (nx - 1), 0.0], *cls._cell_axis(ny, VALUE, VALUE), **kw)
 
     @classmethod
     def v_faces(cls, nx: int, ny: int, **kw) -> "Ghosts":
-        """y-face velocity ``[nx, ny + 1, B]`` to ``[nx + 2, ny + 3, B]``."""
-        return cls(*cls._cell_axis(nx, VALUE, VALUE), *cls._face_axis(ny), **kw)
+        """y-face velocity ``[nx, ny + 1, B]`` to ``[nx + 2, ny + 1, B]``."""
+        return cls(*cls._cell_axis(nx, VALUE, VALUE), None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
 
     def __call__(self, f: torch.Tensor, offset: torch.Tensor | None = None) -> torch.Tensor:
         if self.ix is not None:
@@ -232,9 +227,7 @@ class Cavity:
         self.solver = PoissonSolver(nx, ny, dx, dy, poisson_bc, dtype=dtype, device=device)
         self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
         self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
-        self.p_ghosts = Ghosts.cells(nx, ny, *(GRADIENT,) * 4, dtype=dtype, device=device)
-        self.u_open = self.u_ghosts.factor[1:-1, 1:2]
-        self.v_open = self.v_ghosts.factor[1:2, 1:-1]
+
 
     def walls(self, u_bottom=0.0, u_top=0.0, v_left=0.0, v_right=0.0, *, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The ghost offsets of the tangential wall velocities (numbers or ``[B]``):
@@ -249,8 +242,7 @@ class Cavity:
         (:meth:`walls`; None for walls at rest)."""
         off_u, off_v = walls if walls is not None else (None, None)
         u, v = self.u_ghosts(fields["u"], off_u), self.v_ghosts(fields["v"], off_v)
-        p = self.p_ghosts(fields["p"])
-        return predict(u, v, p, nu, dt, self.dx, self.dy, v_source, u_open=self.u_open, v_open=self.v_open)
+        return predict(u, v, fields["p"], nu, dt, self.dx, self.dy, v_source)
 
     def fields(self, state: dict[str, torch.Tensor], scalars: dict[str, tuple]) -> dict[str, torch.Tensor]:
         """The solver's fields from a batch-first ghosted state (``u``, ``v`` and the
@@ -269,8 +261,8 @@ class Cavity:
         first = lambda f: f.movedim(-1, 0).contiguous()  # noqa: E731
         u, v = fields["u"], fields["v"]
         # the stored layout has one ghost position before the first face, none after
-        u_full = self.u_ghosts(u, walls[0])[:-1]
-        v_full = self.v_ghosts(v, walls[1])[:, :-1]
+        u_full = F.pad(self.u_ghosts(u, walls[0]), (0, 0, 0, 0, 1, 0))
+        v_full = F.pad(self.v_ghosts(v, walls[1]), (0, 0, 1, 0))
         # the ghost maps zero the wall faces for the predictor; keep what projection left
         u_full[1:, 1:-1] = u
         v_full[1:-1, 1:] = v
@@ -288,50 +280,46 @@ def predict(
     dx: float,
     dy: float,
     v_source: torch.Tensor | None = None,
-    *,
-    u_open: torch.Tensor,
-    v_open: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Explicit predictor u* = u + dt (-(u.grad)u + nu lap u - grad p [+ source]) with
-    centred fluxes of face-averaged velocities. ``u`` (``[nx + 3, ny + 2, B]``), ``v``
-    (``[nx + 2, ny + 3, B]``) and ``p`` (``[nx + 2, ny + 2, B]``) carry their ghosts
-    (:class:`Ghosts`); ``v_source`` (``[nx, ny + 1, B]``) is added on the v faces
-    (buoyancy). Returns u* ``[nx + 1, ny, B]`` and v* ``[nx, ny + 1, B]``. Every face is
-    computed, the walls too, and the walls are then zeroed by ``u_open`` (``[nx + 1, 1,
-    1]``) and ``v_open`` (``[1, ny + 1, 1]``), 1 on the interior faces and 0 on the walls
-    (:attr:`Cavity.u_open`), so that the result is written once, in place of an
-    interior update and a copy."""
-    # u on the x-faces 0..nx (positions 1..nx + 1), cells 0..ny-1 (positions 1..ny)
+    """Explicit predictor u* = u + dt (-(u.grad)u + nu lap u - grad p [+ source]) on the
+    interior faces, with centred fluxes of face-averaged velocities. ``u``
+    (``[nx + 1, ny + 2, B]``) and ``v`` (``[nx + 2, ny + 1, B]``) carry their wall
+    ghosts (:class:`Ghosts`); ``v_source`` (``[nx, ny - 1, B]``) is added on the
+    interior v faces (buoyancy). Returns u* ``[nx + 1, ny, B]`` and v* ``[nx, ny + 1, B]``
+    with zero normal velocity on the walls. (Computing every face and zeroing the walls
+    instead, to save the padding pass, measured 4 % slower compiled: the wider ghosted
+    inputs cost more than the pad.)"""
+    # u on the interior x-faces 1..nx-1, cells 0..ny-1 (ghost rows 0 and ny + 1 in y)
     uf = u[1:-1, 1:-1]
     ue = 0.5 * (uf + u[2:, 1:-1])  # the cell centre east of the face
     uw = 0.5 * (u[:-2, 1:-1] + uf)
     duu = (ue * ue - uw * uw) / dx
     un = 0.5 * (uf + u[1:-1, 2:])
-    vn = 0.5 * (v[:-1, 2:-1] + v[1:, 2:-1])
+    vn = 0.5 * (v[1:-2, 1:] + v[2:-1, 1:])
     us = 0.5 * (u[1:-1, :-2] + uf)
-    vs = 0.5 * (v[:-1, 1:-2] + v[1:, 1:-2])
+    vs = 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
     duv = (un * vn - us * vs) / dy
     lap_u = (u[2:, 1:-1] - 2.0 * uf + u[:-2, 1:-1]) / dx**2 + (u[1:-1, 2:] - 2.0 * uf + u[1:-1, :-2]) / dy**2
-    gpx = (p[1:, 1:-1] - p[:-1, 1:-1]) / dx
-    u_star = (uf + dt * (-duu - duv + nu * lap_u - gpx)) * u_open
+    gpx = (p[1:] - p[:-1]) / dx
+    u_star = uf + dt * (-duu - duv + nu * lap_u - gpx)
 
-    # v on the y-faces 0..ny (positions 1..ny + 1), cells 0..nx-1 (positions 1..nx)
+    # v on the interior y-faces 1..ny-1, cells 0..nx-1 (ghost columns 0 and nx + 1 in x)
     vf = v[1:-1, 1:-1]
     vn_c = 0.5 * (vf + v[1:-1, 2:])
     vs_c = 0.5 * (v[1:-1, :-2] + vf)
     dvv = (vn_c * vn_c - vs_c * vs_c) / dy
     ve = 0.5 * (vf + v[2:, 1:-1])
-    ue_c = 0.5 * (u[2:-1, :-1] + u[2:-1, 1:])
+    ue_c = 0.5 * (u[1:, 1:-2] + u[1:, 2:-1])
     vw = 0.5 * (v[:-2, 1:-1] + vf)
-    uw_c = 0.5 * (u[1:-2, :-1] + u[1:-2, 1:])
+    uw_c = 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
     duv_x = (ue_c * ve - uw_c * vw) / dx
     lap_v = (v[2:, 1:-1] - 2.0 * vf + v[:-2, 1:-1]) / dx**2 + (v[1:-1, 2:] - 2.0 * vf + v[1:-1, :-2]) / dy**2
-    gpy = (p[1:-1, 1:] - p[1:-1, :-1]) / dy
+    gpy = (p[:, 1:] - p[:, :-1]) / dy
     dv = -dvv - duv_x + nu * lap_v - gpy
     if v_source is not None:
         dv = dv + v_source
-    v_star = (vf + dt * dv) * v_open
-    return u_star, v_star
+    v_star = vf + dt * dv
+    return F.pad(u_star, (0, 0, 0, 0, 1, 1)), F.pad(v_star, (0, 0, 1, 1))
 
 
 def divergence(u: torch.Tensor, v: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
