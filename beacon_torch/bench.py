@@ -71,7 +71,7 @@ class Measurement:
     device: str
     transitions_per_s: float
     step_ms: float  # median wall time of one batched step
-    compile_s: float  # first (warm-up) step minus a later one: compilation and first-touch
+    compile_s: float  # the first step minus a later one: compilation (shkadov compiles at reset)
     state_mb: float
     peak_mb: float
     published_per_s: float | None
@@ -212,18 +212,25 @@ def best(results: Sequence[Measurement]) -> dict[str, Measurement]:
 
 
 def write(results: Sequence[Measurement], out_dir: str | Path) -> dict[str, Path]:
-    """``results.csv``, ``results.json`` and ``throughput.png`` in ``out_dir``."""
+    """``results.csv``, ``results.json``, ``results.md`` and ``throughput.png`` in
+    ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = [asdict(m) for m in results]
-    paths = {"csv": out / "results.csv", "json": out / "results.json", "png": out / "throughput.png"}
+    paths = {"csv": out / "results.csv", "json": out / "results.json", "md": out / "results.md", "png": out / "throughput.png"}
     with paths["csv"].open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     paths["json"].write_text(json.dumps({"machine": machine(), "results": rows}, indent=2))
+    paths["md"].write_text(f"Machine: {machine()}\n\n## Best speed per env\n\n{markdown(results)}\n\n## Every measurement\n\n{full_table(results)}\n")
     plot(results, paths["png"])
     return paths
+
+
+def load(path: str | Path) -> list[Measurement]:
+    """The measurements of a ``results.json`` written by :func:`write`."""
+    return [Measurement(**row) for row in json.loads(Path(path).read_text())["results"]]
 
 
 def plot(results: Sequence[Measurement], path: str | Path) -> None:
@@ -256,6 +263,20 @@ def plot(results: Sequence[Measurement], path: str | Path) -> None:
             ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
+
+
+def full_table(results: Sequence[Measurement]) -> str:
+    """Every measurement as a Markdown table."""
+    lines = [
+        "| env | mode | dtype | batch | transitions/s | vs published | step ms | compile s | peak MB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for m in results:
+        vs = f"{m.speedup:.2f}x" if m.speedup is not None else "-"
+        lines.append(
+            f"| {m.env} | {m.mode} | {m.dtype} | {m.batch} | {m.transitions_per_s:,.1f} | {vs} | {m.step_ms:.3f} | {m.compile_s:.1f} | {m.peak_mb:.0f} |"
+        )
+    return "\n".join(lines)
 
 
 def markdown(results: Sequence[Measurement]) -> str:

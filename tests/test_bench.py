@@ -36,6 +36,10 @@ def test_bench_command_writes_table_csv_json_and_plot(tmp_path, capsys):
     data = json.loads((tmp_path / "results.json").read_text())
     assert data["machine"] and len(data["results"]) == 4
     assert (tmp_path / "throughput.png").stat().st_size > 10_000
+    md = (tmp_path / "results.md").read_text()
+    assert "## Best speed per env" in md and md.count("| lorenz-v0 |") == 3  # best + 2 rows
+    again = bench.load(tmp_path / "results.json")
+    assert [m.transitions_per_s for m in again] == [float(r["transitions_per_s"]) for r in rows]
 
 
 def test_bench_command_reports_bad_input(capsys):

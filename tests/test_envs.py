@@ -266,3 +266,32 @@ def test_runs_on_cuda(env_id):
     r = env.rollout(10)
     assert r.device.type == "cuda"
     check_env_specs(env)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_step_has_no_host_device_synchronisation_on_cuda(cheap_env_id):
+    """With the action checks off (a trusted training loop), a step never waits for the
+    device: no .item(), no boolean indexing, no host-side decision on device values."""
+    env = make(cheap_env_id, 8, device="cuda", check_actions=False)
+    g = torch.Generator(device="cuda").manual_seed(0)
+    td = env.reset()
+    td[env.action_key] = env.random_action(g)
+    env.step(td)  # first-touch allocations
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):  # the env's own step, without TorchRL's bookkeeping around it
+            td[env.action_key] = env.random_action(g)
+            env._step(td)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_compiled_path_on_cuda():
+    eager = make("burgers-v0", 16, device="cuda", dtype=torch.float64, seed=1)
+    compiled = make("burgers-v0", 16, device="cuda", dtype=torch.float64, seed=1, compile=True)
+    g = torch.Generator(device="cuda").manual_seed(0)
+    actions = [eager.random_action(g) for _ in range(3)]
+    from conftest import run_actions
+
+    torch.testing.assert_close(run_actions(compiled, actions), run_actions(eager, actions), rtol=1e-9, atol=1e-12)
