@@ -5,6 +5,11 @@
                                       scores, a plot, optionally an animation
     beacon-torch bench [options]      transitions per second against the published
                                       code: a table, CSV, JSON and a plot
+    beacon-torch train ENV [options]  train PPO with the paper's settings (progress
+                                      bar, CSV log, checkpoints, --resume)
+    beacon-torch eval DIR             the trained policy's score against the
+                                      uncontrolled one, and an animation
+    beacon-torch plot DIR... --out P  learning curves, mean and std over seeds
 """
 
 from __future__ import annotations
@@ -164,6 +169,57 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from beacon_torch.recipes.config import ppo_config
+    from beacon_torch.recipes.ppo import train
+
+    env_class(args.env)
+    overrides = _parse_params(args.set)
+    if args.frames is not None:
+        overrides["frames"] = args.frames
+    if args.num_envs is not None:
+        overrides["num_envs"] = args.num_envs
+        overrides.setdefault("n_rollout", max(args.num_envs, (ppo_config(args.env).n_rollout // args.num_envs) * args.num_envs))
+    if args.seeds < 1:
+        raise CliError(f"--seeds must be a positive integer, got {args.seeds}")
+    cfg = ppo_config(args.env, **overrides)
+    if args.resume:
+        runs = sorted(Path(args.resume).glob("seed*")) or [Path(args.resume)]
+        if not any((run / "checkpoint.pt").is_file() for run in runs):
+            raise CliError(f"--resume {args.resume}: no checkpoint.pt there (not a run directory)")
+        seeds = [(int(run.name[4:]) if run.name.startswith("seed") and run.name[4:].isdigit() else 0, run) for run in runs]
+    else:
+        out = Path(args.out or f"runs/{args.algo}-{args.env}")
+        seeds = [(k, out / f"seed{k}") for k in range(args.seeds)]
+    for seed, run in seeds:
+        last = train(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress)
+        print(f"{args.algo} {args.env} seed {seed}: {last} -> {run}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from beacon_torch.recipes.runs import evaluate_run, seed_dirs
+
+    if args.members < 1:
+        raise CliError(f"--members must be a positive integer, got {args.members}")
+    for k, run in enumerate(seed_dirs(args.run)):
+        gif = None if args.no_gif else run / "controlled.gif"
+        r = evaluate_run(run, members=args.members, device=args.device, gif=gif)
+        print(
+            f"{r['env']} {run}: score {r['score_mean']:.6g} +- {r['score_std']:.3g} over {args.members} episodes "
+            f"(uncontrolled {r['uncontrolled']:.6g}; trained on {r['frames']} transitions)" + (f"; animation {r['gif']}" if gif else "")
+        )
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from beacon_torch.recipes.runs import plot_runs
+
+    path = plot_runs(args.runs, args.out, name=args.scalar)
+    print(f"plot: {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="beacon-torch", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -191,6 +247,32 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is reported")
     bench.add_argument("--out", default="runs/bench", help="output directory")
     bench.set_defaults(func=cmd_bench)
+
+    tr = sub.add_parser("train", help="train an agent (PPO) with the paper's settings")
+    tr.add_argument("env", help="environment id")
+    tr.add_argument("--algo", default="ppo", choices=["ppo"], help="the algorithm (PPO for now)")
+    tr.add_argument("--seeds", type=int, default=1, help="independent trainings, seeds 0..N-1")
+    tr.add_argument("--frames", type=int, help="total transitions (default: the paper's)")
+    tr.add_argument("--num-envs", type=int, help="members of the batched env (default 8)")
+    tr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="any PPO setting, e.g. epochs=8 (repeatable)")
+    tr.add_argument("--device", default="cpu")
+    tr.add_argument("--out", help="run directory (default runs/ALGO-ENV); one seedK folder per seed")
+    tr.add_argument("--resume", metavar="DIR", help="continue the run(s) in DIR from their checkpoints")
+    tr.add_argument("--no-progress", action="store_true", help="no progress bar")
+    tr.set_defaults(func=cmd_train)
+
+    ev = sub.add_parser("eval", help="score a trained policy against the uncontrolled env")
+    ev.add_argument("run", help="a run directory of 'beacon-torch train'")
+    ev.add_argument("--members", type=int, default=8, help="evaluation episodes (one batch)")
+    ev.add_argument("--device", default="cpu")
+    ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")
+    ev.set_defaults(func=cmd_eval)
+
+    pl = sub.add_parser("plot", help="learning curves of run directories, paper style")
+    pl.add_argument("runs", nargs="+", help="run directories")
+    pl.add_argument("--out", default="learning_curve.png", help="the PNG to write")
+    pl.add_argument("--scalar", default="episode_score", help="the logged value to draw")
+    pl.set_defaults(func=cmd_plot)
     return parser
 
 
@@ -199,7 +281,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, ValueError, TypeError) as err:
+    except (CliError, ValueError, TypeError, FileNotFoundError) as err:
         print(f"beacon-torch: error: {err}", file=sys.stderr)
         return 2
 

@@ -1,0 +1,1 @@
+"""Training recipes built on TorchRL's own losses, collectors, buffers and transforms."""

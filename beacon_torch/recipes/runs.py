@@ -1,0 +1,130 @@
+"""Run directories: evaluating a trained policy and drawing learning curves.
+
+A run directory is what ``beacon-torch train`` writes: one ``seedK`` folder per seed
+(or a single run folder), each with ``checkpoint.pt`` and the logger's
+``<algo>/scalars/<name>.csv`` files (``step,value`` lines; the step is the number of
+transitions collected).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+import beacon_torch
+from beacon_torch import evaluate
+from beacon_torch.recipes.config import PPOConfig
+
+
+def seed_dirs(run: str | Path) -> list[Path]:
+    """The per-seed folders of a run directory (the directory itself for one seed)."""
+    run = Path(run)
+    if (run / "checkpoint.pt").is_file():
+        return [run]
+    found = sorted(p for p in run.glob("seed*") if (p / "checkpoint.pt").is_file())
+    if not found:
+        raise FileNotFoundError(f"{run}: not a run directory (no checkpoint.pt in it or in seed* folders)")
+    return found
+
+
+def load_checkpoint(run: str | Path) -> dict:
+    path = Path(run) / "checkpoint.pt"
+    try:
+        return torch.load(path, weights_only=False, map_location="cpu")
+    except Exception as err:  # a truncated or foreign file
+        raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
+
+
+def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = 12345) -> dict:
+    """The deterministic policy of one seed's checkpoint on ``members`` fresh episodes,
+    next to the uncontrolled score; ``gif``: an animation of member 0's episode."""
+    from beacon_torch.recipes.ppo import make_actor, make_env
+
+    state = load_checkpoint(run)
+    if state["algo"] != "ppo":
+        raise ValueError(f"{run}: evaluating {state['algo']} runs is not supported")
+    cfg = replace(PPOConfig(**state["config"]), num_envs=members)
+    env = make_env(state["env"], cfg, device=device, seed=seed, norm=state["obs_norm"], record_history=gif is not None)
+    actor = make_actor(env, cfg.hidden).to(device)
+    actor.load_state_dict(state["actor"])
+    base = env.base_env
+    frames = []
+    every = max(1, base.episode_length // 100)
+
+    def grab(env_, td):
+        step = int(base.step_count[base.render_index])
+        if gif is not None and step % every == 0:
+            frames.append(base.render())
+
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        rollout = env.rollout(base.episode_length, policy=actor, break_when_any_done=False, break_when_all_done=True, callback=grab)
+    controlled = evaluate.scores(rollout)
+    ref = beacon_torch.make(state["env"], 1, device=device, seed=seed)
+    uncontrolled = evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref)))
+    out = {
+        "env": state["env"],
+        "frames": state["frames"],
+        "score_mean": controlled.mean().item(),
+        "score_std": controlled.std(unbiased=False).item(),
+        "uncontrolled": uncontrolled.mean().item(),
+    }
+    if gif is not None:
+        from beacon_torch.render import save_animation
+
+        frames.append(base.render())
+        out["gif"] = str(save_animation(frames, gif))
+    return out
+
+
+def read_scalar(run: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(steps, values)`` of one logged scalar of one seed folder."""
+    files = sorted(Path(run).glob(f"*/scalars/{name}.csv"))
+    if not files:
+        return np.zeros(0), np.zeros(0)
+    with files[0].open() as f:
+        rows = [(float(a), float(b)) for a, b in csv.reader(f)]
+    rows.sort()
+    return np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+
+
+def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_score") -> Path:
+    """The paper-style figure: per run directory, the mean and standard deviation over
+    its seeds of ``name`` against transitions (each seed interpolated on a common
+    grid), with the env's uncontrolled score dashed."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    envs = set()
+    for k, run in enumerate(runs):
+        seeds = seed_dirs(run)
+        state = load_checkpoint(seeds[0])
+        envs.add(state["env"])
+        curves = [read_scalar(s, name) for s in seeds]
+        curves = [c for c in curves if len(c[0])]
+        if not curves:
+            raise ValueError(f"{run}: no '{name}' logged yet (no episode has ended)")
+        grid = np.linspace(max(c[0][0] for c in curves), min(c[0][-1] for c in curves), 100)
+        values = np.stack([np.interp(grid, s, v) for s, v in curves])
+        mean, std = values.mean(0), values.std(0)
+        label = f"{state['algo']} {Path(run).name} ({len(curves)} seed{'s' if len(curves) > 1 else ''})"
+        ax.plot(grid, mean, color=f"C{k}", label=label)
+        ax.fill_between(grid, mean - std, mean + std, color=f"C{k}", alpha=0.25, lw=0)
+    for env_id in envs:
+        ref = beacon_torch.make(env_id, 1, dtype="float64")
+        ax.axhline(evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref))).item(), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled")
+    ax.set_xlabel("transitions")
+    ax.set_ylabel(name.replace("_", " "))
+    ax.set_title(", ".join(sorted(envs)))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    return Path(path)
