@@ -5,8 +5,8 @@
                                       scores, a plot, optionally an animation
     beacon-torch bench [options]      transitions per second against the published
                                       code: a table, CSV, JSON and a plot
-    beacon-torch train ENV [options]  train PPO with the paper's settings (progress
-                                      bar, CSV log, checkpoints, --resume)
+    beacon-torch train ENV [options]  train PPO, TD3 or DQN (progress bar, CSV log,
+                                      checkpoints, --resume)
     beacon-torch eval DIR             the trained policy's score against the
                                       uncontrolled one, and an animation
     beacon-torch plot DIR... --out P  learning curves, mean and std over seeds
@@ -170,19 +170,29 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from beacon_torch.recipes.config import ppo_config
-    from beacon_torch.recipes.ppo import train
+    from beacon_torch.recipes import common, dqn, ppo, td3
+    from beacon_torch.recipes.config import off_policy_config, ppo_config
 
     env_class(args.env)
+    common.check_action_space(args.env, args.algo)
+    if args.seeds < 1:
+        raise CliError(f"--seeds must be a positive integer, got {args.seeds}")
     overrides = _parse_params(args.set)
     if args.frames is not None:
         overrides["frames"] = args.frames
+    configure, recipe, batch = {
+        "ppo": (ppo_config, ppo.train, "n_rollout"),
+        "td3": (off_policy_config, td3.train, "frames_per_batch"),
+        "dqn": (off_policy_config, dqn.train, "frames_per_batch"),
+    }[args.algo]
     if args.num_envs is not None:
+        if args.num_envs < 1:
+            raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
         overrides["num_envs"] = args.num_envs
-        overrides.setdefault("n_rollout", max(args.num_envs, (ppo_config(args.env).n_rollout // args.num_envs) * args.num_envs))
-    if args.seeds < 1:
-        raise CliError(f"--seeds must be a positive integer, got {args.seeds}")
-    cfg = ppo_config(args.env, **overrides)
+        # keep the collected batch a multiple of the members, near the default size
+        default = getattr(configure(args.env), batch)
+        overrides.setdefault(batch, max(args.num_envs, default // args.num_envs * args.num_envs))
+    cfg = configure(args.env, **overrides)
     if args.resume:
         runs = sorted(Path(args.resume).glob("seed*")) or [Path(args.resume)]
         if not any((run / "checkpoint.pt").is_file() for run in runs):
@@ -192,7 +202,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         out = Path(args.out or f"runs/{args.algo}-{args.env}")
         seeds = [(k, out / f"seed{k}") for k in range(args.seeds)]
     for seed, run in seeds:
-        last = train(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress)
+        last = recipe(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress)
         print(f"{args.algo} {args.env} seed {seed}: {last} -> {run}")
     return 0
 
@@ -248,13 +258,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="runs/bench", help="output directory")
     bench.set_defaults(func=cmd_bench)
 
-    tr = sub.add_parser("train", help="train an agent (PPO) with the paper's settings")
+    tr = sub.add_parser("train", help="train an agent (PPO, TD3 or DQN) with the paper's settings")
     tr.add_argument("env", help="environment id")
-    tr.add_argument("--algo", default="ppo", choices=["ppo"], help="the algorithm (PPO for now)")
+    tr.add_argument("--algo", default="ppo", choices=["ppo", "td3", "dqn"], help="ppo (any env), td3 (continuous actions), dqn (discrete actions)")
     tr.add_argument("--seeds", type=int, default=1, help="independent trainings, seeds 0..N-1")
     tr.add_argument("--frames", type=int, help="total transitions (default: the paper's)")
     tr.add_argument("--num-envs", type=int, help="members of the batched env (default 8)")
-    tr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="any PPO setting, e.g. epochs=8 (repeatable)")
+    tr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="any setting of the algorithm, e.g. epochs=8 (repeatable)")
     tr.add_argument("--device", default="cpu")
     tr.add_argument("--out", help="run directory (default runs/ALGO-ENV); one seedK folder per seed")
     tr.add_argument("--resume", metavar="DIR", help="continue the run(s) in DIR from their checkpoints")

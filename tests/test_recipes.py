@@ -67,3 +67,31 @@ def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
     assert "episode_score" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "nothing")]) == 2
     assert "not a run directory" in capsys.readouterr().err
+
+
+TINY = ["--frames", "256", "--num-envs", "4", "--set", "frames_per_batch=64", "--set", "init_random_frames=64", "--set", "batch_size=32", "--set", "updates_per_batch=4", "--set", "hidden=32", "--no-progress"]
+
+
+@pytest.mark.parametrize("algo, env_id", [("td3", "vortex-v0"), ("dqn", "lorenz-v0")])
+def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, env_id, tmp_path, capsys):
+    out = tmp_path / algo
+    assert main(["train", env_id, "--algo", algo, "--out", str(out), *TINY]) == 0
+    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
+    assert state["algo"] == algo and state["frames"] == 256
+    first = {k: v.clone() for k, v in state["actor"].items()}
+    assert (out / "seed0" / "buffer").exists()  # the collected transitions survive a stop
+    more = [a if a != "256" else "384" for a in TINY]
+    assert main(["train", env_id, "--algo", algo, "--resume", str(out), *more]) == 0
+    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
+    assert state["frames"] == 384
+    assert any(not torch.equal(first[k], state["actor"][k]) for k in first), "training did not change the policy"
+    capsys.readouterr()
+    assert main(["eval", str(out), "--members", "2", "--no-gif"]) == 0
+    assert "uncontrolled" in capsys.readouterr().out
+
+
+def test_algorithms_must_fit_the_action_space(capsys):
+    assert main(["train", "lorenz-v0", "--algo", "td3"]) == 2
+    assert "continuous" in capsys.readouterr().err
+    assert main(["train", "vortex-v0", "--algo", "dqn"]) == 2
+    assert "discrete" in capsys.readouterr().err

@@ -41,17 +41,57 @@ VARIANT_OF = {
 }
 
 
-def ppo_config(env_id: str, **overrides) -> PPOConfig:
-    """The paper's PPO settings of ``env_id`` with ``overrides`` (field=value)."""
-    base = PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig())
-    known = {f.name for f in fields(PPOConfig)}
+@dataclass(frozen=True)
+class OffPolicyConfig:
+    """TD3 (continuous actions) and DQN (discrete actions); each reads its own fields."""
+
+    frames: int = 200_000
+    num_envs: int = 8
+    frames_per_batch: int = 256  # transitions collected between two rounds of updates
+    init_random_frames: int = 5_000  # uniformly random actions before the policy acts
+    buffer_size: int = 1_000_000
+    batch_size: int = 256
+    updates_per_batch: int = 64  # gradient steps per collected batch
+    lr: float = 3e-4
+    gamma: float = 0.99
+    tau: float = 0.005  # soft update of the target networks
+    hidden: int = 256
+    # TD3
+    policy_noise: float = 0.2
+    noise_clip: float = 0.5
+    exploration_sigma: float = 0.1
+    # DQN
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    eps_frames: int = 50_000
+
+
+def _checked(cfg, positive: tuple[str, ...], multiple: tuple[str, str]):
+    for name in positive:
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
+    big, small = multiple
+    if getattr(cfg, big) % getattr(cfg, small):
+        raise ValueError(f"{big} ({getattr(cfg, big)}) must be a multiple of {small} ({getattr(cfg, small)})")
+    return cfg
+
+
+def _replaced(kind: str, base, overrides: dict):
+    known = {f.name for f in fields(base)}
     unknown = set(overrides) - known
     if unknown:
-        raise ValueError(f"unknown PPO setting(s) {sorted(unknown)}; known: {sorted(known)}")
-    cfg = replace(base, **overrides)
-    for name in ("frames", "n_rollout", "minibatches", "epochs", "num_envs", "hidden"):
-        if getattr(cfg, name) < 1:
-            raise ValueError(f"PPO setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
-    if cfg.n_rollout % cfg.num_envs:
-        raise ValueError(f"n_rollout ({cfg.n_rollout}) must be a multiple of num_envs ({cfg.num_envs})")
-    return cfg
+        raise ValueError(f"unknown {kind} setting(s) {sorted(unknown)}; known: {sorted(known)}")
+    return replace(base, **overrides)
+
+
+def off_policy_config(env_id: str, **overrides) -> OffPolicyConfig:
+    """TD3/DQN settings; the total transitions default to the paper's PPO budget."""
+    base = OffPolicyConfig(frames=PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig()).frames)
+    cfg = _replaced("TD3/DQN", base, overrides)
+    return _checked(cfg, ("frames", "num_envs", "frames_per_batch", "batch_size", "buffer_size", "updates_per_batch", "hidden"), ("frames_per_batch", "num_envs"))
+
+
+def ppo_config(env_id: str, **overrides) -> PPOConfig:
+    """The paper's PPO settings of ``env_id`` with ``overrides`` (field=value)."""
+    cfg = _replaced("PPO", PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig()), overrides)
+    return _checked(cfg, ("frames", "n_rollout", "minibatches", "epochs", "num_envs", "hidden"), ("n_rollout", "num_envs"))

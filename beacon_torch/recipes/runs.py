@@ -9,7 +9,6 @@ transitions collected).
 from __future__ import annotations
 
 import csv
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
 from beacon_torch import evaluate
-from beacon_torch.recipes.config import PPOConfig
 
 
 def seed_dirs(run: str | Path) -> list[Path]:
@@ -43,14 +41,20 @@ def load_checkpoint(run: str | Path) -> dict:
 def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = 12345) -> dict:
     """The deterministic policy of one seed's checkpoint on ``members`` fresh episodes,
     next to the uncontrolled score; ``gif``: an animation of member 0's episode."""
-    from beacon_torch.recipes.ppo import make_actor, make_env
+    from beacon_torch.recipes import common
 
     state = load_checkpoint(run)
-    if state["algo"] != "ppo":
-        raise ValueError(f"{run}: evaluating {state['algo']} runs is not supported")
-    cfg = replace(PPOConfig(**state["config"]), num_envs=members)
-    env = make_env(state["env"], cfg, device=device, seed=seed, norm=state["obs_norm"], record_history=gif is not None)
-    actor = make_actor(env, cfg.hidden).to(device)
+    env = common.make_env(state["env"], members, device=device, seed=seed, norm=state["obs_norm"], record_history=gif is not None)
+    hidden = state["config"]["hidden"]
+    if state["algo"] == "ppo":
+        from beacon_torch.recipes.ppo import make_actor
+    elif state["algo"] == "td3":
+        from beacon_torch.recipes.td3 import make_actor
+    elif state["algo"] == "dqn":
+        from beacon_torch.recipes.dqn import make_qvalue_actor as make_actor
+    else:
+        raise ValueError(f"{run}: unknown algorithm {state['algo']!r}")
+    actor = make_actor(env, hidden).to(device)
     actor.load_state_dict(state["actor"])
     base = env.base_env
     frames = []
