@@ -172,6 +172,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from beacon_torch.recipes import common, dqn, ppo, td3
     from beacon_torch.recipes.config import off_policy_config, ppo_config
+    from beacon_torch.recipes.runs import seed_dirs
 
     env_class(args.env)
     common.check_action_space(args.env, args.algo)
@@ -194,10 +195,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides.setdefault(batch, max(args.num_envs, default // args.num_envs * args.num_envs))
     cfg = configure(args.env, **overrides)
     if args.resume:
-        runs = sorted(Path(args.resume).glob("seed*")) or [Path(args.resume)]
-        if not any((run / "checkpoint.pt").is_file() for run in runs):
-            raise CliError(f"--resume {args.resume}: no checkpoint.pt there (not a run directory)")
-        seeds = [(int(run.name[4:]) if run.name.startswith("seed") and run.name[4:].isdigit() else 0, run) for run in runs]
+        seeds = [(int(run.name[4:]) if run.name.startswith("seed") and run.name[4:].isdigit() else 0, run) for run in seed_dirs(args.resume)]
     else:
         out = Path(args.out or f"runs/{args.algo}-{args.env}")
         seeds = [(k, out / f"seed{k}") for k in range(args.seeds)]

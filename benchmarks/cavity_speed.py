@@ -18,9 +18,11 @@ import torch
 
 import beacon_torch
 from beacon_torch import evaluate
+from beacon_torch.bench import PUBLISHED as ALL_PUBLISHED
+from beacon_torch.envs import mixing, rayleigh
 
-PUBLISHED = {"rayleigh-v0": 13.8, "mixing-v0": 3.7}
-SUBSTEPS = {"rayleigh-v0": 200, "mixing-v0": 250}
+SUBSTEPS = {"rayleigh-v0": rayleigh.SUBSTEPS, "mixing-v0": mixing.SUBSTEPS}
+PUBLISHED = {env_id: ALL_PUBLISHED[env_id] for env_id in SUBSTEPS}
 
 
 def substep_breakdown(env, repeats: int = 50) -> dict:

@@ -5,7 +5,8 @@ import torch
 
 from beacon_torch.cli import main
 from beacon_torch.recipes.config import PPO, ppo_config
-from beacon_torch.recipes.ppo import make_actor, make_env, train
+from beacon_torch.recipes.common import make_env
+from beacon_torch.recipes.ppo import make_actor, train
 
 
 def test_config_holds_the_papers_table_and_checks_overrides():
@@ -23,7 +24,7 @@ def test_config_holds_the_papers_table_and_checks_overrides():
 def test_ppo_runs_updates_its_networks_and_resumes(env_id, tmp_path):
     cfg = ppo_config(env_id, frames=400, n_rollout=200, num_envs=4, epochs=2)
     torch.manual_seed(0)
-    before = make_actor(make_env(env_id, cfg), cfg.hidden).state_dict()
+    before = make_actor(make_env(env_id, cfg.num_envs), cfg.hidden).state_dict()
     last = train(env_id, cfg, tmp_path, progress=False)
     assert last["frames"] == 400 and torch.isfinite(torch.tensor(last["loss"]))
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)

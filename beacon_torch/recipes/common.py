@@ -46,6 +46,15 @@ def check_action_space(env_id: str, algo: str) -> None:
         raise ValueError(f"dqn needs discrete actions; {env_id} has continuous ones (use ppo or td3)")
 
 
+def load_checkpoint(run: str | Path) -> dict:
+    """The ``checkpoint.pt`` of a run folder, with a clear error for a bad file."""
+    path = Path(run) / "checkpoint.pt"
+    try:
+        return torch.load(path, weights_only=False, map_location="cpu")
+    except Exception as err:  # a missing, truncated or foreign file
+        raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
+
+
 class Run:
     """A run directory: ``checkpoint.pt``, the CSV logs ``<algo>/scalars/*.csv`` and
     the progress bar. ``state`` is the loaded checkpoint when resuming, else None."""
@@ -59,7 +68,7 @@ class Run:
         if resume:
             if not self.path.is_file():
                 raise FileNotFoundError(f"no checkpoint to resume in {self.out}")
-            self.state = torch.load(self.path, weights_only=False)
+            self.state = load_checkpoint(self.out)
             if self.state["env"] != env_id or self.state["algo"] != algo:
                 raise ValueError(f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {algo} on {env_id}")
         self.frames = self.state["frames"] if self.state else 0

@@ -30,10 +30,6 @@ from beacon_torch.recipes import common
 from beacon_torch.recipes.common import orthogonal
 from beacon_torch.recipes.config import PPOConfig
 
-def make_env(env_id: str, cfg: PPOConfig, **kwargs) -> TransformedEnv:
-    return common.make_env(env_id, cfg.num_envs, **kwargs)
-
-
 def make_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
     """The paper's actor: a shared tanh layer, then one tanh head each for the mean and
     the spread (continuous) or for the logits (discrete)."""

@@ -17,6 +17,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
 from beacon_torch import evaluate
+from beacon_torch.recipes.common import load_checkpoint
 
 
 def seed_dirs(run: str | Path) -> list[Path]:
@@ -28,14 +29,6 @@ def seed_dirs(run: str | Path) -> list[Path]:
     if not found:
         raise FileNotFoundError(f"{run}: not a run directory (no checkpoint.pt in it or in seed* folders)")
     return found
-
-
-def load_checkpoint(run: str | Path) -> dict:
-    path = Path(run) / "checkpoint.pt"
-    try:
-        return torch.load(path, weights_only=False, map_location="cpu")
-    except Exception as err:  # a truncated or foreign file
-        raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
 
 
 def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = 12345) -> dict:
