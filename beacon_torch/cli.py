@@ -178,6 +178,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     common.check_action_space(args.env, args.algo)
     if args.seeds < 1:
         raise CliError(f"--seeds must be a positive integer, got {args.seeds}")
+    if args.collectors < 1:
+        raise CliError(f"--collectors must be a positive integer, got {args.collectors}")
     overrides = _parse_params(args.set)
     if args.frames is not None:
         overrides["frames"] = args.frames
@@ -190,9 +192,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.num_envs < 1:
             raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
         overrides["num_envs"] = args.num_envs
-        # keep the collected batch a multiple of the members, near the default size
-        default = getattr(configure(args.env), batch)
-        overrides.setdefault(batch, max(args.num_envs, default // args.num_envs * args.num_envs))
+    # keep the collected batch a multiple of all members, near the default size
+    step = overrides.get("num_envs", configure(args.env).num_envs) * args.collectors
+    default = getattr(configure(args.env), batch)
+    if default % step:
+        overrides.setdefault(batch, max(step, default // step * step))
     cfg = configure(args.env, **overrides)
     if args.resume:
         seeds = [(int(run.name[4:]) if run.name.startswith("seed") and run.name[4:].isdigit() else 0, run) for run in seed_dirs(args.resume)]
@@ -200,7 +204,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         out = Path(args.out or f"runs/{args.algo}-{args.env}")
         seeds = [(k, out / f"seed{k}") for k in range(args.seeds)]
     for seed, run in seeds:
-        last = recipe(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress)
+        last = recipe(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress, collectors=args.collectors, ray=args.ray, tensorboard=args.tensorboard)
         print(f"{args.algo} {args.env} seed {seed}: {last} -> {run}")
     return 0
 
@@ -263,6 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--frames", type=int, help="total transitions (default: the paper's)")
     tr.add_argument("--num-envs", type=int, help="members of the batched env (default 8)")
     tr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="any setting of the algorithm, e.g. epochs=8 (repeatable)")
+    tr.add_argument("--collectors", type=int, default=1, help="collector processes, each with its own batched env of --num-envs members (TorchRL's MultiSyncCollector)")
+    tr.add_argument("--ray", metavar="ADDRESS", help="collect with --collectors Ray actors on the Ray cluster at ADDRESS ('auto' for the one this machine is in, 'local' to start one here); needs beacon-torch[ray]")
+    tr.add_argument("--tensorboard", action=argparse.BooleanOptionalAction, help="log to TensorBoard too (default: when the tensorboard package is installed)")
     tr.add_argument("--device", default="cpu")
     tr.add_argument("--out", help="run directory (default runs/ALGO-ENV); one seedK folder per seed")
     tr.add_argument("--resume", metavar="DIR", help="continue the run(s) in DIR from their checkpoints")

@@ -28,9 +28,9 @@ def make_qvalue_actor(env, hidden: int) -> QValueActor:
     return QValueActor(net, in_keys=["observation"], action_space="categorical")
 
 
-def train(env_id: str, cfg: OffPolicyConfig, out: str | Path, *, seed: int = 0, device="cpu", resume: bool = False, checkpoint_every: int = 10, progress: bool = True) -> dict:
+def train(env_id: str, cfg: OffPolicyConfig, out: str | Path, *, seed: int = 0, device="cpu", resume: bool = False, checkpoint_every: int = 10, progress: bool = True, collectors: int = 1, ray: str | None = None, tensorboard: bool | None = None) -> dict:
     """Train DQN; returns the last logged values and the frames collected."""
-    run, env = common.start(env_id, "dqn", cfg, out, seed=seed, device=device, resume=resume, progress=progress)
+    run, env = common.start(env_id, "dqn", cfg, out, seed=seed, device=device, resume=resume, progress=progress, tensorboard=tensorboard)
     state = run.state
     qvalue = make_qvalue_actor(env, cfg.hidden).to(device)
     loss = DQNLoss(qvalue, delay_value=True, double_dqn=True, action_space="categorical")
@@ -55,4 +55,4 @@ def train(env_id: str, cfg: OffPolicyConfig, out: str | Path, *, seed: int = 0, 
     def save() -> None:
         run.save(seed=seed, config=asdict(cfg), actor=qvalue.state_dict(), loss=loss.state_dict(), optim=optim.state_dict(), obs_norm=env.transform[0].state_dict())
 
-    return common.off_policy_train(run, env, policy, cfg, update, save, device=device, checkpoint_every=checkpoint_every, on_batch=explore.step)
+    return common.off_policy_train(run, env, policy, cfg, update, save, device=device, checkpoint_every=checkpoint_every, seed=seed, collectors=collectors, ray=ray, on_batch=explore.step)

@@ -46,9 +46,9 @@ def make_qvalue(env, hidden: int) -> ValueOperator:
     return ValueOperator(net, in_keys=["observation", "action"])
 
 
-def train(env_id: str, cfg: OffPolicyConfig, out: str | Path, *, seed: int = 0, device="cpu", resume: bool = False, checkpoint_every: int = 10, progress: bool = True) -> dict:
+def train(env_id: str, cfg: OffPolicyConfig, out: str | Path, *, seed: int = 0, device="cpu", resume: bool = False, checkpoint_every: int = 10, progress: bool = True, collectors: int = 1, ray: str | None = None, tensorboard: bool | None = None) -> dict:
     """Train TD3; returns the last logged values and the frames collected."""
-    run, env = common.start(env_id, "td3", cfg, out, seed=seed, device=device, resume=resume, progress=progress)
+    run, env = common.start(env_id, "td3", cfg, out, seed=seed, device=device, resume=resume, progress=progress, tensorboard=tensorboard)
     state = run.state
     actor, qvalue = make_actor(env, cfg.hidden).to(device), make_qvalue(env, cfg.hidden).to(device)
     loss = TD3Loss(actor, qvalue, bounds=action_bounds(env), policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip, loss_function="l2")
@@ -90,4 +90,4 @@ def train(env_id: str, cfg: OffPolicyConfig, out: str | Path, *, seed: int = 0, 
             obs_norm=env.transform[0].state_dict(),
         )
 
-    return common.off_policy_train(run, env, policy, cfg, update, save, device=device, checkpoint_every=checkpoint_every)
+    return common.off_policy_train(run, env, policy, cfg, update, save, device=device, checkpoint_every=checkpoint_every, seed=seed, collectors=collectors, ray=ray)
