@@ -172,7 +172,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from beacon_torch.recipes import common, dqn, ppo, td3
     from beacon_torch.recipes.config import off_policy_config, ppo_config
-    from beacon_torch.recipes.runs import seed_dirs
+    from beacon_torch.recipes.runs import plot_runs, seed_dirs
 
     env_class(args.env)
     common.check_action_space(args.env, args.algo)
@@ -199,6 +199,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides.setdefault(batch, max(step, default // step * step))
     cfg = configure(args.env, **overrides)
     if args.resume:
+        out = Path(args.resume)
         seeds = [(int(run.name[4:]) if run.name.startswith("seed") and run.name[4:].isdigit() else 0, run) for run in seed_dirs(args.resume)]
     else:
         out = Path(args.out or f"runs/{args.algo}-{args.env}")
@@ -206,6 +207,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     for seed, run in seeds:
         last = recipe(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress, collectors=args.collectors, ray=args.ray, tensorboard=args.tensorboard)
         print(f"{args.algo} {args.env} seed {seed}: {last} -> {run}")
+    try:
+        print(f"learning curve: {plot_runs([out], out / 'learning_curve.png')}")
+    except ValueError as err:  # too short for an episode to end
+        print(f"no learning curve: {err}")
     return 0
 
 

@@ -22,6 +22,12 @@ def test_config_holds_the_papers_table_and_checks_overrides():
         ppo_config("lorenz-v0", epoch=4)
     with pytest.raises(ValueError, match="frames"):
         ppo_config("lorenz-v0", frames=-5)
+    # command-line values take the field's type, or are refused
+    assert ppo_config("mixing-v0", compile="true").compile is True and ppo_config("mixing-v0", epochs=8.0).epochs == 8
+    with pytest.raises(ValueError, match="'epochs' must be of type int"):
+        ppo_config("lorenz-v0", epochs=2.5)
+    with pytest.raises(ValueError, match="'compile' must be of type bool"):
+        ppo_config("lorenz-v0", compile=2)
 
 
 # discrete, continuous, multi-agent (one policy shared by the jets)

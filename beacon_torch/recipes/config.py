@@ -89,12 +89,27 @@ def _checked(cfg, positive: tuple[str, ...], multiple: tuple[str, str]):
     return cfg
 
 
+def _typed(name: str, kind: str, value):
+    """A setting from the command line (``compile=1``, ``epochs=8``, ``lr=3e-4``) in
+    its field's type, or a clear error."""
+    if kind == "bool":
+        if isinstance(value, str):
+            value = {"true": 1, "false": 0}.get(value.lower(), value)
+        if value in (0, 1):
+            return bool(value)
+    elif kind == "int" and isinstance(value, (int, float)) and float(value).is_integer():
+        return int(value)
+    elif kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    raise ValueError(f"setting '{name}' must be of type {kind}, got {value!r}")
+
+
 def _replaced(kind: str, base, overrides: dict):
-    known = {f.name for f in fields(base)}
-    unknown = set(overrides) - known
+    known = {f.name: f.type for f in fields(base)}
+    unknown = set(overrides) - set(known)
     if unknown:
         raise ValueError(f"unknown {kind} setting(s) {sorted(unknown)}; known: {sorted(known)}")
-    return replace(base, **overrides)
+    return replace(base, **{name: _typed(name, known[name], value) for name, value in overrides.items()})
 
 
 def off_policy_config(env_id: str, **overrides) -> OffPolicyConfig:
