@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 from torch import nn
-from torchrl.envs import Compose, ObservationNorm, RewardSum, TransformedEnv
+from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, TransformedEnv
 from torchrl.record.loggers import CSVLogger
 
 import beacon_torch
@@ -32,10 +32,12 @@ def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: d
     base = beacon_torch.make(env_id, num_envs, device=device, seed=seed, **env_kwargs)
     obs, reward = base.observation_key, base.reward_key
     loc, scale = (norm["loc"], norm["scale"]) if norm is not None else (None, None)
-    env = TransformedEnv(
-        base,
-        Compose(ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True), RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")])),
-    )
+    transforms = [ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True), RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")])]
+    if not base.discrete:
+        # a policy's sample may leave the box: the env gets it clipped, the data keeps it
+        low, high = base.full_action_spec[base.action_key].space.low.unique(), base.full_action_spec[base.action_key].space.high.unique()
+        transforms.append(ClipTransform(in_keys_inv=[base.action_key], low=low.item(), high=high.item()))
+    env = TransformedEnv(base, Compose(*transforms))
     if norm is None:
         agent_dims = base.observation_spec[obs].ndim - base.batch_dims - 1
         env.transform[0].init_stats(num_iter=NORM_STEPS, reduce_dim=tuple(range(2 + agent_dims)), cat_dim=1)

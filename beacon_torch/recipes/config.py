@@ -45,6 +45,21 @@ PPO_TARGETS = {
     "rayleigh-v0": -130.0,
     "mixing-v0": -15.0,
 }
+# the algorithms the paper trains on each env (PPO everywhere, TD3 where the actions are
+# continuous, DQN where they are discrete); the recipes fit any env whose action space
+# suits the algorithm
+ALGORITHMS = {
+    "lorenz-v0": ("ppo", "dqn"),
+    "lorenz-continuous-v0": ("ppo", "td3"),
+    "vortex-v0": ("ppo", "td3"),
+    "burgers-v0": ("ppo", "td3"),
+    "sloshing-v0": ("ppo", "td3"),
+    "shkadov-v0": ("ppo", "td3"),
+    "shkadov-separable-v0": ("ppo",),
+    "rayleigh-v0": ("ppo", "td3"),
+    "mixing-v0": ("ppo", "dqn"),
+    "mixing-continuous-v0": ("ppo", "td3"),
+}
 # the variants train like their base env
 VARIANT_OF = {
     "lorenz-continuous-v0": "lorenz-v0",

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import torch
 from tensordict import NestedKey
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs import TransformedEnv
-from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
@@ -33,19 +33,20 @@ from beacon_torch.recipes.config import PPOConfig
 
 
 class Heads(nn.Module):
-    """The continuous actor's network: a shared tanh layer, then the mean and the
-    spread heads (module level, so that multi-process collectors can pickle it)."""
+    """The paper's continuous actor: a shared tanh layer, then a mean head ending in tanh
+    (within the action box) and a spread head ending in a sigmoid (0 to 1), the
+    parameters of a normal distribution. Module level, so that multi-process collectors
+    can pickle it."""
 
     def __init__(self, n_obs: int, hidden: int, n_act: int) -> None:
         super().__init__()
         self.trunk = nn.Sequential(nn.Linear(n_obs, hidden), nn.Tanh())
-        self.mean = nn.Sequential(nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act))
-        self.spread = nn.Sequential(nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act))
-        self.scale = NormalParamExtractor()
+        self.mean = nn.Sequential(nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act), nn.Tanh())
+        self.spread = nn.Sequential(nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act), nn.Sigmoid())
 
-    def forward(self, obs: torch.Tensor):
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         z = self.trunk(obs)
-        return self.scale(torch.cat((self.mean(z), self.spread(z)), -1))
+        return self.mean(z), self.spread(z)
 
 
 @dataclass(frozen=True)
@@ -90,15 +91,15 @@ def make_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
         return ProbabilisticActor(module, in_keys=["logits"], distribution_class=torch.distributions.Categorical, return_log_prob=True, spec=env.action_spec)
     params = [common.sibling(keys.action, "loc"), common.sibling(keys.action, "scale")]
     module = TensorDictModule(orthogonal(Heads(n_obs, hidden, spec.shape[-1])), in_keys=[keys.obs], out_keys=params)
-    # the bounds of one member (and agent): the networks see minibatches, not the batch
-    one = (0,) * (spec.ndim - 1)
+    # as the paper's agent: a normal sample, clipped to the box by the env's transform
+    # (common.make_env) while the loss sees the sample itself; not a tanh-squashed
+    # distribution, whose vanishing gradient at the bounds traps "no control" policies
     return ProbabilisticActor(
         module,
         in_keys=dict(zip(("loc", "scale"), params)),
         out_keys=[keys.action],
         log_prob_key=keys.log_prob,
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": spec.space.low[one], "high": spec.space.high[one]},
+        distribution_class=IndependentNormal,
         return_log_prob=True,
         spec=env.full_action_spec,
     )
