@@ -220,3 +220,26 @@ def test_continuous_actions_reach_the_env_clipped_and_the_data_keeps_the_sample(
     ref = clipped.step(clipped.reset().set("action", torch.tensor([[1.0, -0.5], [-1.0, 1.0]])))
     norm = env.transform[0]
     assert torch.allclose(out["next", "observation"] * norm.scale + norm.loc, ref["next", "observation"], atol=1e-6)
+
+
+def test_results_summary_and_table(tmp_path):
+    """What ``benchmarks/reproduce.py`` records: per-seed evaluation, the curve, and a
+    table row in the results page with the PPO target."""
+    import json
+
+    from beacon_torch.recipes.runs import summarise, write_results_table
+
+    root = tmp_path / "runs" / "ppo-burgers-v0"
+    cfg = ppo_config("burgers-v0", frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
+    for seed in (0, 1):
+        train("burgers-v0", cfg, root / f"seed{seed}", seed=seed, progress=False)
+    summary = summarise(root, members=2, images=tmp_path / "img")
+    assert [s["seed"] for s in summary["seeds"]] == ["seed0", "seed1"] and summary["frames"] == 800
+    assert summary["eval_std"] > 0 and summary["wall_s_per_seed"] > 0  # two seeds, two policies
+    assert json.loads((root / "summary.json").read_text())["eval_mean"] == summary["eval_mean"]
+    page = tmp_path / "results.md"
+    page.write_text("# Results\n\n<!-- results table: benchmarks/reproduce.py report -->\nold\n<!-- end of results table -->\n\nnotes\n")
+    text = write_results_table(tmp_path / "runs", page).read_text()
+    assert "old" not in text and text.endswith("notes\n")
+    row = next(line for line in text.splitlines() if line.startswith("| burgers-v0 | ppo"))
+    assert ">= -1.75 (**missed**)" in row and "800 of 500,000" in row and "](img/ppo-burgers-v0.png)" in row

@@ -9,6 +9,8 @@ transitions collected).
 from __future__ import annotations
 
 import csv
+import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 import beacon_torch
 from beacon_torch import evaluate
 from beacon_torch.recipes.common import load_checkpoint
+from beacon_torch.recipes.config import PPO_TARGETS, ppo_config
 
 
 def seed_dirs(run: str | Path) -> list[Path]:
@@ -125,3 +128,78 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
     fig.tight_layout()
     fig.savefig(path)
     return Path(path)
+
+
+def summarise(root: str | Path, *, members: int = 8, images: str | Path | None = None) -> dict:
+    """A run directory's results, also written to ``root/summary.json``: per seed, the
+    deterministic policy's score on ``members`` fresh episodes and the mean score of
+    the training episodes that ended in the last tenth of the transitions; their mean
+    and spread over the seeds; transitions and wall time; the curve drawn into
+    ``images/<root name>.png`` (default: ``root``)."""
+    root = Path(root)
+    seeds = sorted(p for p in root.glob("seed*") if (p / "checkpoint.pt").is_file())
+    per_seed = []
+    for run in seeds:
+        state = load_checkpoint(run)
+        ev = evaluate_run(run, members=members, gif=None)
+        steps, values = read_scalar(run, "episode_score")
+        tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
+        per_seed.append({"seed": run.name, "frames": state["frames"], "wall_s": state.get("elapsed", float("nan")), "eval": ev["score_mean"], "train_tail": float(tail.mean()) if len(tail) else float("nan"), "uncontrolled": ev["uncontrolled"]})
+    if not per_seed:
+        raise FileNotFoundError(f"{root}: no seed* run in it")
+    images = Path(images) if images is not None else root
+    images.mkdir(parents=True, exist_ok=True)
+    png = plot_runs([root], images / f"{root.name}.png")
+    evals = np.array([s["eval"] for s in per_seed])
+    tails = np.array([s["train_tail"] for s in per_seed])
+    summary = {
+        "algo": state["algo"],
+        "env": state["env"],
+        "config": state["config"],
+        "seeds": per_seed,
+        "eval_mean": float(evals.mean()),
+        "eval_std": float(evals.std()),
+        "train_mean": float(tails.mean()),
+        "train_std": float(tails.std()),
+        "frames": int(min(s["frames"] for s in per_seed)),
+        "wall_s_per_seed": float(np.mean([s["wall_s"] for s in per_seed])),
+        "uncontrolled": per_seed[0]["uncontrolled"],
+        "png": str(png.resolve()),
+        "threads": torch.get_num_threads(),
+    }
+    (root / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail {summary['train_mean']:.4g} over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed")
+    return summary
+
+
+def write_results_table(out: str | Path, path: str | Path) -> Path:
+    """The table of every ``out/*/summary.json`` with the PPO targets, written between
+    the table markers of the markdown file ``path`` (appended if they are missing)."""
+    out, path = Path(out), Path(path)
+    rows = []
+    for file in sorted(out.glob("*/summary.json")):
+        s = json.loads(file.read_text())
+        target = PPO_TARGETS.get(s["env"]) if s["algo"] == "ppo" else None
+        paper_frames = ppo_config(s["env"]).frames
+        met = "" if target is None else ("met" if s["eval_mean"] >= target else "**missed**")
+        rows.append(
+            f"| {s['env']} | {s['algo']} | {s['eval_mean']:.4g} +- {s['eval_std']:.2g} | {s['train_mean']:.4g} +- {s['train_std']:.2g} | "
+            f"{s['uncontrolled']:.4g} | {'' if target is None else f'>= {target:g} ({met})'} | {len(s['seeds'])} | {s['frames']:,} of {paper_frames:,} | "
+            f"{s['wall_s_per_seed'] / 60:.1f} min | [curve]({os.path.relpath(s['png'], path.resolve().parent)}) |"
+        )
+    table = "\n".join(
+        [
+            "| env | algorithm | deterministic policy | training episodes, last 10 % | uncontrolled (same env) | PPO target | seeds | transitions (of the paper's budget) | wall time per seed | curve |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+            *rows,
+        ]
+    )
+    text = path.read_text() if path.exists() else ""
+    begin, end = "<!-- results table: benchmarks/reproduce.py report -->", "<!-- end of results table -->"
+    block = f"{begin}\n{table}\n{end}"
+    if begin in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text + "\n" + block + "\n"
+    path.write_text(text)
+    return path
