@@ -16,7 +16,10 @@ from torchrl.record.loggers import CSVLogger
 
 import beacon_torch
 
-NORM_STEPS = 16  # random steps that set the observation normalisation
+# random steps whose observations set the normalisation: 64 reach past the start-up of
+# every env (burgers' sensors see the inlet noise only after about 40 actions; with 16
+# steps their scale was 1e-5 and normalised observations reached 1e5)
+NORM_STEPS = 64
 
 
 def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
@@ -24,9 +27,10 @@ def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
     return (*key[:-1], name) if isinstance(key, tuple) else name
 
 
-def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: dict | None = None, **env_kwargs) -> TransformedEnv:
-    """The batched env with observation normalisation and episode returns; ``norm`` (a
-    saved ``ObservationNorm`` state) instead of statistics from a random rollout. In a
+def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: dict | None = None, norm_steps: int = NORM_STEPS, **env_kwargs) -> TransformedEnv:
+    """The batched env with observation normalisation and episode returns; the
+    statistics come from ``norm`` (a saved ``ObservationNorm`` state) or else from a
+    rollout of ``norm_steps`` random actions. In a
     multi-agent layout (shkadov-separable-v0) the statistics are shared by the agents,
     as the policy is, and the episode returns are per agent, next to their rewards."""
     base = beacon_torch.make(env_id, num_envs, device=device, seed=seed, **env_kwargs)
@@ -40,7 +44,7 @@ def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: d
     env = TransformedEnv(base, Compose(*transforms))
     if norm is None:
         agent_dims = base.observation_spec[obs].ndim - base.batch_dims - 1
-        env.transform[0].init_stats(num_iter=NORM_STEPS, reduce_dim=tuple(range(2 + agent_dims)), cat_dim=1)
+        env.transform[0].init_stats(num_iter=norm_steps, reduce_dim=tuple(range(2 + agent_dims)), cat_dim=1)
     return env
 
 
@@ -191,7 +195,7 @@ def start(env_id: str, algo: str, cfg, out, *, seed: int, device, resume: bool, 
     run = Run(out, env_id, algo, cfg.frames, resume=resume, progress=progress, tensorboard=tensorboard)
     torch.manual_seed(seed)
     norm = run.state["obs_norm"] if run.state else None
-    return run, make_env(env_id, cfg.num_envs, device=device, seed=seed, norm=norm, compile=cfg.compile)
+    return run, make_env(env_id, cfg.num_envs, device=device, seed=seed, norm=norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
 
 
 def episode_values(data, reward_key: str | tuple[str, ...] = "reward") -> dict[str, float]:

@@ -22,6 +22,7 @@ class PPOConfig:
     hidden: int = 64
     num_envs: int = 8  # members of the batched env collecting together
     compile: bool = False  # the env's compiled physics (worth it for rayleigh and mixing)
+    norm_steps: int = 64  # random steps whose observations set the normalisation
 
 
 # (n_rollout, epochs, total transitions, overrides) of the paper's table
@@ -75,6 +76,7 @@ class OffPolicyConfig:
     frames: int = 200_000
     num_envs: int = 8
     compile: bool = False  # the env's compiled physics (worth it for rayleigh and mixing)
+    norm_steps: int = 64  # random steps whose observations set the normalisation
     frames_per_batch: int = 256  # transitions collected between two rounds of updates
     init_random_frames: int = 5_000  # uniformly random actions before the policy acts
     buffer_size: int = 1_000_000
@@ -131,10 +133,10 @@ def off_policy_config(env_id: str, **overrides) -> OffPolicyConfig:
     """TD3/DQN settings; the total transitions default to the paper's PPO budget."""
     base = OffPolicyConfig(frames=PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig()).frames)
     cfg = _replaced("TD3/DQN", base, overrides)
-    return _checked(cfg, ("frames", "num_envs", "frames_per_batch", "batch_size", "buffer_size", "updates_per_batch", "hidden"), ("frames_per_batch", "num_envs"))
+    return _checked(cfg, ("frames", "norm_steps", "num_envs", "frames_per_batch", "batch_size", "buffer_size", "updates_per_batch", "hidden"), ("frames_per_batch", "num_envs"))
 
 
 def ppo_config(env_id: str, **overrides) -> PPOConfig:
     """The paper's PPO settings of ``env_id`` with ``overrides`` (field=value)."""
     cfg = _replaced("PPO", PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig()), overrides)
-    return _checked(cfg, ("frames", "n_rollout", "minibatches", "epochs", "num_envs", "hidden"), ("n_rollout", "num_envs"))
+    return _checked(cfg, ("frames", "norm_steps", "n_rollout", "minibatches", "epochs", "num_envs", "hidden"), ("n_rollout", "num_envs"))
