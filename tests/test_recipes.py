@@ -200,7 +200,6 @@ def test_short_training_beats_the_random_policy():
         train(env_id, cfg, out, seed=seed, progress=False)
         after = evaluate_run(out, members=members)["score_mean"]
     assert after > rand.mean().item() + 3 * rand.std().item(), (after, rand)
-    print(f"random {rand.mean().item():.3f} +- {rand.std().item():.3f}, untrained {before:.3f}, trained {after:.3f}")
     # measured -3.19 -> -2.32 on one thread, -2.56 on two (the sums differ in the last bits)
     assert after > before + 0.3, (after, before)
 
