@@ -2,6 +2,7 @@
 env) over several seeds, then write ``docs/results.md`` from what was recorded.
 
     python benchmarks/reproduce.py train --algo ppo --envs lorenz-v0 vortex-v0 --seeds 3
+    python benchmarks/reproduce.py summarise runs/results/ppo-lorenz-v0   # evaluate again
     python benchmarks/reproduce.py report          # docs/results.md and its curves
 
 A run goes to ``runs/results/<algo>-<env>/seedK`` (the CLI's layout, so that
@@ -57,12 +58,20 @@ def main() -> None:
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--out", default="runs/results")
     tr.add_argument("--images", default=str(IMAGES), help="where the curves go (default docs/img/results)")
+    su = sub.add_parser("summarise", help="evaluate and plot trained pairs again (e.g. after a stopped campaign)")
+    su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo-burgers-v0")
+    su.add_argument("--members", type=int, default=8)
+    su.add_argument("--images", default=str(IMAGES))
     rep = sub.add_parser("report", help="write the results table into docs/results.md")
     rep.add_argument("--out", default="runs/results")
     rep.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
     args = parser.parse_args()
     if args.command == "report":
         print(write_results_table(Path(args.out), Path(args.doc)))
+        return
+    if args.command == "summarise":
+        for root in args.pairs:
+            summarise(root, members=args.members, images=args.images)
         return
     if args.threads:
         torch.set_num_threads(args.threads)

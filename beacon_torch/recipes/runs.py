@@ -64,7 +64,7 @@ def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | 
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout = env.rollout(base.episode_length, policy=actor, break_when_any_done=False, break_when_all_done=True, callback=grab)
     controlled = evaluate.scores(rollout)
-    ref = beacon_torch.make(state["env"], 1, device=device, seed=seed)
+    ref = beacon_torch.make(state["env"], members, device=device, seed=seed)  # the same episodes
     uncontrolled = evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref)))
     out = {
         "env": state["env"],
@@ -118,8 +118,10 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
         ax.plot(grid, mean, color=f"C{k}", label=label)
         ax.fill_between(grid, mean - std, mean + std, color=f"C{k}", alpha=0.25, lw=0)
     for env_id in envs:
-        ref = beacon_torch.make(env_id, 1, dtype="float64")
-        ax.axhline(evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref))).item(), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled")
+        # one episode where the physics is deterministic, else the mean of 16
+        members = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
+        ref = beacon_torch.make(env_id, members, dtype="float64", seed=0)
+        ax.axhline(evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref))).mean().item(), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled")
     ax.set_xlabel("transitions")
     ax.set_ylabel(name.replace("_", " "))
     ax.set_title(", ".join(sorted(envs)))
