@@ -30,9 +30,10 @@ def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
 def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: dict | None = None, norm_steps: int = NORM_STEPS, **env_kwargs) -> TransformedEnv:
     """The batched env with observation normalisation and episode returns; the
     statistics come from ``norm`` (a saved ``ObservationNorm`` state) or else from a
-    rollout of ``norm_steps`` random actions. In a
-    multi-agent layout (shkadov-separable-v0) the statistics are shared by the agents,
-    as the policy is, and the episode returns are per agent, next to their rewards."""
+    rollout of ``norm_steps`` random actions. In a multi-agent layout
+    (shkadov-separable-v0) the statistics are shared by the agents, as the policy is,
+    and the episode returns are per agent, next to their rewards. Continuous actions
+    reach the env clipped to its box."""
     base = beacon_torch.make(env_id, num_envs, device=device, seed=seed, **env_kwargs)
     obs, reward = base.observation_key, base.reward_key
     loc, scale = (norm["loc"], norm["scale"]) if norm is not None else (None, None)
