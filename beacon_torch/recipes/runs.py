@@ -185,8 +185,11 @@ def write_results_table(out: str | Path, path: str | Path) -> Path:
         target = PPO_TARGETS.get(s["env"]) if s["algo"] == "ppo" else None
         paper_frames = ppo_config(s["env"]).frames
         met = "" if target is None else ("met" if s["eval_mean"] >= target else "**missed**")
+        spread = (lambda key: f" +- {s[key]:.2g}") if len(s["seeds"]) > 1 else (lambda key: "")
+        # runs from before the normalisation statistics became a setting used 16 steps
+        algo = s["algo"] + (" (16-step norm.)" if s["config"].get("norm_steps", 16) != 64 else "")
         rows.append(
-            f"| {s['env']} | {s['algo']} | {s['eval_mean']:.4g} +- {s['eval_std']:.2g} | {s['train_mean']:.4g} +- {s['train_std']:.2g} | "
+            f"| {s['env']} | {algo} | {s['eval_mean']:.4g}{spread('eval_std')} | {s['train_mean']:.4g}{spread('train_std')} | "
             f"{s['uncontrolled']:.4g} | {'' if target is None else f'>= {target:g} ({met})'} | {len(s['seeds'])} | {s['frames']:,} of {paper_frames:,} | "
             f"{s['wall_s_per_seed'] / 60:.1f} min | [curve]({os.path.relpath(s['png'], path.resolve().parent)}) |"
         )
