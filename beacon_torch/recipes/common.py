@@ -15,11 +15,8 @@ from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, Tra
 from torchrl.record.loggers import CSVLogger
 
 import beacon_torch
+from beacon_torch.recipes.config import NORM_STEPS
 
-# random steps whose observations set the normalisation: 64 reach past the start-up of
-# every env (burgers' sensors see the inlet noise only after about 40 actions; with 16
-# steps their scale was 1e-5 and normalised observations reached 1e5)
-NORM_STEPS = 64
 
 
 def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
