@@ -19,10 +19,18 @@ pure-ish methods on a dict of state tensors (each with a leading batch dimension
 
 and optionally ``setup()`` (grid and sizes derived from the parameters, before the
 specs are built) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
+
+With ``differentiable=True`` the steps keep the autograd graph through the state, so the
+rewards can be differentiated with respect to the actions, to parameters given as
+tensors that require grad and to a state set by :meth:`FlowEnv.set_state`. Resets are
+not differentiated: an episode starts from data (the published starts are developed by
+long uncontrolled runs). ``setup()`` runs without a graph, so a subclass computes what
+depends on differentiable parameters in ``advance``, not there.
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any, ClassVar
 
 import numpy as np
@@ -109,6 +117,8 @@ class FlowEnv(EnvBase):
         seed: int | None = None,
         check_actions: bool = True,
         record_history: bool = False,
+        differentiable: bool = False,
+        grad_checkpoint: bool = False,
         **params: Any,
     ) -> None:
         batch_size = _as_batch_size(batch_size)
@@ -127,13 +137,20 @@ class FlowEnv(EnvBase):
         # Checking action values needs a host-device synchronisation on accelerators;
         # a trusted training loop may switch it off there.
         self.check_actions = check_actions
+        if grad_checkpoint and not differentiable:
+            raise ValueError(f"{self.env_id}: grad_checkpoint=True needs differentiable=True")
+        self.differentiable = bool(differentiable)
+        # recompute each action's substeps in the backward pass instead of keeping them:
+        # the memory of a differentiated episode becomes one state per action
+        self.grad_checkpoint = bool(grad_checkpoint)
         # set by compile(); TorchRL's constructor calls it for ``compile=True``
         self.compile_options: dict | None = None
         self._compiled: dict = {}
         self.record_history = record_history
         self.render_index = 0
         self.history: list[State] = []
-        self.setup()
+        with torch.no_grad():
+            self.setup()
         self._make_specs()
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
@@ -326,15 +343,86 @@ class FlowEnv(EnvBase):
         # noise routinely leaves the box and the benchmark's actuators saturate.
         return action.clamp(-1.0, 1.0)
 
+    # ------------------------------------------------------------------ gradients
+    def _graph(self):
+        """The autograd mode of a step: the caller's in differentiable mode, none else."""
+        return contextlib.nullcontext() if self.differentiable else torch.no_grad()
+
+    def _checkpointed_advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+        """:meth:`advance` under activation checkpointing. The recomputation in the
+        backward pass must draw the same noise as the step did, from the env's own
+        generator, and leave the generator where the episode has since taken it."""
+        from torch.utils.checkpoint import checkpoint
+
+        drawn_from = self.rng.get_state()
+        calls = []
+
+        def run(state, action):
+            if not calls:
+                calls.append(1)
+                return self.advance(state, action, count)
+            now = self.rng.get_state()
+            self.rng.set_state(drawn_from)
+            try:
+                return self.advance(state, action, count)
+            finally:
+                self.rng.set_state(now)
+
+        return checkpoint(run, state, action, use_reentrant=False)
+
+    def detach_state(self) -> None:
+        """Cut the autograd graph at the current state (truncated backpropagation):
+        later rewards are differentiated back to here, not further."""
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before detach_state()")
+        self._state = {k: v.detach() for k, v in self._state.items()}
+        self._obs = self._obs.detach()
+
+    def set_state(self, state: State, count: int | torch.Tensor = 0) -> torch.Tensor:
+        """Continue every member from ``state`` (a dict like :attr:`state`, e.g. saved
+        from this env or another one of the same kind and batch size) with ``count``
+        actions already taken; returns the observation. Tensors that require grad are
+        kept, so a differentiable env gives gradients with respect to the state."""
+        name = self.env_id or type(self).__name__
+        if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+            raise TypeError(f"{name}: set_state needs a dict of tensors like env.state")
+        if self._state is not None:
+            missing = sorted(set(self._state) - set(state))
+            extra = sorted(set(state) - set(self._state))
+            if missing or extra:
+                raise KeyError(f"{name}: set_state needs the keys {sorted(self._state)}; missing {missing}, unknown {extra}")
+            for key, value in state.items():
+                if value.shape != self._state[key].shape:
+                    raise ValueError(
+                        f"{name}: state[{key!r}] must have shape {tuple(self._state[key].shape)}, "
+                        f"got {tuple(value.shape)}"
+                    )
+        for key, value in state.items():
+            if value.ndim == 0 or value.shape[0] != self.n_envs:
+                raise ValueError(f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got shape {tuple(value.shape)}")
+        state = {k: v.to(self.device, self.dtype) if v.is_floating_point() else v.to(self.device) for k, v in state.items()}
+        with self._graph():
+            try:
+                obs = self.observe(state)
+            except KeyError as err:
+                raise KeyError(f"{name}: set_state got a state without {err}") from None
+        self._state, self._obs = state, obs
+        count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
+        self._count = count.expand(self.batch_size).clone()
+        return obs
+
     # ------------------------------------------------------------------ TorchRL API
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         mask = None
         if tensordict is not None:
             mask = tensordict.get("_reset", None)
+        if mask is not None:
+            mask = mask.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
-            if mask is not None:
-                mask = mask.reshape(self.batch_size).to(self.device)
             init = self.initial_state(mask)
+        # in differentiable mode the members that go on keep their graph through a
+        # partial reset; the new starts are data
+        with self._graph():
             if mask is None or self._state is None:
                 self._state = init
                 self._count = torch.zeros_like(self._count)
@@ -342,6 +430,7 @@ class FlowEnv(EnvBase):
                 self._state = where_members(mask, init, self._state)
                 self._count = torch.where(mask, torch.zeros_like(self._count), self._count)
             obs = self.observe(self._state)
+        with torch.no_grad():
             started = _finite_members(obs)
             for value in self._state.values():
                 if value.is_floating_point():
@@ -370,8 +459,11 @@ class FlowEnv(EnvBase):
         action = self.check_action(tensordict.get(self.action_key, None))
         stepping = tensordict.get("_step", None)
         old = self._state
-        with torch.no_grad():
-            new, reward = self.advance(old, action, self._count)
+        with self._graph():
+            if self.grad_checkpoint and torch.is_grad_enabled():
+                new, reward = self._checkpointed_advance(old, action, self._count)
+            else:
+                new, reward = self.advance(old, action, self._count)
             obs = self.observe(new)
             ok = _finite_members(obs) & _finite_members(reward) & ~self.out_of_bounds(new)
             for value in new.values():

@@ -9,6 +9,12 @@ A value is either a scalar, shared by the whole batch, or one value per batch me
 (a 1-D sequence, array or tensor of the batch's length). Per-member values become tensors
 on the env's device and dtype; scalars stay Python numbers so that the kernels broadcast
 them for free.
+
+A real parameter may also be a tensor that requires grad (a number or one value per
+member), for environments made with ``differentiable=True``: it is kept as given (cast
+to the env's dtype and device), so that gradients of the rewards reach it. Parameters
+that fix the grid or the number of actuators cannot be differentiated; the few shared
+ones that only enter the equations (``differentiable=True`` in :func:`param`) may.
 """
 
 from __future__ import annotations
@@ -33,13 +39,16 @@ def param(
     high_open: bool = False,
     kind: str = "real",
     per_member: bool = True,
+    differentiable: bool | None = None,
     doc: str = "",
 ) -> Any:
     """Declare one parameter of an env's ``Params`` dataclass.
 
     ``low``/``high`` bound the value (the modulus, for complex parameters); ``*_open``
     excludes the bound itself. ``per_member=False`` forbids a per-member sequence, for
-    parameters that fix the grid or the number of actuators.
+    parameters that fix the grid or the number of actuators. ``differentiable`` says
+    whether a tensor requiring grad is accepted; by default, for real parameters that
+    may vary per member.
     """
     if kind not in _KINDS:
         raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
@@ -50,9 +59,16 @@ def param(
         high_open=high_open,
         kind=kind,
         per_member=per_member,
+        differentiable=(kind == "real" and per_member) if differentiable is None else differentiable,
         doc=doc,
     )
     return dataclasses.field(default=default, metadata=meta)
+
+
+def number(value: Any) -> float:
+    """A shared parameter as a Python number (for cache keys, grid sizes and step
+    counts), whether it was given as a number or as a tensor that requires grad."""
+    return float(value.detach()) if isinstance(value, torch.Tensor) else value
 
 
 def describe(params_cls: type) -> list[dict[str, Any]]:
@@ -106,7 +122,36 @@ def _check_scalar(name: str, value: Any, m, where: str = "") -> complex | float 
     return value
 
 
+def _check_differentiable(name: str, value: torch.Tensor, m, n: int, device, dtype) -> torch.Tensor:
+    """A parameter tensor that requires grad: its values are checked like any others,
+    and the tensor itself (not a copy of its values) is what the physics uses."""
+    if not m["differentiable"]:
+        raise TypeError(
+            f"parameter {name!r} cannot be differentiated (it fixes the grid, the actuators or "
+            f"a cached start); pass a number"
+        )
+    if not value.is_floating_point():
+        raise TypeError(f"parameter {name!r} requires grad, so it must be a floating tensor, got {value.dtype}")
+    if value.ndim == 0:
+        _check_scalar(name, value.item(), m)
+        value = value.to(device=device, dtype=dtype)
+        # per-member parameters are tensors of the batch's length wherever they are tensors
+        return value.expand(n) if m["per_member"] else value
+    if not m["per_member"]:
+        raise TypeError(f"parameter {name!r} must be one number for the whole batch, got a sequence")
+    if value.shape != (n,):
+        raise ValueError(
+            f"parameter {name!r} must be a number or one value per batch member "
+            f"(shape ({n},)), got shape {tuple(value.shape)}"
+        )
+    for i, v in enumerate(value.detach().cpu().tolist()):
+        _check_scalar(name, v, m, f"[{i}]")
+    return value.to(device=device, dtype=dtype)
+
+
 def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
+    if isinstance(value, torch.Tensor) and value.requires_grad:
+        return _check_differentiable(name, value, m, n, device, dtype)
     if isinstance(value, torch.Tensor) and value.ndim == 0:
         value = value.item()
     elif isinstance(value, np.ndarray) and value.ndim == 0:

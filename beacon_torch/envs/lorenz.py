@@ -7,6 +7,10 @@
 One low-storage RK4 step of dt = 0.05 per action, 500 actions, start (10, 10, 10).
 The forcing u is -1, 0 or +1 (discrete actions 0, 1, 2) in ``lorenz-v0`` and any value in
 [-1, 1] in ``lorenz-continuous-v0``. Reward +1 for each step that ends with x < 0.
+
+That indicator has no gradient; for gradient-based control ``reward_width`` > 0 replaces
+it with the logistic step sigmoid(-x / reward_width), which tends to it as the width
+goes to 0 (the published scores use the indicator, the default).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ class LorenzParams:
     sigma: float = param(10.0, low=0.0, high=1e3, low_open=True, doc="Prandtl-like ratio")
     rho: float = param(28.0, low=0.0, high=1e6, low_open=True, doc="Rayleigh-number ratio")
     beta: float = param(8.0 / 3.0, low=0.0, high=1e3, low_open=True, doc="geometric factor")
+    reward_width: float = param(0.0, low=0.0, high=1e3, doc="width of a smooth step replacing the reward's indicator x < 0 (0: the indicator)")
 
 
 def lorenz_rhs(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> torch.Tensor:
@@ -69,8 +74,17 @@ class LorenzEnv(FlowEnv):
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         u = self.forcing(action)
         xyz = self._lorenz(state["xyz"], u, self.params)
-        reward = (xyz[:, 0] < 0).to(self.dtype)
+        reward = self.reward(xyz[:, 0])
         return {"xyz": xyz, "u": u}, reward
+
+    def reward(self, x: torch.Tensor) -> torch.Tensor:
+        width = self.params.reward_width
+        if isinstance(width, torch.Tensor) or width > 0:
+            # a per-member width may be 0 for some members: those keep the indicator
+            width = self.member(width, 0)
+            smooth = torch.sigmoid(-x / torch.as_tensor(width, dtype=x.dtype).clamp(min=1e-30))
+            return torch.where(torch.as_tensor(width) > 0, smooth, (x < 0).to(self.dtype))
+        return (x < 0).to(self.dtype)
 
     def observe(self, state: State) -> torch.Tensor:
         xyz = state["xyz"]

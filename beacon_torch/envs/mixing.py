@@ -89,9 +89,6 @@ class MixingEnv(FlowEnv):
     def setup(self) -> None:
         p = self.params
         self.nx, self.ny, self.dx, self.dy = grid(p)
-        self.u_max = self.member(p.re) * 0.01 / p.L  # the published scaling: 1 at the defaults
-        # per-member values broadcast against the solver's batch-last fields
-        self.nu, self.kappa = 1.0 / self.member(p.re, 0), 1.0 / self.member(p.pe, 0)
         pe_min = float(p.pe.min()) if isinstance(p.pe, torch.Tensor) else p.pe
         self.n_scalar = scalar_substeps(1.0 / pe_min, DT, self.dx, self.dy)
         self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, POISSON_BC, dtype=self.dtype, device=self.device)
@@ -100,7 +97,25 @@ class MixingEnv(FlowEnv):
         self._substeps = self.kernel(substep, unroll=UNROLL)
         self._probes = Probes(("c", "u", "v"), self.nx, self.ny, self.device)
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
-        self.target = p.side**2 * self.member(p.c0, 2) / (p.L * p.H)
+
+    # derived from the parameters at each use, so that every differentiated step has
+    # its own graph to them
+    @property
+    def u_max(self):
+        return self.member(self.params.re) * 0.01 / self.params.L  # the published scaling: 1 at the defaults
+
+    @property
+    def nu(self):
+        return 1.0 / self.member(self.params.re, 0)  # per member, against the batch-last fields
+
+    @property
+    def kappa(self):
+        return 1.0 / self.member(self.params.pe, 0)
+
+    @property
+    def target(self):
+        p = self.params
+        return p.side**2 * self.member(p.c0, 2) / (p.L * p.H)
 
     def walls(self, action: torch.Tensor) -> torch.Tensor:
         """``[B, 4]`` wall speeds (u_bottom, u_top, v_left, v_right) of an action batch,
@@ -131,8 +146,9 @@ class MixingEnv(FlowEnv):
         lids = (walls * self.u_max).T
         offsets = self.cavity.walls(*lids, like=lids)
         fields = self.cavity.fields(state, {"c": (self._c_ghosts, None)})
+        nu, kappa = self.nu, self.kappa
         for _ in range(SUBSTEPS // UNROLL):
-            fields = self._substeps(fields, offsets, self.cavity, self._c_ghosts, self.nu, self.kappa, self.n_scalar)
+            fields = self._substeps(fields, offsets, self.cavity, self._c_ghosts, nu, kappa, self.n_scalar)
         new = self.cavity.stored(fields, offsets)
         new["probes"] = self._probes.push(state["probes"], new)
         new["walls"] = walls

@@ -17,6 +17,8 @@ Nusselt number. Every episode starts from the developed single convection roll
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +36,7 @@ from beacon_torch.numerics.projection import (
     scalar_substeps,
     transport_rk3,
 )
-from beacon_torch.params import param
+from beacon_torch.params import number, param
 from beacon_torch.probes import HISTORY, N_PROBES, Probes
 
 CELLS_PER_UNIT = 50
@@ -55,7 +57,7 @@ class RayleighParams:
     L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length")
     H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
     n_sgts: int = param(10, low=1, high=200, kind="int", per_member=False, doc="number of bottom segments (actions)")
-    ra: float = param(1e4, low=1.0, high=1e6, per_member=False, doc="Rayleigh number")
+    ra: float = param(1e4, low=1.0, high=1e6, per_member=False, differentiable=True, doc="Rayleigh number")
 
     def __post_init__(self):
         nx = int(round(self.L * CELLS_PER_UNIT))
@@ -101,17 +103,27 @@ class Convection:
         self.nx, self.ny, self.dx, self.dy = grid(p)
         self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, dtype=dtype, device=device)
         self.ghosts = temperature_ghosts(self.nx, self.ny, dtype, device)
-        self.nu, self.kappa = (PR / p.ra) ** 0.5, 1.0 / (PR * p.ra) ** 0.5
-        self.n_scalar = scalar_substeps(self.kappa, DT, self.dx, self.dy)
+        self.ra = p.ra  # a number, or a tensor that requires grad
+        self.n_scalar = scalar_substeps(1.0 / (PR * number(p.ra)) ** 0.5, DT, self.dx, self.dy)
         self.step, self.unroll = step, unroll
+
+    @property
+    def nu(self):
+        # derived at each use, so that every differentiated step has its own graph to ra
+        return (PR / self.ra) ** 0.5
+
+    @property
+    def kappa(self):
+        return 1.0 / (PR * self.ra) ** 0.5
 
     def run(self, state: State, bottom: torch.Tensor, n: int) -> State:
         """``n`` substeps (a multiple of the step's unroll) at bottom temperatures
         ``bottom`` ``[B, nx]``."""
         offset = temperature_offset(bottom, self.ghosts, self.ny)
         fields = self.cavity.fields(state, {"theta": (self.ghosts, offset)})
+        nu, kappa = self.nu, self.kappa
         for _ in range(n // self.unroll):
-            fields = self.step(fields, offset, self.cavity, self.ghosts, self.nu, self.kappa, self.n_scalar)
+            fields = self.step(fields, offset, self.cavity, self.ghosts, nu, kappa, self.n_scalar)
         return self.cavity.stored(fields, self.cavity.walls(like=offset))
 
 
@@ -168,9 +180,14 @@ class RayleighEnv(FlowEnv):
         self.cavity = self.convection.cavity
         self.solver = self.cavity.solver
         self._probes = Probes(("theta", "u", "v"), self.nx, self.ny, self.device)
+
+    @functools.cached_property
+    def _start(self) -> State:
+        # loaded at the first reset: an env started by set_state never develops its roll
+        p = dataclasses.replace(self.params, ra=number(self.params.ra))
         key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
         start = cached("rayleigh-convection", key, lambda: developed_convection(p))
-        self._start = {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
+        return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
 
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, self.n_actions), dtype=self.dtype, device=self.device)

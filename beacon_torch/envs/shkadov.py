@@ -21,6 +21,7 @@ multi-agent convention): per-jet observation, action and reward under ``"agents"
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,7 +32,7 @@ from torchrl.data import Composite, Unbounded
 from beacon_torch.base import FlowEnv, State, where_members
 from beacon_torch.cache import cached
 from beacon_torch.numerics import ab2_step, interpolated_action, minmod, third_derivative, tvd_derivative
-from beacon_torch.params import param
+from beacon_torch.params import number, param
 
 CELLS_PER_UNIT = 5
 DX = 1.0 / CELLS_PER_UNIT
@@ -57,7 +58,7 @@ class ShkadovParams:
     n_jets: int = param(5, low=1, high=100, kind="int", per_member=False, doc="number of jets")
     jet_pos: float = param(150.0, low=OBS_LENGTH + 1.0, high=DEVELOP_LENGTH, per_member=False, doc="position of the first jet")
     jet_space: float = param(10.0, low=2 * JET_HALF_WIDTH, high=100.0, per_member=False, doc="spacing of the jets")
-    delta: float = param(0.1, low=0.01, high=10.0, per_member=False, doc="the film parameter (Re^2 / We)^(1/3) / 15")
+    delta: float = param(0.1, low=0.01, high=10.0, per_member=False, differentiable=True, doc="the film parameter (Re^2 / We)^(1/3) / 15")
     amp: float = param(5.0, low=0.0, high=1e8, doc="jet amplitude A (action scaling)")
     random_start: int = param(400, low=0, high=10_000, kind="int", per_member=False, doc="most uncontrolled actions run at each reset")
 
@@ -193,8 +194,13 @@ class ShkadovEnv(FlowEnv):
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))
         self._reward_index = torch.tensor([[c + m for m in range(width)] for c in self.jet_centres], device=self.device)
-        film = cached("shkadov-film", dict(version=1, delta=p.delta), lambda: developed_film(p.delta))
-        self._film = {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
+
+    @functools.cached_property
+    def _film(self) -> State:
+        # loaded at the first reset: an env started by set_state never develops its film
+        delta = number(self.params.delta)
+        film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta))
+        return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
 
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, self.n_jets), dtype=self.dtype, device=self.device)

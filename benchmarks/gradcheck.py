@@ -1,0 +1,66 @@
+"""Gradients of every continuous env on its published settings against central
+differences (issue 7), in float64 at a generic point.
+
+    .venv/bin/python benchmarks/gradcheck.py [--envs ENV ...]
+
+Prints, per env, the derivative of the reward summed over a few actions with respect to
+the actions (along a random direction) and to one physical parameter, by automatic
+differentiation and by central differences, with their relative error. The test suite
+checks the same on the published grids too, but for mixing-continuous-v0 (a smaller
+cavity there); the table in docs/gradients.md comes from this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import beacon_torch  # noqa: E402
+from beacon_torch.gradcheck import check  # noqa: E402
+
+# env: (parameter, its value, other parameters, warm-up actions, differentiated actions)
+CASES = {
+    # the indicator reward has no gradient: its smooth version (docs/gradients.md)
+    "lorenz-continuous-v0": ("rho", 28.0, {"reward_width": 1.0}, 10, 20),
+    "vortex-v0": ("re", 50.0, {}, 20, 20),
+    # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
+    # sits on its kink everywhere there)
+    "burgers-v0": ("u_target", 0.5, {}, 60, 4),
+    "sloshing-v0": ("g", 9.81, {}, 5, 4),
+    "shkadov-v0": ("delta", 0.1, {}, 3, 3),
+    "rayleigh-v0": ("ra", 1e4, {}, 0, 2),
+    "mixing-continuous-v0": ("re", 100.0, {}, 1, 1),
+}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--envs", nargs="*", default=list(CASES), choices=list(CASES))
+    args = parser.parse_args(argv)
+    print("| env | derivative | autograd | central differences | relative error | actions (warm-up + differentiated) | time |")
+    print("|---|---|---|---|---|---|---|")
+    for env_id in args.envs:
+        name, value, params, warmup, steps = CASES[env_id]
+
+        def make(**kwargs):
+            return beacon_torch.make(env_id, batch_size=1, dtype=torch.float64, seed=3, **params, **kwargs)
+
+        start = time.perf_counter()
+        result = check(make, name, value, warmup=warmup, steps=steps)
+        seconds = time.perf_counter() - start
+        for what, d in result.items():
+            print(
+                f"| {env_id} | {what} | {d.autograd:.10g} | {d.central:.10g} | {d.relative_error:.1e} | "
+                f"{warmup} + {steps} | {seconds:.0f} s |",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()

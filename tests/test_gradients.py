@@ -1,0 +1,210 @@
+"""Differentiable mode: exact gradients of the rewards through every continuous solver.
+
+The gradients of the reward summed over a few steps, with respect to the action
+sequence and to one physical parameter per env, are compared with central differences
+in float64 at generic points (a state reached by random actions, random actions away
+from the box's edges, so that no limiter, max or abs sits on its kink).
+"""
+
+import dataclasses
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+import beacon_torch
+from beacon_torch.gradcheck import check, generic_start, summed_reward
+
+F64 = torch.float64
+REL = 1e-5
+
+# env: (parameter, its value, other parameters, warm-up actions, differentiated actions).
+# Every env runs its published grid but mixing-continuous-v0, on a 30 x 30 cavity of the
+# same scheme (a published-size action takes seconds with the graph; the full-size check
+# is benchmarks/gradcheck.py, recorded in docs/gradients.md).
+CASES = {
+    "lorenz-continuous-v0": ("rho", 28.0, {"reward_width": 1.0}, 10, 20),
+    "vortex-v0": ("re", 50.0, {}, 20, 20),
+    # the inlet noise reaches the reward region after about 40 actions: before, the
+    # field there is exactly u_target, the kink of |u - u_target|
+    "burgers-v0": ("u_target", 0.5, {}, 60, 4),
+    "sloshing-v0": ("g", 9.81, {}, 5, 4),
+    "shkadov-v0": ("delta", 0.1, {"random_start": 0}, 3, 3),
+    "rayleigh-v0": ("ra", 1e4, {}, 0, 1),
+    "mixing-continuous-v0": ("re", 100.0, {"L": 0.3, "H": 0.3, "side": 0.2}, 1, 1),
+}
+
+
+@pytest.mark.parametrize("env_id", list(CASES))
+def test_gradients_match_central_differences(env_id):
+    name, value, params, warmup, steps = CASES[env_id]
+
+    def make(**kwargs):
+        return beacon_torch.make(env_id, batch_size=1, dtype=F64, seed=3, **params, **kwargs)
+
+    result = check(make, name, value, warmup=warmup, steps=steps)
+    for derivative in result.values():
+        assert abs(derivative.central) > 1e-10, "a flat direction checks nothing"
+        assert derivative.relative_error < REL, result
+
+
+def relative(a, b):
+    return float(abs(a - b) / abs(b))
+
+
+def test_gradient_with_respect_to_the_initial_state():
+    env = beacon_torch.make("lorenz-continuous-v0", dtype=F64, differentiable=True, reward_width=2.0)
+    start = generic_start(env, 10)
+    xyz = start["xyz"].clone().requires_grad_()
+    actions = torch.zeros((15, 1, 1), dtype=F64)
+    total = summed_reward(env, {**start, "xyz": xyz}, actions)
+    (grad,) = torch.autograd.grad(total, xyz)
+    direction = torch.tensor([[0.3, -1.0, 0.5]], dtype=F64)
+    h = 1e-6
+    with torch.no_grad():
+        plus = summed_reward(env, {**start, "xyz": start["xyz"] + h * direction}, actions)
+        minus = summed_reward(env, {**start, "xyz": start["xyz"] - h * direction}, actions)
+    assert relative((grad * direction).sum(), (plus - minus) / (2 * h)) < REL
+
+
+def rollout_gradient(checkpoint, steps=12):
+    env = beacon_torch.make("burgers-v0", batch_size=3, dtype=F64, seed=2, differentiable=True, grad_checkpoint=checkpoint)
+    env.reset()
+    actions = (0.5 * torch.rand((steps, 3, 1), generator=torch.Generator().manual_seed(0), dtype=F64)).requires_grad_()
+    saved = {}
+
+    def pack(t):
+        saved[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        total = 0.0
+        for a in actions:
+            total = total + env.step(TensorDict({"action": a}, batch_size=[3]))["next", "reward"].sum()
+    total.backward()
+    return actions.grad, sum(saved.values()), torch.rand(4, generator=env.rng, dtype=F64)
+
+
+def test_checkpointing_gives_the_same_gradient_in_a_fraction_of_the_memory():
+    grad, memory, after = rollout_gradient(False)
+    grad_ck, memory_ck, after_ck = rollout_gradient(True)
+    # the backward pass recomputes each action with the noise the step drew ...
+    assert torch.equal(grad, grad_ck)
+    # ... and leaves the env's generator where the episode had taken it
+    assert torch.equal(after, after_ck)
+    # burgers keeps ~1 MiB per member and action without checkpointing, the state with
+    assert memory_ck < memory / 50
+
+
+def test_detach_state_truncates_backpropagation():
+    env = beacon_torch.make("vortex-v0", dtype=F64, differentiable=True)
+    env.reset()
+    first = torch.zeros((1, 2), dtype=F64, requires_grad=True)
+    env.step(TensorDict({"action": first}, batch_size=[1]))
+    env.detach_state()
+    td = env.step(TensorDict({"action": torch.zeros((1, 2), dtype=F64)}, batch_size=[1]))
+    assert not td["next", "reward"].requires_grad
+    assert not env.state["ay"].requires_grad
+
+
+def test_default_mode_keeps_no_graph():
+    theta = torch.tensor(0.5, requires_grad=True)
+    env = beacon_torch.make("burgers-v0", batch_size=2, u_target=theta)
+    env.reset()
+    action = torch.zeros((2, 1), requires_grad=True)
+    td = env.step(TensorDict({"action": action}, batch_size=[2]))
+    assert not td["next", "reward"].requires_grad
+    assert not td["next", "observation"].requires_grad
+
+
+def test_policy_gradient_through_a_torchrl_rollout():
+    env = beacon_torch.make("sloshing-v0", batch_size=2, seed=0, differentiable=True)
+    net = torch.nn.Sequential(torch.nn.Linear(env.n_obs, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1), torch.nn.Tanh())
+    td = env.rollout(5, TensorDictModule(net, ["observation"], ["action"]))
+    td["next", "reward"].sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+
+
+def test_per_member_parameter_gets_per_member_gradients():
+    g = torch.tensor([9.0, 9.81, 11.0], dtype=F64, requires_grad=True)
+    env = beacon_torch.make("sloshing-v0", batch_size=3, dtype=F64, differentiable=True, g=g)
+    env.reset()
+    actions = torch.full((3, 3, 1), 0.2, dtype=F64)
+    summed = 0.0
+    for a in actions:
+        summed = summed + env.step(TensorDict({"action": a}, batch_size=[3]))["next", "reward"]
+    # member i's reward depends on g[i] only
+    (jac,) = torch.autograd.grad(summed[1, 0], g)
+    assert jac[1] != 0 and jac[0] == 0 and jac[2] == 0
+
+
+def test_lorenz_smooth_reward_tends_to_the_indicator():
+    x = torch.tensor([-1.0, -0.1, 0.1, 1.0], dtype=F64)
+    sharp = beacon_torch.make("lorenz-continuous-v0", dtype=F64, reward_width=1e-3)
+    assert torch.allclose(sharp.reward(x), torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=F64))
+    assert torch.equal(beacon_torch.make("lorenz-continuous-v0").reward(x.float()), torch.tensor([1.0, 1.0, 0.0, 0.0]))
+
+
+def test_errors_name_the_problem():
+    with pytest.raises(TypeError, match="'L' cannot be differentiated"):
+        beacon_torch.make("burgers-v0", L=torch.tensor(2.0, requires_grad=True))
+    with pytest.raises(ValueError, match="'re' must be in"):
+        beacon_torch.make("vortex-v0", re=torch.tensor(-1.0, requires_grad=True))
+    with pytest.raises(ValueError, match=r"shape \(2,\)"):
+        beacon_torch.make("vortex-v0", batch_size=2, re=torch.ones(3, requires_grad=True))
+    with pytest.raises(ValueError, match="needs differentiable=True"):
+        beacon_torch.make("vortex-v0", grad_checkpoint=True)
+    env = beacon_torch.make("vortex-v0", batch_size=2)
+    env.reset()
+    with pytest.raises(KeyError, match="missing \\['k'"):
+        env.set_state({k: v for k, v in env.state.items() if k != "k"})
+    with pytest.raises(ValueError, match=r"state\['ay'\] must have shape \(2, 4\)"):
+        env.set_state({**env.state, "ay": torch.zeros(2, 3)})
+
+
+def test_partial_reset_keeps_the_graph_of_the_members_that_go_on():
+    env = beacon_torch.make("vortex-v0", batch_size=2, dtype=F64, differentiable=True)
+    env.reset()
+    first = torch.full((2, 2), 0.3, dtype=F64, requires_grad=True)
+    env.step(TensorDict({"action": first}, batch_size=[2]))
+    env.reset(TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=[2]))
+    td = env.step(TensorDict({"action": torch.full((2, 2), 0.3, dtype=F64)}, batch_size=[2]))
+    (grad,) = torch.autograd.grad(td["next", "reward"].sum(), first)
+    # member 0 started again from data; member 1's reward still depends on its first action
+    assert torch.all(grad[0] == 0) and torch.any(grad[1] != 0)
+
+
+# env: (warm-up actions, differentiated actions, settings); burgers' inlet noise needs
+# about 40 actions to reach the reward region, so sigma's derivative needs that many
+REACH = {
+    "lorenz-continuous-v0": (5, 2, {"reward_width": 1.0}),
+    "vortex-v0": (5, 2, {}),
+    "burgers-v0": (0, 45, {}),
+    "sloshing-v0": (2, 2, {}),
+    "shkadov-v0": (1, 2, {"random_start": 0}),
+    "shkadov-separable-v0": (1, 2, {"random_start": 0}),
+    "rayleigh-v0": (0, 1, {}),
+    "mixing-continuous-v0": (0, 1, {"L": 0.3, "H": 0.3, "side": 0.2}),
+}
+DIFFERENTIABLE = [
+    (env_id, f.name)
+    for env_id, cls in beacon_torch.registry.ENVS.items()
+    if not cls.discrete
+    for f in dataclasses.fields(cls.Params)
+    if f.metadata["differentiable"] and f.name != CASES.get(env_id, (None,))[0]  # those are checked above
+]
+
+
+@pytest.mark.parametrize("env_id, name", DIFFERENTIABLE)
+def test_every_differentiable_parameter_reaches_the_rewards(env_id, name):
+    """A parameter that the physics read only when the env was built (under no_grad)
+    would get a silent zero gradient: each one declared differentiable must not."""
+    warmup, steps, settings = REACH[env_id]
+    default = next(f.default for f in dataclasses.fields(beacon_torch.registry.ENVS[env_id].Params) if f.name == name)
+    theta = torch.tensor(float(settings.get(name, default)), dtype=F64, requires_grad=True)
+    env = beacon_torch.make(env_id, dtype=F64, seed=0, differentiable=True, **{**settings, name: theta})
+    start = generic_start(env, warmup)
+    actions = torch.full((steps, *env.full_action_spec[env.action_key].shape), 0.2, dtype=F64)
+    (grad,) = torch.autograd.grad(summed_reward(env, start, actions), theta)
+    assert torch.isfinite(grad) and grad != 0
