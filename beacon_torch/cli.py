@@ -170,8 +170,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from beacon_torch.recipes import common, dqn, ppo, td3
-    from beacon_torch.recipes.config import off_policy_config, ppo_config
+    from beacon_torch.recipes import common, dqn, gradient_control, ppo, td3
+    from beacon_torch.recipes.config import grad_config, off_policy_config, ppo_config
     from beacon_torch.recipes.runs import plot_runs, seed_dirs
 
     env_class(args.env)
@@ -187,7 +187,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         "ppo": (ppo_config, ppo.train, "n_rollout"),
         "td3": (off_policy_config, td3.train, "frames_per_batch"),
         "dqn": (off_policy_config, dqn.train, "frames_per_batch"),
+        "grad": (grad_config, gradient_control.train, "num_envs"),
     }[args.algo]
+    if args.algo == "grad" and (args.collectors != 1 or args.ray):
+        raise CliError("--algo grad differentiates through the env in this process: --collectors and --ray do not apply")
     if args.num_envs is not None:
         if args.num_envs < 1:
             raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
@@ -267,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train", help="train an agent (PPO, TD3 or DQN) with the paper's settings")
     tr.add_argument("env", help="environment id")
-    tr.add_argument("--algo", default="ppo", choices=["ppo", "td3", "dqn"], help="ppo (any env), td3 (continuous actions), dqn (discrete actions)")
+    tr.add_argument("--algo", default="ppo", choices=["ppo", "td3", "dqn", "grad"], help="ppo (any env), td3 (continuous actions), dqn (discrete actions), grad (gradient-based control through the differentiable physics; continuous actions)")
     tr.add_argument("--seeds", type=int, default=1, help="independent trainings, seeds 0..N-1")
     tr.add_argument("--frames", type=int, help="total transitions (default: the paper's)")
     tr.add_argument("--num-envs", type=int, help="members of the batched env (default 8)")

@@ -24,12 +24,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from beacon_torch.cli import _parse_params  # noqa: E402
-from beacon_torch.recipes import dqn, ppo, td3  # noqa: E402
+from beacon_torch.recipes import dqn, gradient_control, ppo, td3  # noqa: E402
 from beacon_torch.recipes.common import load_checkpoint  # noqa: E402
-from beacon_torch.recipes.config import off_policy_config, ppo_config  # noqa: E402
+from beacon_torch.recipes.config import grad_config, off_policy_config, ppo_config  # noqa: E402
 from beacon_torch.recipes.runs import summarise, write_results_table  # noqa: E402
 
-RECIPES = {"ppo": (ppo_config, ppo.train), "td3": (off_policy_config, td3.train), "dqn": (off_policy_config, dqn.train)}
+RECIPES = {"ppo": (ppo_config, ppo.train), "td3": (off_policy_config, td3.train), "dqn": (off_policy_config, dqn.train), "grad": (grad_config, gradient_control.train)}
 IMAGES = ROOT / "docs" / "img" / "results"
 
 

@@ -103,10 +103,11 @@ def orthogonal(module: nn.Module, gain: float = 2**0.5) -> nn.Module:
 
 
 def check_action_space(env_id: str, algo: str) -> None:
-    """TD3 needs continuous actions, DQN discrete ones: a clear error otherwise."""
+    """TD3 and gradient-based control need continuous actions, DQN discrete ones: a
+    clear error otherwise."""
     discrete = beacon_torch.registry.ENVS[env_id].discrete
-    if algo == "td3" and discrete:
-        raise ValueError(f"td3 needs continuous actions; {env_id} has discrete ones (use ppo or dqn)")
+    if algo in ("td3", "grad") and discrete:
+        raise ValueError(f"{algo} needs continuous actions; {env_id} has discrete ones (use ppo or dqn)")
     if algo == "dqn" and not discrete:
         raise ValueError(f"dqn needs discrete actions; {env_id} has continuous ones (use ppo or td3)")
 
@@ -185,15 +186,16 @@ class Run:
             self.bar.close()
 
 
-def start(env_id: str, algo: str, cfg, out, *, seed: int, device, resume: bool, progress: bool, tensorboard: bool | None = None) -> tuple[Run, TransformedEnv]:
-    """The run directory (resumed or new) and the seeded training env of a recipe."""
+def start(env_id: str, algo: str, cfg, out, *, seed: int, device, resume: bool, progress: bool, tensorboard: bool | None = None, **env_kwargs) -> tuple[Run, TransformedEnv]:
+    """The run directory (resumed or new) and the seeded training env of a recipe
+    (``env_kwargs`` go to the env, e.g. ``differentiable=True``)."""
     check_action_space(env_id, algo)
     if algo != "ppo" and isinstance(beacon_torch.registry.ENVS[env_id].observation_key, tuple):
         raise ValueError(f"{algo} trains single-agent layouts; {env_id} has one agent per jet (use ppo, or {env_id.replace('-separable', '')} for {algo})")
     run = Run(out, env_id, algo, cfg.frames, resume=resume, progress=progress, tensorboard=tensorboard)
     torch.manual_seed(seed)
     norm = run.state["obs_norm"] if run.state else None
-    return run, make_env(env_id, cfg.num_envs, device=device, seed=seed, norm=norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+    return run, make_env(env_id, cfg.num_envs, device=device, seed=seed, norm=norm, norm_steps=cfg.norm_steps, compile=cfg.compile, **env_kwargs)
 
 
 def episode_values(data, reward_key: str | tuple[str, ...] = "reward") -> dict[str, float]:

@@ -145,3 +145,35 @@ def ppo_config(env_id: str, **overrides) -> PPOConfig:
     """The paper's PPO settings of ``env_id`` with ``overrides`` (field=value)."""
     cfg = _replaced("PPO", PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig()), overrides)
     return _checked(cfg, ("frames", "norm_steps", "n_rollout", "minibatches", "epochs", "num_envs", "hidden"), ("n_rollout", "num_envs"))
+
+
+@dataclass(frozen=True)
+class GradConfig:
+    """Gradient-based control (``recipes/gradient_control.py``): a deterministic policy
+    trained by backpropagating the rewards of ``horizon`` steps through the physics."""
+
+    frames: int = 200_000
+    num_envs: int = 16
+    horizon: int = 32  # differentiated steps per update (the graph is cut between updates)
+    gamma: float = 0.99  # discount inside the horizon
+    lr: float = 1e-3
+    grad_clip: float = 1.0  # on the norm of the policy's gradient
+    hidden: int = 64
+    compile: bool = False  # the env's compiled physics (torch.compile differentiates it too)
+    norm_steps: int = NORM_STEPS  # random steps whose observations set the normalisation
+    checkpoint: bool = False  # recompute each action in the backward pass (long horizons)
+
+
+GRAD = {
+    "burgers-v0": GradConfig(frames=51_200, horizon=40),
+    # 100 of the 800 actions per update: the high cycle takes that long to grow
+    "vortex-v0": GradConfig(frames=128_000, horizon=100, checkpoint=True),
+}
+
+
+def grad_config(env_id: str, **overrides) -> GradConfig:
+    """Settings of the gradient-based recipe; the total transitions default to the
+    per-env entry of ``GRAD`` or else the paper's PPO budget."""
+    base = GRAD.get(env_id) or GradConfig(frames=PPO.get(VARIANT_OF.get(env_id, env_id), PPOConfig()).frames)
+    cfg = _replaced("gradient", base, overrides)
+    return _checked(cfg, ("frames", "norm_steps", "num_envs", "horizon", "hidden"), ("frames", "frames"))

@@ -44,7 +44,7 @@ def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | 
     hidden = state["config"]["hidden"]
     if state["algo"] == "ppo":
         from beacon_torch.recipes.ppo import make_actor
-    elif state["algo"] == "td3":
+    elif state["algo"] in ("td3", "grad"):
         from beacon_torch.recipes.td3 import make_actor
     elif state["algo"] == "dqn":
         from beacon_torch.recipes.dqn import make_qvalue_actor as make_actor
@@ -177,9 +177,18 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
 
 def write_results_table(out: str | Path, path: str | Path) -> Path:
     """The table of every ``out/*/summary.json`` with the PPO targets, written between
-    the table markers of the markdown file ``path`` (appended if they are missing)."""
+    the table markers of the markdown file ``path`` (appended if they are missing).
+    Rows already in the table for (env, algorithm) pairs that have no summary in
+    ``out`` are kept: a campaign adds to the recorded results without their runs."""
     out, path = Path(out), Path(path)
-    rows = []
+    text = path.read_text() if path.exists() else ""
+    begin, end = "<!-- results table: benchmarks/reproduce.py report -->", "<!-- end of results table -->"
+    rows = {}
+    if begin in text:
+        for line in text[text.index(begin) : text.index(end)].splitlines():
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if line.startswith("|") and len(cells) > 2 and cells[0] not in ("env", "---"):
+                rows[(cells[1].split()[0], cells[0])] = line
     for file in sorted(out.glob("*/summary.json")):
         s = json.loads(file.read_text())
         target = PPO_TARGETS.get(s["env"]) if s["algo"] == "ppo" else None
@@ -188,7 +197,7 @@ def write_results_table(out: str | Path, path: str | Path) -> Path:
         spread = (lambda key: f" +- {s[key]:.2g}") if len(s["seeds"]) > 1 else (lambda key: "")
         # runs from before the normalisation statistics became a setting used 16 steps
         algo = s["algo"] + (" (16-step norm.)" if s["config"].get("norm_steps", 16) != 64 else "")
-        rows.append(
+        rows[(s["algo"], s["env"])] = (
             f"| {s['env']} | {algo} | {s['eval_mean']:.4g}{spread('eval_std')} | {s['train_mean']:.4g}{spread('train_std')} | "
             f"{s['uncontrolled']:.4g} | {'' if target is None else f'>= {target:g} ({met})'} | {len(s['seeds'])} | {s['frames']:,} of {paper_frames:,} | "
             f"{s['wall_s_per_seed'] / 60:.1f} min | [curve]({os.path.relpath(s['png'], path.resolve().parent)}) |"
@@ -197,11 +206,9 @@ def write_results_table(out: str | Path, path: str | Path) -> Path:
         [
             "| env | algorithm | deterministic policy | training episodes, last 10 % | uncontrolled (same env) | PPO target | seeds | transitions (of the paper's budget) | wall time per seed | curve |",
             "|---|---|---|---|---|---|---|---|---|---|",
-            *rows,
+            *(rows[key] for key in sorted(rows)),
         ]
     )
-    text = path.read_text() if path.exists() else ""
-    begin, end = "<!-- results table: benchmarks/reproduce.py report -->", "<!-- end of results table -->"
     block = f"{begin}\n{table}\n{end}"
     if begin in text:
         text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
