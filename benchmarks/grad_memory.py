@@ -1,12 +1,15 @@
 """Memory and time of differentiating through the envs (issue 7).
 
     .venv/bin/python benchmarks/grad_memory.py [--steps N] [--batch B] [--dtype float32]
+    .venv/bin/python benchmarks/grad_memory.py --episode --envs vortex-v0 burgers-v0
 
 For every continuous env, a differentiable rollout of ``--steps`` random actions, then the
 backward pass of the summed reward, with and without ``grad_checkpoint``. Reported per
 batch member and action: the bytes autograd keeps for the backward pass (tensors saved by
-the graph, each storage counted once), and the wall time of forward plus backward. The
-table in docs/gradients.md comes from this script.
+the graph, each storage counted once), and the wall time of forward plus backward. With
+``--episode``, one whole episode under ``grad_checkpoint`` instead: its saved bytes,
+time and whether the gradient with respect to every action is finite. The tables in
+docs/gradients.md come from this script.
 """
 
 from __future__ import annotations
@@ -30,8 +33,10 @@ ENVS = {
 }
 
 
-def measure(env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint: bool, **params) -> tuple[float, float]:
-    """(saved bytes per member and action, seconds per action of forward + backward)."""
+def measure(env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint: bool, **params) -> tuple[float, float, bool, float]:
+    """(saved bytes per member and action, seconds per action of forward + backward,
+    whether the gradient with respect to every action is finite, its largest finite
+    magnitude)."""
     env = beacon_torch.make(
         env_id, batch_size=batch, dtype=dtype, seed=0, differentiable=True, grad_checkpoint=checkpoint, **params
     )
@@ -54,7 +59,9 @@ def measure(env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint:
             total = total + td["next", env.reward_key].sum()
     total.backward()
     seconds = time.perf_counter() - start
-    return sum(storages.values()) / (steps * batch), seconds / steps
+    grad = actions.grad
+    largest = float(grad[torch.isfinite(grad)].abs().max())
+    return sum(storages.values()) / (steps * batch), seconds / steps, bool(torch.isfinite(grad).all()), largest
 
 
 def main(argv=None) -> None:
@@ -62,9 +69,19 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--batch", type=int, default=4)
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    parser.add_argument("--envs", nargs="*", default=list(ENVS))
+    parser.add_argument("--envs", nargs="*", default=list(ENVS), choices=list(ENVS))
+    parser.add_argument("--episode", action="store_true", help="one whole episode with grad_checkpoint")
     args = parser.parse_args(argv)
     dtype = getattr(torch, args.dtype)
+    if args.episode:
+        print(f"one episode, batch {args.batch}, {args.dtype}, grad_checkpoint, {torch.get_num_threads()} threads")
+        print("| env | actions | saved for the backward pass, per member | forward + backward | gradient finite | largest derivative |")
+        print("|---|---|---|---|---|---|")
+        for env_id in args.envs:
+            n = beacon_torch.registry.ENVS[env_id].episode_length
+            per_action, seconds, finite, largest = measure(env_id, n, args.batch, dtype, True, **ENVS[env_id])
+            print(f"| {env_id} | {n} | {_bytes(per_action * n)} | {seconds * n:,.1f} s | {finite} | {largest:.1e} |", flush=True)
+        return
     print(f"{args.steps} actions, batch {args.batch}, {args.dtype}, {torch.get_num_threads()} threads")
     print("| env | state per member | graph per member and action | with grad_checkpoint | time per action (batch) | with grad_checkpoint |")
     print("|---|---|---|---|---|---|")
@@ -73,8 +90,8 @@ def main(argv=None) -> None:
         probe = beacon_torch.make(env_id, batch_size=1, dtype=dtype, seed=0, **params)
         probe.reset()
         state = sum(v.numel() * v.element_size() for v in probe.state.values())
-        full, t_full = measure(env_id, args.steps, args.batch, dtype, False, **params)
-        ck, t_ck = measure(env_id, args.steps, args.batch, dtype, True, **params)
+        full, t_full, *_ = measure(env_id, args.steps, args.batch, dtype, False, **params)
+        ck, t_ck, *_ = measure(env_id, args.steps, args.batch, dtype, True, **params)
         print(
             f"| {env_id} | {_bytes(state)} | {_bytes(full)} | {_bytes(ck)} | "
             f"{t_full * 1e3:,.1f} ms | {t_ck * 1e3:,.1f} ms |",
