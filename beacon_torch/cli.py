@@ -189,8 +189,6 @@ def cmd_train(args: argparse.Namespace) -> int:
         "dqn": (off_policy_config, dqn.train, "frames_per_batch"),
         "grad": (grad_config, gradient_control.train, "num_envs"),
     }[args.algo]
-    if args.algo == "grad" and (args.collectors != 1 or args.ray):
-        raise CliError("--algo grad differentiates through the env in this process: --collectors and --ray do not apply")
     if args.num_envs is not None:
         if args.num_envs < 1:
             raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")

@@ -20,6 +20,22 @@ from tensordict import TensorDict
 from beacon_torch.base import FlowEnv, State
 
 
+# env: (parameter, its value, other parameters, warm-up actions, differentiated actions)
+# of the check on the published settings; tests/test_gradients.py shrinks a few for time
+CASES = {
+    # the indicator reward has no gradient: its smooth version (docs/gradients.md)
+    "lorenz-continuous-v0": ("rho", 28.0, {"reward_width": 1.0}, 10, 20),
+    "vortex-v0": ("re", 50.0, {}, 20, 20),
+    # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
+    # sits on its kink everywhere there)
+    "burgers-v0": ("u_target", 0.5, {}, 60, 4),
+    "sloshing-v0": ("g", 9.81, {}, 5, 4),
+    "shkadov-v0": ("delta", 0.1, {}, 3, 3),
+    "rayleigh-v0": ("ra", 1e4, {}, 0, 2),
+    "mixing-continuous-v0": ("re", 100.0, {}, 1, 1),
+}
+
+
 @dataclass(frozen=True)
 class Derivative:
     """One derivative: by automatic differentiation and by central differences."""

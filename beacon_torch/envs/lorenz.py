@@ -79,12 +79,11 @@ class LorenzEnv(FlowEnv):
 
     def reward(self, x: torch.Tensor) -> torch.Tensor:
         width = self.params.reward_width
-        if isinstance(width, torch.Tensor) or width > 0:
-            # a per-member width may be 0 for some members: those keep the indicator
-            width = self.member(width, 0)
-            smooth = torch.sigmoid(-x / torch.as_tensor(width, dtype=x.dtype).clamp(min=1e-30))
-            return torch.where(torch.as_tensor(width) > 0, smooth, (x < 0).to(self.dtype))
-        return (x < 0).to(self.dtype)
+        step = (x < 0).to(self.dtype)
+        if not isinstance(width, torch.Tensor):
+            return torch.sigmoid(-x / width) if width > 0 else step
+        # a per-member width may be 0 for some members: those keep the indicator
+        return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
 
     def observe(self, state: State) -> torch.Tensor:
         xyz = state["xyz"]
