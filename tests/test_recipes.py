@@ -13,6 +13,8 @@ from beacon_torch.recipes.config import ALGORITHMS, PPO, off_policy_config, ppo_
 from beacon_torch.recipes.common import make_env
 from beacon_torch.recipes.ppo import make_actor, train
 
+from conftest import SMALL_CAVITY
+
 
 def test_config_holds_the_papers_table_and_checks_overrides():
     assert ppo_config("rayleigh-v0").entropy == 0.001 and ppo_config("rayleigh-v0").n_rollout == 1000
@@ -119,12 +121,12 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
     """One tiny update of each (env, algorithm) pair the paper reports, every variant
     included: the recipes fit every action space and observation layout. Two env steps
     each (normalisation, collection)."""
-    from beacon_torch.recipes import common, dqn, td3
+    from beacon_torch.recipes import dqn, td3
 
     if env_id.startswith("mixing"):
-        # a 0.3 x 0.3 cavity (the observation is the same probe grid): a default-size
+        # the small cavity (the observation is the same probe grid): a default-size
         # eager step costs about a second here, this one a tenth
-        monkeypatch.setattr(common, "make_env", functools.partial(common.make_env, L=0.3, H=0.3, side=0.2))
+        monkeypatch.setattr(common, "make_env", functools.partial(common.make_env, **SMALL_CAVITY))
 
     assert set(ALGORITHMS) == set(beacon_torch.registry.ENVS)
     if algo == "ppo":
