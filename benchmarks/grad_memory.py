@@ -59,9 +59,9 @@ def measure(env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint:
             total = total + td["next", env.reward_key].sum()
     total.backward()
     seconds = time.perf_counter() - start
-    grad = actions.grad
-    largest = float(grad[torch.isfinite(grad)].abs().max())
-    return sum(storages.values()) / (steps * batch), seconds / steps, bool(torch.isfinite(grad).all()), largest
+    finite = torch.isfinite(actions.grad)
+    largest = float(torch.where(finite, actions.grad, 0.0).abs().max())
+    return sum(storages.values()) / (steps * batch), seconds / steps, bool(finite.all()), largest
 
 
 def main(argv=None) -> None:

@@ -17,6 +17,8 @@ import beacon_torch
 from beacon_torch import gradcheck
 from beacon_torch.gradcheck import check, generic_start, summed_reward
 
+from conftest import SMALL_CAVITY
+
 F64 = torch.float64
 REL = 1e-5
 
@@ -28,7 +30,7 @@ CASES = {
     **gradcheck.CASES,
     "shkadov-v0": ("delta", 0.1, {"random_start": 0}, 3, 3),
     "rayleigh-v0": ("ra", 1e4, {}, 0, 1),
-    "mixing-continuous-v0": ("re", 100.0, {"L": 0.3, "H": 0.3, "side": 0.2}, 1, 1),
+    "mixing-continuous-v0": ("re", 100.0, SMALL_CAVITY, 1, 1),
 }
 
 
@@ -181,7 +183,7 @@ REACH = {
     "shkadov-v0": (1, 2, {"random_start": 0}),
     "shkadov-separable-v0": (1, 2, {"random_start": 0}),
     "rayleigh-v0": (0, 1, {}),
-    "mixing-continuous-v0": (0, 1, {"L": 0.3, "H": 0.3, "side": 0.2}),
+    "mixing-continuous-v0": (0, 1, SMALL_CAVITY),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)
