@@ -26,7 +26,7 @@ def test_lsrk4_coefficients_are_consistent():
 
 def test_lsrk4_exact_on_linear_growth_constant_rhs():
     u = torch.tensor([[1.0, -2.0]], dtype=torch.float64)
-    out = lsrk4_step(lambda v, t: torch.full_like(v, 3.0), u, 0.0, 0.25)
+    out, _ = lsrk4_step(lambda v, t: torch.full_like(v, 3.0), u, 0.0, 0.25)
     torch.testing.assert_close(out, u + 0.75, rtol=0, atol=1e-15)
 
 
@@ -34,7 +34,7 @@ def test_lsrk4_integrates_time_dependent_rhs_exactly_for_cubics():
     # du/dt = t^3 is integrated exactly by a 4th-order method
     u = torch.zeros(1, 1, dtype=torch.float64)
     t0, dt = 0.3, 0.2
-    out = lsrk4_step(lambda v, t: torch.full_like(v, t**3), u, t0, dt)
+    out, _ = lsrk4_step(lambda v, t: torch.full_like(v, t**3), u, t0, dt)
     exact = ((t0 + dt) ** 4 - t0**4) / 4
     # the published rationals satisfy the order conditions to about 1e-11, not to round-off
     assert out.item() == pytest.approx(exact, rel=1e-8)
@@ -49,16 +49,31 @@ def test_lsrk4_is_fourth_order_on_an_oscillator():
     for n in (10, 20, 40):
         u = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
         for i in range(n):
-            u = lsrk4_step(rhs, u, i / n, 1.0 / n)
+            u, _ = lsrk4_step(rhs, u, i / n, 1.0 / n)
         exact = torch.tensor([[math.cos(1.0), -math.sin(1.0)]], dtype=torch.float64)
         errors.append((u - exact).abs().max().item())
     orders = [math.log2(errors[i] / errors[i + 1]) for i in range(2)]
     assert all(3.8 < p < 4.3 for p in orders), orders
 
 
+def test_lsrk4_returns_the_last_stage_rhs_not_the_rhs_at_the_new_state():
+    # the published envs observe this value as the state's time derivative
+    u = torch.tensor([[1.0]], dtype=torch.float64)
+    seen = []
+
+    def rhs(v, t):
+        seen.append(v.clone())
+        return -v
+
+    out, rate = lsrk4_step(rhs, u, 0.0, 0.1)
+    assert len(seen) == 5
+    torch.testing.assert_close(rate, -seen[-1], rtol=0, atol=0)
+    assert not torch.equal(rate, -out)
+
+
 def test_lsrk4_is_batched_and_differentiable():
     u = torch.tensor([[1.0], [2.0]], dtype=torch.float64, requires_grad=True)
-    out = lsrk4_step(lambda v, t: -v, u, 0.0, 0.1)
+    out, _ = lsrk4_step(lambda v, t: -v, u, 0.0, 0.1)
     out.sum().backward()
     # on u' = -u one step multiplies by a fixed amplification factor, close to e^-dt
     factor = (out / u).detach()

@@ -5,6 +5,8 @@
     dz/dt = x y - beta z
 
 One low-storage RK4 step of dt = 0.05 per action, 500 actions, start (10, 10, 10).
+The observation is the state and, as published, the right-hand side of the last
+LSRK4 stage (zeros at reset).
 The forcing u is -1, 0 or +1 (discrete actions 0, 1, 2) in ``lorenz-v0`` and any value in
 [-1, 1] in ``lorenz-continuous-v0``. Reward +1 for each step that ends with x < 0.
 
@@ -43,8 +45,9 @@ def lorenz_rhs(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> torch.Ten
     return torch.stack((p.sigma * (y - x), x * (p.rho - z) - y + u, x * y - p.beta * z), -1)
 
 
-def lorenz_step(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> torch.Tensor:
-    """One action: one LSRK4 step of dt = 0.05 with the forcing ``u`` ``[B]``."""
+def lorenz_step(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """One action: one LSRK4 step of dt = 0.05 with the forcing ``u`` ``[B]``; returns
+    the new state and the right-hand side of the step's last stage."""
     return lsrk4_step(lambda s, t: lorenz_rhs(s, u, p), xyz, 0.0, DT)
 
 
@@ -69,13 +72,14 @@ class LorenzEnv(FlowEnv):
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         xyz = self.tensor(START).expand(self.n_envs, 3).clone()
-        return {"xyz": xyz, "u": torch.zeros_like(xyz[:, 0])}
+        # the published reset observes zero time derivatives
+        return {"xyz": xyz, "rate": torch.zeros_like(xyz), "u": torch.zeros_like(xyz[:, 0])}
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         u = self.forcing(action)
-        xyz = self._lorenz(state["xyz"], u, self.params)
+        xyz, rate = self._lorenz(state["xyz"], u, self.params)
         reward = self.reward(xyz[:, 0])
-        return {"xyz": xyz, "u": u}, reward
+        return {"xyz": xyz, "rate": rate, "u": u}, reward
 
     def reward(self, x: torch.Tensor) -> torch.Tensor:
         width = self.params.reward_width
@@ -86,8 +90,9 @@ class LorenzEnv(FlowEnv):
         return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
 
     def observe(self, state: State) -> torch.Tensor:
-        xyz = state["xyz"]
-        return torch.cat((xyz, lorenz_rhs(xyz, state["u"], self.params)), -1)
+        # the "time derivatives" are those of the published code: the right-hand side
+        # of the last LSRK4 stage, not the one at the new state
+        return torch.cat((state["xyz"], state["rate"]), -1)
 
     def render_frame(self, history: list[State]) -> np.ndarray:
         from beacon_torch.render import lorenz_frame

@@ -78,9 +78,11 @@ def displacement(s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return 2.0 * (s[:, 2] * c - s[:, 3] * sn)
 
 
-def vortex_substep(s: torch.Tensor, k: torch.Tensor, phi: torch.Tensor, re) -> torch.Tensor:
-    """One LSRK4 step of dt = 0.1 with the feedback gain ``k`` and phase ``phi`` ``[B]``."""
-    return lsrk4_step(lambda u, t: vortex_rhs(u, k, phi, re), s, 0.0, DT)
+def vortex_substep(carry: tuple[torch.Tensor, torch.Tensor], k: torch.Tensor, phi: torch.Tensor, re) -> tuple[torch.Tensor, torch.Tensor]:
+    """One LSRK4 step of dt = 0.1 with the feedback gain ``k`` and phase ``phi`` ``[B]``
+    on ``(state, rate)``; the rate carried in is replaced by the right-hand side of the
+    step's last stage (what the published env observes)."""
+    return lsrk4_step(lambda u, t: vortex_rhs(u, k, phi, re), carry[0], 0.0, DT)
 
 
 class VortexEnv(FlowEnv):
@@ -103,16 +105,20 @@ class VortexEnv(FlowEnv):
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         p = self.params
-        a0 = torch.as_tensor(p.a0, device=self.device).expand(self.n_envs)
-        y0 = torch.as_tensor(p.y0, device=self.device).expand(self.n_envs)
+        # complex128 for float64: a Python complex would become complex64 and round the
+        # start to float32
+        cdtype = torch.complex128 if self.dtype == torch.float64 else torch.complex64
+        a0 = torch.as_tensor(p.a0, dtype=cdtype, device=self.device).expand(self.n_envs)
+        y0 = torch.as_tensor(p.y0, dtype=cdtype, device=self.device).expand(self.n_envs)
         s = torch.stack((a0.real, a0.imag, y0.real, y0.imag), -1).to(self.dtype)
         zero = torch.zeros_like(s[:, 0])
-        return {"ay": s, "k": zero, "phi": zero.clone(), "y_prev": displacement(s, zero)}
+        # the published reset observes zero time derivatives
+        return {"ay": s, "rate": torch.zeros_like(s), "k": zero, "phi": zero.clone(), "y_prev": displacement(s, zero)}
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         k = 0.5 * K_MAX * (action[:, 0] + 1.0)
         phi = math.pi * action[:, 1]
-        s = self._substeps(state["ay"], k, phi, self.params.re)
+        s, rate = self._substeps((state["ay"], state["rate"]), k, phi, self.params.re)
         t = DT_ACT * (count + 1).to(self.dtype)
         y = displacement(s, t)
         # The published scores divide by the numerical step (0.1), not by the 0.5
@@ -122,11 +128,11 @@ class VortexEnv(FlowEnv):
         ar, ai = s[:, 0], s[:, 1]
         lift = 2.0 * k * torch.cos(phi) * (ar * c - ai * sn) - 2.0 * k * torch.sin(phi) * (ai * c + ar * sn)
         reward = energy - self.params.w * 0.5 * lift**2
-        return {"ay": s, "k": k, "phi": phi, "y_prev": y}, reward
+        return {"ay": s, "rate": rate, "k": k, "phi": phi, "y_prev": y}, reward
 
     def observe(self, state: State) -> torch.Tensor:
-        s = state["ay"]
-        return torch.cat((s, vortex_rhs(s, state["k"], state["phi"], self.params.re)), -1)
+        # the published "time derivatives": the last LSRK4 stage's right-hand side
+        return torch.cat((state["ay"], state["rate"]), -1)
 
     def render_frame(self, history: list[State]) -> np.ndarray:
         from beacon_torch.render import vortex_frame

@@ -44,18 +44,23 @@ def lsrk4_step(
     u: torch.Tensor,
     t: float,
     dt: float,
-) -> torch.Tensor:
-    """Advance ``u`` by one LSRK4 step of size ``dt``.
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Advance ``u`` by one LSRK4 step of size ``dt``; returns the new ``u`` and the
+    right-hand side of the last stage.
 
     ``rhs(u, t)`` returns du/dt with the shape of ``u``; ``t`` is only passed through
     (the autonomous systems of the benchmark ignore it). Out-of-place, so the graph
-    through ``u`` survives when gradients are wanted.
+    through ``u`` survives when gradients are wanted. The last stage's right-hand side
+    (evaluated before the last update, not at the new ``u``) is what the published
+    envs observe as the "time derivatives" of their state.
     """
     k = torch.zeros_like(u)
+    f = k
     for a, b, c in zip(LSRK4_A, LSRK4_B, LSRK4_C):
-        k = a * k + dt * rhs(u, t + c * dt)
+        f = rhs(u, t + c * dt)
+        k = a * k + dt * f
         u = u + b * k
-    return u
+    return u, f
 
 
 def ab2_step(u: torch.Tensor, f: torch.Tensor, f_prev: torch.Tensor, dt: float) -> torch.Tensor:
