@@ -107,6 +107,9 @@ class FlowEnv(EnvBase):
     # inductor options of the compiled path (compile()); the cavities' graphs gain from
     # a C++ wrapper, which costs the small 1-D graphs more compile time than it saves
     inductor_options: ClassVar[dict] = {}
+    # whether a compiled substep is one graph; False where part of it must stay eager
+    # (the cavities' transport sweep), which torch.compile then runs between graphs
+    compile_fullgraph: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -164,11 +167,12 @@ class FlowEnv(EnvBase):
         returns the env. ``make(..., compile=True)`` (or a dict of ``torch.compile``
         options) calls this: unlike TorchRL's default, which traces the whole
         ``step_and_maybe_reset``, only the substeps are compiled, each into one fused
-        graph with static shapes (``fullgraph=True, dynamic=False`` unless given), so
+        graph with static shapes (``fullgraph=True, dynamic=False`` unless given; the
+        cavities leave their transport sweep outside the graphs), so
         that the TorchRL step around them stays eager and flexible. ``warmup`` is
         accepted for TorchRL's signature and has nothing to do here."""
         options = {**self.inductor_options, **kwargs.pop("options", {})}
-        self.compile_options = {"fullgraph": True, "dynamic": False, **kwargs, "options": options}
+        self.compile_options = {"fullgraph": self.compile_fullgraph, "dynamic": False, **kwargs, "options": options}
         self._compiled = {}
         return self
 

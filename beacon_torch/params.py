@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-_KINDS = ("real", "int", "complex")
+_KINDS = ("real", "int", "complex", "choice")
 
 
 def param(
@@ -40,6 +40,7 @@ def param(
     kind: str = "real",
     per_member: bool = True,
     differentiable: bool | None = None,
+    choices: tuple[str, ...] = (),
     doc: str = "",
 ) -> Any:
     """Declare one parameter of an env's ``Params`` dataclass.
@@ -48,10 +49,13 @@ def param(
     excludes the bound itself. ``per_member=False`` forbids a per-member sequence, for
     parameters that fix the grid or the number of actuators. ``differentiable`` says
     whether a tensor requiring grad is accepted; by default, for real parameters that
-    may vary per member.
+    may vary per member. ``kind="choice"`` declares a word out of ``choices`` (one for
+    the whole batch; a default of None lets the dataclass decide).
     """
     if kind not in _KINDS:
         raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
+    if kind == "choice":
+        per_member = False
     meta = dict(
         low=low,
         high=high,
@@ -60,6 +64,7 @@ def param(
         kind=kind,
         per_member=per_member,
         differentiable=(kind == "real" and per_member) if differentiable is None else differentiable,
+        choices=tuple(choices),
         doc=doc,
     )
     return dataclasses.field(default=default, metadata=meta)
@@ -81,6 +86,8 @@ def describe(params_cls: type) -> list[dict[str, Any]]:
 
 
 def _range_text(m) -> str:
+    if m["kind"] == "choice":
+        return "one of " + ", ".join(repr(c) for c in m["choices"])
     lo = "-inf" if m["low"] is None else f"{m['low']:g}"
     hi = "inf" if m["high"] is None else f"{m['high']:g}"
     left = "(" if (m["low_open"] or m["low"] is None) else "["
@@ -149,7 +156,15 @@ def _check_differentiable(name: str, value: torch.Tensor, m, n: int, device, dty
     return value.to(device=device, dtype=dtype)
 
 
+def _check_choice(name: str, value: Any, m) -> str | None:
+    if value is None or (isinstance(value, str) and value in m["choices"]):
+        return value
+    raise ValueError(f"parameter {name!r} must be {_range_text(m)}, got {value!r}")
+
+
 def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
+    if m["kind"] == "choice":
+        return _check_choice(name, value, m)
     if isinstance(value, torch.Tensor) and value.requires_grad:
         return _check_differentiable(name, value, m, n, device, dtype)
     if isinstance(value, torch.Tensor) and value.ndim == 0:

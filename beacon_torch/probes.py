@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 N_PROBES = 4
-HISTORY = 4  # the current probe vector and the 3 previous ones
+HISTORY = 4  # the 3 previous probe vectors and the current one, oldest first
 
 
 def probe_indices(n: int, device=None) -> torch.Tensor:
@@ -28,12 +28,11 @@ class Probes:
         return torch.cat([state[k][:, self.ix, self.iy].flatten(1) for k in self.keys], -1)
 
     def start(self, state: dict[str, torch.Tensor]) -> torch.Tensor:
-        """``[B, HISTORY, size]``: the current sample, zeros for the steps before."""
-        current = self.sample(state)
-        history = current.new_zeros((current.shape[0], HISTORY, self.size))
-        history[:, 0] = current
-        return history
+        """``[B, HISTORY, size]``: zeros for the steps before, the current sample last
+        (the published order: oldest first)."""
+        current = self.sample(state)[:, None]
+        return torch.cat((current.new_zeros((current.shape[0], HISTORY - 1, self.size)), current), 1)
 
     def push(self, history: torch.Tensor, state: dict[str, torch.Tensor]) -> torch.Tensor:
-        """The history with the current sample first and the oldest dropped."""
-        return torch.cat((self.sample(state)[:, None], history[:, :-1]), 1)
+        """The history with the oldest sample dropped and the current one appended."""
+        return torch.cat((history[:, 1:], self.sample(state)[:, None]), 1)

@@ -33,10 +33,9 @@ from beacon_torch.numerics.projection import (
     Ghosts,
     edge_offset,
     project,
-    scalar_substeps,
-    transport_rk3,
 )
 from beacon_torch.params import number, param
+from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 from beacon_torch.probes import HISTORY, N_PROBES, Probes
 
 CELLS_PER_UNIT = 50
@@ -50,6 +49,7 @@ C = 0.75  # largest temperature fluctuation of a segment
 DEVELOP_TIME = 200.0
 DEVELOP_SEED = 0
 PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
+JACOBI_TOL = 1e-8  # the published solve's stopping tolerance (solver="jacobi")
 
 
 @dataclass(frozen=True)
@@ -58,8 +58,11 @@ class RayleighParams:
     H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
     n_sgts: int = param(10, low=1, high=200, kind="int", per_member=False, doc="number of bottom segments (actions)")
     ra: float = param(1e4, low=1.0, high=1e6, per_member=False, differentiable=True, doc="Rayleigh number")
+    start: str = start_param("the published stored roll, or the one of developed_convection()")
+    solver: str = param("direct", kind="choice", choices=("direct", "jacobi"), doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)")
 
     def __post_init__(self):
+        choose_start(self, ("L", "H", "ra"))
         nx = int(round(self.L * CELLS_PER_UNIT))
         if nx % self.n_sgts:
             raise ValueError(f"parameter 'n_sgts' = {self.n_sgts} must divide the {nx} cells along L = {self.L:g}")
@@ -83,15 +86,16 @@ def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.T
     return edge_offset(ny + 2, 1, low, T_COLD, bottom)
 
 
-def substep(fields: State, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa: float, n_scalar: int) -> State:
+def substep(fields: State, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa: float) -> State:
     """One projection substep of the Boussinesq flow on the solver's batch-last fields
     (no-slip walls; ``theta_offset`` from :func:`temperature_offset`)."""
     dx, dy = cavity.dx, cavity.dy
     theta = fields["theta"]
-    buoyancy = 0.5 * (theta[1:-1, 1:-2] + theta[1:-1, 2:-1])  # on the interior v faces
+    # as published, each interior v face takes the temperature of the cell above it
+    buoyancy = theta[1:-1, 2:-1]
     u, v = cavity.predict(fields, None, nu, DT, buoyancy)
     u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
-    theta = transport_rk3(theta, u, v, kappa, DT, dx, dy, lambda t: theta_ghosts(t, theta_offset), n_scalar)
+    theta = theta_ghosts(cavity.sweep(theta, u, v, kappa, DT, dx, dy), theta_offset)
     return {"u": u, "v": v, "p": p, "theta": theta}
 
 
@@ -101,10 +105,10 @@ class Convection:
 
     def __init__(self, p: RayleighParams, dtype, device, step=substep, unroll: int = 1) -> None:
         self.nx, self.ny, self.dx, self.dy = grid(p)
-        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, dtype=dtype, device=device)
+        tol = JACOBI_TOL if p.solver == "jacobi" else None
+        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, jacobi_tol=tol, dtype=dtype, device=device)
         self.ghosts = temperature_ghosts(self.nx, self.ny, dtype, device)
         self.ra = p.ra  # a number, or a tensor that requires grad
-        self.n_scalar = scalar_substeps(1.0 / (PR * number(p.ra)) ** 0.5, DT, self.dx, self.dy)
         self.step, self.unroll = step, unroll
 
     @property
@@ -123,7 +127,7 @@ class Convection:
         fields = self.cavity.fields(state, {"theta": (self.ghosts, offset)})
         nu, kappa = self.nu, self.kappa
         for _ in range(n // self.unroll):
-            fields = self.step(fields, offset, self.cavity, self.ghosts, nu, kappa, self.n_scalar)
+            fields = self.step(fields, offset, self.cavity, self.ghosts, nu, kappa)
         return self.cavity.stored(fields, self.cavity.walls(like=offset))
 
 
@@ -153,6 +157,14 @@ def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = 
     return {k: v[0] for k, v in state.items()}
 
 
+def published_convection(nx: int, ny: int) -> State:
+    """The developed roll stored with the published code: the file's four blocks of
+    ghosted ``[nx + 2, ny + 2]`` arrays u, v, p, T (our pressure keeps the cells only)."""
+    table = published_table("rayleigh")
+    u, v, p, theta = table.reshape(4, nx + 2, ny + 2).unbind(0)
+    return {"u": u, "v": v, "p": p[1:-1, 1:-1].contiguous(), "theta": theta}
+
+
 def normalise(action: torch.Tensor) -> torch.Tensor:
     """The published normalisation of the segment temperatures: scale by C, remove the
     mean, and shrink so that no segment departs from it by more than C."""
@@ -171,6 +183,7 @@ class RayleighEnv(FlowEnv):
     n_actions = 10
     blowup_reward = -1.0
     inductor_options = {"cpp_wrapper": True}
+    compile_fullgraph = False
 
     def setup(self) -> None:
         p = self.params
@@ -184,9 +197,12 @@ class RayleighEnv(FlowEnv):
     @functools.cached_property
     def _start(self) -> State:
         # loaded at the first reset: an env started by set_state never develops its roll
-        p = dataclasses.replace(self.params, ra=number(self.params.ra))
-        key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
-        start = cached("rayleigh-convection", key, lambda: developed_convection(p))
+        if self.params.start == PUBLISHED:
+            start = published_convection(self.nx, self.ny)
+        else:
+            p = dataclasses.replace(self.params, ra=number(self.params.ra))
+            key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
+            start = cached("rayleigh-convection", key, lambda: developed_convection(p))
         return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
 
     def null_action(self) -> torch.Tensor:

@@ -11,9 +11,11 @@ the minmod limiter, the paper's one-sided third derivative, Adams-Bashforth 2 wi
 dt = 0.001, 50 substeps per action (interpolated over the first 20), 400 actions.
 Each jet removes flow rate under a parabolic profile 4 units wide (``jet_profiles``).
 
-Every episode starts from a film developed without control for 200 time units
-(:func:`developed_film`, shipped for the default delta and cached for others), advanced
-at each reset by a random number (0..``random_start``) of uncontrolled actions.
+Every episode starts from a film developed without control for 200 time units, the one
+stored with the published code (``start="published"``, the default) or our generator's
+(``start="generated"``, :func:`developed_film`, shipped for the default delta and cached
+for others), advanced at each reset by a random number (0..``random_start``) of
+uncontrolled actions.
 
 ``shkadov-separable-v0`` is the same physics with each jet an agent (TorchRL's
 multi-agent convention): per-jet observation, action and reward under ``"agents"``.
@@ -33,6 +35,7 @@ from beacon_torch.base import FlowEnv, State, where_members
 from beacon_torch.cache import cached
 from beacon_torch.numerics import ab2_step, interpolated_action, minmod, third_derivative, tvd_derivative
 from beacon_torch.params import number, param
+from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 
 CELLS_PER_UNIT = 5
 DX = 1.0 / CELLS_PER_UNIT
@@ -61,12 +64,14 @@ class ShkadovParams:
     delta: float = param(0.1, low=0.01, high=10.0, per_member=False, differentiable=True, doc="the film parameter (Re^2 / We)^(1/3) / 15")
     amp: float = param(5.0, low=0.0, high=1e8, doc="jet amplitude A (action scaling)")
     random_start: int = param(400, low=0, high=10_000, kind="int", per_member=False, doc="most uncontrolled actions run at each reset")
+    start: str = start_param("the published stored film, or the one of developed_film()")
 
     @property
     def length(self) -> float:
         return self.L0 + self.jet_space * (self.n_jets + 2)
 
     def __post_init__(self):
+        choose_start(self, ("L0", "n_jets", "jet_pos", "jet_space", "delta"))
         if self.length > DEVELOP_LENGTH:
             raise ValueError(
                 f"parameters 'L0', 'jet_space' and 'n_jets' give a domain of {self.length:g} units, "
@@ -198,8 +203,12 @@ class ShkadovEnv(FlowEnv):
     @functools.cached_property
     def _film(self) -> State:
         # loaded at the first reset: an env started by set_state never develops its film
-        delta = number(self.params.delta)
-        film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta))
+        if self.params.start == PUBLISHED:
+            table = published_table("shkadov")  # rows: x, h, q on the development domain
+            film = {"h": table[:, 1], "q": table[:, 2]}
+        else:
+            delta = number(self.params.delta)
+            film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta))
         return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
 
     def null_action(self) -> torch.Tensor:

@@ -8,8 +8,10 @@ acceleration amp * u(t):
 
 Finite volumes with Rusanov fluxes and wall ghost cells, Adams-Bashforth 2 in time,
 50 substeps of dt = 0.001 per action with the action interpolated over the first 10,
-200 actions. Every episode starts from the state left by a fixed 2-time-unit excitation
-of the tank at rest (:func:`excited_state`).
+200 actions. Every episode starts from the state stored with the published code
+(``start="published"``, the default), or from the state left by a fixed 2-time-unit
+excitation of the tank at rest (``start="generated"``, :func:`excited_state`; another
+excitation phase than the stored state's).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from beacon_torch.base import FlowEnv, State
 from beacon_torch.cache import cached
 from beacon_torch.numerics import ab2_step, interpolated_action, rusanov
 from beacon_torch.params import param
+from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 
 CELLS_PER_UNIT = 80
 DT = 1e-3
@@ -42,13 +45,17 @@ class SloshingParams:
     amp: float = param(5.0, low=0.0, high=1e6, doc="acceleration amplitude (action scaling)")
     alpha: float = param(5e-4, low=0.0, high=1e3, doc="weight of the actuation in the reward")
     g: float = param(9.81, low=0.0, high=1e4, low_open=True, doc="gravity")
+    start: str = start_param("the published stored state, or the one of excited_state()")
+
+    def __post_init__(self):
+        choose_start(self, ("L", "g"))
 
 
 def excitation(t: float) -> float:
-    """The published excitation signal as an action: 0.5 (cos(pi t) + 3 cos(4 pi t)),
-    clipped to the action box [-1, 1] like any action passed through the env's step
-    (the raw signal peaks at 2)."""
-    return min(1.0, max(-1.0, 0.5 * (math.cos(math.pi * t) + 3.0 * math.cos(4.0 * math.pi * t))))
+    """The published generator's excitation signal, 0.5 (cos(pi t) + 3 cos(4 pi t)),
+    applied as an action but not clipped to the action box (it peaks at 2), as the
+    published generator script does."""
+    return 0.5 * (math.cos(math.pi * t) + 3.0 * math.cos(4.0 * math.pi * t))
 
 
 def shallow_water_rhs(h: torch.Tensor, q: torch.Tensor, accel: torch.Tensor, g, dx: float):
@@ -123,15 +130,20 @@ class SloshingEnv(FlowEnv):
         self.dx = self.params.L / self.n_cells
         self.n_obs = (self.n_cells + 1) // 2  # q in every second cell
         self._substep = self.kernel(sloshing_substep)
-        self._start = self._excited()
+        self._start = self._start_state()
 
-    def _excited(self) -> State:
+    def _start_state(self) -> State:
         p = self.params
-        if isinstance(p.g, torch.Tensor):
+        if p.start == PUBLISHED:
+            table = published_table("sloshing")  # rows: x, h, q of the interior cells
+            h, q = table[:, 1].expand(self.n_envs, -1), table[:, 2].expand(self.n_envs, -1)
+            zero = torch.zeros_like(h)
+            start = {"h": h, "q": q, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+        elif isinstance(p.g, torch.Tensor):
             g = p.g.to(torch.float64)[:, None]
             start = excited_state(p.L, g, self.n_envs, torch.float64, self.device)
         else:
-            key = dict(version=1, L=p.L, g=p.g)
+            key = dict(version=2, L=p.L, g=p.g)
             start = cached("sloshing-excited", key, lambda: excited_state(p.L, p.g, 1, torch.float64, "cpu"))
             start = {k: v.expand(self.n_envs, *v.shape[1:]) for k, v in start.items()}
         # generated in float64 like the published code, then cast

@@ -19,10 +19,11 @@ index map and a factor per position, plus an offset for prescribed wall values),
 the compiler fuses into the stencil's kernel instead of writing ghost layers.
 
 One substep of the published scheme: an explicit predictor with centred fluxes
-(face-averaged velocities) and the current pressure, an exact projection with the
-pressure increment from a direct Poisson solve, then explicit centred transport of the
-scalar by the corrected velocity. Everything is out of place, so the graph survives when
-gradients are wanted.
+(face-averaged velocities) and the current pressure, a projection with the pressure
+increment from a direct Poisson solve (or, to compare with the published code to
+round-off, its Jacobi iterations), then the published in-place sweep of explicit
+centred transport of the scalar by the corrected velocity (:class:`Sweep`). Everything
+is out of place, so the graph survives when gradients are wanted.
 """
 
 from __future__ import annotations
@@ -219,12 +220,29 @@ def edge_offset(n: int, axis: int, low, high, like: torch.Tensor) -> torch.Tenso
 
 
 class Cavity:
-    """The grid of one rectangular cavity: sizes, the Poisson solver and the ghost maps
-    of the velocities and of the increment (``poisson_bc`` on left, right, bottom, top)."""
+    """The grid of one rectangular cavity: sizes, the pressure-increment solver
+    (``poisson_bc`` on left, right, bottom, top), the ghost maps of the velocities and
+    the scalar transport sweep. ``jacobi_tol`` None solves for the increment directly;
+    a number runs the published Jacobi iterations to that tolerance instead."""
 
-    def __init__(self, nx: int, ny: int, dx: float, dy: float, poisson_bc: Sequence[str] = (NEUMANN,) * 4, *, dtype, device) -> None:
+    def __init__(
+        self,
+        nx: int,
+        ny: int,
+        dx: float,
+        dy: float,
+        poisson_bc: Sequence[str] = (NEUMANN,) * 4,
+        *,
+        jacobi_tol: float | None = None,
+        dtype,
+        device,
+    ) -> None:
         self.nx, self.ny, self.dx, self.dy = nx, ny, dx, dy
-        self.solver = PoissonSolver(nx, ny, dx, dy, poisson_bc, dtype=dtype, device=device)
+        if jacobi_tol is None:
+            self.solver = PoissonSolver(nx, ny, dx, dy, poisson_bc, dtype=dtype, device=device)
+        else:
+            self.solver = JacobiSolver(nx, ny, dx, dy, poisson_bc, jacobi_tol, dtype=dtype, device=device)
+        self.sweep = Sweep(nx, ny, device)
         self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
         self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
 
@@ -328,70 +346,150 @@ def divergence(u: torch.Tensor, v: torch.Tensor, dx: float, dy: float) -> torch.
     return (u[1:] - u[:-1]) / dx + (v[:, 1:] - v[:, :-1]) / dy
 
 
-def project(u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver: PoissonSolver, dt: float, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Incremental projection: L phi = div(u*) / dt, u = u* - dt grad phi, p += phi.
+def project(u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver, dt: float, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Incremental projection: L phi = div(u*) / dt, u = u* - dt grad phi on the interior
+    faces, p += phi (``solver``: :class:`PoissonSolver` or :class:`JacobiSolver`).
 
-    The gradient is taken on every face with the increment's ghost values: on a wall
-    with zero normal gradient it vanishes (the wall stays impermeable); a zero-ghost wall
-    (mixing's top) gets the correction too, which keeps the divergence exactly zero (the
-    published Jacobi solve leaves it at its tolerance)."""
+    The walls keep zero normal velocity, as in the published corrector. Where the
+    increment has zero normal gradient that is also what the correction would give;
+    on a zero-ghost wall (mixing's top) the cells next to it keep the divergence the
+    increment's condition leaves there, as published."""
     phi = solver.solve(divergence(u, v, dx, dy) / dt)
     ext = solver.ghosts(phi)
-    u = u - dt * (ext[1:, 1:-1] - ext[:-1, 1:-1]) / dx
-    v = v - dt * (ext[1:-1, 1:] - ext[1:-1, :-1]) / dy
-    return u, v, p + phi
+    gx = F.pad((ext[2:-1, 1:-1] - ext[1:-2, 1:-1]) / dx, (0, 0, 0, 0, 1, 1))
+    gy = F.pad((ext[1:-1, 2:-1] - ext[1:-1, 1:-2]) / dy, (0, 0, 1, 1))
+    return u - dt * gx, v - dt * gy, p + phi
 
 
-def transport(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float) -> torch.Tensor:
-    """One forward-Euler step of centred advection-diffusion of a cell-centred scalar
-    given with its ghosts (``[nx + 2, ny + 2, B]``) by the face velocities; returns the
-    new cell values ``[nx, ny, B]``."""
-    sc, se, sw, sn, ss = s[1:-1, 1:-1], s[2:, 1:-1], s[:-2, 1:-1], s[1:-1, 2:], s[1:-1, :-2]
-    # the face fluxes written out per cell rather than as face arrays, so that a compiled
-    # stage is one pass over the cells
-    adv = (u[1:] * 0.5 * (sc + se) - u[:-1] * 0.5 * (sw + sc)) / dx + (v[:, 1:] * 0.5 * (sc + sn) - v[:, :-1] * 0.5 * (ss + sc)) / dy
-    lap = (se - 2.0 * sc + sw) / dx**2 + (sn - 2.0 * sc + ss) / dy**2
-    return sc + dt * (-adv + kappa * lap)
+class Sweep:
+    """The published scalar transport: explicit centred advection-diffusion written in
+    place, cell after cell (x outer, y inner), so that each cell's update already reads
+    the new values of its west and south neighbours and the old ones of its east and
+    north neighbours. That ordering is part of the scheme: it is what keeps the
+    published forward-Euler transport stable at rayleigh's diffusion number (2.37 for
+    the grid-scale mode, beyond plain forward Euler's 2) and at mixing's cell Peclet
+    number of 100.
+
+    Written out, each new value is ``c + a * west_new + b * south_new`` with ``a``,
+    ``b``, ``c`` from the old field and the velocities, a recurrence along the
+    anti-diagonals ``i + j = k``: the cells of one anti-diagonal depend only on the
+    previous one. So the sweep runs as ``nx + ny - 1`` batched vector steps over skewed
+    copies of the fields (each anti-diagonal one row), exact to round-off, with no loop
+    over cells or members. Ghost values are those the field carries in (the published
+    code refreshes them before the sweep only)."""
+
+    def __init__(self, nx: int, ny: int, device=None) -> None:
+        self.nx, self.ny = nx, ny
+        width, height = nx + 2, ny + 2
+        k = torch.arange(nx + ny + 3)[:, None]
+        i = torch.arange(width)[None, :]
+        j = k - i
+        inside = (j >= 0) & (j < height)
+        # skewed row k, position i <- ghosted cell (i, k - i); outside the grid, a zero
+        # appended after the flattened field
+        self.skew = torch.where(inside, i * height + j, width * height).to(device)
+        ii, jj = torch.meshgrid(torch.arange(1, nx + 1), torch.arange(1, ny + 1), indexing="ij")
+        # interior cell (i, j) is row i + j, position i of the skewed field
+        self.unskew_k, self.unskew_i = (ii + jj).to(device), ii.to(device)
+
+    def _skewed(self, f: torch.Tensor) -> torch.Tensor:
+        flat = f.reshape(-1, f.shape[-1])
+        flat = torch.cat((flat, flat.new_zeros((1, flat.shape[1]))))
+        return flat[self.skew]
+
+    def __call__(self, s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float) -> torch.Tensor:
+        """New cell values ``[nx, ny, B]`` of the scalar ``s`` given with its ghosts
+        (``[nx + 2, ny + 2, B]``), transported by the face velocities ``u``
+        ``[nx + 1, ny, B]`` and ``v`` ``[nx, ny + 1, B]`` over ``dt``."""
+        sc, se, sn = s[1:-1, 1:-1], s[2:, 1:-1], s[1:-1, 2:]
+        uw, ue, vs, vn = u[:-1], u[1:], v[:, :-1], v[:, 1:]
+        kx, ky = kappa / dx**2, kappa / dy**2
+        # everything but the new west and south values
+        c = sc + dt * (
+            kx * (se - 2.0 * sc) + ky * (sn - 2.0 * sc)
+            - (ue * 0.5 * (se + sc) - uw * 0.5 * sc) / dx
+            - (vn * 0.5 * (sn + sc) - vs * 0.5 * sc) / dy
+        )
+        a = dt * (kx + 0.5 * uw / dx)
+        b = dt * (ky + 0.5 * vs / dy)
+        pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))  # noqa: E731
+        # the ghosts keep their values (a = b = 0 there)
+        c = self._skewed(s + pad(c - sc))
+        a, b = self._skewed(pad(a)), self._skewed(pad(b))
+        last = self.nx + self.ny  # the last anti-diagonal with interior cells
+        if torch.is_grad_enabled() and any(t.requires_grad for t in (s, u, v, c)):
+            rows = _graph_rows(c, a, b, last)
+        else:
+            rows = _rows(c, a, b, last)
+        return rows[self.unskew_k, self.unskew_i]
 
 
-def scalar_substeps(kappa: float, dt: float, dx: float, dy: float) -> int:
-    """How many equal SSP-RK3 sub-steps keep the explicit diffusion of a scalar stable:
-    the grid-scale mode's kappa dt' (4/dx^2 + 4/dy^2) must stay within RK3's stability
-    interval on the negative real axis (2.51; 2.5 is used)."""
-    number = kappa * dt * (4.0 / dx**2 + 4.0 / dy**2)
-    return max(1, math.ceil(number / 2.5 - 1e-12))
+# The two recurrences run eagerly even in a compiled substep: a chain of hundreds of
+# dependent steps cannot be fused, and unrolling it into a graph takes minutes to compile.
+@torch.compiler.disable
+def _rows(c: torch.Tensor, a: torch.Tensor, b: torch.Tensor, last: int) -> torch.Tensor:
+    """The skewed rows of the swept field, in place in one buffer. Rows have width
+    w + 1 with a zero in front: row k's west cells are then row k - 1 without its last
+    element, its south cells row k - 1 without the zero, and every view is taken once,
+    outside the loop."""
+    buf = F.pad(c[: last + 1], (0, 0, 1, 0))
+    rows, wests = buf[:, 1:].unbind(0), buf[:, :-1].unbind(0)
+    a, b = a.unbind(0), b.unbind(0)
+    for k in range(2, last + 1):
+        rows[k].addcmul_(a[k], wests[k - 1]).addcmul_(b[k], rows[k - 1])
+    return buf[:, 1:]
 
 
-def transport_rk3(
-    s: torch.Tensor,
-    u: torch.Tensor,
-    v: torch.Tensor,
-    kappa,
-    dt: float,
-    dx: float,
-    dy: float,
-    ghosts: Callable[[torch.Tensor], torch.Tensor],
-    n_sub: int = 1,
-) -> torch.Tensor:
-    """Centred advection-diffusion of a scalar integrated with the three-stage SSP
-    Runge-Kutta scheme (Shu & Osher), in ``n_sub`` sub-steps. ``s`` comes and goes with
-    its ghosts (``[nx + 2, ny + 2, B]``); ``ghosts`` puts them around each stage's new
-    cell values. (Each stage then writes the ghosted field in one pass: the ghost values
-    are the stage's values at the neighbouring cells, and the RK3 combinations, whose
-    weights sum to one, keep them consistent.)
+@torch.compiler.disable
+def _graph_rows(c: torch.Tensor, a: torch.Tensor, b: torch.Tensor, last: int) -> torch.Tensor:
+    """The same recurrence out of place, so that autograd keeps every row."""
+    rows = [c[0], c[1]]  # ghosts only
+    for k in range(2, last + 1):
+        # roll: position i reads the previous row's i - 1 (the west cell); position 0 is
+        # a ghost, whose a is zero
+        rows.append(c[k] + a[k] * rows[-1].roll(1, 0) + b[k] * rows[-1])
+    return torch.stack(rows)
 
-    The published code writes this transport as explicit centred; with forward Euler
-    the centred advection of mixing's nearly inviscid scalar (cell Peclet 100) grows
-    without bound within 20 actions, and rayleigh's diffusion number (2.37 for the
-    grid-scale mode) is beyond forward Euler's bound of 2. RK3 keeps the same centred
-    fluxes and is stable for both; it reproduces the published scores (docs)."""
-    h = dt / n_sub
 
-    def euler(f: torch.Tensor) -> torch.Tensor:
-        return ghosts(transport(f, u, v, kappa, h, dx, dy))
+class JacobiSolver:
+    """The published pressure-increment solve, for exact comparisons with the published
+    code: Jacobi iterations from zero, each member stopping as soon as the sum of the
+    squared updates over its ghosted array (corners excluded, as there) falls to
+    ``tol`` (rayleigh 1e-8, mixing 1e-4). The answer depends on that tolerance; the
+    direct :class:`PoissonSolver` gives the converged increment, about 1e-4 from it
+    relative on rayleigh's rewards. One host synchronisation per iteration, so it runs
+    eagerly only."""
 
-    for _ in range(n_sub):
-        s1 = euler(s)
-        s2 = 0.75 * s + 0.25 * euler(s1)
-        s = s / 3.0 + (2.0 / 3.0) * euler(s2)
-    return s
+    def __init__(self, nx: int, ny: int, dx: float, dy: float, bc: Sequence[str], tol: float, *, dtype, device) -> None:
+        self.nx, self.ny, self.dx, self.dy, self.tol = nx, ny, dx, dy, tol
+        self.top_zero = bc[3] == ZERO_GHOST
+        if tuple(bc[:3]) != (NEUMANN,) * 3:
+            raise ValueError("the published Jacobi solve has zero normal gradient on the left, right and bottom walls")
+        factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
+        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
+        self.iterations: list[int] = []  # per solve, the most any member took
+
+    def _ghosted(self, inner: torch.Tensor) -> torch.Tensor:
+        top = inner[:, -1:] * (0.0 if self.top_zero else 1.0)
+        middle = torch.cat((inner[:, :1], inner, top), 1)
+        side = lambda row: F.pad(row, (0, 0, 1, 1))  # noqa: E731  (corners stay zero)
+        return torch.cat((side(inner[:1]), middle, side(inner[-1:])))
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        if torch.compiler.is_compiling():
+            raise RuntimeError("solver='jacobi' stops on each member's own tolerance and runs eagerly only; use compile=False")
+        dx2, dy2 = self.dx**2, self.dy**2
+        phi = rhs.new_zeros((self.nx + 2, self.ny + 2, rhs.shape[-1]))
+        active = torch.ones(rhs.shape[-1], dtype=torch.bool, device=rhs.device)
+        count = 0
+        while True:
+            inner = 0.5 * ((phi[2:, 1:-1] + phi[:-2, 1:-1]) * dy2 + (phi[1:-1, 2:] + phi[1:-1, :-2]) * dx2 - rhs * dx2 * dy2) / (dx2 + dy2)
+            new = self._ghosted(inner)
+            err = ((new - phi) ** 2).sum((0, 1))
+            phi = torch.where(active, new, phi)
+            active = active & (err > self.tol)
+            count += 1
+            if not bool(active.any()):
+                break
+        self.iterations.append(count)
+        return phi[1:-1, 1:-1]

@@ -1,0 +1,74 @@
+"""Start states: the ones stored with the published BEACON code, or our generators'.
+
+Three envs of the published code (sloshing, shkadov, rayleigh) start every episode from a
+state stored in a text file next to the env, not from one computed at run time, and the
+published uncontrolled scores are properties of those files. They ship here unchanged
+(``beacon_torch/data/*-published-start.dat``, MIT licence in ``data/NOTICE``) and are
+each parsed once per process. Each of these envs has a ``start`` parameter:
+
+- ``"published"``: the stored state (the default where the parameters are the
+  published ones);
+- ``"generated"``: the env's own public generator, run from the equations, cached (the
+  default when a parameter that shapes the start differs from the published value,
+  since the stored state belongs to the published grid and physics).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import fields
+
+import numpy as np
+import torch
+
+from beacon_torch.cache import PACKAGE_DATA
+from beacon_torch.params import number, param
+
+PUBLISHED = "published"
+GENERATED = "generated"
+
+
+def start_param(doc: str):
+    """The ``start`` field of a Params dataclass (None: decided by :func:`choose_start`)."""
+    return param(None, kind="choice", choices=(PUBLISHED, GENERATED), doc=doc)
+
+
+def _differs(value, default) -> bool:
+    if isinstance(value, torch.Tensor):
+        value = value.detach()
+        return value.numel() > 0 and bool((value != default).any())
+    return not math.isclose(number(value), default, rel_tol=0.0, abs_tol=0.0)
+
+
+def choose_start(params, shaping: tuple[str, ...]) -> None:
+    """Resolve ``params.start`` (in a Params ``__post_init__``): the published state
+    unless one of the ``shaping`` parameters (those the stored state was made with)
+    differs from its default; an explicit ``start="published"`` with such a parameter is
+    an error that names it."""
+    defaults = {f.name: f.default for f in fields(params)}
+    changed = [name for name in shaping if _differs(getattr(params, name), defaults[name])]
+    start = params.start
+    if start is None:
+        start = GENERATED if changed else PUBLISHED
+    elif start == PUBLISHED and changed:
+        name = changed[0]
+        raise ValueError(
+            f"parameter {name!r} = {getattr(params, name)!r} differs from the published start's "
+            f"{defaults[name]!r}: the stored state belongs to the published parameters; "
+            f"use start='generated' (or leave start unset)"
+        )
+    object.__setattr__(params, "start", start)
+
+
+@functools.lru_cache(maxsize=None)
+def _table(env: str) -> np.ndarray:
+    table = np.loadtxt(PACKAGE_DATA / f"{env}-published-start.dat", dtype=np.float64)
+    table.setflags(write=False)
+    return table
+
+
+def published_table(env: str) -> torch.Tensor:
+    """The stored start of ``env`` (sloshing, shkadov, rayleigh) as a float64 tensor of
+    the file's rows and columns; the text is parsed at the first call only."""
+    return torch.from_numpy(_table(env).copy())
