@@ -21,7 +21,7 @@ STATES = {
     "shkadov": ("shkadov-film", dict(version=1, delta=0.1), lambda: shkadov.developed_film(0.1)),
     "rayleigh": (
         "rayleigh-convection",
-        dict(version=2, L=1.0, H=1.0, ra=1e4),
+        dict(version=3, L=1.0, H=1.0, ra=1e4),
         lambda: rayleigh.developed_convection(rayleigh.RayleighParams()),
     ),
 }

@@ -302,3 +302,24 @@ def test_compiled_path_on_cuda():
     from conftest import run_actions
 
     torch.testing.assert_close(run_actions(compiled, actions), run_actions(eager, actions), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "env_id, params, push",
+    [
+        # the tank pushed one way spills within a few actions
+        ("sloshing-v0", {}, 1.0),
+        # the jets cannot spill the film from inside the box at the published amplitude;
+        # a thousandfold amplitude does at once
+        ("shkadov-v0", {"amp": 1e3, "random_start": 3}, 1.0),
+    ],
+)
+def test_a_blowup_never_pays(env_id, params, push):
+    env = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0, **params)
+    constant = torch.full((2, env.n_actions), push, dtype=torch.float64)
+    rollout = evaluate.episode(env, lambda td: td.set("action", constant))
+    assert rollout["next", "terminated"].any(-2).all(), "no member left the physical bounds"
+    blown = evaluate.scores(rollout)
+    calm = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0, **{k: v for k, v in params.items() if k != "amp"})
+    uncontrolled = evaluate.scores(evaluate.episode(calm, evaluate.null_policy(calm)))
+    assert (blown <= env.blowup_reward).all() and (blown < uncontrolled).all()

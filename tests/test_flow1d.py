@@ -39,7 +39,8 @@ def test_sloshing_rest_is_steady_and_excitation_moves_the_tank():
     env.reset()
     h0 = env.state["h"][0]
     assert (h0 - 1).abs().max() > 0.05 and torch.isfinite(h0).all()
-    assert [sloshing.excitation(t) for t in (0.0, 0.25, 0.5)] == [1.0, -1.0, 1.0]
+    # the published generator's signal, not clipped to the action box
+    assert sloshing.excitation(0.0) == 2.0 and sloshing.excitation(0.5) == pytest.approx(1.5)
 
 
 def test_sloshing_actuation_cost_enters_the_reward():

@@ -129,3 +129,46 @@ def test_dtype_spellings(dtype):
     env = beacon_torch.make("vortex-v0", 2, dtype=dtype)
     td = env.rollout(3)
     assert td["observation"].dtype == env.dtype == td["next", "reward"].dtype
+
+
+# ---------------------------------------------------------------- start states
+STARTS = {"sloshing-v0": {"L": 3.0}, "shkadov-v0": {"L0": 140.0}, "shkadov-separable-v0": {"n_jets": 4}, "rayleigh-v0": {"H": 1.2}}
+
+
+@pytest.mark.parametrize("env_id", sorted(STARTS))
+def test_published_start_is_the_default_and_a_new_grid_falls_back_to_the_generator(env_id):
+    assert beacon_torch.make(env_id).params.start == "published"
+    assert beacon_torch.make(env_id, start="generated").params.start == "generated"
+    changed = STARTS[env_id]
+    assert beacon_torch.make(env_id, **changed).params.start == "generated"
+    (name,) = changed
+    with pytest.raises(ValueError, match=f"parameter '{name}' .* differs from the published start"):
+        beacon_torch.make(env_id, start="published", **changed)
+    with pytest.raises(ValueError, match="parameter 'start' must be one of 'published', 'generated'"):
+        beacon_torch.make(env_id, start="stored")
+
+
+def test_the_published_start_is_the_stored_state_and_its_file_is_read_once():
+    from beacon_torch import starts
+
+    env = beacon_torch.make("sloshing-v0", 2, dtype=torch.float64)
+    env.reset()
+    table = starts.published_table("sloshing")
+    assert table.shape == (200, 3)
+    assert torch.equal(env.state["h"][1], table[:, 1]) and torch.equal(env.state["q"][0], table[:, 2])
+    misses = starts._table.cache_info().misses
+    for _ in range(3):
+        beacon_torch.make("sloshing-v0", 4).reset()
+    assert starts._table.cache_info().misses == misses
+    # a caller that edits what it got does not edit the shared copy
+    table[:] = 0.0
+    assert starts.published_table("sloshing").abs().max() > 0
+
+
+def test_published_rayleigh_start_has_the_published_nusselt_number():
+    from beacon_torch.envs.rayleigh import nusselt
+
+    for start in ("published", "generated"):
+        env = beacon_torch.make("rayleigh-v0", 1, dtype=torch.float64, start=start)
+        env.reset()
+        assert nusselt(env.state["theta"], env.dy).item() == pytest.approx(2.16, rel=0.01)

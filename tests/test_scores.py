@@ -56,41 +56,29 @@ def test_burgers_uncontrolled_mean_over_256_members():
     assert score.unique().numel() == 256  # every member draws its own inlet noise
 
 
-SLOSHING_REFERENCE = -2.157
-SLOSHING_OURS = -2.2803  # see docs/envs/sloshing.md: 5.7 % from the reference
-
-
-@pytest.mark.xfail(strict=True, reason="open discrepancy with the published implementation (docs/envs/sloshing.md)")
-def test_sloshing_uncontrolled_score_matches_the_published_one():
-    score = uncontrolled("sloshing-v0", 1)
-    assert abs(score.item() - SLOSHING_REFERENCE) <= 0.02 * abs(SLOSHING_REFERENCE)
-
-
-def test_sloshing_uncontrolled_score_is_the_documented_one():
+def test_sloshing_uncontrolled_score_from_the_published_start():
     score = uncontrolled("sloshing-v0", 2)
     assert score[0] == score[1]
-    assert score[0].item() == pytest.approx(SLOSHING_OURS, rel=1e-4)
+    assert score[0].item() == pytest.approx(-2.1565, rel=1e-3)
 
 
-def test_shkadov_uncontrolled_mean_over_16_random_starts():
-    score = uncontrolled("shkadov-v0", 16, seed=0)
-    assert abs(score.mean().item() + 2.32) <= 0.05 * 2.32, score.mean()
-    assert ((score > -2.8) & (score < -1.9)).all(), score
-    assert score.unique().numel() == 16
+def test_sloshing_generated_start_scores_like_the_published_generator_rerun():
+    # the published generator script, re-run, gives another excitation phase (-3.2297)
+    score = uncontrolled("sloshing-v0", 1, start="generated")
+    assert score.item() == pytest.approx(-3.2297, rel=1e-3)
 
 
-def test_rayleigh_developed_state_has_the_published_nusselt_number():
-    from beacon_torch.envs.rayleigh import nusselt
+def test_shkadov_uncontrolled_mean_and_spread_over_64_random_starts():
+    # the published code over 30 random starts of its stored film: -2.314, std 0.089
+    score = uncontrolled("shkadov-v0", 64, seed=0)
+    assert abs(score.mean().item() + 2.314) <= 0.02 * 2.314, score.mean()
+    assert abs(score.std().item() - 0.089) <= 0.3 * 0.089, score.std()
+    assert score.unique().numel() == 64
 
-    env = beacon_torch.make("rayleigh-v0", 1, dtype=torch.float64)
-    env.reset()
-    assert nusselt(env.state["theta"], env.dy).item() == pytest.approx(2.16, rel=0.01)
 
-
-def test_rayleigh_uncontrolled_score():
-    score = uncontrolled("rayleigh-v0", 2)
-    assert score[0] == score[1]
-    assert score[0].item() == pytest.approx(-216.3, rel=0.02)
+def test_rayleigh_uncontrolled_score_from_the_published_start():
+    score = uncontrolled("rayleigh-v0", 1)
+    assert score.item() == pytest.approx(-216.3, rel=1e-3)
 
 
 def test_mixing_constant_actions_score_like_the_published_baseline():

@@ -201,7 +201,7 @@ class RayleighEnv(FlowEnv):
             start = published_convection(self.nx, self.ny)
         else:
             p = dataclasses.replace(self.params, ra=number(self.params.ra))
-            key = dict(version=2, L=p.L, H=p.H, ra=p.ra)
+            key = dict(version=3, L=p.L, H=p.H, ra=p.ra)
             start = cached("rayleigh-convection", key, lambda: developed_convection(p))
         return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
 
