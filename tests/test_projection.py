@@ -14,7 +14,6 @@ from beacon_torch.numerics.projection import (
     Ghosts,
     JacobiSolver,
     PoissonSolver,
-    Sweep,
     divergence,
     project,
 )

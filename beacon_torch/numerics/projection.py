@@ -28,8 +28,7 @@ is out of place, so the graph survives when gradients are wanted.
 
 from __future__ import annotations
 
-import math
-from typing import Callable, Sequence
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
