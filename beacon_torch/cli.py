@@ -5,11 +5,12 @@
                                       scores, a plot, optionally an animation
     beacon-torch bench [options]      transitions per second against the published
                                       code: a table, CSV, JSON and a plot
-    beacon-torch train ENV [options]  train PPO, TD3 or DQN (progress bar, CSV log,
-                                      checkpoints, --resume)
-    beacon-torch eval DIR             the trained policy's score against the
+    beacon-torch eval DIR             a trained policy's score against the
                                       uncontrolled one, and an animation
     beacon-torch plot DIR... --out P  learning curves, mean and std over seeds
+
+Training is the recipes' (``recipes/ppo.py``, ``td3.py``, ``dqn.py``, ``grad.py`` in the
+repository); ``eval`` and ``plot`` read the run directories they write.
 """
 
 from __future__ import annotations
@@ -169,54 +170,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_train(args: argparse.Namespace) -> int:
-    from beacon_torch.recipes import common, dqn, gradient_control, ppo, td3
-    from beacon_torch.recipes.config import grad_config, off_policy_config, ppo_config
-    from beacon_torch.recipes.runs import plot_runs, seed_dirs
-
-    env_class(args.env)
-    common.check_action_space(args.env, args.algo)
-    if args.seeds < 1:
-        raise CliError(f"--seeds must be a positive integer, got {args.seeds}")
-    if args.collectors < 1:
-        raise CliError(f"--collectors must be a positive integer, got {args.collectors}")
-    overrides = _parse_params(args.set)
-    if args.frames is not None:
-        overrides["frames"] = args.frames
-    configure, recipe, batch = {
-        "ppo": (ppo_config, ppo.train, "n_rollout"),
-        "td3": (off_policy_config, td3.train, "frames_per_batch"),
-        "dqn": (off_policy_config, dqn.train, "frames_per_batch"),
-        "grad": (grad_config, gradient_control.train, "num_envs"),
-    }[args.algo]
-    if args.num_envs is not None:
-        if args.num_envs < 1:
-            raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
-        overrides["num_envs"] = args.num_envs
-    # keep the collected batch a multiple of all members, near the default size
-    step = overrides.get("num_envs", configure(args.env).num_envs) * args.collectors
-    default = getattr(configure(args.env), batch)
-    if default % step:
-        overrides.setdefault(batch, max(step, default // step * step))
-    cfg = configure(args.env, **overrides)
-    if args.resume:
-        out = Path(args.resume)
-        seeds = [(int(run.name[4:]) if run.name.startswith("seed") and run.name[4:].isdigit() else 0, run) for run in seed_dirs(args.resume)]
-    else:
-        out = Path(args.out or f"runs/{args.algo}-{args.env}")
-        seeds = [(k, out / f"seed{k}") for k in range(args.seeds)]
-    for seed, run in seeds:
-        last = recipe(args.env, cfg, run, seed=seed, device=args.device, resume=bool(args.resume), progress=not args.no_progress, collectors=args.collectors, ray=args.ray, tensorboard=args.tensorboard)
-        print(f"{args.algo} {args.env} seed {seed}: {last} -> {run}")
-    try:
-        print(f"learning curve: {plot_runs([out], out / 'learning_curve.png')}")
-    except ValueError as err:  # too short for an episode to end
-        print(f"no learning curve: {err}")
-    return 0
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
-    from beacon_torch.recipes.runs import evaluate_run, seed_dirs
+    from beacon_torch.training.evaluation import evaluate_run
+    from beacon_torch.training.run import seed_dirs
 
     if args.members < 1:
         raise CliError(f"--members must be a positive integer, got {args.members}")
@@ -231,7 +187,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from beacon_torch.recipes.runs import plot_runs
+    from beacon_torch.training.evaluation import plot_runs
 
     path = plot_runs(args.runs, args.out, name=args.scalar)
     print(f"plot: {path}")
@@ -266,24 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="runs/bench", help="output directory")
     bench.set_defaults(func=cmd_bench)
 
-    tr = sub.add_parser("train", help="train an agent (PPO, TD3 or DQN) with the paper's settings")
-    tr.add_argument("env", help="environment id")
-    tr.add_argument("--algo", default="ppo", choices=["ppo", "td3", "dqn", "grad"], help="ppo (any env), td3 (continuous actions), dqn (discrete actions), grad (gradient-based control through the differentiable physics; continuous actions)")
-    tr.add_argument("--seeds", type=int, default=1, help="independent trainings, seeds 0..N-1")
-    tr.add_argument("--frames", type=int, help="total transitions (default: the paper's)")
-    tr.add_argument("--num-envs", type=int, help="members of the batched env (default 8)")
-    tr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="any setting of the algorithm, e.g. epochs=8 (repeatable)")
-    tr.add_argument("--collectors", type=int, default=1, help="collector processes, each with its own batched env of --num-envs members (TorchRL's MultiSyncCollector)")
-    tr.add_argument("--ray", metavar="ADDRESS", help="collect with --collectors Ray actors on the Ray cluster at ADDRESS ('auto' for the one this machine is in, 'local' to start one here); needs beacon-torch[ray]")
-    tr.add_argument("--tensorboard", action=argparse.BooleanOptionalAction, help="log to TensorBoard too (default: when the tensorboard package is installed)")
-    tr.add_argument("--device", default="cpu")
-    tr.add_argument("--out", help="run directory (default runs/ALGO-ENV); one seedK folder per seed")
-    tr.add_argument("--resume", metavar="DIR", help="continue the run(s) in DIR from their checkpoints")
-    tr.add_argument("--no-progress", action="store_true", help="no progress bar")
-    tr.set_defaults(func=cmd_train)
-
     ev = sub.add_parser("eval", help="score a trained policy against the uncontrolled env")
-    ev.add_argument("run", help="a run directory of 'beacon-torch train'")
+    ev.add_argument("run", help="a run directory of a recipe (one seed, or seedK folders)")
     ev.add_argument("--members", type=int, default=8, help="evaluation episodes (one batch)")
     ev.add_argument("--device", default="cpu")
     ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")

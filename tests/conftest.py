@@ -58,23 +58,15 @@ def run_actions(env, actions):
     return torch.stack(obs, 1), torch.stack(rew, 1)
 
 
-# The longest tests start first, so that no episode of minutes runs alone at the end
-# while the other worker idles. xdist hands the first tests out in turn (odd ones to one
-# worker, even ones to the other): the mixing episode (about 4 minutes) takes one
-# worker while the other runs the next ones.
-SLOW_FIRST = [
-    "tests/test_scores.py::test_mixing_constant_actions_score_like_the_published_baseline",
-    "tests/test_scores.py::test_shkadov_uncontrolled_mean_and_spread_over_64_random_starts",
-    "tests/test_scores.py::test_rayleigh_uncontrolled_score_from_the_published_start",
-    "tests/test_reference.py::test_mixing_agrees_within_the_published_solver_tolerance",
-    "tests/test_reference.py::test_rayleigh_with_the_published_jacobi_solve_agrees_to_round_off",
-    "tests/test_recipes.py::test_multi_agent_ppo_shares_one_policy_and_scores_the_team",
-    "tests/test_recipes.py::test_short_training_beats_the_random_policy",
-    "tests/test_reference.py::test_rayleigh_with_the_direct_solve_differs_by_the_published_tolerance_only",
-    "tests/test_scores.py::test_burgers_uncontrolled_mean_over_256_members",
-]
+def seconds(item) -> float:
+    """The time a test is marked to take (``@pytest.mark.slow(seconds=...)``, measured
+    on one core of this project's machines); 0 for the unmarked ones."""
+    mark = item.get_closest_marker("slow")
+    return mark.kwargs.get("seconds", 1.0) if mark is not None else 0.0
 
 
 def pytest_collection_modifyitems(items):
-    rank = {nodeid: k for k, nodeid in enumerate(SLOW_FIRST)}
-    items.sort(key=lambda item: rank.get(item.nodeid, len(SLOW_FIRST)))
+    # The longest tests start first, so that no episode of minutes runs alone at the end
+    # while the other worker idles: xdist hands the first tests out in turn, and the
+    # longest one (the mixing episode) holds one worker while the other runs the next
+    items.sort(key=seconds, reverse=True)

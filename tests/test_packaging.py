@@ -17,7 +17,7 @@ def test_readme_gives_exactly_two_commands():
     assert len(commands) == 2
     assert all("\n" not in c for c in commands)
     assert all(c.startswith("bash scripts/setup.sh && ") for c in commands)
-    assert "beacon-torch train" in commands[0]  # the main job: a training
+    assert "recipes/ppo.py" in commands[0]  # the main job: a training
     assert "pytest" in commands[1]
 
 

@@ -1,117 +1,162 @@
-"""The PPO recipe and ``beacon-torch train``: short runs on small batches."""
+"""The recipes (``recipes/``: PPO, TD3, DQN, gradient-based control, the campaign
+driver) and the training layer they share: short runs on small batches."""
 
 import functools
+import subprocess
+import sys
 from importlib.util import find_spec
+from pathlib import Path
 
+import config
+import dqn
+import grad
+import ppo
 import pytest
+import td3
 import torch
+from config import ALGORITHMS, CONFIGS, PPO, DQNConfig, GradConfig, PPOConfig, TD3Config, configure, parse
 
 import beacon_torch
-from beacon_torch.cli import main
-from beacon_torch.recipes import common
-from beacon_torch.recipes.config import ALGORITHMS, PPO, off_policy_config, ppo_config
-from beacon_torch.recipes.common import make_env
-from beacon_torch.recipes.ppo import make_actor, train
+from beacon_torch.cli import main as cli
+from beacon_torch.training import env as training_env
+from beacon_torch.training import networks
+from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.evaluation import evaluate_run
 
 from conftest import SMALL_CAVITY
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def checkpoint(run):
+    return torch.load(Path(run) / "checkpoint.pt", weights_only=False)
+
 
 def test_config_holds_the_papers_table_and_checks_overrides():
-    assert ppo_config("rayleigh-v0").entropy == 0.001 and ppo_config("rayleigh-v0").n_rollout == 1000
-    assert ppo_config("sloshing-v0").epochs == 16 and ppo_config("sloshing-v0").critic_lr == 1e-3
-    assert ppo_config("mixing-continuous-v0") == PPO["mixing-v0"]
-    assert ppo_config("lorenz-v0", epochs=4).epochs == 4
-    with pytest.raises(ValueError, match="unknown PPO setting"):
-        ppo_config("lorenz-v0", epoch=4)
+    assert configure(PPOConfig, "rayleigh-v0").entropy == 0.001 and configure(PPOConfig, "rayleigh-v0").n_rollout == 1000
+    assert configure(PPOConfig, "sloshing-v0").epochs == 16 and configure(PPOConfig, "sloshing-v0").critic_lr == 1e-3
+    assert configure(PPOConfig, "mixing-continuous-v0").n_rollout == PPO["mixing-v0"]["n_rollout"]
+    assert configure(PPOConfig, "lorenz-v0", epochs=4).epochs == 4
+    with pytest.raises(ValueError, match="unknown ppo setting"):
+        configure(PPOConfig, "lorenz-v0", epoch=4)
     with pytest.raises(ValueError, match="frames"):
-        ppo_config("lorenz-v0", frames=-5)
-    # command-line values take the field's type, or are refused
-    assert ppo_config("mixing-v0", compile="true").compile is True and ppo_config("mixing-v0", epochs=8.0).epochs == 8
+        configure(PPOConfig, "lorenz-v0", frames=-5)
+    # values given as text or numbers take the field's type, or are refused
+    assert configure(PPOConfig, "mixing-v0", compile="true").compile is True and configure(PPOConfig, "mixing-v0", epochs=8.0).epochs == 8
     with pytest.raises(ValueError, match="'epochs' must be of type int"):
-        ppo_config("lorenz-v0", epochs=2.5)
+        configure(PPOConfig, "lorenz-v0", epochs=2.5)
     with pytest.raises(ValueError, match="'compile' must be of type bool"):
-        ppo_config("lorenz-v0", compile=2)
+        configure(PPOConfig, "lorenz-v0", compile=2)
+    # the shared fields are declared once; every algorithm's budget defaults to the paper's
+    assert {f for f in ("frames", "num_envs", "compile", "norm_steps", "hidden", "resume", "collectors", "ray", "logger", "progress")} <= set(PPOConfig.__dataclass_fields__)
+    assert configure(TD3Config, "vortex-v0").frames == configure(PPOConfig, "vortex-v0").frames == 1_000_000
+    assert configure(GradConfig, "burgers-v0").horizon == 40 and configure(DQNConfig, "mixing-v0").frames == 100_000
+    # the members decide the collected batch: rounded when not given, refused when given
+    assert configure(PPOConfig, "lorenz-v0", num_envs=16, collectors=3).n_rollout == 9984
+    with pytest.raises(ValueError, match="multiple of num_envs x collectors"):
+        configure(PPOConfig, "lorenz-v0", num_envs=16, n_rollout=1000)
+    assert configure(PPOConfig, "lorenz-v0", seed=2).out == "runs/ppo-lorenz-v0/seed2"
 
 
 @pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0"])  # discrete and continuous
 def test_ppo_runs_updates_its_networks_and_resumes(env_id, tmp_path):
-    cfg = ppo_config(env_id, frames=400, n_rollout=200, num_envs=4, epochs=2)
+    cfg = configure(PPOConfig, env_id, frames=400, n_rollout=200, num_envs=4, epochs=2, out=str(tmp_path), progress=False)
     torch.manual_seed(0)
-    before = make_actor(make_env(env_id, cfg.num_envs), cfg.hidden).state_dict()
-    last = train(env_id, cfg, tmp_path, progress=False)
+    before = networks.stochastic_actor(make_env(env_id, cfg.num_envs), cfg.hidden).state_dict()
+    last = ppo.main(cfg)
     assert last["frames"] == 400 and torch.isfinite(torch.tensor(last["loss"]))
-    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    state = checkpoint(tmp_path)
     assert state["frames"] == 400 and state["env"] == env_id
-    assert any(not torch.equal(before[k], state["actor"][k]) for k in before), "PPO did not change the actor"
+    assert state["policy"] == {"network": "stochastic_actor", "hidden": 64}  # what evaluation rebuilds
+    assert any(not torch.equal(before[k], state["modules"]["actor"][k]) for k in before), "PPO did not change the actor"
     assert list((tmp_path / "ppo").rglob("*.csv")), "no CSV log"
     # resuming continues from the checkpoint to the new total
-    more = ppo_config(env_id, frames=600, n_rollout=200, num_envs=4, epochs=2)
-    assert train(env_id, more, tmp_path, progress=False, resume=True)["frames"] == 600
+    more = configure(PPOConfig, env_id, frames=600, n_rollout=200, num_envs=4, epochs=2, out=str(tmp_path), progress=False, resume=True)
+    assert ppo.main(more)["frames"] == 600
 
 
-def test_train_command_and_its_errors(tmp_path, capsys):
+def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
     out = tmp_path / "run"
-    rc = main(["train", "lorenz-v0", "--frames", "200", "--num-envs", "4", "--set", "n_rollout=200", "--set", "epochs=1", "--out", str(out), "--no-progress"])
-    assert rc == 0 and (out / "seed0" / "checkpoint.pt").is_file()
-    assert main(["train", "lorenz-v0", "--frames", "400", "--num-envs", "4", "--set", "n_rollout=200", "--set", "epochs=1", "--resume", str(out), "--no-progress"]) == 0
-    assert torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)["frames"] == 400
-    capsys.readouterr()
-    assert main(["train", "nope-v0"]) == 2
-    assert "nope-v0" in capsys.readouterr().err
-    assert main(["train", "lorenz-v0", "--frames", "-1"]) == 2
-    assert "frames" in capsys.readouterr().err
-    assert main(["train", "lorenz-v0", "--resume", str(tmp_path / "missing")]) == 2
-    assert "no checkpoint" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["train", "lorenz-v0", "--algo", "sac"])
+    args = ["--env", "lorenz-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1", "--out", str(out), "--no-progress"]
+    ppo.main(parse(PPOConfig, args))
+    assert (out / "checkpoint.pt").is_file()
+    ppo.main(parse(PPOConfig, [*args, "--frames", "400", "--resume"]))
+    assert checkpoint(out)["frames"] == 400
+    for argv, message in (
+        (["--env", "nope-v0"], "nope-v0"),
+        (["--env", "lorenz-v0", "--frames", "-1"], "frames"),
+        (["--env", "lorenz-v0", "--resume", "--out", str(tmp_path / "missing")], None),
+        (["--env", "lorenz-v0", "--logger", "wandb"], "logger"),
+        (["--epochs", "3"], "--env"),
+    ):
+        capsys.readouterr()
+        if message is None:  # a valid command line whose run cannot start
+            with pytest.raises(FileNotFoundError, match="no checkpoint"):
+                ppo.main(parse(PPOConfig, argv))
+            continue
+        with pytest.raises(SystemExit) as exit_:
+            parse(PPOConfig, argv)
+        assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
+    """``python recipes/ppo.py ...`` with the project's venv, no path set up: the
+    scripts find their config and the library by themselves."""
+    for script, setting in (("ppo", "--n-rollout"), ("td3", "--policy-noise"), ("dqn", "--eps-frames"), ("grad", "--horizon")):
+        proc = subprocess.run([sys.executable, f"recipes/{script}.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True)
+        assert setting in proc.stdout and "--num-envs" in proc.stdout and "--resume" in proc.stdout
+    proc = subprocess.run(
+        [sys.executable, "recipes/ppo.py", "--env", "vortex-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1", "--out", str(tmp_path), "--no-progress", "--logger", "csv"],
+        cwd=ROOT, capture_output=True, text=True, check=True,
+    )
+    assert "ppo vortex-v0 seed 0" in proc.stdout and "no learning curve" in proc.stdout
+    assert checkpoint(tmp_path)["frames"] == 200
 
 
 def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["train", "vortex-v0", "--frames", "400", "--seeds", "2", "--num-envs", "4", "--set", "n_rollout=200", "--set", "epochs=1", "--out", str(out), "--no-progress"]) == 0
+    for seed in (0, 1):
+        ppo.main(configure(PPOConfig, "vortex-v0", frames=400, num_envs=4, n_rollout=200, epochs=1, seed=seed, out=str(out / f"seed{seed}"), progress=False))
     capsys.readouterr()
-    assert main(["eval", str(out / "seed0"), "--members", "2"]) == 0
+    assert cli(["eval", str(out / "seed0"), "--members", "2"]) == 0
     text = capsys.readouterr().out
     assert "uncontrolled" in text and (out / "seed0" / "controlled.gif").stat().st_size > 1000
     png = tmp_path / "curve.png"
-    assert main(["plot", str(out), "--scalar", "reward", "--out", str(png)]) == 0
+    assert cli(["plot", str(out), "--scalar", "reward", "--out", str(png)]) == 0
     assert png.stat().st_size > 10_000
     # nothing ended within 400 transitions: the episode-score curve has nothing to draw
-    assert main(["plot", str(out), "--out", str(png)]) == 2
+    assert cli(["plot", str(out), "--out", str(png)]) == 2
     assert "episode_score" in capsys.readouterr().err
-    assert main(["eval", str(tmp_path / "nothing")]) == 2
+    assert cli(["eval", str(tmp_path / "nothing")]) == 2
     assert "not a run directory" in capsys.readouterr().err
 
 
-TINY = ["--frames", "256", "--num-envs", "4", "--set", "frames_per_batch=64", "--set", "init_random_frames=64", "--set", "batch_size=32", "--set", "updates_per_batch=4", "--set", "hidden=32", "--no-progress"]
+TINY = dict(frames=256, num_envs=4, frames_per_batch=64, init_random_frames=64, batch_size=32, updates_per_batch=4, hidden=32, progress=False)
 
 
-@pytest.mark.parametrize("algo, env_id", [("td3", "vortex-v0"), ("dqn", "lorenz-v0")])
-def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, env_id, tmp_path, capsys):
-    out = tmp_path / algo
-    assert main(["train", env_id, "--algo", algo, "--out", str(out), *TINY]) == 0
-    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
-    assert state["algo"] == algo and state["frames"] == 256
-    first = {k: v.clone() for k, v in state["actor"].items()}
-    assert (out / "seed0" / "buffer").exists()  # the collected transitions survive a stop
-    more = [a if a != "256" else "384" for a in TINY]
-    assert main(["train", env_id, "--algo", algo, "--resume", str(out), *more]) == 0
-    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
+@pytest.mark.parametrize("recipe, env_id", [(td3, "vortex-v0"), (dqn, "lorenz-v0")])
+def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(recipe, env_id, tmp_path, capsys):
+    cls = CONFIGS[recipe.__name__]
+    recipe.main(configure(cls, env_id, out=str(tmp_path), **TINY))
+    state = checkpoint(tmp_path)
+    assert state["algo"] == recipe.__name__ and state["frames"] == 256
+    first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
+    assert (tmp_path / "buffer").exists()  # the collected transitions survive a stop
+    recipe.main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
+    state = checkpoint(tmp_path)
     assert state["frames"] == 384
-    assert any(not torch.equal(first[k], state["actor"][k]) for k in first), "training did not change the policy"
+    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), "training did not change the policy"
     capsys.readouterr()
-    assert main(["eval", str(out), "--members", "2", "--no-gif"]) == 0
+    assert cli(["eval", str(tmp_path), "--members", "2", "--no-gif"]) == 0
     assert "uncontrolled" in capsys.readouterr().out
 
 
+@pytest.mark.slow(seconds=30)
 def test_multi_agent_ppo_shares_one_policy_and_scores_the_team(tmp_path):
-    cfg = ppo_config("shkadov-separable-v0", frames=200, n_rollout=200, num_envs=4, epochs=1, hidden=16)
-    train("shkadov-separable-v0", cfg, tmp_path, progress=False)
-    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
-    assert state["actor"]["module.0.module.trunk.0.weight"].shape == (16, 10)  # one agent's observation
+    ppo.main(configure(PPOConfig, "shkadov-separable-v0", frames=200, n_rollout=200, num_envs=4, epochs=1, hidden=16, out=str(tmp_path), progress=False))
+    state = checkpoint(tmp_path)
+    assert state["modules"]["actor"]["module.0.module.trunk.0.weight"].shape == (16, 10)  # one agent's observation
     assert state["obs_norm"]["loc"].shape[-1] == 10  # statistics shared by the agents
-    from beacon_torch.recipes.runs import evaluate_run
-
     result = evaluate_run(tmp_path, members=1)
     assert result["env"] == "shkadov-separable-v0" and torch.isfinite(torch.tensor(result["score_mean"]))
 
@@ -121,91 +166,89 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
     """One tiny update of each (env, algorithm) pair the paper reports, every variant
     included: the recipes fit every action space and observation layout. Two env steps
     each (normalisation, collection)."""
-    from beacon_torch.recipes import dqn, td3
-
+    recipe = {"ppo": ppo, "td3": td3, "dqn": dqn}[algo]
     if env_id.startswith("mixing"):
         # the small cavity (the observation is the same probe grid): a default-size
         # eager step costs about a second here, this one a tenth
-        monkeypatch.setattr(common, "make_env", functools.partial(common.make_env, **SMALL_CAVITY))
+        monkeypatch.setattr(recipe, "make_env", functools.partial(training_env.make_env, **SMALL_CAVITY))
 
     assert set(ALGORITHMS) == set(beacon_torch.registry.ENVS)
+    tiny = dict(frames=2, num_envs=2, hidden=8, norm_steps=1, out=str(tmp_path), progress=False)
     if algo == "ppo":
-        last = train(env_id, ppo_config(env_id, frames=2, n_rollout=2, num_envs=2, minibatches=1, epochs=1, hidden=8, norm_steps=1), tmp_path, progress=False)
+        cfg = configure(PPOConfig, env_id, n_rollout=2, minibatches=1, epochs=1, **tiny)
     else:
-        cfg = off_policy_config(env_id, frames=2, frames_per_batch=2, num_envs=2, init_random_frames=0, batch_size=2, updates_per_batch=1, hidden=8, norm_steps=1)
-        last = {"td3": td3, "dqn": dqn}[algo].train(env_id, cfg, tmp_path, progress=False)
+        cfg = configure(CONFIGS[algo], env_id, frames_per_batch=2, init_random_frames=0, batch_size=2, updates_per_batch=1, **tiny)
+    last = recipe.main(cfg)
     assert last["frames"] == 2 and torch.isfinite(torch.tensor(last["loss"]))
 
 
-def test_algorithms_must_fit_the_action_space(capsys):
-    assert main(["train", "lorenz-v0", "--algo", "td3"]) == 2
-    assert "continuous" in capsys.readouterr().err
-    assert main(["train", "vortex-v0", "--algo", "dqn"]) == 2
-    assert "discrete" in capsys.readouterr().err
-    assert main(["train", "shkadov-separable-v0", "--algo", "td3"]) == 2
-    assert "single-agent" in capsys.readouterr().err
+def test_algorithms_must_fit_the_action_space():
+    with pytest.raises(ValueError, match="continuous"):
+        configure(TD3Config, "lorenz-v0")
+    with pytest.raises(ValueError, match="discrete"):
+        configure(DQNConfig, "vortex-v0")
+    with pytest.raises(ValueError, match="single-agent"):
+        configure(TD3Config, "shkadov-separable-v0")
+    with pytest.raises(ValueError, match="grad needs continuous actions"):
+        configure(GradConfig, "lorenz-v0")
+    with pytest.raises(ValueError, match="collectors"):
+        configure(GradConfig, "burgers-v0", collectors=2)
 
 
-def test_multi_process_collectors_feed_the_recipes(tmp_path, capsys):
+def test_multi_process_collectors_feed_the_recipes(tmp_path):
     """``--collectors 2``: two processes with a batched env each (MultiSyncCollector)."""
-    out = tmp_path / "multi"
-    args = ["--num-envs", "4", "--collectors", "2", "--out", str(out), "--no-progress"]
-    assert main(["train", "vortex-v0", "--frames", "800", "--set", "n_rollout=400", "--set", "epochs=1", *args]) == 0
-    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
-    assert state["frames"] == 800
-    capsys.readouterr()
-    assert main(["train", "vortex-v0", "--collectors", "0"]) == 2
-    assert "--collectors" in capsys.readouterr().err
+    ppo.main(configure(PPOConfig, "vortex-v0", frames=800, n_rollout=400, epochs=1, num_envs=4, collectors=2, out=str(tmp_path), progress=False))
+    assert checkpoint(tmp_path)["frames"] == 800
+    with pytest.raises(ValueError, match="collectors"):
+        configure(PPOConfig, "vortex-v0", collectors=0)
     env = make_env("vortex-v0", 4)
     with pytest.raises(ValueError, match="multiple of collectors x members"):
-        common.make_collector("vortex-v0", env, None, frames_per_batch=100, total_frames=200, collectors=2)
+        make_collector("vortex-v0", env, None, frames_per_batch=100, total_frames=200, collectors=2)
 
 
 @pytest.mark.skipif(find_spec("ray") is None, reason="ray is not installed (pip install 'beacon-torch[ray]')")
 def test_ray_collectors_train_on_a_local_ray_instance(tmp_path):
-    cfg = ppo_config("vortex-v0", frames=800, n_rollout=400, num_envs=4, epochs=1)
-    assert train("vortex-v0", cfg, tmp_path, progress=False, collectors=2, ray="local")["frames"] == 800
+    cfg = configure(PPOConfig, "vortex-v0", frames=800, n_rollout=400, num_envs=4, epochs=1, collectors=2, ray="local", out=str(tmp_path), progress=False)
+    assert ppo.main(cfg)["frames"] == 800
 
 
 @pytest.mark.skipif(find_spec("ray") is not None, reason="ray is installed")
-def test_ray_without_the_package_is_one_clear_error(tmp_path, capsys):
-    assert main(["train", "vortex-v0", "--ray", "local", "--collectors", "2", "--out", str(tmp_path), "--no-progress"]) == 2
-    assert "ray package" in capsys.readouterr().err
+def test_ray_without_the_package_is_one_clear_error(tmp_path):
+    cfg = configure(PPOConfig, "vortex-v0", num_envs=4, collectors=2, ray="local", out=str(tmp_path), progress=False)
+    with pytest.raises(ValueError, match="ray package"):
+        ppo.main(cfg)
 
 
 def test_tensorboard_logs_next_to_the_csv(tmp_path):
-    cfg = ppo_config("vortex-v0", frames=200, n_rollout=200, num_envs=4, epochs=1)
-    train("vortex-v0", cfg, tmp_path / "tb", progress=False, tensorboard=True)
+    tiny = dict(frames=200, n_rollout=200, num_envs=4, epochs=1, progress=False)
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(tmp_path / "tb"), logger="tensorboard", **tiny))
     assert list((tmp_path / "tb" / "ppo").glob("events.out.tfevents.*")), "no TensorBoard event file"
-    train("vortex-v0", cfg, tmp_path / "csv", progress=False, tensorboard=False)
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(tmp_path / "csv"), logger="csv", **tiny))
     assert not list((tmp_path / "csv").rglob("events.out.tfevents.*"))
     assert (tmp_path / "csv" / "ppo" / "scalars" / "wall_time.csv").is_file()
 
 
-def test_short_training_beats_the_random_policy():
+@pytest.mark.slow(seconds=30)
+def test_short_training_beats_the_random_policy(tmp_path):
     """16k transitions of PPO on sloshing-v0 (about 20 s): the deterministic policy
     scores far above the random policy and above the same network untrained, on the
     same episodes, so the gain is learnt, not the luck of the initial weights."""
-    import tempfile
-
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from beacon_torch import evaluate
-    from beacon_torch.recipes.runs import evaluate_run
 
     env_id, seed, members = "sloshing-v0", 2, 8
-    cfg = ppo_config(env_id, frames=16384, n_rollout=2048, num_envs=16)
-    torch.manual_seed(seed)  # as train() starts: its env's normalisation, then its actor
+    cfg = configure(PPOConfig, env_id, frames=16384, n_rollout=2048, num_envs=16, seed=seed, out=str(tmp_path), progress=False)
+    torch.manual_seed(seed)  # as the recipe starts: its env's normalisation, then its actor
     normalised = make_env(env_id, cfg.num_envs, seed=seed, norm_steps=cfg.norm_steps)
-    untrained = make_actor(normalised, cfg.hidden)
+    untrained = networks.stochastic_actor(normalised, cfg.hidden)
     env = make_env(env_id, members, seed=12345, norm=normalised.transform[0].state_dict())  # evaluate_run's episodes
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         before = evaluate.scores(env.rollout(env.base_env.episode_length, policy=untrained, break_when_any_done=False)).mean().item()
     base = beacon_torch.make(env_id, members, seed=12345)
     rand = evaluate.scores(evaluate.episode(base, evaluate.random_policy(base)))
-    with tempfile.TemporaryDirectory() as out:
-        train(env_id, cfg, out, seed=seed, progress=False)
-        after = evaluate_run(out, members=members)["score_mean"]
+    ppo.main(cfg)
+    after = evaluate_run(tmp_path, members=members)["score_mean"]
     assert after > rand.mean().item() + 3 * rand.std().item(), (after, rand)
     # measured -3.19 -> -2.32 on one thread, -2.56 on two (the sums differ in the last bits)
     assert after > before + 0.3, (after, before)
@@ -237,53 +280,53 @@ def test_continuous_actions_reach_the_env_clipped_and_the_data_keeps_the_sample(
     assert torch.allclose(out["next", "observation"] * norm.scale + norm.loc, ref["next", "observation"], atol=1e-6)
 
 
-def test_results_summary_and_table(tmp_path):
-    """What ``benchmarks/reproduce.py`` records: per-seed evaluation, the curve, and a
-    table row in the results page with the PPO target."""
+def test_campaign_trains_summarises_and_writes_the_results_table(tmp_path):
+    """What ``recipes/reproduce.py`` records: per-seed evaluation, the curve, and a
+    table row in the results page with the PPO target; a second call skips the
+    finished seeds."""
     import json
 
-    from beacon_torch.recipes.runs import summarise, write_results_table
+    import reproduce
 
-    root = tmp_path / "runs" / "ppo-burgers-v0"
-    cfg = ppo_config("burgers-v0", frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
-    for seed in (0, 1):
-        train("burgers-v0", cfg, root / f"seed{seed}", seed=seed, progress=False)
-    summary = summarise(root, members=2, images=tmp_path / "img")
+    out = tmp_path / "runs"
+    settings = dict(frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
+    summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, images=tmp_path / "img", progress=False)
+    root = out / "ppo-burgers-v0"
     assert [s["seed"] for s in summary["seeds"]] == ["seed0", "seed1"] and summary["frames"] == 800
     assert summary["eval_std"] > 0 and summary["wall_s_per_seed"] > 0  # two seeds, two policies
     assert json.loads((root / "summary.json").read_text())["eval_mean"] == summary["eval_mean"]
+    stamp = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
+    reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, images=tmp_path / "img", progress=False)
+    assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp, "a finished seed was trained again"
     page = tmp_path / "results.md"
     head = "| env | algorithm | x |\n|---|---|---|\n"
     kept, replaced = "| vortex-v0 | td3 (16-step norm.) | kept |", "| burgers-v0 | ppo | old |"
-    page.write_text(f"# Results\n\n<!-- results table: benchmarks/reproduce.py report -->\n{head}{replaced}\n{kept}\n<!-- end of results table -->\n\nnotes\n")
-    text = write_results_table(tmp_path / "runs", page).read_text()
+    page.write_text(f"# Results\n\n{reproduce.BEGIN}\n{head}{replaced}\n{kept}\n{reproduce.END}\n\nnotes\n")
+    text = reproduce.write_results_table(out, page).read_text()
     # the pair trained here is replaced; a pair recorded before, whose runs are gone, stays
     assert "old" not in text and kept in text and text.endswith("notes\n")
     row = next(line for line in text.splitlines() if line.startswith("| burgers-v0 | ppo"))
     assert ">= -1.75 (**missed**)" in row and "800 of 500,000" in row and "](img/ppo-burgers-v0.png)" in row
 
 
-def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path, capsys):
+def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
     """One episode of 4 members, backpropagating 40 actions at a time through the
     solver (5 updates): the deterministic policy already damps the inlet noise better
     than no control on fresh episodes (measured -1.77 +- 0.11 against -3.43; about -0.5
     in the longer runs of docs/gradients.md)."""
-    from beacon_torch.recipes.runs import evaluate_run
-
-    out = tmp_path / "grad"
-    args = ["train", "burgers-v0", "--algo", "grad", "--num-envs", "4", "--out", str(out), "--no-progress"]
-    assert main([*args, "--frames", "800"]) == 0
-    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
-    assert state["algo"] == "grad" and state["frames"] == 800 and state["skipped"] == 0
-    result = evaluate_run(out / "seed0", members=4)
+    grad.main(configure(GradConfig, "burgers-v0", num_envs=4, frames=800, out=str(tmp_path), progress=False))
+    state = checkpoint(tmp_path)
+    assert state["algo"] == "grad" and state["frames"] == 800 and state["counters"]["skipped"] == 0
+    result = evaluate_run(tmp_path, members=4)
     assert result["score_mean"] < 0 and result["score_mean"] > result["uncontrolled"] + 0.5, result
-    first = {k: v.clone() for k, v in state["actor"].items()}
-    assert main([*args[:-3], "--resume", str(out), "--frames", "960", "--no-progress"]) == 0
-    state = torch.load(out / "seed0" / "checkpoint.pt", weights_only=False)
+    first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
+    grad.main(configure(GradConfig, "burgers-v0", num_envs=4, frames=960, out=str(tmp_path), progress=False, resume=True))
+    state = checkpoint(tmp_path)
     assert state["frames"] == 960
-    assert any(not torch.equal(first[k], state["actor"][k]) for k in first), "the resumed run did not update the policy"
-    capsys.readouterr()
-    assert main(["train", "lorenz-v0", "--algo", "grad"]) == 2
-    assert "grad needs continuous actions" in capsys.readouterr().err
-    assert main(["train", "burgers-v0", "--algo", "grad", "--collectors", "2"]) == 2
-    assert "--collectors" in capsys.readouterr().err
+    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), "the resumed run did not update the policy"
+
+
+def test_config_module_is_the_one_place_of_the_algorithms():
+    assert set(CONFIGS) == {"ppo", "td3", "dqn", "grad"}
+    assert {algo for algos in ALGORITHMS.values() for algo in algos} <= set(CONFIGS)
+    assert config.paper_frames("shkadov-separable-v0") == 200_000

@@ -34,12 +34,14 @@ def test_whole_episodes_agree_with_the_published_code_to_round_off(env_id):
     assert agreement.last_observation_error < 1e-12, agreement.summary()
 
 
+@pytest.mark.slow(seconds=60)
 def test_rayleigh_with_the_published_jacobi_solve_agrees_to_round_off():
     agreement = reference.replay("rayleigh-v0", PREFIX, solver="jacobi")
     assert agreement.first_observation_error == 0.0
     assert agreement.running_error.max() < 1e-9, agreement.summary()
 
 
+@pytest.mark.slow(seconds=30)
 def test_rayleigh_with_the_direct_solve_differs_by_the_published_tolerance_only():
     # docs/envs/rayleigh.md: the published Jacobi solve stops at 1e-8 on the squared
     # update, which leaves about 1e-4 of the increment; the direct solve is exact
@@ -48,6 +50,7 @@ def test_rayleigh_with_the_direct_solve_differs_by_the_published_tolerance_only(
     assert agreement.running_error.max() < 2e-4, agreement.summary()
 
 
+@pytest.mark.slow(seconds=60)
 def test_mixing_agrees_within_the_published_solver_tolerance():
     # docs/envs/mixing.md: the published Jacobi solve stops at 1e-4 on the squared update
     agreement = reference.replay("mixing-v0", PREFIX)

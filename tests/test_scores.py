@@ -48,6 +48,7 @@ def test_random_policy_is_reproducible_from_its_seed():
     assert a.unique().numel() > 1  # members draw different actions
 
 
+@pytest.mark.slow(seconds=20)
 def test_burgers_uncontrolled_mean_over_256_members():
     score = uncontrolled("burgers-v0", 256, seed=0)
     assert abs(score.mean().item() + 3.25) <= 0.03 * 3.25, score.mean()
@@ -68,6 +69,7 @@ def test_sloshing_generated_start_scores_like_the_published_generator_rerun():
     assert score.item() == pytest.approx(-3.2297, rel=1e-3)
 
 
+@pytest.mark.slow(seconds=90)
 def test_shkadov_uncontrolled_mean_and_spread_over_64_random_starts():
     # the published code over 30 random starts of its stored film: -2.314, std 0.089
     score = uncontrolled("shkadov-v0", 64, seed=0)
@@ -76,11 +78,13 @@ def test_shkadov_uncontrolled_mean_and_spread_over_64_random_starts():
     assert score.unique().numel() == 64
 
 
+@pytest.mark.slow(seconds=60)
 def test_rayleigh_uncontrolled_score_from_the_published_start():
     score = uncontrolled("rayleigh-v0", 1)
     assert score.item() == pytest.approx(-216.3, rel=1e-3)
 
 
+@pytest.mark.slow(seconds=240)
 def test_mixing_constant_actions_score_like_the_published_baseline():
     env = beacon_torch.make("mixing-v0", 4, dtype=torch.float64)
     actions = torch.arange(4)

@@ -1,16 +1,13 @@
-"""Run directories: evaluating a trained policy and drawing learning curves.
+"""Trained runs: the deterministic policy's score against no control, learning curves
+over seeds, and a run directory's summary.
 
-A run directory is what ``beacon-torch train`` writes: one ``seedK`` folder per seed
-(or a single run folder), each with ``checkpoint.pt`` and the logger's
-``<algo>/scalars/<name>.csv`` files (``step,value`` lines; the step is the number of
-transitions collected).
+A run directory is one seed's folder (``run.Run``) or a folder of ``seedK`` folders.
 """
 
 from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -19,39 +16,18 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
 from beacon_torch import evaluate
-from beacon_torch.recipes.common import load_checkpoint
-from beacon_torch.recipes.config import PPO_TARGETS, ppo_config
-
-
-def seed_dirs(run: str | Path) -> list[Path]:
-    """The per-seed folders of a run directory (the directory itself for one seed)."""
-    run = Path(run)
-    if (run / "checkpoint.pt").is_file():
-        return [run]
-    found = sorted(p for p in run.glob("seed*") if (p / "checkpoint.pt").is_file())
-    if not found:
-        raise FileNotFoundError(f"{run}: not a run directory (no checkpoint.pt in it or in seed* folders)")
-    return found
+from beacon_torch.training import networks
+from beacon_torch.training.env import make_env
+from beacon_torch.training.run import load_checkpoint, seed_dirs
 
 
 def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = 12345) -> dict:
     """The deterministic policy of one seed's checkpoint on ``members`` fresh episodes,
     next to the uncontrolled score; ``gif``: an animation of member 0's episode."""
-    from beacon_torch.recipes import common
-
     state = load_checkpoint(run)
-    env = common.make_env(state["env"], members, device=device, seed=seed, norm=state["obs_norm"], record_history=gif is not None)
-    hidden = state["config"]["hidden"]
-    if state["algo"] == "ppo":
-        from beacon_torch.recipes.ppo import make_actor
-    elif state["algo"] in ("td3", "grad"):
-        from beacon_torch.recipes.td3 import make_actor
-    elif state["algo"] == "dqn":
-        from beacon_torch.recipes.dqn import make_qvalue_actor as make_actor
-    else:
-        raise ValueError(f"{run}: unknown algorithm {state['algo']!r}")
-    actor = make_actor(env, hidden).to(device)
-    actor.load_state_dict(state["actor"])
+    env = make_env(state["env"], members, device=device, seed=seed, norm=state["obs_norm"], record_history=gif is not None)
+    actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
+    actor.load_state_dict(state["modules"]["actor"])
     base = env.base_env
     frames = []
     every = max(1, base.episode_length // 100)
@@ -140,7 +116,7 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
     and spread over the seeds; transitions and wall time; the curve drawn into
     ``images/<root name>.png`` (default: ``root``)."""
     root = Path(root)
-    seeds = sorted(p for p in root.glob("seed*") if (p / "checkpoint.pt").is_file())
+    seeds = seed_dirs(root)
     per_seed = []
     for run in seeds:
         state = load_checkpoint(run)
@@ -148,8 +124,6 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
         per_seed.append({"seed": run.name, "frames": state["frames"], "wall_s": state.get("elapsed", float("nan")), "eval": ev["score_mean"], "train_tail": float(tail.mean()) if len(tail) else float("nan"), "uncontrolled": ev["uncontrolled"]})
-    if not per_seed:
-        raise FileNotFoundError(f"{root}: no seed* run in it")
     images = Path(images) if images is not None else root
     images.mkdir(parents=True, exist_ok=True)
     png = plot_runs([root], images / f"{root.name}.png")
@@ -175,44 +149,10 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
     return summary
 
 
-def write_results_table(out: str | Path, path: str | Path) -> Path:
-    """The table of every ``out/*/summary.json`` with the PPO targets, written between
-    the table markers of the markdown file ``path`` (appended if they are missing).
-    Rows already in the table for (env, algorithm) pairs that have no summary in
-    ``out`` are kept: a campaign adds to the recorded results without their runs."""
-    out, path = Path(out), Path(path)
-    text = path.read_text() if path.exists() else ""
-    begin, end = "<!-- results table: benchmarks/reproduce.py report -->", "<!-- end of results table -->"
-    rows = {}
-    if begin in text:
-        for line in text[text.index(begin) : text.index(end)].splitlines():
-            cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if line.startswith("|") and len(cells) > 2 and cells[0] not in ("env", "---"):
-                rows[(cells[1].split()[0], cells[0])] = line
-    for file in sorted(out.glob("*/summary.json")):
-        s = json.loads(file.read_text())
-        target = PPO_TARGETS.get(s["env"]) if s["algo"] == "ppo" else None
-        paper_frames = ppo_config(s["env"]).frames
-        met = "" if target is None else ("met" if s["eval_mean"] >= target else "**missed**")
-        spread = (lambda key: f" +- {s[key]:.2g}") if len(s["seeds"]) > 1 else (lambda key: "")
-        # runs from before the normalisation statistics became a setting used 16 steps
-        algo = s["algo"] + (" (16-step norm.)" if s["config"].get("norm_steps", 16) != 64 else "")
-        rows[(s["algo"], s["env"])] = (
-            f"| {s['env']} | {algo} | {s['eval_mean']:.4g}{spread('eval_std')} | {s['train_mean']:.4g}{spread('train_std')} | "
-            f"{s['uncontrolled']:.4g} | {'' if target is None else f'>= {target:g} ({met})'} | {len(s['seeds'])} | {s['frames']:,} of {paper_frames:,} | "
-            f"{s['wall_s_per_seed'] / 60:.1f} min | [curve]({os.path.relpath(s['png'], path.resolve().parent)}) |"
-        )
-    table = "\n".join(
-        [
-            "| env | algorithm | deterministic policy | training episodes, last 10 % | uncontrolled (same env) | PPO target | seeds | transitions (of the paper's budget) | wall time per seed | curve |",
-            "|---|---|---|---|---|---|---|---|---|---|",
-            *(rows[key] for key in sorted(rows)),
-        ]
-    )
-    block = f"{begin}\n{table}\n{end}"
-    if begin in text:
-        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
-    else:
-        text = text + "\n" + block + "\n"
-    path.write_text(text)
-    return path
+def learning_curve(run: str | Path) -> str:
+    """Draw ``run/learning_curve.png`` (as ``beacon-torch plot`` would) and say where,
+    or why not (no episode ended yet)."""
+    try:
+        return f"learning curve: {plot_runs([run], Path(run) / 'learning_curve.png')}"
+    except ValueError as err:
+        return f"no learning curve: {err}"

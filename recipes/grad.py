@@ -8,47 +8,46 @@ normalisation, the actions and every substep of the solver); the graph is then c
 the current state (``detach_state``) and the episodes go on, ending and restarting as
 in any collector. No critic, no sampling noise: what a simulator that is torch buys.
 
-    beacon-torch train burgers-v0 --algo grad
-    beacon-torch train vortex-v0 --algo grad --set horizon=200
+    python recipes/grad.py --env burgers-v0
+    python recipes/grad.py --env vortex-v0 --horizon 200
 
-The policy is TD3's actor (an MLP squashed into the box), so ``eval`` and ``plot`` read
-these runs like any other. ``checkpoint=true`` recomputes each action in the backward
-pass (``grad_checkpoint``), for horizons whose graph would not fit in memory.
+The policy is TD3's deterministic actor, so ``beacon-torch eval`` and ``plot`` read
+these runs like any other. ``--checkpoint`` recomputes each action in the backward pass
+(``grad_checkpoint``), for horizons whose graph would not fit in memory.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict
-from pathlib import Path
 
 import torch
 
-from beacon_torch.recipes import common
-from beacon_torch.recipes.config import GradConfig
-from beacon_torch.recipes.td3 import make_actor
+from beacon_torch.training import networks
+from beacon_torch.training.env import make_env
+from beacon_torch.training.evaluation import learning_curve
+from beacon_torch.training.run import Run
+from config import GradConfig, parse
 
 
-def train(env_id: str, cfg: GradConfig, out: str | Path, *, seed: int = 0, device="cpu", resume: bool = False, checkpoint_every: int = 10, progress: bool = True, collectors: int = 1, ray: str | None = None, tensorboard: bool | None = None) -> dict:
+def main(cfg: GradConfig) -> dict:
     """Train the policy on ``cfg.frames`` transitions; returns the last logged values."""
-    if collectors != 1 or ray is not None:
-        raise ValueError("grad differentiates through the env in this process: --collectors and --ray do not apply")
-    run, env = common.start(
-        env_id, "grad", cfg, out, seed=seed, device=device, resume=resume, progress=progress, tensorboard=tensorboard,
-        differentiable=True, grad_checkpoint=cfg.checkpoint,
-    )
-    actor = make_actor(env, cfg.hidden).to(device)
+    run = Run(cfg.out, cfg.env, "grad", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    torch.manual_seed(cfg.seed)
+
+    # the differentiable env, with the saved normalisation when resuming
+    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile, differentiable=True, grad_checkpoint=cfg.checkpoint)
+    base = env.base_env
+
+    # the policy and its optimiser; the count of updates dropped for a non-finite gradient
+    actor = networks.deterministic_actor(env, cfg.hidden).to(cfg.device)
     optim = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
-    skipped = 0
-    if run.state is not None:
-        actor.load_state_dict(run.state["actor"])
-        optim.load_state_dict(run.state["optim"])
-        skipped = run.state.get("skipped", 0)
+    run.restore(actor=actor, optim=optim)
+    run.counters.setdefault("skipped", 0)
 
     def save() -> None:
-        run.save(seed=seed, config=asdict(cfg), actor=actor.state_dict(), optim=optim.state_dict(), obs_norm=env.transform[0].state_dict(), skipped=skipped)
+        run.save(env, policy=("deterministic_actor", cfg.hidden, actor), optim=optim)
 
-    base = env.base_env
-    discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=base.dtype, device=device)
+    discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=base.dtype, device=cfg.device)
     td = env.reset()
     update = 0
     while run.frames < cfg.frames:
@@ -69,17 +68,23 @@ def train(env_id: str, cfg: GradConfig, out: str | Path, *, seed: int = 0, devic
         else:
             # a member that blew up inside the horizon can leave 0 * inf in the backward
             # pass; its episode has ended, the update is dropped
-            skipped += 1
+            run.counters["skipped"] += 1
         # the next update differentiates from here on: cut the graph behind the state
         base.detach_state()
         td = td.detach()
-        values = {"reward": -loss.item() / discount.mean().item(), "grad_norm": norm.item(), "skipped_updates": float(skipped)}
+        values = {"reward": -loss.item() / discount.mean().item(), "grad_norm": norm.item(), "skipped_updates": float(run.counters["skipped"])}
         if scores:
             values["episode_score"] = torch.cat(scores).mean().item()
         run.log(cfg.horizon * cfg.num_envs, values)
         update += 1
-        if update % checkpoint_every == 0:
+        if update % cfg.checkpoint_every == 0:
             save()
     run.close()
     save()
     return run.last
+
+
+if __name__ == "__main__":
+    cfg = parse(GradConfig)
+    print(f"grad {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
+    print(learning_curve(cfg.out))

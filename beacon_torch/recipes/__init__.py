@@ -1,1 +1,0 @@
-"""Training recipes built on TorchRL's own losses, collectors, buffers and transforms."""

@@ -1,0 +1,91 @@
+"""The training env: a batched BEACON env with observation normalisation, episode
+returns and action clipping as TorchRL transforms, and the collectors that step it."""
+
+from __future__ import annotations
+
+from functools import partial
+from importlib.util import find_spec
+
+from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, TransformedEnv
+
+import beacon_torch
+
+# random steps whose observations set the normalisation: 64 reach past the start-up of
+# every env (burgers' sensors see the inlet noise only after about 40 actions; with 16
+# steps their scale was 1e-5 and normalised observations reached 1e5)
+NORM_STEPS = 64
+
+
+def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
+    """The entry ``name`` next to ``key``: ``("agents", "reward")`` -> ``("agents", name)``."""
+    return (*key[:-1], name) if isinstance(key, tuple) else name
+
+
+def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: dict | None = None, norm_steps: int = NORM_STEPS, **env_kwargs) -> TransformedEnv:
+    """The batched env with observation normalisation and episode returns; the
+    statistics come from ``norm`` (a saved ``ObservationNorm`` state) or else from a
+    rollout of ``norm_steps`` random actions. In a multi-agent layout
+    (shkadov-separable-v0) the statistics are shared by the agents, as the policy is,
+    and the episode returns are per agent, next to their rewards. Continuous actions
+    reach the env clipped to its box."""
+    base = beacon_torch.make(env_id, num_envs, device=device, seed=seed, **env_kwargs)
+    obs, reward = base.observation_key, base.reward_key
+    loc, scale = (norm["loc"], norm["scale"]) if norm is not None else (None, None)
+    transforms = [ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True), RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")])]
+    if not base.discrete:
+        # a policy's sample may leave the box: the env gets it clipped, the data keeps it
+        low, high = base.full_action_spec[base.action_key].space.low.unique(), base.full_action_spec[base.action_key].space.high.unique()
+        transforms.append(ClipTransform(in_keys_inv=[base.action_key], low=low.item(), high=high.item()))
+    env = TransformedEnv(base, Compose(*transforms))
+    if norm is None:
+        agent_dims = base.observation_spec[obs].ndim - base.batch_dims - 1
+        env.transform[0].init_stats(num_iter=norm_steps, reduce_dim=tuple(range(2 + agent_dims)), cat_dim=1)
+    return env
+
+
+def make_collector(
+    env_id: str, env: TransformedEnv, policy, *, frames_per_batch: int, total_frames: int, collectors: int = 1, ray: str | None = None, seed: int = 0, device="cpu", init_random_frames: int = 0
+):
+    """A TorchRL collector over the batched ``env``: a ``Collector`` in this process;
+    with ``collectors`` > 1 a ``MultiSyncCollector`` of that many processes; with
+    ``ray`` (a Ray cluster address, or "local" for a Ray instance on this machine) a
+    synchronous ``RayCollector`` of ``collectors`` Ray actors. Each remote collector
+    steps its own batched env of the same size (seeded apart, with ``env``'s observation
+    normalisation), and their batches are stacked into one ``[collectors, members,
+    time]`` batch."""
+    from torchrl.collectors import Collector, MultiSyncCollector
+
+    if collectors < 1:
+        raise ValueError(f"collectors must be a positive integer, got {collectors}")
+    kwargs = dict(frames_per_batch=frames_per_batch, total_frames=total_frames, init_random_frames=init_random_frames)
+    local = dict(device=device, auto_register_policy_transforms=False)
+    if collectors == 1 and ray is None:
+        return Collector(env, policy, **kwargs, **local)
+    members = env.batch_size.numel()
+    if frames_per_batch % (collectors * members):
+        raise ValueError(f"the collected batch ({frames_per_batch}) must be a multiple of collectors x members ({collectors} x {members})")
+    base = env.base_env
+    makers = [
+        partial(make_env, env_id, members, device=device, seed=seed + 7919 * (k + 1), norm=env.transform[0].state_dict(), dtype=base.dtype, compile=base.compile_options or False)
+        for k in range(collectors)
+    ]
+    if ray is None:
+        return MultiSyncCollector(makers, policy, cat_results="stack", **kwargs, **local)
+    if find_spec("ray") is None:
+        raise ValueError("collection on Ray needs the ray package (pip install 'beacon-torch[ray]')")
+    from torchrl.collectors.distributed import RayCollector
+
+    init = {"address": None if ray == "local" else ray, "ignore_reinit_error": True, "log_to_driver": False}
+    if ray == "local":
+        init["num_cpus"] = collectors
+    return RayCollector(
+        makers,
+        policy,
+        **kwargs,
+        num_collectors=collectors,
+        sync=True,
+        ray_init_config=init,
+        remote_configs={"num_cpus": 1, "memory": 2 * 1024**3},
+        collector_kwargs=local,
+        update_after_each_batch=True,
+    )

@@ -1,0 +1,153 @@
+"""The paper's networks, built for a training env (``env.make_env``).
+
+A checkpoint records the network of its policy by name (``NETWORKS``) with its width,
+so that evaluation rebuilds any trained policy without knowing the algorithm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import torch
+from tensordict import NestedKey
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.envs import TransformedEnv
+from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, QValueActor, TanhModule, ValueOperator
+
+from beacon_torch.training.env import sibling
+
+
+def orthogonal(module: nn.Module, gain: float = 2**0.5) -> nn.Module:
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, gain)
+            nn.init.zeros_(layer.bias)
+    return module
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Where a policy reads and writes: at the root, or under ``"agents"`` in a
+    multi-agent layout (shkadov-separable-v0), where one policy and one critic are
+    shared by the agents (the agent dimension is one more batch dimension to the
+    networks) and each agent's advantage comes from its own reward."""
+
+    obs: NestedKey
+    action: NestedKey
+    reward: NestedKey
+    log_prob: NestedKey
+    value: NestedKey
+    advantage: NestedKey
+    value_target: NestedKey
+    done: NestedKey
+    terminated: NestedKey
+
+    @classmethod
+    def of(cls, env: TransformedEnv) -> "Keys":
+        base = env.base_env
+        at = partial(sibling, base.observation_key)
+        names = ("action_log_prob", "state_value", "advantage", "value_target", "done", "terminated")
+        return cls(base.observation_key, base.action_key, base.reward_key, *map(at, names))
+
+    @property
+    def agents(self) -> bool:
+        return isinstance(self.obs, tuple)
+
+
+class Heads(nn.Module):
+    """The paper's continuous actor: a shared tanh layer, then a mean head ending in tanh
+    (within the action box) and a spread head ending in a sigmoid (0 to 1), the
+    parameters of a normal distribution. Module level, so that multi-process collectors
+    can pickle it."""
+
+    def __init__(self, n_obs: int, hidden: int, n_act: int) -> None:
+        super().__init__()
+        self.trunk = nn.Sequential(nn.Linear(n_obs, hidden), nn.Tanh())
+        self.mean = nn.Sequential(nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act), nn.Tanh())
+        self.spread = nn.Sequential(nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act), nn.Sigmoid())
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z = self.trunk(obs)
+        return self.mean(z), self.spread(z)
+
+
+def n_observations(env: TransformedEnv) -> int:
+    return env.observation_spec[env.base_env.observation_key].shape[-1]
+
+
+def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
+    """The paper's PPO actor: a shared tanh layer, then one tanh head each for the mean
+    and the spread of a normal distribution (continuous actions) or the logits of a
+    categorical one (discrete actions)."""
+    keys = Keys.of(env)
+    n_obs = n_observations(env)
+    if env.base_env.discrete:
+        trunk = [nn.Linear(n_obs, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh()]
+        net = orthogonal(nn.Sequential(*trunk, nn.Linear(hidden, env.base_env.n_actions)))
+        module = TensorDictModule(net, in_keys=[keys.obs], out_keys=["logits"])
+        return ProbabilisticActor(module, in_keys=["logits"], distribution_class=torch.distributions.Categorical, return_log_prob=True, spec=env.action_spec)
+    params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
+    n_act = env.full_action_spec[keys.action].shape[-1]
+    module = TensorDictModule(orthogonal(Heads(n_obs, hidden, n_act)), in_keys=[keys.obs], out_keys=params)
+    # as the paper's agent: a normal sample, clipped to the box by the env's transform
+    # (env.make_env) while the loss sees the sample itself; not a tanh-squashed
+    # distribution, whose vanishing gradient at the bounds traps "no control" policies
+    return ProbabilisticActor(
+        module,
+        in_keys=dict(zip(("loc", "scale"), params)),
+        out_keys=[keys.action],
+        log_prob_key=keys.log_prob,
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        spec=env.full_action_spec,
+    )
+
+
+def state_value(env: TransformedEnv, hidden: int) -> ValueOperator:
+    """The paper's PPO critic: two ReLU layers."""
+    keys = Keys.of(env)
+    net = orthogonal(nn.Sequential(nn.Linear(n_observations(env), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)))
+    return ValueOperator(net, in_keys=[keys.obs], out_keys=[keys.value])
+
+
+def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """The action box of one member (the env's spec carries the batch dimension)."""
+    space, n_act = env.action_spec.space, env.action_spec.shape[-1]
+    return space.low.reshape(-1, n_act)[0], space.high.reshape(-1, n_act)[0]
+
+
+def deterministic_actor(env: TransformedEnv, hidden: int) -> TensorDictSequential:
+    """A deterministic policy (TD3, gradient-based control): an MLP squashed into the
+    action box."""
+    low, high = action_bounds(env)
+    net = MLP(in_features=n_observations(env), out_features=env.action_spec.shape[-1], num_cells=[hidden, hidden], activation_class=nn.ReLU)
+    return TensorDictSequential(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["param"]),
+        TanhModule(in_keys=["param"], out_keys=["action"], low=low, high=high),
+    )
+
+
+def action_value(env: TransformedEnv, hidden: int) -> ValueOperator:
+    """TD3's critic: the value of an (observation, action) pair."""
+    n_in = n_observations(env) + env.action_spec.shape[-1]
+    net = MLP(in_features=n_in, out_features=1, num_cells=[hidden, hidden], activation_class=nn.ReLU)
+    return ValueOperator(net, in_keys=["observation", "action"])
+
+
+def qvalue_actor(env: TransformedEnv, hidden: int) -> QValueActor:
+    """DQN's policy: the values of every discrete action; the greedy one is played."""
+    net = MLP(in_features=n_observations(env), out_features=env.base_env.n_actions, num_cells=[hidden, hidden], activation_class=nn.ReLU)
+    return QValueActor(net, in_keys=["observation"], action_space="categorical")
+
+
+# the policies a checkpoint can hold, by the name it records
+NETWORKS = {"stochastic_actor": stochastic_actor, "deterministic_actor": deterministic_actor, "qvalue_actor": qvalue_actor}
+
+
+def policy(env: TransformedEnv, network: str, hidden: int) -> TensorDictModule:
+    """The policy network ``network`` (a name of ``NETWORKS``) of width ``hidden``."""
+    if network not in NETWORKS:
+        raise ValueError(f"unknown policy network {network!r}; known: {sorted(NETWORKS)}")
+    return NETWORKS[network](env, hidden)

@@ -1,0 +1,166 @@
+"""A training run's directory: ``checkpoint.pt``, the CSV logs
+``<algo>/scalars/<name>.csv`` (``step,value`` lines, the step being transitions
+collected; what ``beacon-torch plot`` and ``eval`` read), TensorBoard event files in
+``<algo>/`` when asked for, the replay buffer of off-policy runs (``buffer/``) and the
+progress bar.
+
+A checkpoint holds, next to the state of every module and optimiser of the run, the env
+id, the algorithm, the settings, the observation normalisation and, by name and width,
+the network of its policy: evaluation rebuilds the policy from the checkpoint alone.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from importlib.util import find_spec
+from pathlib import Path
+from typing import Any
+
+import torch
+from torchrl.record.loggers import CSVLogger
+
+from beacon_torch.training.env import sibling
+
+CHECKPOINT = "checkpoint.pt"
+
+
+def load_checkpoint(run: str | Path) -> dict:
+    """The checkpoint of a run folder, with a clear error for a bad file."""
+    path = Path(run) / CHECKPOINT
+    try:
+        return torch.load(path, weights_only=False, map_location="cpu")
+    except Exception as err:  # a missing, truncated or foreign file
+        raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
+
+
+def seed_dirs(run: str | Path) -> list[Path]:
+    """The per-seed folders of a run directory (the directory itself for one seed)."""
+    run = Path(run)
+    if (run / CHECKPOINT).is_file():
+        return [run]
+    found = sorted(p for p in run.glob("seed*") if (p / CHECKPOINT).is_file())
+    if not found:
+        raise FileNotFoundError(f"{run}: not a run directory (no {CHECKPOINT} in it or in seed* folders)")
+    return found
+
+
+def tensorboard_installed() -> bool:
+    return find_spec("tensorboard") is not None
+
+
+def episode_values(data, reward_key: str | tuple[str, ...] = "reward") -> dict[str, float]:
+    """The mean reward of a collected batch and the mean score of the episodes that
+    ended in it (``RewardSum``'s ``episode_reward``); over the agents too where there
+    are several (the team's score, as ``evaluate.scores`` counts it)."""
+    done = data["next", "done"][..., 0]
+    reward, score = data["next", reward_key], data["next", sibling(reward_key, "episode_reward")]
+    values = {"reward": reward.float().mean().item()}
+    if done.any():
+        score = score.float().reshape(*done.shape, -1).mean(-1)  # the team's score
+        values["episode_score"] = score[done].mean().item()
+    return values
+
+
+class Run:
+    """The directory ``out`` of one training of ``algo`` on ``env_id`` towards ``total``
+    transitions, new or (``resume``) continued from its checkpoint. ``tensorboard``:
+    True, False, or None for "when the package is installed". ``settings`` (a dict) is
+    recorded with every checkpoint."""
+
+    def __init__(self, out: str | Path, env_id: str, algo: str, total: int, *, seed: int = 0, settings: dict | None = None, resume: bool = False, progress: bool = True, tensorboard: bool | None = None) -> None:
+        self.out = Path(out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.path = self.out / CHECKPOINT
+        self.env_id, self.algo, self.total, self.seed = env_id, algo, total, seed
+        self.settings = settings or {}
+        self.state: dict | None = None
+        if resume:
+            if not self.path.is_file():
+                raise FileNotFoundError(f"no checkpoint to resume in {self.out}")
+            self.state = load_checkpoint(self.out)
+            if self.state["env"] != env_id or self.state["algo"] != algo:
+                raise ValueError(f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {algo} on {env_id}")
+        self.frames = self.state["frames"] if self.state else 0
+        # counts a recipe keeps over resumes (updates dropped, ...), saved as they are
+        self.counters: dict[str, int] = dict(self.state.get("counters", {})) if self.state else {}
+        # training wall time, carried over resumes, so that results can state it
+        self.elapsed = self.state.get("elapsed", 0.0) if self.state else 0.0
+        self._since = time.perf_counter()
+        self.loggers = [CSVLogger(exp_name=algo, log_dir=str(self.out))]
+        if tensorboard is None:
+            tensorboard = tensorboard_installed()
+        if tensorboard:
+            if not tensorboard_installed():
+                raise ValueError("TensorBoard logging needs the tensorboard package (pip install tensorboard)")
+            from torchrl.record.loggers import TensorboardLogger
+
+            self.loggers.append(TensorboardLogger(exp_name=algo, log_dir=str(self.out)))
+        self.last: dict[str, Any] = {"frames": self.frames}
+        self.bar = None
+        if progress and total > self.frames:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}")
+
+    @property
+    def remaining(self) -> int:
+        return self.total - self.frames
+
+    @property
+    def obs_norm(self) -> dict | None:
+        """The saved observation statistics of a resumed run (None for a new one)."""
+        return self.state["obs_norm"] if self.state else None
+
+    def restore(self, buffer=None, **modules) -> None:
+        """Load the saved state into ``modules`` (networks, losses, optimisers, by the
+        names they were saved under) and ``buffer``; nothing for a new run."""
+        if self.state is None:
+            return
+        for name, module in modules.items():
+            module.load_state_dict(self.state["modules"][name])
+        if buffer is not None and (self.out / "buffer").exists():
+            buffer.loads(self.out / "buffer")
+
+    def seconds(self) -> float:
+        return self.elapsed + time.perf_counter() - self._since
+
+    def log(self, collected: int, values: dict[str, float]) -> None:
+        self.frames += collected
+        self.last = {"frames": self.frames, **values}
+        for name, value in {**values, "wall_time": self.seconds()}.items():
+            for logger in self.loggers:
+                logger.log_scalar(name, value, step=self.frames)
+        if self.bar is not None:
+            self.bar.update(collected)
+            self.bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()})
+
+    def save(self, env, policy: tuple[str, int, torch.nn.Module], buffer=None, **modules) -> None:
+        """Write the checkpoint: ``policy`` as (network name, width, module), the other
+        ``modules`` by name, the observation normalisation of the training ``env`` and,
+        for off-policy runs, the ``buffer``. The file is replaced in one step, so a run
+        stopped while saving keeps its previous checkpoint."""
+        network, hidden, actor = policy
+        state = {
+            "env": self.env_id,
+            "algo": self.algo,
+            "frames": self.frames,
+            "elapsed": self.seconds(),
+            "seed": self.seed,
+            "config": self.settings,
+            "policy": {"network": network, "hidden": hidden},
+            "counters": self.counters,
+            "obs_norm": env.transform[0].state_dict(),
+            "modules": {"actor": actor.state_dict(), **{name: m.state_dict() for name, m in modules.items()}},
+        }
+        partial = self.path.with_suffix(".pt.partial")
+        torch.save(state, partial)
+        os.replace(partial, self.path)
+        if buffer is not None:
+            buffer.dumps(self.out / "buffer")
+
+    def close(self) -> None:
+        for logger in self.loggers[1:]:
+            logger.experiment.flush()
+        if self.bar is not None:
+            self.bar.close()

@@ -1,0 +1,81 @@
+"""DQN on a BEACON env with discrete actions (lorenz-v0, mixing-v0), from TorchRL's
+pieces: ``DQNLoss`` (double DQN, a target network through ``SoftUpdate``), a
+``QValueActor``, epsilon-greedy exploration (``EGreedyModule``), a ``Collector`` over
+the batched env and a ``ReplayBuffer`` saved with each checkpoint.
+
+    python recipes/dqn.py --env lorenz-v0 --frames 200000
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.modules import EGreedyModule
+from torchrl.objectives import DQNLoss, SoftUpdate
+
+from beacon_torch.training import networks
+from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.evaluation import learning_curve
+from beacon_torch.training.run import Run, episode_values
+from config import DQNConfig, parse
+
+
+def main(cfg: DQNConfig) -> dict:
+    """Train DQN; returns the last logged values and the transitions collected."""
+    run = Run(cfg.out, cfg.env, "dqn", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    torch.manual_seed(cfg.seed)
+
+    # the env, with the saved normalisation when resuming
+    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+
+    # the action values (the greedy policy), the double-DQN loss with its target network
+    qvalue = networks.qvalue_actor(env, cfg.hidden).to(cfg.device)
+    loss = DQNLoss(qvalue, delay_value=True, double_dqn=True, action_space="categorical")
+    loss.make_value_estimator(gamma=cfg.gamma)
+    target = SoftUpdate(loss, tau=cfg.tau)
+    optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+
+    # epsilon-greedy exploration, annealed over the transitions; the replay buffer
+    explore = EGreedyModule(spec=env.action_spec, eps_init=cfg.eps_init, eps_end=cfg.eps_end, annealing_num_steps=cfg.eps_frames)
+    explore.step(run.frames)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size, device=cfg.device), batch_size=cfg.batch_size)
+    run.restore(buffer, actor=qvalue, loss=loss, optim=optim)
+    if run.remaining <= 0:
+        return run.last
+
+    def save() -> None:
+        run.save(env, policy=("qvalue_actor", cfg.hidden, qvalue), buffer=buffer, loss=loss, optim=optim)
+
+    random_frames = max(0, cfg.init_random_frames - run.frames)
+    policy = TensorDictSequential(qvalue, explore)
+    collector = make_collector(cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
+
+    for batch, data in enumerate(collector):
+        buffer.extend(data.reshape(-1))
+        values = episode_values(data)
+        if run.frames + data.numel() > cfg.init_random_frames:
+            for _ in range(cfg.updates_per_batch):
+                value_loss = loss(buffer.sample())["loss"]
+                optim.zero_grad()
+                value_loss.backward()
+                optim.step()
+                target.step()
+            values["loss"] = value_loss.item()
+            collector.update_policy_weights_()
+        explore.step(data.numel())
+        run.log(data.numel(), values)
+        if (batch + 1) % cfg.checkpoint_every == 0:
+            save()
+    collector.shutdown()
+    run.close()
+    save()
+    return run.last
+
+
+if __name__ == "__main__":
+    cfg = parse(DQNConfig)
+    print(f"dqn {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
+    print(learning_curve(cfg.out))

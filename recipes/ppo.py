@@ -1,0 +1,92 @@
+"""PPO on a BEACON env, from TorchRL's pieces: ``ClipPPOLoss`` with ``GAE``, a
+``Collector`` over the batched env, a replay buffer for the minibatches, observation
+normalisation (``ObservationNorm``) and episode returns (``RewardSum``) as transforms,
+and TorchRL's loggers. The paper's settings are the defaults (``config.py``).
+
+    python recipes/ppo.py --env lorenz-v0 --frames 200000 --num-envs 16
+    python recipes/ppo.py --env lorenz-v0 --frames 400000 --resume    # continue to 400k
+
+The run directory (``--out``, default ``runs/ppo-ENV/seedSEED``) holds
+``checkpoint.pt`` (networks, optimiser, normalisation, transitions collected; written
+every ``checkpoint_every`` updates and at the end), the logs and the learning curve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import torch
+from torch import nn
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from beacon_torch.training import networks
+from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.evaluation import learning_curve
+from beacon_torch.training.run import Run, episode_values
+from config import PPOConfig, parse
+
+
+def main(cfg: PPOConfig) -> dict:
+    """Train PPO; returns the last logged values and the transitions collected."""
+    run = Run(cfg.out, cfg.env, "ppo", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    torch.manual_seed(cfg.seed)
+
+    # the env, with the saved normalisation when resuming
+    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+    keys = networks.Keys.of(env)
+
+    # the paper's networks
+    actor = networks.stochastic_actor(env, cfg.hidden).to(cfg.device)
+    critic = networks.state_value(env, cfg.hidden).to(cfg.device)
+
+    # the loss, the advantage and one optimiser with the two learning rates
+    exclude = (-2,) if keys.agents else ()  # agents sit at different places of the film: their advantages are normalised apart
+    loss = ClipPPOLoss(actor, critic, clip_epsilon=cfg.clip, entropy_coeff=cfg.entropy, normalize_advantage=True, normalize_advantage_exclude_dims=exclude, loss_critic_type="l2")
+    advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False)
+    fields = dict(reward=keys.reward, done=keys.done, terminated=keys.terminated, value=keys.value, advantage=keys.advantage, value_target=keys.value_target)
+    loss.set_keys(action=keys.action, sample_log_prob=keys.log_prob, **fields)
+    advantage.set_keys(**fields)
+    optim = torch.optim.Adam([{"params": actor.parameters(), "lr": cfg.actor_lr}, {"params": critic.parameters(), "lr": cfg.critic_lr}])
+    run.restore(actor=actor, critic=critic, optim=optim)
+    if run.remaining <= 0:
+        return run.last
+
+    def save() -> None:
+        run.save(env, policy=("stochastic_actor", cfg.hidden, actor), critic=critic, optim=optim)
+
+    # the collector and the buffer the minibatches are drawn from
+    collector = make_collector(cfg.env, env, actor, frames_per_batch=cfg.n_rollout, total_frames=run.remaining, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_rollout, device=cfg.device), sampler=SamplerWithoutReplacement(), batch_size=cfg.n_rollout // cfg.minibatches)
+
+    for update, data in enumerate(collector):
+        if keys.agents:  # the shared end of an episode, as each agent's
+            for flag, key in (("done", keys.done), ("terminated", keys.terminated)):
+                data["next", *key] = data["next", flag].unsqueeze(-2).expand(data["next", *keys.reward].shape)
+        with torch.no_grad():
+            data = advantage(data)
+        buffer.extend(data.reshape(-1))
+        for _ in range(cfg.epochs):
+            for _ in range(cfg.minibatches):
+                losses = loss(buffer.sample())
+                total = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
+                optim.zero_grad()
+                total.backward()
+                nn.utils.clip_grad_norm_(loss.parameters(), cfg.grad_clip)
+                optim.step()
+        collector.update_policy_weights_()
+        run.log(data.numel(), {**episode_values(data, keys.reward), "loss": total.item()})
+        if (update + 1) % cfg.checkpoint_every == 0:
+            save()
+    collector.shutdown()
+    run.close()
+    save()
+    return run.last
+
+
+if __name__ == "__main__":
+    cfg = parse(PPOConfig)
+    print(f"ppo {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
+    print(learning_curve(cfg.out))

@@ -1,0 +1,90 @@
+"""TD3 on a BEACON env with continuous actions, from TorchRL's pieces: ``TD3Loss``
+(twin Q-networks, target policy smoothing, delayed actor and target updates through
+``SoftUpdate``), ``AdditiveGaussianModule`` exploration, a ``Collector`` over the
+batched env and a ``ReplayBuffer`` saved with each checkpoint.
+
+    python recipes/td3.py --env burgers-v0 --frames 200000
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.modules import AdditiveGaussianModule
+from torchrl.objectives import SoftUpdate, TD3Loss
+
+from beacon_torch.training import networks
+from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.evaluation import learning_curve
+from beacon_torch.training.run import Run, episode_values
+from config import TD3Config, parse
+
+ACTOR_DELAY = 2  # critic updates per actor update
+
+
+def main(cfg: TD3Config) -> dict:
+    """Train TD3; returns the last logged values and the transitions collected."""
+    run = Run(cfg.out, cfg.env, "td3", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    torch.manual_seed(cfg.seed)
+
+    # the env, with the saved normalisation when resuming
+    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+
+    # a deterministic actor, twin critics (inside the loss) and their optimisers
+    actor = networks.deterministic_actor(env, cfg.hidden).to(cfg.device)
+    qvalue = networks.action_value(env, cfg.hidden).to(cfg.device)
+    loss = TD3Loss(actor, qvalue, bounds=networks.action_bounds(env), policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip, loss_function="l2")
+    loss.make_value_estimator(gamma=cfg.gamma)
+    target = SoftUpdate(loss, tau=cfg.tau)
+    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.lr)
+    critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr)
+
+    # exploration, the replay buffer and the collector
+    policy = TensorDictSequential(actor, AdditiveGaussianModule(spec=env.action_spec, sigma_init=cfg.exploration_sigma, sigma_end=cfg.exploration_sigma, annealing_num_steps=1))
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size, device=cfg.device), batch_size=cfg.batch_size)
+    run.restore(buffer, actor=actor, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
+    if run.remaining <= 0:
+        return run.last
+
+    def save() -> None:
+        run.save(env, policy=("deterministic_actor", cfg.hidden, actor), buffer=buffer, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
+
+    random_frames = max(0, cfg.init_random_frames - run.frames)
+    collector = make_collector(cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
+
+    updates = 0
+    for batch, data in enumerate(collector):
+        buffer.extend(data.reshape(-1))
+        values = episode_values(data)
+        if run.frames + data.numel() > cfg.init_random_frames:
+            for _ in range(cfg.updates_per_batch):
+                sample = buffer.sample()
+                critic_loss = loss.value_loss(sample)[0]
+                critic_optim.zero_grad()
+                critic_loss.backward()
+                critic_optim.step()
+                updates += 1
+                if updates % ACTOR_DELAY == 0:
+                    actor_loss = loss.actor_loss(sample)[0]
+                    actor_optim.zero_grad()
+                    actor_loss.backward()
+                    actor_optim.step()
+                    target.step()
+                values["loss"] = critic_loss.item()
+            collector.update_policy_weights_()
+        run.log(data.numel(), values)
+        if (batch + 1) % cfg.checkpoint_every == 0:
+            save()
+    collector.shutdown()
+    run.close()
+    save()
+    return run.last
+
+
+if __name__ == "__main__":
+    cfg = parse(TD3Config)
+    print(f"td3 {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
+    print(learning_curve(cfg.out))
