@@ -1,9 +1,15 @@
 """``FlowEnv``: the batched TorchRL environment every BEACON env derives from.
 
-The base owns everything that is not physics: batch size, device and dtype, the seeded
-generator, specs, action checking, step counting and truncation, partial resets, blow-up
-handling and the history kept for rendering. A subclass supplies the physics through four
-pure-ish methods on a dict of state tensors (each with a leading batch dimension):
+The base owns the env's core, everything that is not physics: batch size, device and
+dtype, the seeded generator, specs, action checking, step counting and truncation,
+partial resets, blow-up handling and the state. The compiled path (``compiled``), the
+autograd plumbing (``autograd``) and the history kept for rendering (``history``) live in
+modules of their own. A subclass supplies the physics through five pure-ish methods on a
+dict of state tensors (each with a leading batch dimension):
+
+``sizes(params)`` (a class method)
+    the observation size and the action size (continuous) or number of actions
+    (discrete) that the parameters give;
 
 ``initial_state(mask)``
     the state at the start of an episode for the whole batch (``mask`` says which members
@@ -17,8 +23,9 @@ pure-ish methods on a dict of state tensors (each with a leading batch dimension
 ``null_action()``
     the "no control" action of the benchmark, for the whole batch.
 
-and optionally ``setup()`` (grid and sizes derived from the parameters, before the
-specs are built) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
+and optionally ``setup()`` (grid and kernels derived from the parameters, before the
+specs are built; substeps go through ``self.kernels``) and ``out_of_bounds(state)``
+(physical bounds beyond finiteness).
 
 With ``differentiable=True`` the steps keep the autograd graph through the state, so the
 rewards can be differentiated with respect to the actions, to parameters given as
@@ -30,7 +37,6 @@ depends on differentiable parameters in ``advance``, not there.
 
 from __future__ import annotations
 
-import contextlib
 from typing import Any, ClassVar
 
 import numpy as np
@@ -39,6 +45,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from beacon_torch.autograd import checkpointed, graph_mode
+from beacon_torch.compiled import Kernels
+from beacon_torch.history import History
 from beacon_torch.params import resolve_params
 
 State = dict[str, torch.Tensor]
@@ -90,9 +99,6 @@ class FlowEnv(EnvBase):
     env_id: ClassVar[str] = ""
     Params: ClassVar[type]
     episode_length: ClassVar[int]
-    n_obs: ClassVar[int]
-    # continuous: the action dimension; discrete: the number of choices
-    n_actions: ClassVar[int]
     discrete: ClassVar[bool] = False
     # where the action is read from and the observation and reward written to
     # (nested keys for multi-agent variants)
@@ -137,21 +143,19 @@ class FlowEnv(EnvBase):
             dtype=self.dtype,
             env_id=self.env_id,
         )
+        # the observation size; continuous: the action dimension, discrete: the number
+        # of choices
+        self.n_obs, self.n_actions = self.sizes(self.params)
         # Checking action values needs a host-device synchronisation on accelerators;
         # a trusted training loop may switch it off there.
         self.check_actions = check_actions
         if grad_checkpoint and not differentiable:
             raise ValueError(f"{self.env_id}: grad_checkpoint=True needs differentiable=True")
         self.differentiable = bool(differentiable)
-        # recompute each action's substeps in the backward pass instead of keeping them:
-        # the memory of a differentiated episode becomes one state per action
+        # recompute each action's substeps in the backward pass instead of keeping them
         self.grad_checkpoint = bool(grad_checkpoint)
-        # set by compile(); TorchRL's constructor calls it for ``compile=True``
-        self.compile_options: dict | None = None
-        self._compiled: dict = {}
-        self.record_history = record_history
-        self.render_index = 0
-        self.history: list[State] = []
+        self.kernels = Kernels(self.inductor_options, self.compile_fullgraph)
+        self.history = History(record_history)
         with torch.no_grad():
             self.setup()
         self._make_specs()
@@ -163,55 +167,26 @@ class FlowEnv(EnvBase):
         self._count = torch.zeros(batch_size, dtype=torch.int64, device=device)
 
     def compile(self, *, warmup: int | None = None, **kwargs: Any) -> "FlowEnv":
-        """Run the physics kernels (:meth:`kernel`) through ``torch.compile`` from now on;
-        returns the env. ``make(..., compile=True)`` (or a dict of ``torch.compile``
-        options) calls this: unlike TorchRL's default, which traces the whole
-        ``step_and_maybe_reset``, only the substeps are compiled, each into one fused
-        graph with static shapes (``fullgraph=True, dynamic=False`` unless given; the
-        cavities leave their transport sweep outside the graphs), so
-        that the TorchRL step around them stays eager and flexible. ``warmup`` is
-        accepted for TorchRL's signature and has nothing to do here."""
-        options = {**self.inductor_options, **kwargs.pop("options", {})}
-        self.compile_options = {"fullgraph": self.compile_fullgraph, "dynamic": False, **kwargs, "options": options}
-        self._compiled = {}
+        """Run the physics kernels through ``torch.compile`` from now on; returns the
+        env. ``make(..., compile=True)`` (or a dict of ``torch.compile`` options) calls
+        this: unlike TorchRL's default, which traces the whole ``step_and_maybe_reset``,
+        only the substeps are compiled, each into one fused graph with static shapes
+        (``fullgraph=True, dynamic=False`` unless given; the cavities leave their
+        transport sweep outside the graphs), so that the TorchRL step around them stays
+        eager and flexible. ``warmup`` is accepted for TorchRL's signature and has
+        nothing to do here."""
+        self.kernels.compile(**kwargs)
         return self
 
-    def kernel(self, fn, unroll: int = 1):
-        """``fn`` (a substep, or any function of tensors called many times per action)
-        as the env runs it: itself in eager mode, compiled after :meth:`compile`.
-        With ``unroll`` > 1 the returned function applies ``fn`` that many times to its
-        first argument (the carried state; the others are passed unchanged), so that a
-        compiled call covers several substeps and the per-call overhead of the compiled
-        code (guards, wrapper: about 0.1 ms on CPU) is paid once for all of them.
-        Compilation happens on the first call for each shape and dtype; later instances
-        of the same shapes reuse it (tensors are arguments, not constants)."""
-        if unroll > 1:
-            single = fn
-
-            def fn(state, *args, **kwargs):
-                for _ in range(unroll):
-                    state = single(state, *args, **kwargs)
-                return state
-
-        def run(*args, **kwargs):
-            if self.compile_options is None:
-                return fn(*args, **kwargs)
-            compiled = self._compiled.get(fn)
-            if compiled is None:
-                import torch._dynamo
-
-                # each env class, shape and dtype is one cache entry of the substep's
-                # code; past the default limit (8) torch would silently run it eagerly
-                torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-                compiled = self._compiled[fn] = torch.compile(fn, **self.compile_options)
-            return compiled(*args, **kwargs)
-
-        return run
-
     # ------------------------------------------------------------------ physics hooks
+    @classmethod
+    def sizes(cls, params) -> tuple[int, int]:
+        """``(n_obs, n_actions)`` of an env with these parameters."""
+        raise NotImplementedError
+
     def setup(self) -> None:
-        """Derive what the parameters fix (grid, sizes, masks) before the specs are
-        built; ``n_obs``/``n_actions`` may be set here when the parameters decide them."""
+        """Derive what the parameters fix (grid, kernels, masks) before the specs are
+        built."""
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         raise NotImplementedError
@@ -348,32 +323,6 @@ class FlowEnv(EnvBase):
         return action.clamp(-1.0, 1.0)
 
     # ------------------------------------------------------------------ gradients
-    def _graph(self):
-        """The autograd mode of a step: the caller's in differentiable mode, none else."""
-        return contextlib.nullcontext() if self.differentiable else torch.no_grad()
-
-    def _checkpointed_advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
-        """:meth:`advance` under activation checkpointing. The recomputation in the
-        backward pass must draw the same noise as the step did, from the env's own
-        generator, and leave the generator where the episode has since taken it."""
-        from torch.utils.checkpoint import checkpoint
-
-        drawn_from = self.rng.get_state()
-        calls = []
-
-        def run(state, action):
-            if not calls:
-                calls.append(1)
-                return self.advance(state, action, count)
-            now = self.rng.get_state()
-            self.rng.set_state(drawn_from)
-            try:
-                return self.advance(state, action, count)
-            finally:
-                self.rng.set_state(now)
-
-        return checkpoint(run, state, action, use_reentrant=False)
-
     def detach_state(self) -> None:
         """Cut the autograd graph at the current state (truncated backpropagation):
         later rewards are differentiated back to here, not further."""
@@ -405,7 +354,7 @@ class FlowEnv(EnvBase):
             if value.ndim == 0 or value.shape[0] != self.n_envs:
                 raise ValueError(f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got shape {tuple(value.shape)}")
         state = {k: v.to(self.device, self.dtype) if v.is_floating_point() else v.to(self.device) for k, v in state.items()}
-        with self._graph():
+        with graph_mode(self.differentiable):
             try:
                 obs = self.observe(state)
             except KeyError as err:
@@ -426,7 +375,7 @@ class FlowEnv(EnvBase):
             init = self.initial_state(mask)
         # in differentiable mode the members that go on keep their graph through a
         # partial reset; the new starts are data
-        with self._graph():
+        with graph_mode(self.differentiable):
             if mask is None or self._state is None:
                 self._state = init
                 self._count = torch.zeros_like(self._count)
@@ -446,10 +395,7 @@ class FlowEnv(EnvBase):
                 f"check their parameters ({self.params})"
             )
         self._obs = obs
-        if self.record_history:
-            member = self.render_index
-            if mask is None or bool(mask[member]):
-                self.history = [self._member_state(member)]
+        self.history.reset(self._state, mask)
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return TensorDict(
             {**self._pack(obs, None), "done": false, "terminated": false.clone(), "truncated": false.clone()},
@@ -463,9 +409,9 @@ class FlowEnv(EnvBase):
         action = self.check_action(tensordict.get(self.action_key, None))
         stepping = tensordict.get("_step", None)
         old = self._state
-        with self._graph():
+        with graph_mode(self.differentiable):
             if self.grad_checkpoint and torch.is_grad_enabled():
-                new, reward = self._checkpointed_advance(old, action, self._count)
+                new, reward = checkpointed(self.advance, self.rng, old, action, self._count)
             else:
                 new, reward = self.advance(old, action, self._count)
             obs = self.observe(new)
@@ -487,8 +433,7 @@ class FlowEnv(EnvBase):
                 ok = ok | ~stepping
                 count = torch.where(stepping, count, self._count)
         self._state, self._obs, self._count = new, obs, count
-        if self.record_history:
-            self.history.append(self._member_state(self.render_index))
+        self.history.append(new)
         terminated = (~ok)[:, None]
         truncated = (count >= self.episode_length)[:, None]
         return TensorDict(
@@ -503,8 +448,14 @@ class FlowEnv(EnvBase):
         )
 
     # ------------------------------------------------------------------ rendering
-    def _member_state(self, index: int) -> State:
-        return {k: v[index].detach().clone() for k, v in self._state.items()}
+    @property
+    def render_index(self) -> int:
+        """The batch member that :meth:`render` draws (0 by default)."""
+        return self.history.index
+
+    @render_index.setter
+    def render_index(self, index: int) -> None:
+        self.history.index = int(index)
 
     def render(self) -> np.ndarray:
         """An RGB frame (``H x W x 3`` uint8) of member ``render_index``.
@@ -514,11 +465,7 @@ class FlowEnv(EnvBase):
         """
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before render()")
-        history = self.history if self.record_history and self.history else [
-            self._member_state(self.render_index)
-        ]
-        history = [{k: v.cpu() for k, v in s.items()} for s in history]
-        return self.render_frame(history)
+        return self.render_frame(self.history.frames(self._state))
 
     def render_frame(self, history: list[State]) -> np.ndarray:
         raise NotImplementedError

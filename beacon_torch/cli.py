@@ -57,8 +57,9 @@ def _parse_params(items: Sequence[str]) -> dict[str, Any]:
 def cmd_list(args: argparse.Namespace) -> int:
     for env_id in list_envs():
         cls = ENVS[env_id]
-        kind = f"{cls.n_actions} discrete actions" if cls.discrete else f"{cls.n_actions}-D continuous action"
-        print(f"{env_id}: {kind}, {cls.n_obs} observations, {cls.episode_length} steps")
+        n_obs, n_actions = cls.sizes(cls.Params())  # at the default parameters
+        kind = f"{n_actions} discrete actions" if cls.discrete else f"{n_actions}-D continuous action"
+        print(f"{env_id}: {kind}, {n_obs} observations, {cls.episode_length} steps")
         for row in describe(cls.Params):
             print(f"    {row['name']} = {row['default']!r}  {row['range']}  {row['doc']}")
     return 0

@@ -17,12 +17,12 @@ ACTIONS = {"rayleigh-v0": 1, "mixing-v0": 1, "mixing-continuous-v0": 1}
 def test_compiled_trajectories_follow_the_eager_ones(env_id):
     eager = make(env_id, 2, dtype=torch.float64, seed=3)
     compiled = make(env_id, 2, dtype=torch.float64, seed=3, compile=True)
-    assert compiled.compile_options is not None and eager.compile_options is None
+    assert compiled.kernels.options is not None and eager.kernels.options is None
     g = torch.Generator().manual_seed(1)
     actions = [eager.random_action(g) for _ in range(ACTIONS.get(env_id, 3))]
     obs_e, rew_e = run_actions(eager, actions)
     obs_c, rew_c = run_actions(compiled, actions)
-    assert compiled._compiled, "the substeps did not go through torch.compile"
+    assert compiled.kernels._cache, "the substeps did not go through torch.compile"
     torch.testing.assert_close(obs_c, obs_e, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(rew_c, rew_e, rtol=1e-9, atol=1e-12)
 
@@ -40,7 +40,7 @@ def test_compilation_happens_once_not_per_step():
 
 def test_compile_accepts_torch_compile_options_and_rejects_nonsense():
     env = beacon_torch.make("lorenz-v0", 2, compile={"mode": "default"})
-    assert env.compile_options["mode"] == "default" and env.compile_options["fullgraph"]
+    assert env.kernels.options["mode"] == "default" and env.kernels.options["fullgraph"]
     with pytest.raises(TypeError, match="compile"):
         beacon_torch.make("lorenz-v0", 2, compile="yes")
 

@@ -60,9 +60,11 @@ class BurgersEnv(FlowEnv):
     env_id = "burgers-v0"
     Params = BurgersParams
     episode_length = EPISODE_LENGTH
-    n_obs = N_OBS
-    n_actions = 1
     deterministic = False
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return N_OBS, 1
 
     def setup(self) -> None:
         p = self.params
@@ -71,7 +73,7 @@ class BurgersEnv(FlowEnv):
         source = torch.zeros(self.n_cells - 2, dtype=self.dtype, device=self.device)
         source[self.ctrl - 1] = 1.0  # interior cells start at index 1
         self._source = source
-        self._substeps = self.kernel(burgers_substep, unroll=UNROLL)
+        self._substeps = self.kernels(burgers_substep, unroll=UNROLL)
 
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)

@@ -57,12 +57,14 @@ class LorenzEnv(FlowEnv):
     env_id = "lorenz-v0"
     Params = LorenzParams
     episode_length = EPISODE_LENGTH
-    n_obs = 6
-    n_actions = 3
     discrete = True
 
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 6, 3  # push down, none, up
+
     def setup(self) -> None:
-        self._lorenz = self.kernel(lorenz_step)
+        self._lorenz = self.kernels(lorenz_step)
 
     def forcing(self, action: torch.Tensor) -> torch.Tensor:
         return (action - 1).to(self.dtype)
@@ -105,8 +107,11 @@ class LorenzContinuousEnv(LorenzEnv):
     """lorenz-continuous-v0: the same system with a forcing u = action in [-1, 1]."""
 
     env_id = "lorenz-continuous-v0"
-    n_actions = 1
     discrete = False
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 6, 1
 
     def forcing(self, action: torch.Tensor) -> torch.Tensor:
         return action[:, 0]

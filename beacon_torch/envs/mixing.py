@@ -81,11 +81,13 @@ class MixingEnv(FlowEnv):
     env_id = "mixing-v0"
     Params = MixingParams
     episode_length = EPISODE_LENGTH
-    n_obs = 3 * N_PROBES**2 * HISTORY
-    n_actions = 4
     discrete = True
     inductor_options = {"cpp_wrapper": True}
     compile_fullgraph = False
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 3 * N_PROBES**2 * HISTORY, 4
 
     def setup(self) -> None:
         p = self.params
@@ -94,7 +96,7 @@ class MixingEnv(FlowEnv):
         self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, POISSON_BC, jacobi_tol=tol, dtype=self.dtype, device=self.device)
         self.solver = self.cavity.solver
         self._c_ghosts = Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, dtype=self.dtype, device=self.device)
-        self._substeps = self.kernel(substep, unroll=UNROLL)
+        self._substeps = self.kernels(substep, unroll=UNROLL)
         self._probes = Probes(("c", "u", "v"), self.nx, self.ny, self.device)
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
 
@@ -183,8 +185,11 @@ class MixingContinuousEnv(MixingEnv):
     (+a0, -a0) u_max and the right/left walls at (+a1, -a1) u_max."""
 
     env_id = "mixing-continuous-v0"
-    n_actions = 2
     discrete = False
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 3 * N_PROBES**2 * HISTORY, 2
 
     def walls(self, action: torch.Tensor) -> torch.Tensor:
         a0, a1 = action[:, 0], action[:, 1]

@@ -179,17 +179,18 @@ class RayleighEnv(FlowEnv):
     env_id = "rayleigh-v0"
     Params = RayleighParams
     episode_length = EPISODE_LENGTH
-    n_obs = 3 * N_PROBES**2 * HISTORY
-    n_actions = 10
     blowup_reward = -1.0
     inductor_options = {"cpp_wrapper": True}
     compile_fullgraph = False
 
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 3 * N_PROBES**2 * HISTORY, p.n_sgts  # one temperature per bottom segment
+
     def setup(self) -> None:
         p = self.params
         self.nx, self.ny, self.dx, self.dy = grid(p)
-        self.n_actions = p.n_sgts
-        self.convection = Convection(p, self.dtype, self.device, self.kernel(substep, unroll=UNROLL), UNROLL)
+        self.convection = Convection(p, self.dtype, self.device, self.kernels(substep, unroll=UNROLL), UNROLL)
         self.cavity = self.convection.cavity
         self.solver = self.cavity.solver
         self._probes = Probes(("theta", "u", "v"), self.nx, self.ny, self.device)

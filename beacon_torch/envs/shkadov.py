@@ -179,8 +179,6 @@ class ShkadovEnv(FlowEnv):
     env_id = "shkadov-v0"
     Params = ShkadovParams
     episode_length = EPISODE_LENGTH
-    n_obs = 50
-    n_actions = 5
     # Below every completed episode measured: 256 members under random, bang-bang,
     # constant and square-wave jets never left the bounds, the worst scored -27.3
     # (all jets at +1); every reward is negative, so a blown-up episode scores below
@@ -188,17 +186,19 @@ class ShkadovEnv(FlowEnv):
     blowup_reward = -100.0
     deterministic = False
 
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return p.n_jets * int(round(OBS_LENGTH)), p.n_jets  # the flow rates upstream of every jet
+
     def setup(self) -> None:
         p = self.params
         self.n_cells = int(round(p.length / DX))
         self.n_jets = p.n_jets
-        self.n_actions = p.n_jets
-        self.n_obs = p.n_jets * int(round(OBS_LENGTH))
         step = int(round(p.jet_space / DX))
         self.jet_centres = [int(round(p.jet_pos / DX)) + j * step for j in range(p.n_jets)]
         profiles = jet_profiles(self.jet_centres, self.n_cells, self.dtype, self.device)
         self._profiles = profiles[:, 1:-1].contiguous()
-        self._substep = self.kernel(shkadov_substep)
+        self._substep = self.kernels(shkadov_substep)
         obs = [c - int(round(OBS_LENGTH / DX)) + CELLS_PER_UNIT * m for c in self.jet_centres for m in range(int(round(OBS_LENGTH)))]
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))

@@ -121,8 +121,6 @@ class SloshingEnv(FlowEnv):
     env_id = "sloshing-v0"
     Params = SloshingParams
     episode_length = EPISODE_LENGTH
-    n_obs = 100
-    n_actions = 1
     # Below every episode that completes: it keeps 0 <= h <= 2 (a negative depth makes
     # the wave speed non-finite, which ends the episode too), so each step earns at least
     # -(dx sqrt(n_cells) + alpha amp) = -0.179 and 200 steps at least -35.9 at the
@@ -130,11 +128,14 @@ class SloshingEnv(FlowEnv):
     # meant -10, which its own step then overwrites with the step's reward.
     blowup_reward = -40.0
 
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return (int(round(p.L * CELLS_PER_UNIT)) + 1) // 2, 1  # q in every second cell
+
     def setup(self) -> None:
         self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
         self.dx = self.params.L / self.n_cells
-        self.n_obs = (self.n_cells + 1) // 2  # q in every second cell
-        self._substep = self.kernel(sloshing_substep)
+        self._substep = self.kernels(sloshing_substep)
         self._start = self._start_state()
 
     def _start_state(self) -> State:

@@ -91,12 +91,14 @@ class VortexEnv(FlowEnv):
     env_id = "vortex-v0"
     Params = VortexParams
     episode_length = EPISODE_LENGTH
-    n_obs = 8
-    n_actions = 2
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 8, 2
 
     def setup(self) -> None:
         # the 5 substeps of an action are one compiled region
-        self._substeps = self.kernel(vortex_substep, unroll=SUBSTEPS)
+        self._substeps = self.kernels(vortex_substep, unroll=SUBSTEPS)
 
     def null_action(self) -> torch.Tensor:
         a = torch.zeros((self.n_envs, 2), dtype=self.dtype, device=self.device)

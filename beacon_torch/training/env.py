@@ -66,7 +66,7 @@ def make_collector(
         raise ValueError(f"the collected batch ({frames_per_batch}) must be a multiple of collectors x members ({collectors} x {members})")
     base = env.base_env
     makers = [
-        partial(make_env, env_id, members, device=device, seed=seed + 7919 * (k + 1), norm=env.transform[0].state_dict(), dtype=base.dtype, compile=base.compile_options or False)
+        partial(make_env, env_id, members, device=device, seed=seed + 7919 * (k + 1), norm=env.transform[0].state_dict(), dtype=base.dtype, compile=base.kernels.options or False)
         for k in range(collectors)
     ]
     if ray is None:

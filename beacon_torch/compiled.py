@@ -1,0 +1,93 @@
+"""The compiled path of an env's physics: which functions run through ``torch.compile``
+and the cache of their compiled versions.
+
+An env hands its substeps to :meth:`Kernels.__call__` once, at set-up, and calls what
+it gets back; whether that runs eagerly or compiled is decided later by
+:meth:`Kernels.compile`, so that ``make(..., compile=True)`` needs nothing of the env's
+code.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+
+# each env class, shape and dtype is one entry of a substep's compiled code; past
+# torch's default limit (8 entries) the substep would silently run eagerly
+RECOMPILE_LIMIT = 64
+
+
+class _RecompileLimit:
+    """Raises dynamo's recompile limit while a compiled kernel runs, and only then:
+    the limit is a process-wide setting, which an env must not change for its user."""
+
+    depth = 0
+    prior = 0
+
+    def __enter__(self) -> None:
+        import torch._dynamo
+
+        if self.depth == 0:
+            self.prior = torch._dynamo.config.recompile_limit
+            torch._dynamo.config.recompile_limit = max(self.prior, RECOMPILE_LIMIT)
+        self.depth += 1
+
+    def __exit__(self, *exc: Any) -> None:
+        import torch._dynamo
+
+        self.depth -= 1
+        if self.depth == 0:
+            torch._dynamo.config.recompile_limit = self.prior
+
+
+_LIMIT = _RecompileLimit()
+
+
+class Kernels:
+    """The compiled kernels of one env. ``inductor_options`` are the env class's
+    defaults for inductor; ``fullgraph`` whether each kernel must compile to one graph
+    (False where part of it stays eager on purpose)."""
+
+    def __init__(self, inductor_options: dict | None = None, fullgraph: bool = True) -> None:
+        self.inductor_options = dict(inductor_options or {})
+        self.fullgraph = fullgraph
+        # the ``torch.compile`` options, None while the kernels run eagerly
+        self.options: dict | None = None
+        self._cache: dict[Callable, Callable] = {}
+
+    def compile(self, **kwargs: Any) -> None:
+        """Compile every kernel from now on (on its first call for each shape and
+        dtype): one fused graph with static shapes (``fullgraph``, ``dynamic=False``)
+        unless ``kwargs`` (``torch.compile`` options) say otherwise."""
+        options = {**self.inductor_options, **kwargs.pop("options", {})}
+        self.options = {"fullgraph": self.fullgraph, "dynamic": False, **kwargs, "options": options}
+        self._cache = {}
+
+    def __call__(self, fn: Callable, unroll: int = 1) -> Callable:
+        """``fn`` (a substep, or any function of tensors called many times per action)
+        as the env runs it: itself in eager mode, compiled after :meth:`compile`. With
+        ``unroll`` > 1 the returned function applies ``fn`` that many times to its first
+        argument (the carried state; the others are passed unchanged), so that a
+        compiled call covers several substeps and the per-call overhead of the compiled
+        code (guards, wrapper: about 0.1 ms on CPU) is paid once for all of them.
+        Later envs of the same shapes reuse the compiled code (tensors are arguments,
+        not constants)."""
+        if unroll > 1:
+            single = fn
+
+            def fn(state, *args, **kwargs):
+                for _ in range(unroll):
+                    state = single(state, *args, **kwargs)
+                return state
+
+        def run(*args, **kwargs):
+            if self.options is None:
+                return fn(*args, **kwargs)
+            compiled = self._cache.get(fn)
+            if compiled is None:
+                compiled = self._cache[fn] = torch.compile(fn, **self.options)
+            with _LIMIT:
+                return compiled(*args, **kwargs)
+
+        return run
