@@ -71,7 +71,11 @@ def substep(fields: State, walls, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -
     dx, dy = cavity.dx, cavity.dy
     u, v = cavity.predict(fields, walls, nu, DT)
     u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
-    c = c_ghosts(cavity.sweep(fields["c"], u, v, kappa, DT, dx, dy))
+    # the published step sets the ghosts from the interior before its transport and
+    # leaves them so after it: the reward, a mean over the ghosted array, sees those
+    c = c_ghosts(fields["c"][1:-1, 1:-1])
+    interior = cavity.sweep(c, u, v, kappa, DT, dx, dy)
+    c = torch.cat((c[:1], torch.cat((c[1:-1, :1], interior, c[1:-1, -1:]), 1), c[-1:]), 0)
     return {"u": u, "v": v, "p": p, "c": c}
 
 
@@ -95,7 +99,7 @@ class MixingEnv(FlowEnv):
         tol = JACOBI_TOL if p.solver == "jacobi" else None
         self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, POISSON_BC, jacobi_tol=tol, dtype=self.dtype, device=self.device)
         self.solver = self.cavity.solver
-        self._c_ghosts = Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, dtype=self.dtype, device=self.device)
+        self._c_ghosts = Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, corners=False, dtype=self.dtype, device=self.device)
         self._substeps = self.kernels(substep, unroll=UNROLL)
         self._probes = Probes(("c", "u", "v"), self.nx, self.ny, self.device)
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)

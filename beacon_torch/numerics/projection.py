@@ -180,10 +180,15 @@ class Ghosts:
         return [0, *range(n), n - 1], [low, *[1.0] * n, high]
 
     @classmethod
-    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, **kw) -> "Ghosts":
+    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw) -> "Ghosts":
         """Cell-centred ``[nx, ny, B]`` to ``[nx + 2, ny + 2, B]``; each wall's factor is
-        GRADIENT, VALUE or ZERO."""
-        return cls(*cls._cell_axis(nx, left, right), *cls._cell_axis(ny, bottom, top), **kw)
+        GRADIENT, VALUE or ZERO. No stencil reads the four corner ghosts; ``corners``
+        False leaves them at zero (where a reward averages over the ghosted array, as
+        the published mixing reward does)."""
+        ghosts = cls(*cls._cell_axis(nx, left, right), *cls._cell_axis(ny, bottom, top), **kw)
+        if not corners:
+            ghosts.factor[[0, 0, -1, -1], [0, -1, 0, -1]] = 0.0
+        return ghosts
 
     @classmethod
     def u_faces(cls, nx: int, ny: int, **kw) -> "Ghosts":
