@@ -218,14 +218,10 @@ class FlowEnv(EnvBase):
         """Per-member shape of the action: ``()`` for discrete, ``(n_actions,)`` else."""
         return () if self.discrete else (self.n_actions,)
 
-    def member(self, value: Any, dims: int = 1) -> Any:
-        """A parameter shaped to broadcast against fields with ``dims`` dimensions after
-        the batch: a per-member tensor becomes ``[batch, 1, ...]``, a scalar stays."""
-        return value.reshape(-1, *(1,) * dims) if isinstance(value, torch.Tensor) else value
-
-    def value_of(self, value: Any, index: int) -> float:
-        """A parameter's value for batch member ``index`` (scalar or per-member)."""
-        return float(value[index]) if isinstance(value, torch.Tensor) else float(value)
+    def member(self, value: torch.Tensor, dims: int = 1) -> torch.Tensor:
+        """A per-member parameter ``[batch]`` shaped to broadcast against fields with
+        ``dims`` dimensions after the batch: ``[batch, 1, ...]``."""
+        return value.reshape(-1, *(1,) * dims)
 
     def tensor(self, value: Any) -> torch.Tensor:
         """A tensor on the env's device and dtype."""

@@ -6,9 +6,10 @@ keyword arguments into an instance of that dataclass, rejecting unknown names, w
 types, non-finite and out-of-range values with an error that names the parameter.
 
 A value is either a scalar, shared by the whole batch, or one value per batch member
-(a 1-D sequence, array or tensor of the batch's length). Per-member values become tensors
-on the env's device and dtype; scalars stay Python numbers so that the kernels broadcast
-them for free.
+(a 1-D sequence, array or tensor of the batch's length). Inside the env, a parameter that
+may differ per member is always a ``[batch]`` tensor on the env's device and dtype (a
+scalar is repeated), so that the physics has one code path; parameters that fix the
+grid, the actuators or a cached start (``per_member=False``) stay Python numbers.
 
 A real parameter may also be a tensor that requires grad (a number or one value per
 member), for environments made with ``differentiable=True``: it is kept as given (cast
@@ -184,13 +185,19 @@ def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
                 f"(shape ({n},)), got shape {shape}"
             )
         checked = [_check_scalar(name, v, m, f"[{i}]") for i, v in enumerate(values)]
-        if m["kind"] == "complex":
-            cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
-            return torch.tensor(checked, dtype=cdtype, device=device)
-        if m["kind"] == "int":
-            return torch.tensor(checked, dtype=torch.int64, device=device)
-        return torch.tensor(checked, dtype=dtype, device=device)
-    return _check_scalar(name, value, m)
+        return _member_tensor(checked, m, device, dtype)
+    value = _check_scalar(name, value, m)
+    return _member_tensor([value] * n, m, device, dtype) if m["per_member"] else value
+
+
+def _member_tensor(values: list, m, device, dtype) -> torch.Tensor:
+    """One value per member as a tensor of the parameter's kind."""
+    if m["kind"] == "complex":
+        cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
+        return torch.tensor(values, dtype=cdtype, device=device)
+    if m["kind"] == "int":
+        return torch.tensor(values, dtype=torch.int64, device=device)
+    return torch.tensor(values, dtype=dtype, device=device)
 
 
 def resolve_params(

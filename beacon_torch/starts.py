@@ -36,8 +36,9 @@ def start_param(doc: str):
 
 def _differs(value, default) -> bool:
     if isinstance(value, torch.Tensor):
+        # in the parameter's own dtype: a float32 9.81 is the default 9.81
         value = value.detach()
-        return value.numel() > 0 and bool((value != default).any())
+        return bool((value != torch.as_tensor(default, dtype=value.dtype, device=value.device)).any())
     return not math.isclose(number(value), default, rel_tol=0.0, abs_tol=0.0)
 
 

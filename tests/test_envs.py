@@ -225,7 +225,7 @@ def test_blow_up_ends_that_member_only(env_id, dtype):
     keeps a finite observation, and the others go on bit for bit as in a batch without
     it."""
     name, extreme, steps = BLOWUPS[env_id]
-    default = getattr(make(env_id).params, name)
+    default = getattr(make(env_id).params, name)[0].item()  # one value per member
     values = [default, default, extreme, default]
     env = make(env_id, 4, dtype=dtype, seed=7, **{name: values})
     ref = make(env_id, 4, dtype=dtype, seed=7)

@@ -17,9 +17,13 @@ def test_defaults_are_the_papers_tables():
 
 
 def test_parameters_are_keyword_arguments():
-    env = beacon_torch.make("lorenz-v0", rho=20, beta=np.float64(2.5))
-    assert env.params.rho == 20.0 and isinstance(env.params.rho, float)
-    assert env.params.beta == 2.5
+    env = beacon_torch.make("lorenz-v0", 2, rho=20, beta=np.float64(2.5))
+    # a parameter that may differ per member is one value per member inside the env,
+    # whether it was given as one number or as a sequence
+    assert torch.equal(env.params.rho, torch.tensor([20.0, 20.0]))
+    assert torch.equal(env.params.beta, torch.tensor([2.5, 2.5]))
+    # grid-fixing parameters stay numbers
+    assert beacon_torch.make("shkadov-v0", n_jets=3).params.n_jets == 3
 
 
 @pytest.mark.parametrize(
@@ -82,7 +86,7 @@ def test_per_member_parameters_become_batch_tensors():
 
 def test_zero_dim_tensors_are_scalars():
     env = beacon_torch.make("lorenz-v0", 4, rho=torch.tensor(20.0))
-    assert env.params.rho == 20.0
+    assert torch.equal(env.params.rho, torch.full((4,), 20.0))
 
 
 @pytest.mark.parametrize(

@@ -105,5 +105,5 @@ class BurgersEnv(FlowEnv):
         u = last["u"].double().numpy()
         x = DX * np.arange(self.n_cells)
         t = DT * SUBSTEPS * (len(history) - 1)
-        u_target = self.value_of(self.params.u_target, self.render_index)
+        u_target = float(self.params.u_target[self.render_index])
         return burgers_frame(x, u, self.ctrl * DX, u_target, float(last["a"]), t)

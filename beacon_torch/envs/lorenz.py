@@ -86,9 +86,7 @@ class LorenzEnv(FlowEnv):
     def reward(self, x: torch.Tensor) -> torch.Tensor:
         width = self.params.reward_width
         step = (x < 0).to(self.dtype)
-        if not isinstance(width, torch.Tensor):
-            return torch.sigmoid(-x / width) if width > 0 else step
-        # a per-member width may be 0 for some members: those keep the indicator
+        # a width of 0 keeps the indicator
         return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
 
     def observe(self, state: State) -> torch.Tensor:

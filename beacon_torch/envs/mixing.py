@@ -167,7 +167,7 @@ class MixingEnv(FlowEnv):
         from beacon_torch.render import cavity_frame
 
         last = history[-1]
-        c0 = self.value_of(self.params.c0, self.render_index)
+        c0 = float(self.params.c0[self.render_index])
         return cavity_frame(
             "mixing",
             last["c"][1:-1, 1:-1].double().numpy(),

@@ -145,12 +145,13 @@ class SloshingEnv(FlowEnv):
             h, q = table[:, 1].expand(self.n_envs, -1), table[:, 2].expand(self.n_envs, -1)
             zero = torch.zeros_like(h)
             start = {"h": h, "q": q, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
-        elif isinstance(p.g, torch.Tensor):
-            g = p.g.to(torch.float64)[:, None]
+        elif bool((p.g != p.g[0]).any()):  # one start per member
+            g = p.g.detach().to(torch.float64)[:, None]
             start = excited_state(p.L, g, self.n_envs, torch.float64, self.device)
-        else:
-            key = dict(version=2, L=p.L, g=p.g)
-            start = cached("sloshing-excited", key, lambda: excited_state(p.L, p.g, 1, torch.float64, "cpu"))
+        else:  # one start for all, cached
+            g = float(p.g[0])
+            key = dict(version=2, L=p.L, g=g)
+            start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"))
             start = {k: v.expand(self.n_envs, *v.shape[1:]) for k, v in start.items()}
         # generated in float64 like the published code, then cast
         return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
