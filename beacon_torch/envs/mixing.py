@@ -21,28 +21,15 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
-from beacon_torch.numerics.projection import (
-    GRADIENT,
-    NEUMANN,
-    ZERO_GHOST,
-    Cavity,
-    Ghosts,
-    project,
-)
+from beacon_torch.base import State
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
+from beacon_torch.numerics.projection import GRADIENT, NEUMANN, ZERO_GHOST, Cavity, Ghosts, project
 from beacon_torch.params import param
-from beacon_torch.probes import HISTORY, N_PROBES, Probes
 
-CELLS_PER_UNIT = 100
 DT = 0.002
 SUBSTEPS = 250
-UNROLL = 5  # substeps per call of the (compiled) kernel; divides SUBSTEPS
-EPISODE_LENGTH = 100
 # wall velocities (u_bottom, u_top, v_left, v_right) of the discrete actions, in u_max
 LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 1.0, -1.0))
-# the pressure increment: zero normal gradient but on the top wall, where its ghost is 0
-POISSON_BC = (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST)
-JACOBI_TOL = 1e-4  # the published solve's stopping tolerance (solver="jacobi")
 
 
 @dataclass(frozen=True)
@@ -60,49 +47,43 @@ class MixingParams:
             raise ValueError(f"parameter 'side' = {self.side:g} must fit in the cavity ({self.L:g} x {self.H:g})")
 
 
-def grid(p: MixingParams) -> tuple[int, int, float, float]:
-    nx, ny = int(round(p.L * CELLS_PER_UNIT)), int(round(p.H * CELLS_PER_UNIT))
-    return nx, ny, p.L / nx, p.H / ny
-
-
-def substep(fields: State, walls, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -> State:
+def substep(fields: State, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -> State:
     """One projection substep on the solver's batch-last fields with the wall-velocity
-    ghost offsets ``walls`` (:meth:`Cavity.walls`)."""
-    dx, dy = cavity.dx, cavity.dy
+    ghost offsets ``walls`` (:meth:`Cavity.walls`); no flux of c through the walls
+    (``c_offset`` None)."""
     u, v = cavity.predict(fields, walls, nu, DT)
-    u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
-    # the published step sets the ghosts from the interior before its transport and
-    # leaves them so after it: the reward, a mean over the ghosted array, sees those
-    c = c_ghosts(fields["c"][1:-1, 1:-1])
-    interior = cavity.sweep(c, u, v, kappa, DT, dx, dy)
-    c = torch.cat((c[:1], torch.cat((c[1:-1, :1], interior, c[1:-1, -1:]), 1), c[-1:]), 0)
-    return {"u": u, "v": v, "p": p, "c": c}
+    u, v, p = project(u, v, fields["p"], cavity.solver, DT, cavity.dx, cavity.dy)
+    return {"u": u, "v": v, "p": p, "c": transport(fields["c"], u, v, c_ghosts, c_offset, cavity, kappa, DT)}
 
 
-class MixingEnv(FlowEnv):
+class MixingEnv(CavityEnv):
     """Batched mixing-v0 (4 discrete actions: which walls move, which way)."""
 
     env_id = "mixing-v0"
     Params = MixingParams
-    episode_length = EPISODE_LENGTH
     discrete = True
-    inductor_options = {"cpp_wrapper": True}
-    compile_fullgraph = False
+    scalar = "c"
+    cells_per_unit = 100
+    dt = DT
+    substeps = SUBSTEPS
+    unroll = 5
+    # the pressure increment: zero normal gradient but on the top wall, where its ghost is 0
+    poisson_bc = (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST)
+    jacobi_tol = 1e-4
+    substep = staticmethod(substep)
+    action_labels = ("u_b", "u_t", "v_l", "v_r")
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
-        return 3 * N_PROBES**2 * HISTORY, 4
+        return N_OBS, 4
 
     def setup(self) -> None:
-        p = self.params
-        self.nx, self.ny, self.dx, self.dy = grid(p)
-        tol = JACOBI_TOL if p.solver == "jacobi" else None
-        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, POISSON_BC, jacobi_tol=tol, dtype=self.dtype, device=self.device)
-        self.solver = self.cavity.solver
-        self._c_ghosts = Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, corners=False, dtype=self.dtype, device=self.device)
-        self._substeps = self.kernels(substep, unroll=UNROLL)
-        self._probes = Probes(("c", "u", "v"), self.nx, self.ny, self.device)
+        super().setup()
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
+
+    def scalar_ghosts(self) -> Ghosts:
+        # the published reward averages over the ghosted array, whose corners stay zero
+        return Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, corners=False, dtype=self.dtype, device=self.device)
 
     # derived from the parameters at each use, so that every differentiated step has
     # its own graph to them
@@ -142,46 +123,21 @@ class MixingEnv(FlowEnv):
         i0, j0 = int(round((nx - n_side[0]) / 2)), int(round((ny - n_side[1]) / 2))
         c[:, i0 : i0 + n_side[0], j0 : j0 + n_side[1]] = 1.0
         c = c * self.member(p.c0, 2)
-        state = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c}
-        state["probes"] = self._probes.start(state)
-        state["walls"] = zeros(4)
-        return state
+        state = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c, "walls": zeros(4)}
+        return self.observed(state)
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         walls = self.walls(action)
         lids = (walls * self.u_max).T
-        offsets = self.cavity.walls(*lids, like=lids)
-        fields = self.cavity.fields(state, {"c": (self._c_ghosts, None)})
-        nu, kappa = self.nu, self.kappa
-        for _ in range(SUBSTEPS // UNROLL):
-            fields = self._substeps(fields, offsets, self.cavity, self._c_ghosts, nu, kappa)
-        new = self.cavity.stored(fields, offsets)
-        new["probes"] = self._probes.push(state["probes"], new)
+        new = self.run(state, SUBSTEPS, self.nu, self.kappa, walls=self.cavity.walls(*lids, like=lids))
         new["walls"] = walls
-        return new, -(new["c"] - self.target).abs().mean((-2, -1))
+        return self.observed(new, state), -(new["c"] - self.target).abs().mean((-2, -1))
 
-    def observe(self, state: State) -> torch.Tensor:
-        return state["probes"].flatten(1)
+    def actuation(self, state: State) -> np.ndarray:
+        return state["walls"].double().numpy()
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
-        from beacon_torch.render import cavity_frame
-
-        last = history[-1]
-        c0 = float(self.params.c0[self.render_index])
-        return cavity_frame(
-            "mixing",
-            last["c"][1:-1, 1:-1].double().numpy(),
-            last["u"].double().numpy(),
-            last["v"].double().numpy(),
-            self.params.L,
-            self.params.H,
-            last["walls"].double().numpy(),
-            t=DT * SUBSTEPS * (len(history) - 1),
-            scalar_label="c",
-            vmin=0.0,
-            vmax=c0,
-            action_labels=["u_b", "u_t", "v_l", "v_r"],
-        )
+    def scalar_range(self) -> tuple[float, float]:
+        return 0.0, float(self.params.c0[self.render_index])
 
 
 class MixingContinuousEnv(MixingEnv):
@@ -193,7 +149,7 @@ class MixingContinuousEnv(MixingEnv):
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
-        return 3 * N_PROBES**2 * HISTORY, 2
+        return N_OBS, 2
 
     def walls(self, action: torch.Tensor) -> torch.Tensor:
         a0, a1 = action[:, 0], action[:, 1]

@@ -24,32 +24,23 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
 from beacon_torch.cache import cached
-from beacon_torch.numerics.projection import (
-    GRADIENT,
-    VALUE,
-    Cavity,
-    Ghosts,
-    edge_offset,
-    project,
-)
+from beacon_torch.base import State
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
+from beacon_torch.numerics.projection import GRADIENT, VALUE, Cavity, Ghosts, edge_offset, project
 from beacon_torch.params import number, param
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
-from beacon_torch.probes import HISTORY, N_PROBES, Probes
+
 
 CELLS_PER_UNIT = 50
 DT = 0.01
 SUBSTEPS = 200
-UNROLL = 2  # substeps per call of the (compiled) kernel; divides SUBSTEPS
-EPISODE_LENGTH = 100
 PR = 0.71
 T_HOT, T_COLD = 0.5, -0.5
 C = 0.75  # largest temperature fluctuation of a segment
 DEVELOP_TIME = 200.0
 DEVELOP_SEED = 0
 PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
-JACOBI_TOL = 1e-8  # the published solve's stopping tolerance (solver="jacobi")
 
 
 @dataclass(frozen=True)
@@ -68,17 +59,6 @@ class RayleighParams:
             raise ValueError(f"parameter 'n_sgts' = {self.n_sgts} must divide the {nx} cells along L = {self.L:g}")
 
 
-def grid(p: RayleighParams) -> tuple[int, int, float, float]:
-    nx, ny = int(round(p.L * CELLS_PER_UNIT)), int(round(p.H * CELLS_PER_UNIT))
-    return nx, ny, p.L / nx, p.H / ny
-
-
-def temperature_ghosts(nx: int, ny: int, dtype, device) -> Ghosts:
-    """Adiabatic sides; the bottom and top temperatures imposed through the ghosts
-    (their values come as the offset of :func:`temperature_offset`)."""
-    return Ghosts.cells(nx, ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=dtype, device=device)
-
-
 def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.Tensor:
     """The ghost offset of bottom cells at the temperatures ``bottom`` (``[B, nx]``)
     and the cold top plate, ``[nx + 2, ny + 2, B]``."""
@@ -86,49 +66,15 @@ def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.T
     return edge_offset(ny + 2, 1, low, T_COLD, bottom)
 
 
-def substep(fields: State, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa: float) -> State:
+def substep(fields: State, walls, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa) -> State:
     """One projection substep of the Boussinesq flow on the solver's batch-last fields
-    (no-slip walls; ``theta_offset`` from :func:`temperature_offset`)."""
-    dx, dy = cavity.dx, cavity.dy
+    (no-slip walls: ``walls`` None; ``theta_offset`` from :func:`temperature_offset`)."""
     theta = fields["theta"]
     # as published, each interior v face takes the temperature of the cell above it
     buoyancy = theta[1:-1, 2:-1]
-    u, v = cavity.predict(fields, None, nu, DT, buoyancy)
-    u, v, p = project(u, v, fields["p"], cavity.solver, DT, dx, dy)
-    theta = theta_ghosts(cavity.sweep(theta, u, v, kappa, DT, dx, dy), theta_offset)
-    return {"u": u, "v": v, "p": p, "theta": theta}
-
-
-class Convection:
-    """The solver of one cavity size with its temperature boundary conditions: runs
-    substeps on batch-first ghosted states (``u``, ``v``, ``p``, ``theta``)."""
-
-    def __init__(self, p: RayleighParams, dtype, device, step=substep, unroll: int = 1) -> None:
-        self.nx, self.ny, self.dx, self.dy = grid(p)
-        tol = JACOBI_TOL if p.solver == "jacobi" else None
-        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, jacobi_tol=tol, dtype=dtype, device=device)
-        self.ghosts = temperature_ghosts(self.nx, self.ny, dtype, device)
-        self.ra = p.ra  # a number, or a tensor that requires grad
-        self.step, self.unroll = step, unroll
-
-    @property
-    def nu(self):
-        # derived at each use, so that every differentiated step has its own graph to ra
-        return (PR / self.ra) ** 0.5
-
-    @property
-    def kappa(self):
-        return 1.0 / (PR * self.ra) ** 0.5
-
-    def run(self, state: State, bottom: torch.Tensor, n: int) -> State:
-        """``n`` substeps (a multiple of the step's unroll) at bottom temperatures
-        ``bottom`` ``[B, nx]``."""
-        offset = temperature_offset(bottom, self.ghosts, self.ny)
-        fields = self.cavity.fields(state, {"theta": (self.ghosts, offset)})
-        nu, kappa = self.nu, self.kappa
-        for _ in range(n // self.unroll):
-            fields = self.step(fields, offset, self.cavity, self.ghosts, nu, kappa)
-        return self.cavity.stored(fields, self.cavity.walls(like=offset))
+    u, v = cavity.predict(fields, walls, nu, DT, buoyancy)
+    u, v, p = project(u, v, fields["p"], cavity.solver, DT, cavity.dx, cavity.dy)
+    return {"u": u, "v": v, "p": p, "theta": transport(theta, u, v, theta_ghosts, theta_offset, cavity, kappa, DT)}
 
 
 def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
@@ -148,12 +94,13 @@ def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = 
     from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
     would otherwise never start). Returns ``u``, ``v``, ``p``, ``theta`` without batch
     dimension."""
-    nx, ny, _, _ = grid(p)
+    # an env of these parameters runs the substeps; its own start is never made
+    env = RayleighEnv(1, dtype=torch.float64, **{**dataclasses.asdict(p), "start": "generated"})
     g = torch.Generator().manual_seed(seed)
-    state = rest_state(1, nx, ny, torch.float64, "cpu")
+    state = rest_state(1, env.nx, env.ny, torch.float64, "cpu")
     state["theta"] = PERTURBATION * (2.0 * torch.rand(state["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
-    bottom = torch.full((1, nx), T_HOT, dtype=torch.float64)
-    state = Convection(p, torch.float64, "cpu").run(state, bottom, int(round(time / DT)))
+    bottom = torch.full((1, env.nx), T_HOT, dtype=torch.float64)
+    state = env.run(state, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny))
     return {k: v[0] for k, v in state.items()}
 
 
@@ -173,27 +120,36 @@ def normalise(action: torch.Tensor) -> torch.Tensor:
     return a / torch.clamp(a.abs().amax(-1, keepdim=True) / C, min=1.0)
 
 
-class RayleighEnv(FlowEnv):
+class RayleighEnv(CavityEnv):
     """Batched rayleigh-v0 (one continuous action per bottom segment)."""
 
     env_id = "rayleigh-v0"
     Params = RayleighParams
-    episode_length = EPISODE_LENGTH
     blowup_reward = -1.0
-    inductor_options = {"cpp_wrapper": True}
-    compile_fullgraph = False
+    scalar = "theta"
+    cells_per_unit = CELLS_PER_UNIT
+    dt = DT
+    substeps = SUBSTEPS
+    unroll = 2
+    jacobi_tol = 1e-8
+    substep = staticmethod(substep)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
-        return 3 * N_PROBES**2 * HISTORY, p.n_sgts  # one temperature per bottom segment
+        return N_OBS, p.n_sgts  # one temperature per bottom segment
 
-    def setup(self) -> None:
-        p = self.params
-        self.nx, self.ny, self.dx, self.dy = grid(p)
-        self.convection = Convection(p, self.dtype, self.device, self.kernels(substep, unroll=UNROLL), UNROLL)
-        self.cavity = self.convection.cavity
-        self.solver = self.cavity.solver
-        self._probes = Probes(("theta", "u", "v"), self.nx, self.ny, self.device)
+    def scalar_ghosts(self) -> Ghosts:
+        # adiabatic sides; the plates' temperatures through the ghost offset
+        return Ghosts.cells(self.nx, self.ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=self.dtype, device=self.device)
+
+    # derived from ra at each use, so that every differentiated step has its own graph
+    @property
+    def nu(self):
+        return (PR / self.params.ra) ** 0.5
+
+    @property
+    def kappa(self):
+        return 1.0 / (PR * self.params.ra) ** 0.5
 
     @functools.cached_property
     def _start(self) -> State:
@@ -211,36 +167,18 @@ class RayleighEnv(FlowEnv):
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         state = {k: v.expand(self.n_envs, *v.shape).clone() for k, v in self._start.items()}
-        state["probes"] = self._probes.start(state)
         state["bottom"] = torch.full((self.n_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
-        return state
+        return self.observed(state)
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
-        new = self.convection.run(state, bottom, SUBSTEPS)
-        new["probes"] = self._probes.push(state["probes"], new)
+        new = self.run(state, SUBSTEPS, self.nu, self.kappa, offset=temperature_offset(bottom, self.ghosts, self.ny))
         new["bottom"] = bottom
-        return new, -nusselt(new["theta"], self.dy)
+        return self.observed(new, state), -nusselt(new["theta"], self.dy)
 
-    def observe(self, state: State) -> torch.Tensor:
-        return state["probes"].flatten(1)
+    def actuation(self, state: State) -> np.ndarray:
+        return (state["bottom"].double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
-        from beacon_torch.render import cavity_frame
-
-        last = history[-1]
-        segments = (last["bottom"].double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C
-        return cavity_frame(
-            "rayleigh",
-            last["theta"][1:-1, 1:-1].double().numpy(),
-            last["u"].double().numpy(),
-            last["v"].double().numpy(),
-            self.params.L,
-            self.params.H,
-            segments,
-            t=DT * SUBSTEPS * (len(history) - 1),
-            scalar_label="theta",
-            vmin=T_COLD,
-            vmax=T_HOT,
-        )
+    def scalar_range(self) -> tuple[float, float]:
+        return T_COLD, T_HOT

@@ -1,0 +1,152 @@
+"""What the two cavity envs (rayleigh-v0, mixing-v0) share: the grid, the probes and
+their history, the set-up of the projection solver, the loop over substeps, the
+scalar's transport step, the observation and the render call.
+
+A cavity env declares its numbers (cells per unit length, time step, substeps per
+action and per compiled call, the pressure increment's boundary conditions, the
+published Jacobi tolerance), its transported scalar (``theta``, ``c``) with its ghost
+conditions, and one substep of its physics; :meth:`CavityEnv.run` advances a state.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, ClassVar, Sequence
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, State
+from beacon_torch.numerics.projection import NEUMANN, Cavity, Ghosts
+
+N_PROBES = 4
+HISTORY = 4  # the 3 previous probe vectors and the current one, oldest first
+FIELDS = 3  # the scalar, u and v at every probe
+N_OBS = FIELDS * N_PROBES**2 * HISTORY
+
+
+def grid(L: float, H: float, cells_per_unit: int) -> tuple[int, int, float, float]:
+    """``(nx, ny, dx, dy)`` of an L x H cavity."""
+    nx, ny = int(round(L * cells_per_unit)), int(round(H * cells_per_unit))
+    return nx, ny, L / nx, H / ny
+
+
+def probe_indices(n: int, device=None) -> torch.Tensor:
+    """``N_PROBES`` evenly spaced ghosted indices along ``n`` cells: n // 8 + (n // 4) k
+    (6, 18, 30, 42 for 50 cells; 12, 37, 62, 87 for 100, as published)."""
+    return torch.tensor([n // 8 + (n // 4) * k for k in range(N_PROBES)], device=device)
+
+
+class Probes:
+    """Samples fields of a state at a ``N_PROBES x N_PROBES`` grid and keeps the history."""
+
+    def __init__(self, keys: tuple[str, ...], nx: int, ny: int, device=None) -> None:
+        self.keys = keys
+        self.ix = probe_indices(nx, device)[:, None]
+        self.iy = probe_indices(ny, device)[None, :]
+        self.size = len(keys) * N_PROBES**2
+
+    def sample(self, state: State) -> torch.Tensor:
+        """``[B, len(keys) * N_PROBES^2]``, field by field."""
+        return torch.cat([state[k][:, self.ix, self.iy].flatten(1) for k in self.keys], -1)
+
+    def start(self, state: State) -> torch.Tensor:
+        """``[B, HISTORY, size]``: zeros for the steps before, the current sample last
+        (the published order: oldest first)."""
+        current = self.sample(state)[:, None]
+        return torch.cat((current.new_zeros((current.shape[0], HISTORY - 1, self.size)), current), 1)
+
+    def push(self, history: torch.Tensor, state: State) -> torch.Tensor:
+        """The history with the oldest sample dropped and the current one appended."""
+        return torch.cat((history[:, 1:], self.sample(state)[:, None]), 1)
+
+
+def transport(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, ghosts: Ghosts, offset, cavity: Cavity, kappa, dt: float) -> torch.Tensor:
+    """The ghosted scalar ``s`` (``[nx + 2, ny + 2, B]``) after one substep's transport
+    by the face velocities ``u``, ``v``, as the published step leaves it: the ghosts are
+    set from the interior (and the wall values of ``offset``) before the sweep and kept
+    after it, so that what reads the ghosted array (mixing's reward) sees those."""
+    s = ghosts(s[1:-1, 1:-1], offset)
+    interior = cavity.sweep(s, u, v, kappa, dt, cavity.dx, cavity.dy)
+    return torch.cat((s[:1], torch.cat((s[1:-1, :1], interior, s[1:-1, -1:]), 1), s[-1:]), 0)
+
+
+class CavityEnv(FlowEnv):
+    """Base of the cavity envs: the solver set up from the parameters ``L``, ``H`` and
+    ``solver``, probes of the scalar and the velocities, their history as observation."""
+
+    episode_length: ClassVar[int] = 100
+    # the cavities' graphs gain from a C++ wrapper; their transport sweep stays eager
+    inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
+    compile_fullgraph: ClassVar[bool] = False
+
+    scalar: ClassVar[str]  # the transported scalar's name in the state
+    cells_per_unit: ClassVar[int]
+    dt: ClassVar[float]
+    substeps: ClassVar[int]  # per action
+    unroll: ClassVar[int]  # substeps per call of the (compiled) kernel; divides substeps
+    poisson_bc: ClassVar[Sequence[str]] = (NEUMANN,) * 4
+    jacobi_tol: ClassVar[float]  # the published solve's stopping tolerance (solver="jacobi")
+    # (fields, walls, offset, cavity, ghosts, nu, kappa) -> fields: one substep on the
+    # solver's batch-last fields, a staticmethod of the env class
+    substep: ClassVar[Callable]
+    # the names of the actuation bars of a frame (None: numbered)
+    action_labels: ClassVar[Sequence[str] | None] = None
+
+    def setup(self) -> None:
+        p = self.params
+        self.nx, self.ny, self.dx, self.dy = grid(p.L, p.H, self.cells_per_unit)
+        tol = self.jacobi_tol if p.solver == "jacobi" else None
+        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, self.poisson_bc, jacobi_tol=tol, dtype=self.dtype, device=self.device)
+        self.solver = self.cavity.solver
+        self.ghosts = self.scalar_ghosts()
+        self._substeps = self.kernels(self.substep, unroll=self.unroll)
+        self.probes = Probes((self.scalar, "u", "v"), self.nx, self.ny, self.device)
+
+    def scalar_ghosts(self) -> Ghosts:
+        """The ghost map of the scalar (its wall conditions)."""
+        raise NotImplementedError
+
+    def run(self, state: State, n: int, nu, kappa, *, walls=None, offset: torch.Tensor | None = None) -> State:
+        """``n`` substeps (a multiple of ``unroll``) from a batch-first ghosted state
+        (``u``, ``v``, ``p`` and the scalar) with the wall-velocity offsets ``walls``
+        (``Cavity.walls``; None for walls at rest) and the scalar's ghost offset."""
+        fields = self.cavity.fields(state, {self.scalar: (self.ghosts, offset)})
+        for _ in range(n // self.unroll):
+            fields = self._substeps(fields, walls, offset, self.cavity, self.ghosts, nu, kappa)
+        return self.cavity.stored(fields, walls if walls is not None else self.cavity.walls(like=fields["u"]))
+
+    def observed(self, new: State, old: State | None = None) -> State:
+        """``new`` with its probe history: started, or pushed onto ``old``'s."""
+        new["probes"] = self.probes.start(new) if old is None else self.probes.push(old["probes"], new)
+        return new
+
+    def observe(self, state: State) -> torch.Tensor:
+        return state["probes"].flatten(1)
+
+    def actuation(self, state: State) -> np.ndarray:
+        """The actuation bars of a frame of one member's ``state``."""
+        raise NotImplementedError
+
+    def scalar_range(self) -> tuple[float, float]:
+        """The colour range of the scalar in the frames of member ``render_index``."""
+        raise NotImplementedError
+
+    def render_frame(self, history: list[State]) -> np.ndarray:
+        from beacon_torch.render import cavity_frame
+
+        last = history[-1]
+        vmin, vmax = self.scalar_range()
+        return cavity_frame(
+            self.env_id.split("-")[0],
+            last[self.scalar][1:-1, 1:-1].double().numpy(),
+            last["u"].double().numpy(),
+            last["v"].double().numpy(),
+            self.params.L,
+            self.params.H,
+            self.actuation(last),
+            t=self.dt * self.substeps * (len(history) - 1),
+            scalar_label=self.scalar,
+            vmin=vmin,
+            vmax=vmax,
+            action_labels=self.action_labels,
+        )
