@@ -4,7 +4,7 @@ of a step that recomputes its substeps in the backward pass."""
 from __future__ import annotations
 
 import contextlib
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

@@ -166,7 +166,7 @@ class FlowEnv(EnvBase):
         self._state: State | None = None
         self._count = torch.zeros(batch_size, dtype=torch.int64, device=device)
 
-    def compile(self, *, warmup: int | None = None, **kwargs: Any) -> "FlowEnv":
+    def compile(self, *, warmup: int | None = None, **kwargs: Any) -> FlowEnv:
         """Run the physics kernels through ``torch.compile`` from now on; returns the
         env. ``make(..., compile=True)`` (or a dict of ``torch.compile`` options) calls
         this: unlike TorchRL's default, which traces the whole ``step_and_maybe_reset``,
@@ -258,7 +258,7 @@ class FlowEnv(EnvBase):
         )
         self.action_spec = self._action_leaf_spec((*B, *self.action_shape))
         self.reward_spec = Unbounded(shape=(*B, 1), dtype=self.dtype, device=dev)
-        flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)  # noqa: E731
+        flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)
         self.done_spec = Composite(
             done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev
         )

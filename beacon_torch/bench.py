@@ -19,16 +19,16 @@ import platform
 import resource
 import statistics
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import torch
 
 from beacon_torch.registry import make
 
 # The published single-environment NumPy/Numba code, one process on one core of this
-# kind of machine (issue 5), transitions per second.
+# kind of machine, transitions per second.
 PUBLISHED = {
     "lorenz-v0": 62_300.0,
     "vortex-v0": 6_560.0,

@@ -19,8 +19,9 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
@@ -177,7 +178,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     if args.members < 1:
         raise CliError(f"--members must be a positive integer, got {args.members}")
-    for k, run in enumerate(seed_dirs(args.run)):
+    for run in seed_dirs(args.run):
         gif = None if args.no_gif else run / "controlled.gif"
         r = evaluate_run(run, members=args.members, device=args.device, gif=gif)
         print(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
@@ -29,7 +29,7 @@ def episode(env: FlowEnv, policy: Policy, *, frame_hook: Callable[[int], None] |
     (``[batch, episode_length]``). ``frame_hook(step)`` runs after each step (rendering)."""
     callback = None
     if frame_hook is not None:
-        callback = lambda env_, td: frame_hook(int(env_.step_count[env_.render_index]))  # noqa: E731
+        callback = lambda env_, td: frame_hook(int(env_.step_count[env_.render_index]))
     return env.rollout(
         env.episode_length,
         policy=policy,

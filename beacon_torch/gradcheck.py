@@ -11,14 +11,13 @@ so that no limiter, max or abs of the scheme sits on its kink (see docs/gradient
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from tensordict import TensorDict
 
 from beacon_torch.base import FlowEnv, State
-
 
 # env: (parameter, its value, other parameters, warm-up actions, differentiated actions)
 # of the check on the published settings; tests/test_gradients.py shrinks a few for time

@@ -20,7 +20,7 @@ import beacon_torch
 from beacon_torch.cache import PACKAGE_DATA
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _records() -> dict:
     with open(PACKAGE_DATA / "reference-rollouts.json") as f:
         return json.load(f)["envs"]

@@ -58,8 +58,26 @@ def make(
     """Build a batched BEACON environment.
 
     ``batch_size`` members are stepped together; ``device`` and ``dtype`` (float32 or
-    float64) place the state; ``seed`` seeds the env's own generator; the remaining
-    keyword arguments are the env's physical parameters (see ``docs/envs``) and the
-    base options ``check_actions`` and ``record_history``.
+    float64) place the state; ``seed`` seeds the env's own generator. The other keyword
+    arguments are the env's physical parameters (``beacon-torch list``, ``docs/envs``)
+    and the options every env has:
+
+    ``compile``
+        True (or a dict of ``torch.compile`` options) runs the physics' substeps
+        compiled (:meth:`FlowEnv.compile`); default False, eager.
+    ``differentiable``
+        True keeps the autograd graph through the steps, so that rewards can be
+        differentiated with respect to actions, parameters and states; default False
+        (no graph).
+    ``grad_checkpoint``
+        with ``differentiable``, recompute each action's substeps in the backward pass
+        instead of keeping them (the memory of a differentiated episode becomes one
+        state per action); default False.
+    ``record_history``
+        True keeps member ``render_index``'s states since its reset, so that
+        ``render()`` draws the episode so far; default False (the current state only).
+    ``check_actions``
+        False skips the check of action values (NaN, range), which synchronises with
+        an accelerator on every step; default True.
     """
     return env_class(env_id)(batch_size, device=device, dtype=dtype, seed=seed, **params)

@@ -8,8 +8,8 @@ rendering never touches pyplot's global state or needs a display.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -44,9 +44,9 @@ def action_bars(
     the bottom of its range (a gain).
     """
     n = len(values)
-    for i, (v, (lo, hi)) in enumerate(zip(values, limits)):
+    for i, (v, (lo, hi)) in enumerate(zip(values, limits, strict=True)):
         base = 0.0 if lo < 0.0 < hi else lo
-        frac = lambda x: (min(max(x, lo), hi) - lo) / (hi - lo)  # noqa: E731
+        frac = lambda x, lo=lo, hi=hi: (min(max(x, lo), hi) - lo) / (hi - lo)
         ax.bar(i, 1.0, color="#eeeeee", edgecolor="#999999", width=0.6)
         ax.bar(i, frac(v) - frac(base), bottom=frac(base), color=ACTION_COLOR, width=0.6)
         ax.hlines(frac(base), i - 0.3, i + 0.3, color="#555555", lw=0.8)
@@ -173,7 +173,7 @@ def shkadov_frame(
     ax.axhline(1.0, color="#555555", lw=0.5, ls="--")
     top = max(2.0, float(h.max()) * 1.05)
     scale = 0.5 * (top - 1.0)
-    for xj, a in zip(jets_x, actions):
+    for xj, a in zip(jets_x, actions, strict=True):
         ax.axvspan(xj - jet_half_width, xj + jet_half_width, color="#dddddd", lw=0)
         ax.bar(xj, a * scale, bottom=1.0, width=2 * jet_half_width, color=ACTION_COLOR, alpha=0.8)
     ax.set_xlim(x[0], x[-1])

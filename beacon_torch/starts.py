@@ -62,7 +62,7 @@ def choose_start(params, shaping: tuple[str, ...]) -> None:
     object.__setattr__(params, "start", start)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _table(env: str) -> np.ndarray:
     table = np.loadtxt(PACKAGE_DATA / f"{env}-published-start.dat", dtype=np.float64)
     table.setflags(write=False)

@@ -1,4 +1,4 @@
-"""Memory and time of differentiating through the envs (issue 7).
+"""Memory and time of differentiating through the envs.
 
     .venv/bin/python benchmarks/grad_memory.py [--steps N] [--batch B] [--dtype float32]
     .venv/bin/python benchmarks/grad_memory.py --episode --envs vortex-v0 burgers-v0

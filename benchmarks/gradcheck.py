@@ -1,5 +1,5 @@
 """Gradients of every continuous env on its published settings against central
-differences (issue 7), in float64 at a generic point.
+differences, in float64 at a generic point.
 
     .venv/bin/python benchmarks/gradcheck.py [--envs ENV ...]
 
@@ -20,8 +20,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import beacon_torch  # noqa: E402
-from beacon_torch.gradcheck import CASES, check  # noqa: E402
+import beacon_torch
+from beacon_torch.gradcheck import CASES, check
 
 
 def main(argv=None) -> None:
@@ -33,7 +33,7 @@ def main(argv=None) -> None:
     for env_id in args.envs:
         name, value, params, warmup, steps = CASES[env_id]
 
-        def make(**kwargs):
+        def make(env_id=env_id, params=params, **kwargs):
             return beacon_torch.make(env_id, batch_size=1, dtype=torch.float64, seed=3, **params, **kwargs)
 
         result = check(make, name, value, warmup=warmup, steps=steps)

@@ -1,4 +1,4 @@
-"""Throughput of every env against the published code's speed (issue 5).
+"""Throughput of every env against the published code's speed.
 
     .venv/bin/python benchmarks/throughput.py [beacon-torch bench options]
 

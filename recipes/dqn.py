@@ -20,6 +20,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run, episode_values
+
 from config import DQNConfig, parse
 
 
@@ -51,7 +52,10 @@ def main(cfg: DQNConfig) -> dict:
 
     random_frames = max(0, cfg.init_random_frames - run.frames)
     policy = TensorDictSequential(qvalue, explore)
-    collector = make_collector(cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
+    collector = make_collector(
+        cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames,
+        collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device,
+    )
 
     for batch, data in enumerate(collector):
         buffer.extend(data.reshape(-1))

@@ -26,6 +26,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
 from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run
+
 from config import GradConfig, parse
 
 

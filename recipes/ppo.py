@@ -26,6 +26,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run, episode_values
+
 from config import PPOConfig, parse
 
 
@@ -64,7 +65,7 @@ def main(cfg: PPOConfig) -> dict:
     for update, data in enumerate(collector):
         if keys.agents:  # the shared end of an episode, as each agent's
             for flag, key in (("done", keys.done), ("terminated", keys.terminated)):
-                data["next", *key] = data["next", flag].unsqueeze(-2).expand(data["next", *keys.reward].shape)
+                data[("next", *key)] = data["next", flag].unsqueeze(-2).expand(data[("next", *keys.reward)].shape)
         with torch.no_grad():
             data = advantage(data)
         buffer.extend(data.reshape(-1))

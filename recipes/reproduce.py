@@ -24,6 +24,7 @@ import torch
 
 from beacon_torch.training.evaluation import summarise
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
+
 from config import CONFIGS, PPO_TARGETS, configure, paper_frames
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,7 +79,7 @@ def write_results_table(out: str | Path, path: str | Path) -> Path:
         s = json.loads(file.read_text())
         target = PPO_TARGETS.get(s["env"]) if s["algo"] == "ppo" else None
         met = "" if target is None else ("met" if s["eval_mean"] >= target else "**missed**")
-        spread = (lambda key: f" +- {s[key]:.2g}") if len(s["seeds"]) > 1 else (lambda key: "")
+        spread = (lambda key, s=s: f" +- {s[key]:.2g}") if len(s["seeds"]) > 1 else (lambda key: "")
         # runs from before the normalisation statistics became a setting used 16 steps
         algo = s["algo"] + (" (16-step norm.)" if s["config"].get("norm_steps", 16) != 64 else "")
         rows[(s["algo"], s["env"])] = (
@@ -88,7 +89,8 @@ def write_results_table(out: str | Path, path: str | Path) -> Path:
         )
     table = "\n".join(
         [
-            "| env | algorithm | deterministic policy | training episodes, last 10 % | uncontrolled (same env) | PPO target | seeds | transitions (of the paper's budget) | wall time per seed | curve |",
+            "| env | algorithm | deterministic policy | training episodes, last 10 % | uncontrolled (same env) | PPO target | seeds "
+            "| transitions (of the paper's budget) | wall time per seed | curve |",
             "|---|---|---|---|---|---|---|---|---|---|",
             *(rows[key] for key in sorted(rows)),
         ]

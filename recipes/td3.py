@@ -20,6 +20,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run, episode_values
+
 from config import TD3Config, parse
 
 ACTOR_DELAY = 2  # critic updates per actor update
@@ -53,7 +54,10 @@ def main(cfg: TD3Config) -> dict:
         run.save(env, policy=("deterministic_actor", cfg.hidden, actor), buffer=buffer, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
 
     random_frames = max(0, cfg.init_random_frames - run.frames)
-    collector = make_collector(cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
+    collector = make_collector(
+        cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames,
+        collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device,
+    )
 
     updates = 0
     for batch, data in enumerate(collector):

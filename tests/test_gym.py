@@ -7,7 +7,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import beacon_torch
-import beacon_torch.gym  # noqa: F401  (registers the ids)
+import beacon_torch.gym
 
 from conftest import ALL_ENVS, FAST
 

@@ -19,6 +19,8 @@ def test_readme_gives_exactly_two_commands():
     assert all(c.startswith("bash scripts/setup.sh && ") for c in commands)
     assert "recipes/ppo.py" in commands[0]  # the main job: a training
     assert "pytest" in commands[1]
+    # the linter runs before the tests, on the tree as configured in pyproject.toml
+    assert commands[1].index("ruff check .") < commands[1].index("pytest")
 
 
 def test_ci_runs_the_readme_test_command():

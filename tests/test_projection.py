@@ -207,7 +207,7 @@ def test_sweep_is_stable_at_rayleighs_diffusion_number():
     v = torch.zeros(n, n + 1, 1, dtype=torch.float64)
     i = torch.arange(n + 2)
     s = ((-1.0) ** (i[:, None] + i[None, :])).to(torch.float64)[..., None] * 1e-3
-    keep = lambda interior: torch.nn.functional.pad(interior, (0, 0, 1, 1, 1, 1))  # noqa: E731
+    keep = lambda interior: torch.nn.functional.pad(interior, (0, 0, 1, 1, 1, 1))
     swept = s
     for _ in range(200):
         swept = keep(cavity.sweep(swept, u, v, kappa, dt, h, h))
@@ -225,7 +225,7 @@ def test_jacobi_solver_converges_to_the_direct_solve_and_stops_per_member(bc):
     jacobi = JacobiSolver(nx, ny, 1 / nx, 1 / ny, bc, 1e-22, **F64)
     phi = jacobi.solve(rhs)
     # the Neumann problem fixes phi up to a constant
-    shift = lambda f: f - f.mean((0, 1)) if bc[3] == NEUMANN else f  # noqa: E731
+    shift = lambda f: f - f.mean((0, 1)) if bc[3] == NEUMANN else f
     torch.testing.assert_close(shift(phi), shift(exact), rtol=0, atol=1e-6 * exact.abs().max().item())
     loose = JacobiSolver(nx, ny, 1 / nx, 1 / ny, bc, 1e-6, **F64)
     one = loose.solve(rhs[..., :1])

@@ -7,14 +7,8 @@ import sys
 from importlib.util import find_spec
 from pathlib import Path
 
-import config
-import dqn
-import grad
-import ppo
 import pytest
-import td3
 import torch
-from config import ALGORITHMS, CONFIGS, PPO, DQNConfig, GradConfig, PPOConfig, TD3Config, configure, parse
 
 import beacon_torch
 from beacon_torch.cli import main as cli
@@ -23,6 +17,12 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import evaluate_run
 
+import config
+import dqn
+import grad
+import ppo
+import td3
+from config import ALGORITHMS, CONFIGS, PPO, DQNConfig, GradConfig, PPOConfig, TD3Config, configure, parse
 from conftest import SMALL_CAVITY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,7 +106,8 @@ def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
         proc = subprocess.run([sys.executable, f"recipes/{script}.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True)
         assert setting in proc.stdout and "--num-envs" in proc.stdout and "--resume" in proc.stdout
     proc = subprocess.run(
-        [sys.executable, "recipes/ppo.py", "--env", "vortex-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1", "--out", str(tmp_path), "--no-progress", "--logger", "csv"],
+        [sys.executable, "recipes/ppo.py", "--env", "vortex-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1"]
+        + ["--out", str(tmp_path), "--no-progress", "--logger", "csv"],
         cwd=ROOT, capture_output=True, text=True, check=True,
     )
     assert "ppo vortex-v0 seed 0" in proc.stdout and "no learning curve" in proc.stdout

@@ -1,4 +1,4 @@
-"""The uncontrolled scores of the published implementation (SPEC.md), in float64."""
+"""The uncontrolled scores of the published implementation, in float64."""
 
 import pytest
 import torch

@@ -10,7 +10,8 @@ conditions, and one substep of its physics; :meth:`CavityEnv.run` advances a sta
 
 from __future__ import annotations
 
-from typing import Callable, ClassVar, Sequence
+from collections.abc import Callable, Sequence
+from typing import ClassVar
 
 import numpy as np
 import torch

@@ -115,7 +115,7 @@ class MixingEnv(CavityEnv):
     def initial_state(self, mask: torch.Tensor | None) -> State:
         p = self.params
         B, nx, ny = self.n_envs, self.nx, self.ny
-        zeros = lambda *shape: torch.zeros((B, *shape), dtype=self.dtype, device=self.device)  # noqa: E731
+        zeros = lambda *shape: torch.zeros((B, *shape), dtype=self.dtype, device=self.device)
         c = zeros(nx + 2, ny + 2)
         # the published patch spans ghosted indices i0 .. i0 + n - 1, i.e. one cell off
         # the centre towards the origin (25..74 of 0..101 at the defaults)

@@ -24,13 +24,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.cache import cached
 from beacon_torch.base import State
+from beacon_torch.cache import cached
 from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
 from beacon_torch.numerics.projection import GRADIENT, VALUE, Cavity, Ghosts, edge_offset, project
 from beacon_torch.params import number, param
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
-
 
 CELLS_PER_UNIT = 50
 DT = 0.01
@@ -84,7 +83,7 @@ def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
 
 
 def rest_state(n_envs: int, nx: int, ny: int, dtype, device) -> State:
-    zeros = lambda *shape: torch.zeros((n_envs, *shape), dtype=dtype, device=device)  # noqa: E731
+    zeros = lambda *shape: torch.zeros((n_envs, *shape), dtype=dtype, device=device)
     return {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "theta": zeros(nx + 2, ny + 2)}
 
 

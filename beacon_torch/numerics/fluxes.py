@@ -7,7 +7,7 @@ each env sets itself.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

@@ -12,7 +12,7 @@ their 15-digit decimal expansions, which agree to round-off.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -56,7 +56,7 @@ def lsrk4_step(
     """
     k = torch.zeros_like(u)
     f = k
-    for a, b, c in zip(LSRK4_A, LSRK4_B, LSRK4_C):
+    for a, b, c in zip(LSRK4_A, LSRK4_B, LSRK4_C, strict=True):
         f = rhs(u, t + c * dt)
         k = a * k + dt * f
         u = u + b * k

@@ -28,7 +28,7 @@ is out of place, so the graph survives when gradients are wanted.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -154,7 +154,7 @@ class PoissonSolver:
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """phi with L phi = rhs, both ``[nx, ny, B]``."""
         # the y products broadcast over x
-        hat = [self.qy @ ((self.qyt @ c) * inv) for c, inv in zip(self.x.forward(rhs), self.inv)]
+        hat = [self.qy @ ((self.qyt @ c) * inv) for c, inv in zip(self.x.forward(rhs), self.inv, strict=True)]
         return self.x.inverse(hat)
 
     def apply(self, phi: torch.Tensor) -> torch.Tensor:
@@ -169,7 +169,7 @@ class Ghosts:
     offset that carries prescribed wall values (``ghost = 2 value - neighbour``)."""
 
     def __init__(self, index_x, factor_x, index_y, factor_y, *, dtype, device) -> None:
-        as_index = lambda i: None if i is None else torch.tensor(i, dtype=torch.int64, device=device)  # noqa: E731
+        as_index = lambda i: None if i is None else torch.tensor(i, dtype=torch.int64, device=device)
         self.ix, self.iy = as_index(index_x), as_index(index_y)
         fx = torch.tensor(factor_x, dtype=torch.float64)
         fy = torch.tensor(factor_y, dtype=torch.float64)
@@ -180,7 +180,7 @@ class Ghosts:
         return [0, *range(n), n - 1], [low, *[1.0] * n, high]
 
     @classmethod
-    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw) -> "Ghosts":
+    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw) -> Ghosts:
         """Cell-centred ``[nx, ny, B]`` to ``[nx + 2, ny + 2, B]``; each wall's factor is
         GRADIENT, VALUE or ZERO. No stencil reads the four corner ghosts; ``corners``
         False leaves them at zero (where a reward averages over the ghosted array, as
@@ -191,14 +191,14 @@ class Ghosts:
         return ghosts
 
     @classmethod
-    def u_faces(cls, nx: int, ny: int, **kw) -> "Ghosts":
+    def u_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
         """x-face velocity ``[nx + 1, ny, B]`` to ``[nx + 1, ny + 2, B]``: impermeable
         side walls (zeroed), tangential velocity on the bottom and top through the
         ghosts."""
         return cls(None, [0.0, *[1.0] * (nx - 1), 0.0], *cls._cell_axis(ny, VALUE, VALUE), **kw)
 
     @classmethod
-    def v_faces(cls, nx: int, ny: int, **kw) -> "Ghosts":
+    def v_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
         """y-face velocity ``[nx, ny + 1, B]`` to ``[nx + 2, ny + 1, B]``."""
         return cls(*cls._cell_axis(nx, VALUE, VALUE), None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
 
@@ -271,7 +271,7 @@ class Cavity:
         scalars ``[B, nx + 2, ny + 2]``, ``p`` ``[B, nx, ny]``). ``scalars`` maps each
         scalar's name to its ``(ghosts, offset or None)``: scalars travel through the
         substeps with their ghost layer, refreshed from the interior."""
-        last = lambda f: f.movedim(0, -1).contiguous()  # noqa: E731
+        last = lambda f: f.movedim(0, -1).contiguous()
         out = {"u": last(state["u"][:, 1:, 1:-1]), "v": last(state["v"][:, 1:-1, 1:]), "p": last(state["p"])}
         for name, (ghosts, offset) in scalars.items():
             out[name] = ghosts(last(state[name][:, 1:-1, 1:-1]), offset)
@@ -280,7 +280,7 @@ class Cavity:
     def stored(self, fields: dict[str, torch.Tensor], walls) -> dict[str, torch.Tensor]:
         """Back to the batch-first ghosted state, with the velocities' wall ghosts of
         ``walls`` (:meth:`walls`)."""
-        first = lambda f: f.movedim(-1, 0).contiguous()  # noqa: E731
+        first = lambda f: f.movedim(-1, 0).contiguous()
         u, v = fields["u"], fields["v"]
         # the stored layout has one ghost position before the first face, none after
         u_full = F.pad(self.u_ghosts(u, walls[0]), (0, 0, 0, 0, 1, 0))
@@ -416,7 +416,7 @@ class Sweep:
         )
         a = dt * (kx + 0.5 * uw / dx)
         b = dt * (ky + 0.5 * vs / dy)
-        pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))  # noqa: E731
+        pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
         # the ghosts keep their values (a = b = 0 there)
         c = self._skewed(s + pad(c - sc))
         a, b = self._skewed(pad(a)), self._skewed(pad(b))
@@ -476,7 +476,7 @@ class JacobiSolver:
     def _ghosted(self, inner: torch.Tensor) -> torch.Tensor:
         top = inner[:, -1:] * (0.0 if self.top_zero else 1.0)
         middle = torch.cat((inner[:, :1], inner, top), 1)
-        side = lambda row: F.pad(row, (0, 0, 1, 1))  # noqa: E731  (corners stay zero)
+        side = lambda row: F.pad(row, (0, 0, 1, 1))
         return torch.cat((side(inner[:1]), middle, side(inner[-1:])))
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:

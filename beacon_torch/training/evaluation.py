@@ -123,7 +123,16 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
         ev = evaluate_run(run, members=members, gif=None)
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
-        per_seed.append({"seed": run.name, "frames": state["frames"], "wall_s": state.get("elapsed", float("nan")), "eval": ev["score_mean"], "train_tail": float(tail.mean()) if len(tail) else float("nan"), "uncontrolled": ev["uncontrolled"]})
+        per_seed.append(
+            {
+                "seed": run.name,
+                "frames": state["frames"],
+                "wall_s": state.get("elapsed", float("nan")),
+                "eval": ev["score_mean"],
+                "train_tail": float(tail.mean()) if len(tail) else float("nan"),
+                "uncontrolled": ev["uncontrolled"],
+            }
+        )
     images = Path(images) if images is not None else root
     images.mkdir(parents=True, exist_ok=True)
     png = plot_runs([root], images / f"{root.name}.png")
@@ -145,7 +154,10 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
         "threads": torch.get_num_threads(),
     }
     (root / "summary.json").write_text(json.dumps(summary, indent=1))
-    print(f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail {summary['train_mean']:.4g} over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed")
+    print(
+        f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail {summary['train_mean']:.4g} "
+        f"over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed"
+    )
     return summary
 
 

@@ -45,7 +45,7 @@ class Keys:
     terminated: NestedKey
 
     @classmethod
-    def of(cls, env: TransformedEnv) -> "Keys":
+    def of(cls, env: TransformedEnv) -> Keys:
         base = env.base_env
         at = partial(sibling, base.observation_key)
         names = ("action_log_prob", "state_value", "advantage", "value_target", "done", "terminated")
@@ -96,7 +96,7 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
     # distribution, whose vanishing gradient at the bounds traps "no control" policies
     return ProbabilisticActor(
         module,
-        in_keys=dict(zip(("loc", "scale"), params)),
+        in_keys=dict(zip(("loc", "scale"), params, strict=True)),
         out_keys=[keys.action],
         log_prob_key=keys.log_prob,
         distribution_class=IndependentNormal,

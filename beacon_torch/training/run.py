@@ -68,7 +68,9 @@ class Run:
     True, False, or None for "when the package is installed". ``settings`` (a dict) is
     recorded with every checkpoint."""
 
-    def __init__(self, out: str | Path, env_id: str, algo: str, total: int, *, seed: int = 0, settings: dict | None = None, resume: bool = False, progress: bool = True, tensorboard: bool | None = None) -> None:
+    def __init__(
+        self, out: str | Path, env_id: str, algo: str, total: int, *, seed: int = 0, settings: dict | None = None, resume: bool = False, progress: bool = True, tensorboard: bool | None = None
+    ) -> None:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.path = self.out / CHECKPOINT
