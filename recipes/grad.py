@@ -18,13 +18,10 @@ these runs like any other. ``--checkpoint`` recomputes each action in the backwa
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import torch
 
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
-from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run
 
 from config import GradConfig, parse
@@ -32,7 +29,7 @@ from config import GradConfig, parse
 
 def main(cfg: GradConfig) -> dict:
     """Train the policy on ``cfg.frames`` transitions; returns the last logged values."""
-    run = Run(cfg.out, cfg.env, "grad", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    run = Run.of(cfg)
     torch.manual_seed(cfg.seed)
 
     # the differentiable env, with the saved normalisation when resuming
@@ -50,7 +47,6 @@ def main(cfg: GradConfig) -> dict:
 
     discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=base.dtype, device=cfg.device)
     td = env.reset()
-    update = 0
     while run.frames < cfg.frames:
         total, scores = 0.0, []
         for h in range(cfg.horizon):
@@ -76,16 +72,9 @@ def main(cfg: GradConfig) -> dict:
         values = {"reward": -loss.item() / discount.mean().item(), "grad_norm": norm.item(), "skipped_updates": float(run.counters["skipped"])}
         if scores:
             values["episode_score"] = torch.cat(scores).mean().item()
-        run.log(cfg.horizon * cfg.num_envs, values)
-        update += 1
-        if update % cfg.checkpoint_every == 0:
-            save()
-    run.close()
-    save()
-    return run.last
+        run.log(cfg.horizon * cfg.num_envs, values, save)
+    return run.close(save)
 
 
 if __name__ == "__main__":
-    cfg = parse(GradConfig)
-    print(f"grad {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
-    print(learning_curve(cfg.out))
+    main(parse(GradConfig))

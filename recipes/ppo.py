@@ -13,8 +13,6 @@ every ``checkpoint_every`` updates and at the end), the logs and the learning cu
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import torch
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
@@ -24,7 +22,6 @@ from torchrl.objectives.value import GAE
 
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
-from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run, episode_values
 
 from config import PPOConfig, parse
@@ -32,7 +29,7 @@ from config import PPOConfig, parse
 
 def main(cfg: PPOConfig) -> dict:
     """Train PPO; returns the last logged values and the transitions collected."""
-    run = Run(cfg.out, cfg.env, "ppo", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    run = Run.of(cfg)
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
@@ -62,7 +59,7 @@ def main(cfg: PPOConfig) -> dict:
     collector = make_collector(cfg.env, env, actor, frames_per_batch=cfg.n_rollout, total_frames=run.remaining, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_rollout, device=cfg.device), sampler=SamplerWithoutReplacement(), batch_size=cfg.n_rollout // cfg.minibatches)
 
-    for update, data in enumerate(collector):
+    for data in collector:
         if keys.agents:  # the shared end of an episode, as each agent's
             for flag, key in (("done", keys.done), ("terminated", keys.terminated)):
                 data[("next", *key)] = data["next", flag].unsqueeze(-2).expand(data[("next", *keys.reward)].shape)
@@ -78,16 +75,10 @@ def main(cfg: PPOConfig) -> dict:
                 nn.utils.clip_grad_norm_(loss.parameters(), cfg.grad_clip)
                 optim.step()
         collector.update_policy_weights_()
-        run.log(data.numel(), {**episode_values(data, keys.reward), "loss": total.item()})
-        if (update + 1) % cfg.checkpoint_every == 0:
-            save()
+        run.log(data.numel(), {**episode_values(data, keys.reward), "loss": total.item()}, save)
     collector.shutdown()
-    run.close()
-    save()
-    return run.last
+    return run.close(save)
 
 
 if __name__ == "__main__":
-    cfg = parse(PPOConfig)
-    print(f"ppo {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
-    print(learning_curve(cfg.out))
+    main(parse(PPOConfig))

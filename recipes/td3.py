@@ -8,8 +8,6 @@ batched env and a ``ReplayBuffer`` saved with each checkpoint.
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
@@ -18,7 +16,6 @@ from torchrl.objectives import SoftUpdate, TD3Loss
 
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
-from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import Run, episode_values
 
 from config import TD3Config, parse
@@ -28,7 +25,7 @@ ACTOR_DELAY = 2  # critic updates per actor update
 
 def main(cfg: TD3Config) -> dict:
     """Train TD3; returns the last logged values and the transitions collected."""
-    run = Run(cfg.out, cfg.env, "td3", cfg.frames, seed=cfg.seed, settings=asdict(cfg), resume=cfg.resume, progress=cfg.progress, tensorboard=cfg.tensorboard)
+    run = Run.of(cfg)
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
@@ -60,7 +57,7 @@ def main(cfg: TD3Config) -> dict:
     )
 
     updates = 0
-    for batch, data in enumerate(collector):
+    for data in collector:
         buffer.extend(data.reshape(-1))
         values = episode_values(data)
         if run.frames + data.numel() > cfg.init_random_frames:
@@ -79,16 +76,10 @@ def main(cfg: TD3Config) -> dict:
                     target.step()
                 values["loss"] = critic_loss.item()
             collector.update_policy_weights_()
-        run.log(data.numel(), values)
-        if (batch + 1) % cfg.checkpoint_every == 0:
-            save()
+        run.log(data.numel(), values, save)
     collector.shutdown()
-    run.close()
-    save()
-    return run.last
+    return run.close(save)
 
 
 if __name__ == "__main__":
-    cfg = parse(TD3Config)
-    print(f"td3 {cfg.env} seed {cfg.seed}: {main(cfg)} -> {cfg.out}")
-    print(learning_curve(cfg.out))
+    main(parse(TD3Config))

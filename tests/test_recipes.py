@@ -107,7 +107,7 @@ def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
         assert setting in proc.stdout and "--num-envs" in proc.stdout and "--resume" in proc.stdout
     proc = subprocess.run(
         [sys.executable, "recipes/ppo.py", "--env", "vortex-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1"]
-        + ["--out", str(tmp_path), "--no-progress", "--logger", "csv"],
+        + ["--out", str(tmp_path), "--logger", "csv"],
         cwd=ROOT, capture_output=True, text=True, check=True,
     )
     assert "ppo vortex-v0 seed 0" in proc.stdout and "no learning curve" in proc.stdout

@@ -11,6 +11,7 @@ the network of its policy: evaluation rebuilds the policy from the checkpoint al
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from importlib.util import find_spec
@@ -66,16 +67,29 @@ class Run:
     """The directory ``out`` of one training of ``algo`` on ``env_id`` towards ``total``
     transitions, new or (``resume``) continued from its checkpoint. ``tensorboard``:
     True, False, or None for "when the package is installed". ``settings`` (a dict) is
-    recorded with every checkpoint."""
+    recorded with every checkpoint, which :meth:`log` writes every ``checkpoint_every``
+    rounds and :meth:`close` at the end."""
 
     def __init__(
-        self, out: str | Path, env_id: str, algo: str, total: int, *, seed: int = 0, settings: dict | None = None, resume: bool = False, progress: bool = True, tensorboard: bool | None = None
+        self,
+        out: str | Path,
+        env_id: str,
+        algo: str,
+        total: int,
+        *,
+        seed: int = 0,
+        settings: dict | None = None,
+        resume: bool = False,
+        progress: bool = True,
+        tensorboard: bool | None = None,
+        checkpoint_every: int = 10,
     ) -> None:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.path = self.out / CHECKPOINT
         self.env_id, self.algo, self.total, self.seed = env_id, algo, total, seed
         self.settings = settings or {}
+        self.checkpoint_every, self.rounds = checkpoint_every, 0
         self.state: dict | None = None
         if resume:
             if not self.path.is_file():
@@ -105,6 +119,16 @@ class Run:
 
             self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}")
 
+    @classmethod
+    def of(cls, settings) -> Run:
+        """The run of a recipe's settings: a dataclass with ``out``, ``env``, ``algo``,
+        ``frames``, ``seed``, ``resume``, ``progress``, ``tensorboard`` and
+        ``checkpoint_every``, recorded whole with the checkpoints."""
+        s = settings
+        return cls(
+            s.out, s.env, s.algo, s.frames, seed=s.seed, settings=dataclasses.asdict(s), resume=s.resume, progress=s.progress, tensorboard=s.tensorboard, checkpoint_every=s.checkpoint_every
+        )
+
     @property
     def remaining(self) -> int:
         return self.total - self.frames
@@ -127,8 +151,11 @@ class Run:
     def seconds(self) -> float:
         return self.elapsed + time.perf_counter() - self._since
 
-    def log(self, collected: int, values: dict[str, float]) -> None:
+    def log(self, collected: int, values: dict[str, float], save=None) -> None:
+        """Count and log one round of ``collected`` transitions; ``save()`` writes the
+        checkpoint, called every ``checkpoint_every`` rounds."""
         self.frames += collected
+        self.rounds += 1
         self.last = {"frames": self.frames, **values}
         for name, value in {**values, "wall_time": self.seconds()}.items():
             for logger in self.loggers:
@@ -136,6 +163,8 @@ class Run:
         if self.bar is not None:
             self.bar.update(collected)
             self.bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()})
+        if save is not None and self.rounds % self.checkpoint_every == 0:
+            save()
 
     def save(self, env, policy: tuple[str, int, torch.nn.Module], buffer=None, **modules) -> None:
         """Write the checkpoint: ``policy`` as (network name, width, module), the other
@@ -161,8 +190,17 @@ class Run:
         if buffer is not None:
             buffer.dumps(self.out / "buffer")
 
-    def close(self) -> None:
+    def close(self, save) -> dict[str, Any]:
+        """End the run: the last checkpoint (``save()``), the loggers flushed and, with
+        a progress bar, the learning curve drawn into ``learning_curve.png``. Returns
+        the last logged values and the transitions collected."""
+        save()
         for logger in self.loggers[1:]:
             logger.experiment.flush()
         if self.bar is not None:
+            from beacon_torch.training.evaluation import learning_curve
+
             self.bar.close()
+            print(f"{self.algo} {self.env_id} seed {self.seed}: {self.last} -> {self.out}")
+            print(learning_curve(self.out))
+        return self.last
