@@ -17,6 +17,29 @@ from typing import ClassVar
 import beacon_torch
 from beacon_torch.training.env import NORM_STEPS
 
+# the paper's PPO table, per env; the variants train like their base env
+PPO = {
+    "shkadov-v0": dict(n_rollout=3200, frames=200_000),
+    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001),
+    "mixing-v0": dict(n_rollout=2000, frames=100_000),
+    "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
+    "burgers-v0": dict(n_rollout=4000, frames=500_000),
+    "sloshing-v0": dict(n_rollout=2000, epochs=16, frames=200_000, critic_lr=1e-3),
+    "vortex-v0": dict(n_rollout=4000, frames=1_000_000, critic_lr=1e-3),
+}
+VARIANT_OF = {
+    "lorenz-continuous-v0": "lorenz-v0",
+    "mixing-continuous-v0": "mixing-v0",
+    "shkadov-separable-v0": "shkadov-v0",
+}
+# gradient-based control, where its settings differ from the defaults
+GRAD = {
+    "burgers-v0": dict(frames=51_200, horizon=40),
+    # 100 of the 800 actions per update: the high cycle takes that long to grow; at the
+    # default rate (1e-3) the policies found the high cycle and lost it again
+    "vortex-v0": dict(frames=128_000, horizon=100, lr=3e-4, checkpoint=True),
+}
+
 
 def setting(default, help: str):
     return field(default=default, metadata={"help": help})
@@ -35,6 +58,10 @@ class Config:
     batch: ClassVar[str] = "num_envs"
     # more fields that must be positive integers
     positive: ClassVar[tuple[str, ...]] = ()
+    # per-env defaults (env id -> field values); a variant reads its base env's entry
+    table: ClassVar[dict[str, dict]] = {}
+    # whether the algorithm needs the env in its own process (no collectors, no Ray)
+    in_process: ClassVar[bool] = False
 
     env: str = setting("", "environment id (beacon-torch list)")
     seed: int = setting(0, "seed of the networks, the env and the collection")
@@ -64,6 +91,7 @@ class PPOConfig(Config):
 
     algo: ClassVar[str] = "ppo"
     multi_agent: ClassVar[bool] = True
+    table: ClassVar[dict[str, dict]] = PPO
     batch: ClassVar[str] = "n_rollout"
     positive: ClassVar[tuple[str, ...]] = ("n_rollout", "minibatches", "epochs")
 
@@ -127,6 +155,8 @@ class GradConfig(Config):
 
     algo: ClassVar[str] = "grad"
     actions: ClassVar[str] = "continuous"
+    table: ClassVar[dict[str, dict]] = GRAD
+    in_process: ClassVar[bool] = True
     positive: ClassVar[tuple[str, ...]] = ("horizon",)
 
     num_envs: int = setting(16, "members of the batched env")
@@ -138,28 +168,6 @@ class GradConfig(Config):
 
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, DQNConfig, GradConfig)}
 
-# the paper's PPO table, per env; the variants train like their base env
-PPO = {
-    "shkadov-v0": dict(n_rollout=3200, frames=200_000),
-    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001),
-    "mixing-v0": dict(n_rollout=2000, frames=100_000),
-    "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
-    "burgers-v0": dict(n_rollout=4000, frames=500_000),
-    "sloshing-v0": dict(n_rollout=2000, epochs=16, frames=200_000, critic_lr=1e-3),
-    "vortex-v0": dict(n_rollout=4000, frames=1_000_000, critic_lr=1e-3),
-}
-VARIANT_OF = {
-    "lorenz-continuous-v0": "lorenz-v0",
-    "mixing-continuous-v0": "mixing-v0",
-    "shkadov-separable-v0": "shkadov-v0",
-}
-# gradient-based control, where its settings differ from the defaults
-GRAD = {
-    "burgers-v0": dict(frames=51_200, horizon=40),
-    # 100 of the 800 actions per update: the high cycle takes that long to grow; at the
-    # default rate (1e-3) the policies found the high cycle and lost it again
-    "vortex-v0": dict(frames=128_000, horizon=100, lr=3e-4, checkpoint=True),
-}
 # the episode scores that PPO should reach at the paper's budget or less, read from the
 # paper's curves
 PPO_TARGETS = {
@@ -193,10 +201,9 @@ def paper_frames(env_id: str) -> int:
 
 
 def defaults(cls: type[Config], env_id: str) -> dict:
-    """The per-env defaults of an algorithm: the paper's PPO table for PPO, the paper's
-    budget for the others, gradient-based control's own entries."""
-    table = {"ppo": PPO.get(VARIANT_OF.get(env_id, env_id), {}), "grad": GRAD.get(env_id, {})}.get(cls.algo, {})
-    return {"frames": paper_frames(env_id), **table}
+    """The per-env defaults of an algorithm: the paper's PPO budget, then the entry of
+    the algorithm's own table."""
+    return {"frames": paper_frames(env_id), **cls.table.get(VARIANT_OF.get(env_id, env_id), {})}
 
 
 def _typed(name: str, kind: str, value):
@@ -232,8 +239,8 @@ def _check(cfg: Config) -> Config:
         raise ValueError(f"{cfg.algo} needs discrete actions; {cfg.env} has continuous ones (use ppo or td3)")
     if isinstance(env.observation_key, tuple) and not cfg.multi_agent:
         raise ValueError(f"{cfg.algo} trains single-agent layouts; {cfg.env} has one agent per jet (use ppo, or {cfg.env.replace('-separable', '')} for {cfg.algo})")
-    if cfg.algo == "grad" and (cfg.collectors != 1 or cfg.ray):
-        raise ValueError("grad differentiates through the env in this process: collectors and ray do not apply")
+    if cfg.in_process and (cfg.collectors != 1 or cfg.ray):
+        raise ValueError(f"{cfg.algo} differentiates through the env in this process: collectors and ray do not apply")
     return cfg
 
 
