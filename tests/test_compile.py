@@ -49,3 +49,19 @@ def test_compiled_env_rolls_out_through_torchrl():
     env = make("vortex-v0", 8, compile=True)
     td = env.rollout(4)
     assert td.batch_size == (8, 4) and torch.isfinite(td["next", "reward"]).all()
+
+
+def test_compiled_envs_leave_dynamo_settings_as_they_found_them():
+    """The recompile limit is raised while a kernel runs, so that many env shapes keep
+    their compiled code, and restored after: an env changes no process-wide setting."""
+    import torch._dynamo
+
+    before = torch._dynamo.config.recompile_limit
+    env = make("lorenz-v0", 3, compile=True)
+    seen = []
+    env.kernels._cache.clear()
+    kernel = env.kernels(lambda x: seen.append(torch._dynamo.config.recompile_limit) or x * 2)
+    assert torch.equal(kernel(torch.ones(2)), 2 * torch.ones(2))
+    run_actions(env, [env.null_action()])
+    assert seen and seen[0] >= 64  # traced while the limit was raised
+    assert torch._dynamo.config.recompile_limit == before
