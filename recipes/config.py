@@ -17,13 +17,15 @@ from typing import ClassVar
 import beacon_torch
 from beacon_torch.training.env import NORM_STEPS
 
-# the paper's PPO table, per env; the variants train like their base env
+# the paper's PPO settings per env: its table, and what its runs used beyond the table
+# (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks); the
+# variants train like their base env
 PPO = {
-    "shkadov-v0": dict(n_rollout=3200, frames=200_000),
-    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001),
-    "mixing-v0": dict(n_rollout=2000, frames=100_000),
+    "shkadov-v0": dict(n_rollout=3200, frames=200_000, critic_optim="nadam"),
+    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128),
+    "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90),
     "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
-    "burgers-v0": dict(n_rollout=4000, frames=500_000),
+    "burgers-v0": dict(n_rollout=4000, frames=500_000, critic_lr=1e-3),
     "sloshing-v0": dict(n_rollout=2000, epochs=16, frames=200_000, critic_lr=1e-3),
     "vortex-v0": dict(n_rollout=4000, frames=1_000_000, critic_lr=1e-3),
 }
@@ -41,8 +43,8 @@ GRAD = {
 }
 
 
-def setting(default, help: str):
-    return field(default=default, metadata={"help": help})
+def setting(default, help: str, choices: tuple[str, ...] = ()):
+    return field(default=default, metadata={"help": help, "choices": choices})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -70,13 +72,13 @@ class Config:
     hidden: int = setting(64, "width of the hidden layers")
     gamma: float = setting(0.99, "discount")
     compile: bool = setting(False, "the env's compiled physics (worth it for rayleigh and mixing)")
-    norm_steps: int = setting(NORM_STEPS, "random steps whose observations set the normalisation")
+    norm_steps: int = setting(0, f"random steps whose observations set a normalisation (0: raw observations, as the paper's agents saw them; {NORM_STEPS} reach past every env's start-up)")
     device: str = setting("cpu", "torch device of the env and the networks")
     out: str = setting("", "run directory (default runs/ALGO-ENV/seedSEED)")
     resume: bool = setting(False, "continue the run in OUT from its checkpoint to FRAMES")
     collectors: int = setting(1, "collector processes (or Ray actors), each with a batched env of NUM_ENVS members")
     ray: str = setting("", "collect with Ray actors on the cluster at this address ('auto', or 'local' for one here); needs beacon-torch[ray]")
-    logger: str = setting("auto", "'csv', 'tensorboard' (CSV and TensorBoard) or 'auto' (TensorBoard too when installed)")
+    logger: str = setting("auto", "'csv', 'tensorboard' (CSV and TensorBoard) or 'auto' (TensorBoard too when installed)", ("auto", "csv", "tensorboard"))
     progress: bool = setting(True, "progress bar")
     checkpoint_every: int = setting(10, "rounds of updates between two checkpoints")
 
@@ -99,11 +101,12 @@ class PPOConfig(Config):
     minibatches: int = setting(2, "minibatches per epoch")
     epochs: int = setting(32, "passes over each collected batch")
     gae_lambda: float = setting(0.99, "GAE's lambda")
-    actor_lr: float = setting(5e-4, "actor learning rate")
+    actor_lr: float = setting(5e-4, "actor learning rate (Adam)")
     critic_lr: float = setting(5e-3, "critic learning rate")
+    critic_optim: str = setting("adam", "the critic's optimiser: 'adam' or 'nadam'", ("adam", "nadam"))
     clip: float = setting(0.2, "PPO's clipping of the probability ratio")
     entropy: float = setting(0.01, "entropy bonus")
-    grad_clip: float = setting(0.1, "clipping of the gradient norm")
+    grad_clip: float = setting(0.1, "clipping of each network's gradient norm")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,16 +115,12 @@ class OffPolicyConfig(Config):
     gradient steps per collected batch, soft target updates."""
 
     batch: ClassVar[str] = "frames_per_batch"
-    positive: ClassVar[tuple[str, ...]] = ("frames_per_batch", "batch_size", "buffer_size", "updates_per_batch")
+    positive: ClassVar[tuple[str, ...]] = ("frames_per_batch", "batch_size", "updates_per_batch")
 
-    hidden: int = setting(256, "width of the hidden layers")
-    frames_per_batch: int = setting(256, "transitions collected between two rounds of updates")
-    init_random_frames: int = setting(5_000, "uniformly random actions before the policy acts")
-    buffer_size: int = setting(1_000_000, "replay buffer capacity (transitions)")
-    batch_size: int = setting(256, "transitions per gradient step")
-    updates_per_batch: int = setting(64, "gradient steps per collected batch")
-    lr: float = setting(3e-4, "learning rate")
-    tau: float = setting(0.005, "soft update of the target networks")
+    frames_per_batch: int = setting(64, "transitions collected between two rounds of updates")
+    buffer_size: int = setting(0, "replay buffer capacity in transitions (0: the whole run)")
+    batch_size: int = setting(64, "transitions per gradient step")
+    updates_per_batch: int = setting(64, "gradient steps per collected batch (the paper's agents: one per transition)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -131,9 +130,13 @@ class TD3Config(OffPolicyConfig):
     algo: ClassVar[str] = "td3"
     actions: ClassVar[str] = "continuous"
 
-    policy_noise: float = setting(0.2, "target policy smoothing noise")
-    noise_clip: float = setting(0.5, "clipping of the smoothing noise")
-    exploration_sigma: float = setting(0.1, "Gaussian exploration noise")
+    hidden: int = setting(128, "width of the hidden layers")
+    init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
+    lr: float = setting(1e-3, "learning rate of the actor and the critics (Adam)")
+    tau: float = setting(0.02, "soft update of the target networks")
+    policy_noise: float = setting(0.002, "target policy smoothing noise, in action units")
+    noise_clip: float = setting(0.005, "clipping of the smoothing noise")
+    exploration_sigma: float = setting(0.001, "Gaussian exploration noise, in action units")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -142,10 +145,14 @@ class DQNConfig(OffPolicyConfig):
 
     algo: ClassVar[str] = "dqn"
     actions: ClassVar[str] = "discrete"
+    positive: ClassVar[tuple[str, ...]] = (*OffPolicyConfig.positive, "target_every")
 
-    eps_init: float = setting(1.0, "initial exploration rate")
+    init_random_frames: int = setting(0, "uniformly random actions before the policy acts")
+    lr: float = setting(5e-4, "learning rate (Adam)")
+    target_every: int = setting(50, "updates between two copies of the network into the target")
+    eps_init: float = setting(0.5, "initial exploration rate")
     eps_end: float = setting(0.05, "final exploration rate")
-    eps_frames: int = setting(50_000, "transitions over which the exploration rate anneals")
+    eps_frames: int = setting(2_000_000, "transitions over which the exploration rate anneals linearly")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -160,6 +167,7 @@ class GradConfig(Config):
     positive: ClassVar[tuple[str, ...]] = ("horizon",)
 
     num_envs: int = setting(16, "members of the batched env")
+    norm_steps: int = setting(NORM_STEPS, "random steps whose observations set the normalisation (0: raw observations)")
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
     lr: float = setting(1e-3, "learning rate")
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm")
@@ -224,14 +232,17 @@ def _typed(name: str, kind: str, value):
 
 
 def _check(cfg: Config) -> Config:
-    for name in ("frames", "num_envs", "hidden", "norm_steps", "collectors", "checkpoint_every", *cfg.positive):
+    if cfg.norm_steps < 0:
+        raise ValueError(f"setting 'norm_steps' must be 0 (raw observations) or a positive integer, got {cfg.norm_steps}")
+    for name in ("frames", "num_envs", "hidden", "collectors", "checkpoint_every", *cfg.positive):
         if getattr(cfg, name) < 1:
             raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
     members = cfg.num_envs * cfg.collectors
     if getattr(cfg, cfg.batch) % members:
         raise ValueError(f"{cfg.batch} ({getattr(cfg, cfg.batch)}) must be a multiple of num_envs x collectors ({members})")
-    if cfg.logger not in ("auto", "csv", "tensorboard"):
-        raise ValueError(f"setting 'logger' must be 'auto', 'csv' or 'tensorboard', got {cfg.logger!r}")
+    for f in fields(cfg):
+        if f.metadata["choices"] and getattr(cfg, f.name) not in f.metadata["choices"]:
+            raise ValueError(f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, got {getattr(cfg, f.name)!r}")
     env = beacon_torch.registry.env_class(cfg.env)
     if cfg.actions == "continuous" and env.discrete:
         raise ValueError(f"{cfg.algo} needs continuous actions; {cfg.env} has discrete ones (use ppo or dqn)")

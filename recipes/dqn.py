@@ -1,5 +1,6 @@
 """DQN on a BEACON env with discrete actions (lorenz-v0, mixing-v0), from TorchRL's
-pieces: ``DQNLoss`` (double DQN, a target network through ``SoftUpdate``), a
+pieces: ``DQNLoss`` (plain DQN as the paper's agent: the target network's maximum, a
+hard copy into it every ``target_every`` updates through ``HardUpdate``), a
 ``QValueActor``, epsilon-greedy exploration (``EGreedyModule``), a ``Collector`` over
 the batched env and a ``ReplayBuffer`` saved with each checkpoint.
 
@@ -12,7 +13,7 @@ import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import EGreedyModule
-from torchrl.objectives import DQNLoss, SoftUpdate
+from torchrl.objectives import DQNLoss, HardUpdate
 
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
@@ -29,17 +30,17 @@ def main(cfg: DQNConfig) -> dict:
     # the env, with the saved normalisation when resuming
     env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
 
-    # the action values (the greedy policy), the double-DQN loss with its target network
+    # the action values (the greedy policy), the DQN loss with its target network
     qvalue = networks.qvalue_actor(env, cfg.hidden).to(cfg.device)
-    loss = DQNLoss(qvalue, delay_value=True, double_dqn=True, action_space="categorical")
+    loss = DQNLoss(qvalue, delay_value=True, double_dqn=False, action_space="categorical")
     loss.make_value_estimator(gamma=cfg.gamma)
-    target = SoftUpdate(loss, tau=cfg.tau)
+    target = HardUpdate(loss, value_network_update_interval=cfg.target_every)
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
 
     # epsilon-greedy exploration, annealed over the transitions; the replay buffer
     explore = EGreedyModule(spec=env.action_spec, eps_init=cfg.eps_init, eps_end=cfg.eps_end, annealing_num_steps=cfg.eps_frames)
     explore.step(run.frames)
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size, device=cfg.device), batch_size=cfg.batch_size)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size)
     run.restore(buffer, actor=qvalue, loss=loss, optim=optim)
     if run.remaining <= 0:
         return run.last

@@ -37,7 +37,7 @@ def main(cfg: GradConfig) -> dict:
     base = env.base_env
 
     # the policy and its optimiser; the count of updates dropped for a non-finite gradient
-    actor = networks.deterministic_actor(env, cfg.hidden).to(cfg.device)
+    actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
     optim = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
     run.restore(actor=actor, optim=optim)
     run.counters.setdefault("skipped", 0)

@@ -40,20 +40,22 @@ def main(cfg: PPOConfig) -> dict:
     actor = networks.stochastic_actor(env, cfg.hidden).to(cfg.device)
     critic = networks.state_value(env, cfg.hidden).to(cfg.device)
 
-    # the loss, the advantage and one optimiser with the two learning rates
-    exclude = (-2,) if keys.agents else ()  # agents sit at different places of the film: their advantages are normalised apart
-    loss = ClipPPOLoss(actor, critic, clip_epsilon=cfg.clip, entropy_coeff=cfg.entropy, normalize_advantage=True, normalize_advantage_exclude_dims=exclude, loss_critic_type="l2")
+    # the loss (clipped surrogate, analytic entropy, squared value error), GAE, and one
+    # optimiser per network: each network's gradient is clipped on its own, as the
+    # critic's is far larger at the start and a common clip would starve the actor
+    loss = ClipPPOLoss(actor, critic, clip_epsilon=cfg.clip, entropy_coeff=cfg.entropy, critic_coeff=1.0, loss_critic_type="l2")
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False)
     fields = dict(reward=keys.reward, done=keys.done, terminated=keys.terminated, value=keys.value, advantage=keys.advantage, value_target=keys.value_target)
     loss.set_keys(action=keys.action, sample_log_prob=keys.log_prob, **fields)
     advantage.set_keys(**fields)
-    optim = torch.optim.Adam([{"params": actor.parameters(), "lr": cfg.actor_lr}, {"params": critic.parameters(), "lr": cfg.critic_lr}])
-    run.restore(actor=actor, critic=critic, optim=optim)
+    actor_optim = torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr)
+    critic_optim = {"adam": torch.optim.Adam, "nadam": torch.optim.NAdam}[cfg.critic_optim](critic.parameters(), lr=cfg.critic_lr)
+    run.restore(actor=actor, critic=critic, actor_optim=actor_optim, critic_optim=critic_optim)
     if run.remaining <= 0:
         return run.last
 
     def save() -> None:
-        run.save(env, policy=("stochastic_actor", cfg.hidden, actor), critic=critic, optim=optim)
+        run.save(env, policy=("stochastic_actor", cfg.hidden, actor), critic=critic, actor_optim=actor_optim, critic_optim=critic_optim)
 
     # the collector and the buffer the minibatches are drawn from
     collector = make_collector(cfg.env, env, actor, frames_per_batch=cfg.n_rollout, total_frames=run.remaining, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
@@ -65,15 +67,22 @@ def main(cfg: PPOConfig) -> dict:
                 data[("next", *key)] = data["next", flag].unsqueeze(-2).expand(data[("next", *keys.reward)].shape)
         with torch.no_grad():
             data = advantage(data)
+            # normalised once over the whole rollout, not per minibatch; per agent in a
+            # multi-agent layout, as the jets sit at different places of the film
+            adv = data[keys.advantage]
+            dims = tuple(d for d in range(adv.ndim) if not (keys.agents and d == adv.ndim - 2))
+            data[keys.advantage] = (adv - adv.mean(dims, keepdim=True)) / (adv.std(dims, keepdim=True) + 1e-8)
         buffer.extend(data.reshape(-1))
         for _ in range(cfg.epochs):
             for _ in range(cfg.minibatches):
                 losses = loss(buffer.sample())
                 total = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
-                optim.zero_grad()
+                actor_optim.zero_grad()
+                critic_optim.zero_grad()
                 total.backward()
-                nn.utils.clip_grad_norm_(loss.parameters(), cfg.grad_clip)
-                optim.step()
+                for net, optim in ((actor, actor_optim), (critic, critic_optim)):
+                    nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
+                    optim.step()
         collector.update_policy_weights_()
         run.log(data.numel(), {**episode_values(data, keys.reward), "loss": total.item()}, save)
     collector.shutdown()

@@ -42,7 +42,7 @@ def main(cfg: TD3Config) -> dict:
 
     # exploration, the replay buffer and the collector
     policy = TensorDictSequential(actor, AdditiveGaussianModule(spec=env.action_spec, sigma_init=cfg.exploration_sigma, sigma_end=cfg.exploration_sigma, annealing_num_steps=1))
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size, device=cfg.device), batch_size=cfg.batch_size)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size)
     run.restore(buffer, actor=actor, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
     if run.remaining <= 0:
         return run.last

@@ -331,3 +331,33 @@ def test_config_module_is_the_one_place_of_the_algorithms():
     assert set(CONFIGS) == {"ppo", "td3", "dqn", "grad"}
     assert {algo for algos in ALGORITHMS.values() for algo in algos} <= set(CONFIGS)
     assert config.paper_frames("shkadov-separable-v0") == 200_000
+
+
+def test_new_networks_start_as_the_papers_agents():
+    """Zero output layers: a continuous policy of mean 0 and standard deviation 0.5 for
+    every observation, a uniform discrete policy, values of 0, raw observations."""
+    env = make_env("vortex-v0", 3, norm_steps=0)
+    assert torch.equal(env.transform[0].loc, torch.zeros(8)) and torch.equal(env.transform[0].scale, torch.ones(8))
+    td = env.reset()
+    td["observation"] = 10 * torch.randn(3, 8)
+    out = networks.stochastic_actor(env, 64)(td)
+    assert torch.equal(out["loc"], torch.zeros(3, 2)) and torch.allclose(out["scale"], torch.full((3, 2), 0.5))
+    assert torch.equal(networks.state_value(env, 64)(td)["state_value"], torch.zeros(3, 1))
+    assert torch.equal(networks.action_value(env, 128)(td.set("action", torch.rand(3, 2)))["state_value"], torch.zeros(3, 1))
+    discrete = make_env("lorenz-v0", 3, norm_steps=0)
+    dist = networks.stochastic_actor(discrete, 64).get_dist(discrete.reset())
+    assert torch.allclose(dist.probs, torch.full((3, 3), 1 / 3))
+    assert torch.equal(networks.qvalue_actor(discrete, 64)(discrete.reset())["action_value"], torch.zeros(3, 3))
+
+
+def test_settings_follow_the_papers_runs_where_its_table_is_silent():
+    assert configure(PPOConfig, "mixing-v0").gae_lambda == 0.90 and configure(PPOConfig, "burgers-v0").critic_lr == 1e-3
+    assert configure(PPOConfig, "shkadov-v0").critic_optim == "nadam" and configure(PPOConfig, "rayleigh-v0").hidden == 128
+    assert configure(PPOConfig, "lorenz-v0").norm_steps == 0  # raw observations
+    dqn_ = configure(DQNConfig, "lorenz-v0")
+    assert (dqn_.eps_init, dqn_.eps_end, dqn_.eps_frames, dqn_.target_every, dqn_.lr, dqn_.batch_size, dqn_.hidden) == (0.5, 0.05, 2_000_000, 50, 5e-4, 64, 64)
+    td3_ = configure(TD3Config, "burgers-v0")
+    assert (td3_.hidden, td3_.lr, td3_.tau, td3_.exploration_sigma, td3_.policy_noise, td3_.noise_clip, td3_.init_random_frames) == (128, 1e-3, 0.02, 0.001, 0.002, 0.005, 1000)
+    assert td3_.updates_per_batch == td3_.frames_per_batch  # one update per transition
+    with pytest.raises(ValueError, match="'critic_optim' must be one of"):
+        configure(PPOConfig, "lorenz-v0", critic_optim="sgd")

@@ -6,6 +6,7 @@ from __future__ import annotations
 from functools import partial
 from importlib.util import find_spec
 
+import torch
 from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, TransformedEnv
 
 import beacon_torch
@@ -24,12 +25,16 @@ def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
 def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: dict | None = None, norm_steps: int = NORM_STEPS, **env_kwargs) -> TransformedEnv:
     """The batched env with observation normalisation and episode returns; the
     statistics come from ``norm`` (a saved ``ObservationNorm`` state) or else from a
-    rollout of ``norm_steps`` random actions. In a multi-agent layout
+    rollout of ``norm_steps`` random actions (0: none, the identity, the raw
+    observations that the paper's agents saw). In a multi-agent layout
     (shkadov-separable-v0) the statistics are shared by the agents, as the policy is,
     and the episode returns are per agent, next to their rewards. Continuous actions
     reach the env clipped to its box."""
     base = beacon_torch.make(env_id, num_envs, device=device, seed=seed, **env_kwargs)
     obs, reward = base.observation_key, base.reward_key
+    if norm is None and norm_steps == 0:
+        n_obs = base.observation_spec[obs].shape[-1]
+        norm = {"loc": torch.zeros(n_obs, dtype=base.dtype, device=device), "scale": torch.ones(n_obs, dtype=base.dtype, device=device)}
     loc, scale = (norm["loc"], norm["scale"]) if norm is not None else (None, None)
     transforms = [ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True), RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")])]
     if not base.discrete:

@@ -1,4 +1,7 @@
-"""The paper's networks, built for a training env (``env.make_env``).
+"""The paper's networks, built for a training env (``env.make_env``), initialised as
+the paper's agents were: hidden layers orthogonal with gain 1 and zero biases, every
+output layer zero (weights and biases), so that a new continuous policy has mean 0 and
+standard deviation 0.5 everywhere, a new discrete one is uniform, and values start at 0.
 
 A checkpoint records the network of its policy by name (``NETWORKS``) with its width,
 so that evaluation rebuilds any trained policy without knowing the algorithm.
@@ -19,12 +22,21 @@ from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, QValueAc
 from beacon_torch.training.env import sibling
 
 
-def orthogonal(module: nn.Module, gain: float = 2**0.5) -> nn.Module:
+def initialised(module: nn.Module, *outputs: nn.Linear) -> nn.Module:
+    """``module`` with its linear layers orthogonal (gain 1, zero biases) and the
+    ``outputs`` zero."""
     for layer in module.modules():
         if isinstance(layer, nn.Linear):
-            nn.init.orthogonal_(layer.weight, gain)
+            nn.init.orthogonal_(layer.weight, 1.0)
             nn.init.zeros_(layer.bias)
+    for layer in outputs:
+        nn.init.zeros_(layer.weight)
+        nn.init.zeros_(layer.bias)
     return module
+
+
+def last_linear(module: nn.Module) -> nn.Linear:
+    return [layer for layer in module.modules() if isinstance(layer, nn.Linear)][-1]
 
 
 @dataclass(frozen=True)
@@ -85,12 +97,14 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
     n_obs = n_observations(env)
     if env.base_env.discrete:
         trunk = [nn.Linear(n_obs, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh()]
-        net = orthogonal(nn.Sequential(*trunk, nn.Linear(hidden, env.base_env.n_actions)))
+        net = nn.Sequential(*trunk, nn.Linear(hidden, env.base_env.n_actions))
+        net = initialised(net, last_linear(net))
         module = TensorDictModule(net, in_keys=[keys.obs], out_keys=["logits"])
         return ProbabilisticActor(module, in_keys=["logits"], distribution_class=torch.distributions.Categorical, return_log_prob=True, spec=env.action_spec)
     params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
     n_act = env.full_action_spec[keys.action].shape[-1]
-    module = TensorDictModule(orthogonal(Heads(n_obs, hidden, n_act)), in_keys=[keys.obs], out_keys=params)
+    heads = Heads(n_obs, hidden, n_act)
+    module = TensorDictModule(initialised(heads, last_linear(heads.mean), last_linear(heads.spread)), in_keys=[keys.obs], out_keys=params)
     # as the paper's agent: a normal sample, clipped to the box by the env's transform
     # (env.make_env) while the loss sees the sample itself; not a tanh-squashed
     # distribution, whose vanishing gradient at the bounds traps "no control" policies
@@ -108,8 +122,8 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
 def state_value(env: TransformedEnv, hidden: int) -> ValueOperator:
     """The paper's PPO critic: two ReLU layers."""
     keys = Keys.of(env)
-    net = orthogonal(nn.Sequential(nn.Linear(n_observations(env), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)))
-    return ValueOperator(net, in_keys=[keys.obs], out_keys=[keys.value])
+    net = nn.Sequential(nn.Linear(n_observations(env), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+    return ValueOperator(initialised(net, last_linear(net)), in_keys=[keys.obs], out_keys=[keys.value])
 
 
 def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
@@ -118,11 +132,14 @@ def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
     return space.low.reshape(-1, n_act)[0], space.high.reshape(-1, n_act)[0]
 
 
-def deterministic_actor(env: TransformedEnv, hidden: int) -> TensorDictSequential:
+def deterministic_actor(env: TransformedEnv, hidden: int, paper_init: bool = True) -> TensorDictSequential:
     """A deterministic policy (TD3, gradient-based control): an MLP squashed into the
-    action box."""
+    action box. ``paper_init`` False keeps torch's default initialisation (gradient-based
+    control, whose first updates need a gradient through every layer)."""
     low, high = action_bounds(env)
     net = MLP(in_features=n_observations(env), out_features=env.action_spec.shape[-1], num_cells=[hidden, hidden], activation_class=nn.ReLU)
+    if paper_init:
+        initialised(net, last_linear(net))
     return TensorDictSequential(
         TensorDictModule(net, in_keys=["observation"], out_keys=["param"]),
         TanhModule(in_keys=["param"], out_keys=["action"], low=low, high=high),
@@ -133,13 +150,13 @@ def action_value(env: TransformedEnv, hidden: int) -> ValueOperator:
     """TD3's critic: the value of an (observation, action) pair."""
     n_in = n_observations(env) + env.action_spec.shape[-1]
     net = MLP(in_features=n_in, out_features=1, num_cells=[hidden, hidden], activation_class=nn.ReLU)
-    return ValueOperator(net, in_keys=["observation", "action"])
+    return ValueOperator(initialised(net, last_linear(net)), in_keys=["observation", "action"])
 
 
 def qvalue_actor(env: TransformedEnv, hidden: int) -> QValueActor:
     """DQN's policy: the values of every discrete action; the greedy one is played."""
     net = MLP(in_features=n_observations(env), out_features=env.base_env.n_actions, num_cells=[hidden, hidden], activation_class=nn.ReLU)
-    return QValueActor(net, in_keys=["observation"], action_space="categorical")
+    return QValueActor(initialised(net, last_linear(net)), in_keys=["observation"], action_space="categorical")
 
 
 # the policies a checkpoint can hold, by the name it records

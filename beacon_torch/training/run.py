@@ -146,7 +146,16 @@ class Run:
         for name, module in modules.items():
             module.load_state_dict(self.state["modules"][name])
         if buffer is not None and (self.out / "buffer").exists():
-            buffer.loads(self.out / "buffer")
+            capacity = self.counters.get("buffer_capacity", buffer.storage.max_size)
+            if capacity == buffer.storage.max_size:
+                buffer.loads(self.out / "buffer")
+            else:
+                # a resumed run with another total has a buffer of another size: the
+                # saved transitions are moved over
+                saved = type(buffer)(storage=type(buffer.storage)(capacity, device=buffer.storage.device))
+                saved.loads(self.out / "buffer")
+                kept = min(len(saved), buffer.storage.max_size)
+                buffer.extend(saved[len(saved) - kept : len(saved)])
 
     def seconds(self) -> float:
         return self.elapsed + time.perf_counter() - self._since
@@ -172,6 +181,8 @@ class Run:
         for off-policy runs, the ``buffer``. The file is replaced in one step, so a run
         stopped while saving keeps its previous checkpoint."""
         network, hidden, actor = policy
+        if buffer is not None:
+            self.counters["buffer_capacity"] = buffer.storage.max_size
         state = {
             "env": self.env_id,
             "algo": self.algo,
