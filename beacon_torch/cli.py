@@ -173,17 +173,33 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from beacon_torch.training.evaluation import evaluate_run
+    from beacon_torch.training.evaluation import evaluate_policy, evaluate_run
     from beacon_torch.training.run import seed_dirs
 
     if args.members < 1:
         raise CliError(f"--members must be a positive integer, got {args.members}")
-    for run in seed_dirs(args.run):
-        gif = None if args.no_gif else run / "controlled.gif"
-        r = evaluate_run(run, members=args.members, device=args.device, gif=gif)
+    if (args.run is None) == (args.pretrained is None):
+        raise CliError("eval takes a run directory or --pretrained ALGO/ENV, one of the two")
+    if args.pretrained is not None:
+        from beacon_torch import pretrained
+
+        algo, sep, env_id = args.pretrained.partition("/")
+        if not sep:
+            raise CliError(f"--pretrained expects ALGO/ENV (e.g. ppo/burgers-v0), got {args.pretrained!r}")
+        policy = pretrained.load(algo, env_id, device=args.device)
+        gif = None if args.no_gif else Path(args.out or ".") / f"{algo}-{env_id}.gif"
+        r = evaluate_policy(env_id, policy, members=args.members, device=args.device, gif=gif)
+        trained = f"trained on {pretrained.info(algo, env_id)['frames']} transitions"
+        runs = [(f"pretrained {algo}", r, trained)]
+    else:
+        runs = []
+        for run in seed_dirs(args.run):
+            r = evaluate_run(run, members=args.members, device=args.device, gif=None if args.no_gif else run / "controlled.gif")
+            runs.append((str(run), r, f"trained on {r['frames']} transitions"))
+    for name, r, trained in runs:
         print(
-            f"{r['env']} {run}: score {r['score_mean']:.6g} +- {r['score_std']:.3g} over {args.members} episodes "
-            f"(uncontrolled {r['uncontrolled']:.6g}; trained on {r['frames']} transitions)" + (f"; animation {r['gif']}" if gif else "")
+            f"{r['env']} {name}: score {r['score_mean']:.6g} +- {r['score_std']:.3g} over {args.members} episodes "
+            f"(uncontrolled {r['uncontrolled']:.6g}; {trained})" + (f"; animation {r['gif']}" if "gif" in r else "")
         )
     return 0
 
@@ -225,7 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=cmd_bench)
 
     ev = sub.add_parser("eval", help="score a trained policy against the uncontrolled env")
-    ev.add_argument("run", help="a run directory of a recipe (one seed, or seedK folders)")
+    ev.add_argument("run", nargs="?", help="a run directory of a recipe (one seed, or seedK folders)")
+    ev.add_argument("--pretrained", metavar="ALGO/ENV", help="a shipped policy instead (beacon_torch.pretrained.available())")
+    ev.add_argument("--out", help="where --pretrained writes its animation (default: here)")
     ev.add_argument("--members", type=int, default=8, help="evaluation episodes (one batch)")
     ev.add_argument("--device", default="cpu")
     ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")

@@ -20,14 +20,16 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import load_checkpoint, seed_dirs
 
+# the seed of the evaluation episodes: every evaluation of an env sees the same episodes
+EVAL_SEED = 12345
 
-def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = 12345) -> dict:
-    """The deterministic policy of one seed's checkpoint on ``members`` fresh episodes,
-    next to the uncontrolled score; ``gif``: an animation of member 0's episode."""
-    state = load_checkpoint(run)
-    env = make_env(state["env"], members, device=device, seed=seed, norm=state["obs_norm"], record_history=gif is not None)
-    actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
-    actor.load_state_dict(state["modules"]["actor"])
+
+def evaluate_policy(env_id: str, policy, *, norm: dict | None = None, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED) -> dict:
+    """``policy``, deterministic, on ``members`` episodes of ``env_id`` (seeded by
+    ``seed``) whose observations are normalised by ``norm`` (an ``ObservationNorm``
+    state; None: raw), next to the uncontrolled score of the same episodes; ``gif``: an
+    animation of member 0's episode."""
+    env = make_env(env_id, members, device=device, seed=seed, norm=norm, norm_steps=0, record_history=gif is not None)
     base = env.base_env
     frames = []
     every = max(1, base.episode_length // 100)
@@ -38,13 +40,12 @@ def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | 
             frames.append(base.render())
 
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        rollout = env.rollout(base.episode_length, policy=actor, break_when_any_done=False, break_when_all_done=True, callback=grab)
+        rollout = env.rollout(base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab)
     controlled = evaluate.scores(rollout)
-    ref = beacon_torch.make(state["env"], members, device=device, seed=seed)  # the same episodes
+    ref = beacon_torch.make(env_id, members, device=device, seed=seed)  # the same episodes
     uncontrolled = evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref)))
     out = {
-        "env": state["env"],
-        "frames": state["frames"],
+        "env": env_id,
         "score_mean": controlled.mean().item(),
         "score_std": controlled.std(unbiased=False).item(),
         "uncontrolled": uncontrolled.mean().item(),
@@ -55,6 +56,16 @@ def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | 
         frames.append(base.render())
         out["gif"] = str(save_animation(frames, gif))
     return out
+
+
+def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED) -> dict:
+    """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
+    state = load_checkpoint(run)
+    env = make_env(state["env"], 1, norm=state["obs_norm"])
+    actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
+    actor.load_state_dict(state["modules"]["actor"])
+    result = evaluate_policy(state["env"], actor, norm=state["obs_norm"], members=members, device=device, gif=gif, seed=seed)
+    return {**result, "frames": state["frames"]}
 
 
 def read_scalar(run: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,69 @@
+"""Shipped policies (``beacon_torch.pretrained``): every one loads and acts in its env's
+action spec; the export folds a training's observation normalisation into the network."""
+
+import pytest
+import torch
+
+import beacon_torch
+from beacon_torch import pretrained
+from beacon_torch.cli import main as cli
+from beacon_torch.training.env import make_env
+from beacon_torch.training.run import load_checkpoint
+
+import config
+import ppo
+from conftest import FAST
+
+
+@pytest.mark.parametrize("name", pretrained.available())
+def test_every_shipped_policy_acts_in_the_action_spec(name):
+    algo, env_id = name.split("/")
+    policy = pretrained.load(algo, env_id)
+    env = beacon_torch.make(env_id, 2, seed=0, **FAST.get(env_id, {}))
+    with torch.no_grad():
+        rollout = env.rollout(3, policy)
+    assert env.full_action_spec[env.action_key].is_in(rollout[env.action_key][:, 0])
+    reward = env.reward_key if isinstance(env.reward_key, tuple) else (env.reward_key,)
+    assert torch.isfinite(rollout[("next", *reward)]).all()
+    info = pretrained.info(algo, env_id)
+    assert info["env"] == env_id and info["algo"] == algo and info["frames"] > 0
+
+
+@pytest.fixture
+def shipped(tmp_path, monkeypatch):
+    """A policy trained here with normalisation statistics, exported into a private
+    shipping folder."""
+    run = tmp_path / "run"
+    ppo.main(config.configure(config.PPOConfig, "vortex-v0", frames=400, n_rollout=200, num_envs=4, epochs=2, norm_steps=16, out=str(run), progress=False))
+    folder = tmp_path / "shipped"
+    folder.mkdir()
+    monkeypatch.setattr(pretrained, "HERE", folder)
+    pretrained.export(run, pretrained.path_of("ppo", "vortex-v0"), seed=0, score=1.0)
+    return run
+
+
+def test_export_folds_the_normalisation_into_the_first_layer(shipped):
+    assert pretrained.available() == ["ppo/vortex-v0"]
+    state = load_checkpoint(shipped)
+    assert not torch.equal(state["obs_norm"]["scale"], torch.ones_like(state["obs_norm"]["scale"]))
+    trained = make_env("vortex-v0", 5, seed=3, norm=state["obs_norm"])
+    from beacon_torch.training import networks
+
+    actor = networks.policy(trained, "stochastic_actor", 64)
+    actor.load_state_dict(state["modules"]["actor"])
+    td = trained.reset()  # normalised observations
+    raw = beacon_torch.make("vortex-v0", 5, seed=3).reset()
+    with torch.no_grad():
+        expected = actor(td)["action"]
+        got = pretrained.load("ppo", "vortex-v0")(raw)["action"]
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    assert pretrained.info("ppo", "vortex-v0")["score"] == 1.0
+
+
+def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, capsys):
+    assert cli(["eval", "--pretrained", "ppo/vortex-v0", "--members", "2", "--out", str(tmp_path)]) == 0
+    assert "pretrained ppo" in capsys.readouterr().out and (tmp_path / "ppo-vortex-v0.gif").stat().st_size > 1000
+    assert cli(["eval", "--pretrained", "td3/vortex-v0", "--no-gif"]) == 2
+    assert "no pretrained td3 policy for vortex-v0" in capsys.readouterr().err
+    assert cli(["eval"]) == 2
+    assert "one of the two" in capsys.readouterr().err
