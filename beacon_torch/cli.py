@@ -8,6 +8,9 @@
     beacon-torch eval DIR             a trained policy's score against the
                                       uncontrolled one, and an animation
     beacon-torch plot DIR... --out P  learning curves, mean and std over seeds
+    beacon-torch report DIR...        the benchmark protocol: normalised scores, their
+                                      interquartile mean over seeds and its bootstrap
+                                      interval, a table and a figure
 
 Training is the recipes' (``recipes/ppo.py``, ``td3.py``, ``dqn.py``, ``grad.py`` in the
 repository); ``eval`` and ``plot`` read the run directories they write.
@@ -212,6 +215,15 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from beacon_torch.training.report import report
+
+    result = report(args.runs, args.out)
+    print(result["table"])
+    print(f"\ntable: {Path(args.out) / 'report.md'}, numbers: {Path(args.out) / 'report.json'}\nfigure: {result['png']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="beacon-torch", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -254,6 +266,11 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--out", default="learning_curve.png", help="the PNG to write")
     pl.add_argument("--scalar", default="episode_score", help="the logged value to draw")
     pl.set_defaults(func=cmd_plot)
+
+    rp = sub.add_parser("report", help="the benchmark protocol over trained runs: normalised scores, IQM and bootstrap intervals")
+    rp.add_argument("runs", nargs="+", help="run directories (seedK folders of one env and algorithm) or their summary.json files")
+    rp.add_argument("--out", default="runs/report", help="where report.md, report.json and report.png go")
+    rp.set_defaults(func=cmd_report)
     return parser
 
 

@@ -17,6 +17,9 @@ from typing import ClassVar
 import beacon_torch
 from beacon_torch.training.env import NORM_STEPS
 
+# which env each variant trains and is scored like (the benchmark protocol's)
+from beacon_torch.training.report import VARIANT_OF
+
 # the paper's PPO settings per env: its table, and what its runs used beyond the table
 # (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks); the
 # variants train like their base env
@@ -28,11 +31,6 @@ PPO = {
     "burgers-v0": dict(n_rollout=4000, frames=500_000, critic_lr=1e-3),
     "sloshing-v0": dict(n_rollout=2000, epochs=16, frames=200_000, critic_lr=1e-3),
     "vortex-v0": dict(n_rollout=4000, frames=1_000_000, critic_lr=1e-3),
-}
-VARIANT_OF = {
-    "lorenz-continuous-v0": "lorenz-v0",
-    "mixing-continuous-v0": "mixing-v0",
-    "shkadov-separable-v0": "shkadov-v0",
 }
 # gradient-based control, where its settings differ from the defaults
 GRAD = {
@@ -176,17 +174,6 @@ class GradConfig(Config):
 
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, DQNConfig, GradConfig)}
 
-# the episode scores that PPO should reach at the paper's budget or less, read from the
-# paper's curves
-PPO_TARGETS = {
-    "lorenz-v0": 400.0,
-    "vortex-v0": 30.0,
-    "burgers-v0": -1.75,
-    "sloshing-v0": -1.15,
-    "shkadov-v0": -0.8,
-    "rayleigh-v0": -130.0,
-    "mixing-v0": -15.0,
-}
 # the algorithms the paper trains on each env (PPO everywhere, TD3 where the actions are
 # continuous, DQN where they are discrete)
 ALGORITHMS = {

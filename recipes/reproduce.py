@@ -18,17 +18,22 @@ import argparse
 import importlib
 import json
 import os
+import shutil
 from pathlib import Path
 
 import torch
 
+from beacon_torch import pretrained
+from beacon_torch.training import report
 from beacon_torch.training.evaluation import summarise
+from beacon_torch.training.report import PAPER_PPO
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 
-from config import CONFIGS, PPO_TARGETS, configure, paper_frames
+from config import CONFIGS, configure, paper_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT / "docs" / "img" / "results"
+RECORDED = ROOT / "docs" / "results"  # the summaries the results page is written from
 BEGIN, END = "<!-- results table: recipes/reproduce.py report -->", "<!-- end of results table -->"
 
 
@@ -50,7 +55,8 @@ def text_value(text: str):
 
 
 def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, members: int, images: Path, progress: bool) -> dict:
-    """Train the missing seeds of one (algorithm, env) pair, then summarise it."""
+    """Train the missing seeds of one (algorithm, env) pair, summarise it and ship its
+    best seed's policy."""
     recipe = importlib.import_module(algo)
     root = out / f"{algo}-{env_id}"
     for seed in range(seeds):
@@ -59,49 +65,67 @@ def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path
         cfg = configure(CONFIGS[algo], env_id, **overrides, seed=seed, out=str(run), resume=started, progress=progress)
         if not started or load_checkpoint(run)["frames"] < cfg.frames:
             recipe.main(cfg)
-    return summarise(root, members=members, images=images)
+    summary = summarise(root, members=members, images=images)
+    ship(root)
+    return summary
 
 
-def write_results_table(out: str | Path, path: str | Path) -> Path:
-    """The table of every ``out/*/summary.json`` with the PPO targets, written between
-    the table markers of the markdown file ``path`` (appended if they are missing).
-    Rows already in the table for (env, algorithm) pairs that have no summary in
-    ``out`` are kept: a campaign adds to the recorded results without their runs."""
-    out, path = Path(out), Path(path)
-    text = path.read_text() if path.exists() else ""
-    rows = {}
-    if BEGIN in text:
-        for line in text[text.index(BEGIN) : text.index(END)].splitlines():
-            cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if line.startswith("|") and len(cells) > 2 and cells[0] not in ("env", "---"):
-                rows[(cells[1].split()[0], cells[0])] = line
-    for file in sorted(out.glob("*/summary.json")):
-        s = json.loads(file.read_text())
-        target = PPO_TARGETS.get(s["env"]) if s["algo"] == "ppo" else None
-        met = "" if target is None else ("met" if s["eval_mean"] >= target else "**missed**")
-        spread = (lambda key, s=s: f" +- {s[key]:.2g}") if len(s["seeds"]) > 1 else (lambda key: "")
-        # runs from before the normalisation statistics became a setting used 16 steps
-        algo = s["algo"] + (" (16-step norm.)" if s["config"].get("norm_steps", 16) != 64 else "")
-        rows[(s["algo"], s["env"])] = (
-            f"| {s['env']} | {algo} | {s['eval_mean']:.4g}{spread('eval_std')} | {s['train_mean']:.4g}{spread('train_std')} | "
-            f"{s['uncontrolled']:.4g} | {'' if target is None else f'>= {target:g} ({met})'} | {len(s['seeds'])} | {s['frames']:,} of {paper_frames(s['env']):,} | "
-            f"{s['wall_s_per_seed'] / 60:.1f} min | [curve]({os.path.relpath(s['png'], path.resolve().parent)}) |"
-        )
-    table = "\n".join(
-        [
-            "| env | algorithm | deterministic policy | training episodes, last 10 % | uncontrolled (same env) | PPO target | seeds "
-            "| transitions (of the paper's budget) | wall time per seed | curve |",
-            "|---|---|---|---|---|---|---|---|---|---|",
-            *(rows[key] for key in sorted(rows)),
-        ]
-    )
-    block = f"{BEGIN}\n{table}\n{END}"
+def record(out: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> list[Path]:
+    """Copy every ``out/*/summary.json`` into the repository's record of summaries
+    (``docs/results/ALGO-ENV.json``) and its curve into ``images``, so that the results
+    page can be written again without the runs."""
+    recorded.mkdir(parents=True, exist_ok=True)
+    images.mkdir(parents=True, exist_ok=True)
+    written = []
+    for file in sorted(Path(out).glob("*/summary.json")):
+        summary = json.loads(file.read_text())
+        png = Path(summary["png"])
+        if png.resolve() != (images / png.name).resolve():
+            shutil.copyfile(png, images / png.name)
+        copy = (images / png.name).resolve()
+        summary["png"] = str(copy.relative_to(ROOT) if copy.is_relative_to(ROOT) else copy)
+        target = recorded / f"{summary['algo']}-{summary['env']}.json"
+        target.write_text(json.dumps(summary, indent=1))
+        written.append(target)
+    return written
+
+
+def ship(root: Path) -> Path:
+    """The best seed's policy of a trained pair (by its deterministic evaluation) as the
+    package's pretrained policy of that pair."""
+    summary = json.loads((root / "summary.json").read_text())
+    best = max(summary["seeds"], key=lambda s: s["eval"])
+    path = pretrained.path_of(summary["algo"], summary["env"])
+    return pretrained.export(root / best["seed"], path, seed=best["seed"], score=best["eval"], uncontrolled=best["uncontrolled"])
+
+
+def results_block(recorded: Path, page: Path, images: Path) -> str:
+    """The results page's generated part: the protocol's figure and table over every
+    recorded summary, the PPO floors, and the curves."""
+    summaries = [json.loads(f.read_text()) for f in sorted(recorded.glob("*.json"))]
+    rows = report.report(sorted(recorded.glob("*.json")), images)
+    rel = lambda path: os.path.relpath(ROOT / path, page.resolve().parent)  # recorded paths are the repository's
+    floors = ["| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's deterministic policy | transitions (of the paper's budget) | floor met |", "|---|---|---|---|---|---|"]
+    for s in summaries:
+        if s["algo"] == "ppo" and s["env"] in PAPER_PPO:
+            floor, best = PAPER_PPO[s["env"]], max(seed["eval"] for seed in s["seeds"])
+            met = "met" if s["train_mean"] >= floor and best >= floor else "**missed**"
+            floors.append(f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} of {paper_frames(s['env']):,} | {met} |")
+    curves = ", ".join(f"[{s['algo']} {s['env']}]({rel(s['png'])})" for s in summaries)
+    return "\n\n".join([f"![normalised scores]({rel(rows['png'])})", rows["table"], "\n".join(floors), f"Curves: {curves}."])
+
+
+def write_results_page(recorded: Path, page: Path, images: Path) -> Path:
+    """Write the generated part between the markers of the results page (appended when
+    they are missing)."""
+    text = page.read_text() if page.exists() else ""
+    block = f"{BEGIN}\n{results_block(recorded, page, images)}\n{END}"
     if BEGIN in text:
         text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END) :]
     else:
         text = text + "\n" + block + "\n"
-    path.write_text(text)
-    return path
+    page.write_text(text)
+    return page
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -121,12 +145,14 @@ def main(argv: list[str] | None = None) -> None:
     su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo-burgers-v0")
     su.add_argument("--members", type=int, default=8)
     su.add_argument("--images", default=str(IMAGES))
-    rep = sub.add_parser("report", help="write the results table into docs/results.md")
+    rep = sub.add_parser("report", help="record the summaries of --out in docs/results/ and write docs/results.md from every recorded one")
     rep.add_argument("--out", default="runs/results")
     rep.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
+    rep.add_argument("--images", default=str(IMAGES))
     args = parser.parse_args(argv)
     if args.command == "report":
-        print(write_results_table(Path(args.out), Path(args.doc)))
+        record(Path(args.out))
+        print(write_results_page(RECORDED, Path(args.doc), Path(args.images)))
     elif args.command == "summarise":
         for root in args.pairs:
             summarise(root, members=args.members, images=args.images)

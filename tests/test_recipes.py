@@ -281,14 +281,19 @@ def test_continuous_actions_reach_the_env_clipped_and_the_data_keeps_the_sample(
     assert torch.allclose(out["next", "observation"] * norm.scale + norm.loc, ref["next", "observation"], atol=1e-6)
 
 
-def test_campaign_trains_summarises_and_writes_the_results_table(tmp_path):
-    """What ``recipes/reproduce.py`` records: per-seed evaluation, the curve, and a
-    table row in the results page with the PPO target; a second call skips the
+def test_campaign_trains_summarises_ships_and_writes_the_results_page(tmp_path, monkeypatch):
+    """What ``recipes/reproduce.py`` records: per-seed evaluation, the curve, the best
+    seed's policy shipped, the summaries recorded and the results page written from
+    them with the benchmark protocol and the PPO floor; a second call skips the
     finished seeds."""
     import json
 
+    from beacon_torch import pretrained
+
     import reproduce
 
+    monkeypatch.setattr(pretrained, "HERE", tmp_path / "shipped")
+    (tmp_path / "shipped").mkdir()
     out = tmp_path / "runs"
     settings = dict(frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
     summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, images=tmp_path / "img", progress=False)
@@ -296,18 +301,24 @@ def test_campaign_trains_summarises_and_writes_the_results_table(tmp_path):
     assert [s["seed"] for s in summary["seeds"]] == ["seed0", "seed1"] and summary["frames"] == 800
     assert summary["eval_std"] > 0 and summary["wall_s_per_seed"] > 0  # two seeds, two policies
     assert json.loads((root / "summary.json").read_text())["eval_mean"] == summary["eval_mean"]
+    best = max(summary["seeds"], key=lambda s: s["eval"])
+    assert pretrained.available() == ["ppo/burgers-v0"] and pretrained.info("ppo", "burgers-v0")["seed"] == best["seed"]
     stamp = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
     reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, images=tmp_path / "img", progress=False)
     assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp, "a finished seed was trained again"
-    page = tmp_path / "results.md"
-    head = "| env | algorithm | x |\n|---|---|---|\n"
-    kept, replaced = "| vortex-v0 | td3 (16-step norm.) | kept |", "| burgers-v0 | ppo | old |"
-    page.write_text(f"# Results\n\n{reproduce.BEGIN}\n{head}{replaced}\n{kept}\n{reproduce.END}\n\nnotes\n")
-    text = reproduce.write_results_table(out, page).read_text()
-    # the pair trained here is replaced; a pair recorded before, whose runs are gone, stays
-    assert "old" not in text and kept in text and text.endswith("notes\n")
+
+    recorded, images = tmp_path / "recorded", tmp_path / "docs" / "img"
+    reproduce.record(out, recorded, images)
+    assert json.loads((recorded / "ppo-burgers-v0.json").read_text())["seeds"] == summary["seeds"]
+    page = tmp_path / "docs" / "results.md"
+    page.write_text(f"# Results\n\n{reproduce.BEGIN}\nold\n{reproduce.END}\n\nnotes\n")
+    text = reproduce.write_results_page(recorded, page, images).read_text()
+    assert "old" not in text and text.endswith("notes\n") and (images / "report.png").stat().st_size > 10_000
     row = next(line for line in text.splitlines() if line.startswith("| burgers-v0 | ppo"))
-    assert ">= -1.75 (**missed**)" in row and "800 of 500,000" in row and "](img/ppo-burgers-v0.png)" in row
+    assert "| 2 |" in row and "-1.75" in row
+    floor = next(line for line in text.splitlines() if line.startswith("| burgers-v0 | -1.75"))
+    assert "**missed**" in floor and "800 of 500,000" in floor
+    assert "](img/ppo-burgers-v0.png)" in text
 
 
 def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
@@ -361,3 +372,19 @@ def test_settings_follow_the_papers_runs_where_its_table_is_silent():
     assert td3_.updates_per_batch == td3_.frames_per_batch  # one update per transition
     with pytest.raises(ValueError, match="'critic_optim' must be one of"):
         configure(PPOConfig, "lorenz-v0", critic_optim="sgd")
+
+
+def test_report_normalises_scores_and_bounds_their_interquartile_mean(tmp_path, capsys):
+    from beacon_torch.training import report
+
+    assert report.iqm([1.0, 2.0, 3.0, 4.0]) == 2.5 and report.iqm([0.0, 1.0, 2.0, 3.0, 100.0]) == 2.0
+    assert report.normalised(-1.75, -3.25, "burgers-v0") == 1.0 and report.normalised(238.0, 238.0, "lorenz-continuous-v0") == 0.0
+    low, high = report.bootstrap_interval([0.2, 0.4, 0.5, 0.6, 0.9])
+    assert 0.2 <= low < report.iqm([0.2, 0.4, 0.5, 0.6, 0.9]) < high <= 0.9
+    assert report.bootstrap_interval([0.2, 0.4, 0.5, 0.6, 0.9]) == (low, high)  # a fixed generator
+    summary = {"env": "sloshing-v0", "algo": "ppo", "uncontrolled": -2.1, "frames": 200_000, "wall_s_per_seed": 120.0, "seeds": [{"eval": e} for e in (-1.1, -1.6, -2.1)]}
+    file = tmp_path / "ppo-sloshing-v0.json"
+    file.write_text(__import__("json").dumps(summary))
+    assert cli(["report", str(file), "--out", str(tmp_path / "report")]) == 0
+    text = capsys.readouterr().out
+    assert "| sloshing-v0 | ppo | 3 | **0.50** [" in text and (tmp_path / "report" / "report.png").stat().st_size > 5_000

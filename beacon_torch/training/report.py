@@ -1,0 +1,159 @@
+"""A benchmark protocol to cite: per (env, algorithm), the normalised score of every
+seed's deterministic policy (0 = no control on the same episodes, 1 = the score the
+paper's PPO reaches), their interquartile mean over the seeds and its bootstrap 95 %
+confidence interval, as a table and a figure.
+
+The evaluation episodes are fixed: ``evaluation.EVAL_SEED`` seeds the env, 8 members
+by default, float32 as in training. ``beacon-torch report RUN_DIRS...`` reads the
+``summary.json`` of each run directory (``evaluation.summarise`` writes it; a
+directory without one is summarised first).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from beacon_torch.training.evaluation import summarise
+
+# the score each env's PPO reaches in the paper, the 1 of the normalised score (read
+# from its curves, as the mean of the last tenth of its training episodes)
+PAPER_PPO = {
+    "lorenz-v0": 400.0,
+    "vortex-v0": 38.0,
+    "burgers-v0": -1.75,
+    "sloshing-v0": -1.1,
+    "shkadov-v0": -0.8,
+    "rayleigh-v0": -130.0,
+    "mixing-v0": -12.0,
+}
+# the variants are scored against their base env's reference
+VARIANT_OF = {
+    "lorenz-continuous-v0": "lorenz-v0",
+    "mixing-continuous-v0": "mixing-v0",
+    "shkadov-separable-v0": "shkadov-v0",
+}
+BOOTSTRAP = 10_000  # resamples of the seeds
+CONFIDENCE = 0.95
+
+
+def reference(env_id: str) -> float:
+    """The paper's PPO score of ``env_id`` (its base env's for a variant)."""
+    return PAPER_PPO[VARIANT_OF.get(env_id, env_id)]
+
+
+def normalised(score, uncontrolled, env_id: str):
+    """0 at the uncontrolled score, 1 at the paper's PPO score."""
+    return (np.asarray(score, dtype=float) - uncontrolled) / (reference(env_id) - uncontrolled)
+
+
+def iqm(values) -> float:
+    """The interquartile mean: the mean of the middle half (a quarter trimmed on each
+    side, the cut values weighted by the fraction they keep), robust to one bad seed
+    and less noisy than the median."""
+    x = np.sort(np.asarray(values, dtype=float))
+    n = len(x)
+    lo, hi = 0.25 * n, 0.75 * n
+    weights = np.clip(np.minimum(np.arange(1, n + 1), hi) - np.maximum(np.arange(n), lo), 0.0, None)
+    return float((weights * x).sum() / weights.sum())
+
+
+def bootstrap_interval(values, statistic=iqm, resamples: int = BOOTSTRAP, seed: int = 0) -> tuple[float, float]:
+    """The percentile bootstrap interval of ``statistic`` over the seeds (resampled
+    with replacement, from a fixed generator, so that a report is reproducible)."""
+    x = np.asarray(values, dtype=float)
+    rng = np.random.default_rng(seed)
+    stats = np.array([statistic(x[rng.integers(0, len(x), len(x))]) for _ in range(resamples)])
+    tail = (1.0 - CONFIDENCE) / 2
+    return float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))
+
+
+def row(summary: dict) -> dict:
+    """The protocol's numbers of one (env, algorithm) summary."""
+    env_id = summary["env"]
+    scores = [s["eval"] for s in summary["seeds"]]
+    uncontrolled = summary["uncontrolled"]
+    norm = normalised(scores, uncontrolled, env_id)
+    low, high = bootstrap_interval(norm)
+    return {
+        "env": env_id,
+        "algo": summary["algo"],
+        "seeds": len(scores),
+        "scores": scores,
+        "uncontrolled": uncontrolled,
+        "reference": reference(env_id),
+        "normalised": norm.tolist(),
+        "iqm": iqm(norm),
+        "ci": (low, high),
+        "score_iqm": iqm(scores),
+        "frames": summary["frames"],
+        "wall_s_per_seed": summary["wall_s_per_seed"],
+    }
+
+
+def summaries(run_dirs) -> list[dict]:
+    """The summary of each run directory (a ``summary.json`` file, or a directory
+    holding one or to be summarised)."""
+    out = []
+    for run in map(Path, run_dirs):
+        if run.is_file():
+            out.append(json.loads(run.read_text()))
+        elif (run / "summary.json").is_file():
+            out.append(json.loads((run / "summary.json").read_text()))
+        else:
+            out.append(summarise(run))
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    lines = [
+        "| env | algorithm | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | uncontrolled | paper's PPO (= 1) | transitions | wall time per seed |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(rows, key=lambda r: (r["algo"], r["env"])):
+        per_seed = ", ".join(f"{s:.4g}" for s in r["scores"])
+        lines.append(
+            f"| {r['env']} | {r['algo']} | {r['seeds']} | **{r['iqm']:.2f}** [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}] | {r['score_iqm']:.4g} ({per_seed}) "
+            f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
+        )
+    return "\n".join(lines)
+
+
+def figure(rows: list[dict], path: str | Path) -> Path:
+    """The normalised IQM of every (env, algorithm) with its interval, 0 and 1 marked."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = sorted(rows, key=lambda r: (r["env"], r["algo"]))
+    fig = Figure(figsize=(7, 0.4 * len(rows) + 1.2), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    algos = sorted({r["algo"] for r in rows})
+    for k, r in enumerate(rows):
+        color = f"C{algos.index(r['algo'])}"
+        ax.errorbar(r["iqm"], k, xerr=[[r["iqm"] - r["ci"][0]], [r["ci"][1] - r["iqm"]]], fmt="o", color=color, capsize=3)
+        ax.scatter(r["normalised"], [k] * len(r["normalised"]), s=8, color=color, alpha=0.4)
+    ax.axvline(0.0, color="k", ls="--", lw=1, label="uncontrolled")
+    ax.axvline(1.0, color="k", ls=":", lw=1, label="the paper's PPO")
+    ax.set_yticks(range(len(rows)), [f"{r['algo']} {r['env']}" for r in rows], fontsize=8)
+    ax.set_xlabel("normalised score (IQM over seeds, 95 % bootstrap interval; dots: seeds)")
+    ax.grid(alpha=0.3, axis="x")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path)
+    return Path(path)
+
+
+def report(run_dirs, out: str | Path) -> dict:
+    """The protocol's table (``out/report.md``), numbers (``out/report.json``) and
+    figure (``out/report.png``) of the run directories."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [row(s) for s in summaries(run_dirs)]
+    text = table(rows)
+    (out / "report.md").write_text(text + "\n")
+    (out / "report.json").write_text(json.dumps(rows, indent=1))
+    png = figure(rows, out / "report.png")
+    return {"rows": rows, "table": text, "png": str(png)}
