@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def checkpoint(run):
-    return torch.load(Path(run) / "checkpoint.pt", weights_only=False)
+    return torch.load(Path(run) / "checkpoint.pt", weights_only=True)
 
 
 def test_config_holds_the_papers_table_and_checks_overrides():
@@ -388,3 +388,25 @@ def test_report_normalises_scores_and_bounds_their_interquartile_mean(tmp_path, 
     assert cli(["report", str(file), "--out", str(tmp_path / "report")]) == 0
     text = capsys.readouterr().out
     assert "| sloshing-v0 | ppo | 3 | **0.50** [" in text and (tmp_path / "report" / "report.png").stat().st_size > 5_000
+
+
+def test_a_checkpoint_whose_pickle_runs_code_is_refused_unrun(tmp_path, capsys):
+    """Loading a run never executes what a file carries: the checkpoint is read as
+    tensors and plain data only."""
+    import os
+
+    from beacon_torch.training.run import load_checkpoint
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {tmp_path / 'pwned'}",))
+
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save({"env": "lorenz-v0", "algo": "ppo", "frames": 1, "payload": Payload()}, run / "checkpoint.pt")
+    with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
+        load_checkpoint(run)
+    assert cli(["eval", str(run), "--no-gif"]) == 2 and "unreadable checkpoint" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
+        ppo.main(configure(PPOConfig, "lorenz-v0", out=str(run), resume=True, progress=False))
+    assert not (tmp_path / "pwned").exists()

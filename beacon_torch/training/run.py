@@ -27,10 +27,12 @@ CHECKPOINT = "checkpoint.pt"
 
 
 def load_checkpoint(run: str | Path) -> dict:
-    """The checkpoint of a run folder, with a clear error for a bad file."""
+    """The checkpoint of a run folder, with a clear error for a bad file. It holds
+    tensors, numbers, strings and containers of them only, read as such: a file whose
+    pickle would run code is refused."""
     path = Path(run) / CHECKPOINT
     try:
-        return torch.load(path, weights_only=False, map_location="cpu")
+        return torch.load(path, weights_only=True, map_location="cpu")
     except Exception as err:  # a missing, truncated or foreign file
         raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
 
