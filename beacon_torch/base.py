@@ -37,6 +37,7 @@ depends on differentiable parameters in ``advance``, not there.
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, ClassVar
 
 import numpy as np
@@ -77,6 +78,33 @@ def _as_batch_size(batch_size: Any) -> torch.Size:
             f"batch_size must be a positive integer (a 1-D batch), got {tuple(size)}"
         )
     return size
+
+
+def _as_flag(name: str, value: Any) -> bool:
+    """An on/off option: a bool, not anything truthy (``differentiable="no"`` is not on)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise TypeError(f"{name} must be True or False, got {value!r}")
+
+
+def _as_seed(seed: Any) -> int:
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise TypeError(f"seed must be an integer in [0, 2**64), got {seed!r}")
+    if not 0 <= int(seed) < 2**64:
+        raise ValueError(f"seed must be an integer in [0, 2**64), got {seed}")
+    return int(seed)
+
+
+def _as_device(device: Any) -> torch.device:
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device {device!r} is not a torch device ({err})") from None
+    try:
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as err:
+        raise ValueError(f"device {str(device)!r} cannot be used on this machine ({err})") from None
+    return device
 
 
 def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -131,7 +159,9 @@ class FlowEnv(EnvBase):
         **params: Any,
     ) -> None:
         batch_size = _as_batch_size(batch_size)
-        device = torch.device(device)
+        device = _as_device(device)
+        flags = dict(check_actions=check_actions, record_history=record_history, differentiable=differentiable, grad_checkpoint=grad_checkpoint)
+        check_actions, record_history, differentiable, grad_checkpoint = (_as_flag(name, value) for name, value in flags.items())
         super().__init__(device=device, batch_size=batch_size)
         self.dtype = _as_dtype(dtype)
         self.n_envs = batch_size[0]
@@ -151,16 +181,17 @@ class FlowEnv(EnvBase):
         self.check_actions = check_actions
         if grad_checkpoint and not differentiable:
             raise ValueError(f"{self.env_id}: grad_checkpoint=True needs differentiable=True")
-        self.differentiable = bool(differentiable)
+        self.differentiable = differentiable
         # recompute each action's substeps in the backward pass instead of keeping them
-        self.grad_checkpoint = bool(grad_checkpoint)
+        self.grad_checkpoint = grad_checkpoint
+        self._warned_grad = False
         self.kernels = Kernels(self.inductor_options, self.compile_fullgraph)
         self.history = History(record_history)
         with torch.no_grad():
             self.setup()
         self._make_specs()
         if seed is None:
-            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+            seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
         self.rng = torch.Generator(device=device)
         self.set_seed(seed)
         self._state: State | None = None
@@ -279,8 +310,8 @@ class FlowEnv(EnvBase):
     # ------------------------------------------------------------------ seeding
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
-            seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self.rng.manual_seed(int(seed))
+            seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
+        self.rng.manual_seed(_as_seed(seed))
 
     # ------------------------------------------------------------------ actions
     def check_action(self, action: torch.Tensor | None) -> torch.Tensor:
@@ -349,6 +380,12 @@ class FlowEnv(EnvBase):
         for key, value in state.items():
             if value.ndim == 0 or value.shape[0] != self.n_envs:
                 raise ValueError(f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got shape {tuple(value.shape)}")
+        for key, value in state.items():
+            if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value.detach()).all()):
+                raise ValueError(f"{name}: state[{key!r}] has non-finite values")
+        count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
+        if bool(((count < 0) | (count >= self.episode_length)).any()):
+            raise ValueError(f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}")
         state = {k: v.to(self.device, self.dtype) if v.is_floating_point() else v.to(self.device) for k, v in state.items()}
         with graph_mode(self.differentiable):
             try:
@@ -356,7 +393,6 @@ class FlowEnv(EnvBase):
             except KeyError as err:
                 raise KeyError(f"{name}: set_state got a state without {err}") from None
         self._state, self._obs = state, obs
-        count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
         self._count = count.expand(self.batch_size).clone()
         return obs
 
@@ -366,6 +402,10 @@ class FlowEnv(EnvBase):
         if tensordict is not None:
             mask = tensordict.get("_reset", None)
         if mask is not None:
+            if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+                raise TypeError(f"{self.env_id}: the '_reset' mask must be a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}")
+            if mask.numel() != self.n_envs:
+                raise ValueError(f"{self.env_id}: the '_reset' mask must have one entry per member ({self.n_envs}), got shape {tuple(mask.shape)}")
             mask = mask.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
             init = self.initial_state(mask)
@@ -402,7 +442,11 @@ class FlowEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before step()")
-        action = self.check_action(tensordict.get(self.action_key, None))
+        raw = tensordict.get(self.action_key, None)
+        if isinstance(raw, torch.Tensor) and raw.requires_grad and not self.differentiable and not self._warned_grad:
+            self._warned_grad = True
+            warnings.warn(f"{self.env_id}: the action requires grad but the env is not differentiable; its gradient is dropped (make(..., differentiable=True) keeps it)", stacklevel=2)
+        action = self.check_action(raw)
         stepping = tensordict.get("_step", None)
         old = self._state
         with graph_mode(self.differentiable):
@@ -451,6 +495,8 @@ class FlowEnv(EnvBase):
 
     @render_index.setter
     def render_index(self, index: int) -> None:
+        if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)) or not 0 <= index < self.n_envs:
+            raise ValueError(f"{self.env_id}: render_index must be a member's index in [0, {self.n_envs}), got {index!r}")
         self.history.index = int(index)
 
     def render(self) -> np.ndarray:

@@ -159,6 +159,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for b in args.batch_sizes or ():
         if b < 1:
             raise CliError(f"--batch-sizes must be positive integers, got {b}")
+    for name in ("steps", "repeats"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            raise CliError(f"--{name} must be a positive integer, got {getattr(args, name)}")
     results = bench.run(
         envs,
         batch_sizes=args.batch_sizes,

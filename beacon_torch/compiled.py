@@ -61,8 +61,13 @@ class Kernels:
         """Compile every kernel from now on (on its first call for each shape and
         dtype): one fused graph with static shapes (``fullgraph``, ``dynamic=False``)
         unless ``kwargs`` (``torch.compile`` options) say otherwise."""
-        options = {**self.inductor_options, **kwargs.pop("options", {})}
-        self.options = {"fullgraph": self.fullgraph, "dynamic": False, **kwargs, "options": options}
+        given = kwargs.pop("options", {})
+        self.options = {"fullgraph": self.fullgraph, "dynamic": False, **kwargs}
+        # torch.compile takes a mode or inductor options, not both: a mode asked for
+        # replaces the env's default options (options given with it are torch's to refuse)
+        options = given if "mode" in kwargs else {**self.inductor_options, **given}
+        if options:
+            self.options["options"] = options
         self._cache = {}
 
     def __call__(self, fn: Callable, unroll: int = 1) -> Callable:

@@ -11,6 +11,7 @@ whose ``--help`` lists every field.
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import ClassVar
 
@@ -41,8 +42,13 @@ GRAD = {
 }
 
 
-def setting(default, help: str, choices: tuple[str, ...] = ()):
-    return field(default=default, metadata={"help": help, "choices": choices})
+# domains of real settings: (lowest, highest, whether the lowest itself is excluded)
+POSITIVE = (0.0, math.inf, True)
+NON_NEGATIVE = (0.0, math.inf, False)
+
+
+def setting(default, help: str, choices: tuple[str, ...] = (), domain: tuple[float, float, bool] | None = None):
+    return field(default=default, metadata={"help": help, "choices": choices, "domain": domain})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -68,7 +74,7 @@ class Config:
     frames: int = setting(200_000, "total transitions")
     num_envs: int = setting(8, "members of the batched env collecting together")
     hidden: int = setting(64, "width of the hidden layers")
-    gamma: float = setting(0.99, "discount")
+    gamma: float = setting(0.99, "discount", domain=(0.0, 1.0, True))
     compile: bool = setting(False, "the env's compiled physics (worth it for rayleigh and mixing)")
     norm_steps: int = setting(0, f"random steps whose observations set a normalisation (0: raw observations, as the paper's agents saw them; {NORM_STEPS} reach past every env's start-up)")
     device: str = setting("cpu", "torch device of the env and the networks")
@@ -98,13 +104,13 @@ class PPOConfig(Config):
     n_rollout: int = setting(2000, "transitions collected between two updates")
     minibatches: int = setting(2, "minibatches per epoch")
     epochs: int = setting(32, "passes over each collected batch")
-    gae_lambda: float = setting(0.99, "GAE's lambda")
-    actor_lr: float = setting(5e-4, "actor learning rate (Adam)")
-    critic_lr: float = setting(5e-3, "critic learning rate")
+    gae_lambda: float = setting(0.99, "GAE's lambda", domain=(0.0, 1.0, False))
+    actor_lr: float = setting(5e-4, "actor learning rate (Adam)", domain=POSITIVE)
+    critic_lr: float = setting(5e-3, "critic learning rate", domain=POSITIVE)
     critic_optim: str = setting("adam", "the critic's optimiser: 'adam' or 'nadam'", ("adam", "nadam"))
-    clip: float = setting(0.2, "PPO's clipping of the probability ratio")
-    entropy: float = setting(0.01, "entropy bonus")
-    grad_clip: float = setting(0.1, "clipping of each network's gradient norm")
+    clip: float = setting(0.2, "PPO's clipping of the probability ratio", domain=POSITIVE)
+    entropy: float = setting(0.01, "entropy bonus", domain=NON_NEGATIVE)
+    grad_clip: float = setting(0.1, "clipping of each network's gradient norm", domain=POSITIVE)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -130,11 +136,11 @@ class TD3Config(OffPolicyConfig):
 
     hidden: int = setting(128, "width of the hidden layers")
     init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
-    lr: float = setting(1e-3, "learning rate of the actor and the critics (Adam)")
-    tau: float = setting(0.02, "soft update of the target networks")
-    policy_noise: float = setting(0.002, "target policy smoothing noise, in action units")
-    noise_clip: float = setting(0.005, "clipping of the smoothing noise")
-    exploration_sigma: float = setting(0.001, "Gaussian exploration noise, in action units")
+    lr: float = setting(1e-3, "learning rate of the actor and the critics (Adam)", domain=POSITIVE)
+    tau: float = setting(0.02, "soft update of the target networks", domain=(0.0, 1.0, True))
+    policy_noise: float = setting(0.002, "target policy smoothing noise, in action units", domain=NON_NEGATIVE)
+    noise_clip: float = setting(0.005, "clipping of the smoothing noise", domain=NON_NEGATIVE)
+    exploration_sigma: float = setting(0.001, "Gaussian exploration noise, in action units", domain=NON_NEGATIVE)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,10 +152,10 @@ class DQNConfig(OffPolicyConfig):
     positive: ClassVar[tuple[str, ...]] = (*OffPolicyConfig.positive, "target_every")
 
     init_random_frames: int = setting(0, "uniformly random actions before the policy acts")
-    lr: float = setting(5e-4, "learning rate (Adam)")
+    lr: float = setting(5e-4, "learning rate (Adam)", domain=POSITIVE)
     target_every: int = setting(50, "updates between two copies of the network into the target")
-    eps_init: float = setting(0.5, "initial exploration rate")
-    eps_end: float = setting(0.05, "final exploration rate")
+    eps_init: float = setting(0.5, "initial exploration rate", domain=(0.0, 1.0, False))
+    eps_end: float = setting(0.05, "final exploration rate", domain=(0.0, 1.0, False))
     eps_frames: int = setting(2_000_000, "transitions over which the exploration rate anneals linearly")
 
 
@@ -167,8 +173,8 @@ class GradConfig(Config):
     num_envs: int = setting(16, "members of the batched env")
     norm_steps: int = setting(NORM_STEPS, "random steps whose observations set the normalisation (0: raw observations)")
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
-    lr: float = setting(1e-3, "learning rate")
-    grad_clip: float = setting(1.0, "clipping of the policy's gradient norm")
+    lr: float = setting(1e-3, "learning rate", domain=POSITIVE)
+    grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
     checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
 
 
@@ -225,9 +231,17 @@ def _check(cfg: Config) -> Config:
         if getattr(cfg, name) < 1:
             raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
     members = cfg.num_envs * cfg.collectors
+    if cfg.frames < getattr(cfg, cfg.batch):
+        raise ValueError(f"frames ({cfg.frames}) must be at least one collected batch, {cfg.batch} ({getattr(cfg, cfg.batch)})")
     if getattr(cfg, cfg.batch) % members:
         raise ValueError(f"{cfg.batch} ({getattr(cfg, cfg.batch)}) must be a multiple of num_envs x collectors ({members})")
     for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.metadata["domain"] is not None:
+            low, high, open_low = f.metadata["domain"]
+            if not (math.isfinite(value) and (value > low if open_low else value >= low) and value <= high):
+                where = f"{'(' if open_low else '['}{low:g}, {high:g}]" if math.isfinite(high) else (f"> {low:g}" if open_low else f">= {low:g}")
+                raise ValueError(f"setting '{f.name}' must be finite and {'in ' if math.isfinite(high) else ''}{where}, got {value!r}")
         if f.metadata["choices"] and getattr(cfg, f.name) not in f.metadata["choices"]:
             raise ValueError(f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, got {getattr(cfg, f.name)!r}")
     env = beacon_torch.registry.env_class(cfg.env)

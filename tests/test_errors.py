@@ -1,0 +1,115 @@
+"""Bad input, anywhere a user gives it: one clear error that names it."""
+
+import numpy as np
+import pytest
+import torch
+
+import beacon_torch
+from beacon_torch.cli import main as cli
+
+from conftest import run_actions
+
+
+@pytest.mark.parametrize("option", ["differentiable", "record_history", "check_actions", "grad_checkpoint"])
+@pytest.mark.parametrize("value", ["no", 1, None, 0.0])
+def test_on_off_options_take_booleans_only(option, value):
+    with pytest.raises(TypeError, match=f"{option} must be True or False"):
+        beacon_torch.make("lorenz-v0", **{option: value})
+    assert beacon_torch.make("lorenz-v0", **{option: np.bool_(False)}).history is not None
+
+
+@pytest.mark.parametrize("seed, exc", [(-1, ValueError), (2**64, ValueError), (1.5, TypeError), ("7", TypeError), (True, TypeError)])
+def test_seeds_are_integers_of_64_bits(seed, exc):
+    with pytest.raises(exc, match="seed must be an integer"):
+        beacon_torch.make("lorenz-v0", seed=seed)
+    env = beacon_torch.make("lorenz-v0", seed=2**64 - 1)
+    with pytest.raises(exc, match="seed must be an integer"):
+        env.set_seed(seed)
+
+
+@pytest.mark.parametrize("device", ["cuda", "mps", "nonsense"])
+def test_an_unusable_device_is_named(device):
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    with pytest.raises(ValueError, match=f"device '{device}'"):
+        beacon_torch.make("lorenz-v0", device=device)
+    assert cli(["run", "lorenz-v0", "--device", device, "--batch-size", "1"]) == 2
+
+
+def test_reset_masks_are_bool_with_one_entry_per_member():
+    env = beacon_torch.make("vortex-v0", 3)
+    env.reset()
+    with pytest.raises(TypeError, match="'_reset' mask must be a bool tensor"):
+        env.reset(env.reset().set("_reset", torch.ones(3, 1, dtype=torch.int64)))
+    from tensordict import TensorDict
+
+    with pytest.raises(ValueError, match="one entry per member"):
+        env._reset(TensorDict({"_reset": torch.ones(4, 1, dtype=torch.bool)}, batch_size=[]))
+
+
+def test_set_state_refuses_non_finite_values_and_counts_outside_the_episode():
+    env = beacon_torch.make("vortex-v0", 2)
+    env.reset()
+    state = {k: v.clone() for k, v in env.state.items()}
+    with pytest.raises(ValueError, match="count must be in"):
+        env.set_state(state, count=env.episode_length)
+    with pytest.raises(ValueError, match="count must be in"):
+        env.set_state(state, count=-1)
+    state["ay"][1, 0] = float("nan")
+    with pytest.raises(ValueError, match="state\\['ay'\\] has non-finite values"):
+        env.set_state(state)
+
+
+def test_render_index_names_the_members():
+    env = beacon_torch.make("vortex-v0", 2)
+    env.render_index = 1
+    for bad in (2, -1, 0.5, True):
+        with pytest.raises(ValueError, match="render_index must be a member's index in \\[0, 2\\)"):
+            env.render_index = bad
+    assert env.render_index == 1
+
+
+def test_an_action_that_requires_grad_warns_once_on_a_plain_env():
+    env = beacon_torch.make("vortex-v0", 2)
+    td = env.reset()
+    td["action"] = torch.zeros(2, 2, requires_grad=True)
+    with pytest.warns(UserWarning, match="gradient is dropped"):
+        td = env.step(td)["next"]
+    td["action"] = torch.zeros(2, 2, requires_grad=True)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env.step(td)
+
+
+def test_compile_options_as_the_quick_start_shows_step():
+    env = beacon_torch.make("lorenz-v0", 2, compile={"mode": "default"}, seed=0)
+    eager = beacon_torch.make("lorenz-v0", 2, seed=0)
+    g = torch.Generator().manual_seed(0)
+    actions = [env.random_action(g) for _ in range(3)]
+    torch.testing.assert_close(run_actions(env, actions), run_actions(eager, actions))
+
+
+@pytest.mark.parametrize(
+    "setting, value, words",
+    [
+        ("actor_lr", float("nan"), "'actor_lr' must be finite and > 0"),
+        ("gamma", 5.0, "'gamma' must be finite and in (0, 1]"),
+        ("clip", -1.0, "'clip' must be finite and > 0"),
+        ("entropy", -0.1, "'entropy' must be finite and >= 0"),
+        ("frames", 100, "frames (100) must be at least one collected batch"),
+    ],
+)
+def test_training_settings_out_of_their_domain_are_refused(setting, value, words):
+    from config import PPOConfig, configure
+
+    with pytest.raises(ValueError) as err:
+        configure(PPOConfig, "lorenz-v0", **{setting: value})
+    assert words in str(err.value)
+
+
+def test_bench_needs_positive_steps_and_repeats(capsys):
+    for option in ("--steps", "--repeats"):
+        assert cli(["bench", "--envs", "lorenz-v0", option, "0"]) == 2
+        assert f"{option} must be a positive integer" in capsys.readouterr().err
