@@ -13,13 +13,13 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import MISSING, dataclass, field, fields, replace
+from pathlib import Path
 from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.training.env import NORM_STEPS
-
-# which env each variant trains and is scored like (the benchmark protocol's)
-from beacon_torch.training.report import VARIANT_OF
+from beacon_torch.training.report import VARIANT_OF  # the env each variant trains and is scored like
+from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 
 # the paper's PPO settings per env: its table, and what its runs used beyond the table
 # (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks); the
@@ -272,7 +272,31 @@ def configure(cls: type[Config], env_id: str, **overrides) -> Config:
         cfg = replace(cfg, **{cls.batch: max(members, getattr(cfg, cls.batch) // members * members)})
     if not cfg.out:
         cfg = replace(cfg, out=f"runs/{cls.algo}-{env_id}/seed{cfg.seed}")
+    if cfg.resume and (Path(cfg.out) / CHECKPOINT).is_file():
+        cfg = resumed(cfg, {name: getattr(cfg, name) for name in overrides})
     return _check(cfg)
+
+
+# how a run is carried out, free to change when it is resumed (with frames, the total)
+RUN_OPTIONS = ("out", "resume", "progress", "logger", "checkpoint_every", "device", "collectors", "ray")
+
+
+def resumed(cfg: Config, given: dict) -> Config:
+    """The settings of the run saved in ``cfg.out``: a resumed run continues with the
+    settings it was started with. A setting ``given`` again must match them (else a
+    clear error); the run options and a new total of transitions apply, the latter said
+    so."""
+    saved = load_checkpoint(cfg.out)["config"]
+    if saved.get("env", cfg.env) != cfg.env:
+        raise ValueError(f"{cfg.out} holds a run on {saved['env']}, not {cfg.env}")
+    names = {f.name for f in fields(cfg)} - {"env", "frames", *RUN_OPTIONS}
+    for name, value in given.items():
+        if name in names and name in saved and saved[name] != value:
+            raise ValueError(f"setting '{name}' = {value!r} differs from the resumed run's {saved[name]!r}; a resumed run keeps the settings it was started with")
+    frames = given.get("frames", saved.get("frames", cfg.frames))
+    if frames != saved.get("frames", frames):
+        print(f"resuming {cfg.out}: {saved['frames']:,} -> {frames:,} transitions")
+    return replace(cfg, frames=frames, **{name: saved[name] for name in names if name in saved})
 
 
 def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
