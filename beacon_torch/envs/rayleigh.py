@@ -158,7 +158,9 @@ class RayleighEnv(CavityEnv):
         else:
             p = dataclasses.replace(self.params, ra=number(self.params.ra))
             key = dict(version=3, L=p.L, H=p.H, ra=p.ra)
-            start = cached("rayleigh-convection", key, lambda: developed_convection(p))
+            ghosted = (self.nx + 2, self.ny + 2)
+            shapes = {"u": ghosted, "v": ghosted, "p": (self.nx, self.ny), "theta": ghosted}
+            start = cached("rayleigh-convection", key, lambda: developed_convection(p), shapes)
         return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
 
     def null_action(self) -> torch.Tensor:

@@ -212,7 +212,8 @@ class ShkadovEnv(FlowEnv):
             film = {"h": table[:, 1], "q": table[:, 2]}
         else:
             delta = number(self.params.delta)
-            film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta))
+            n = int(round(DEVELOP_LENGTH / DX))
+            film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), {"h": (n,), "q": (n,)})
         return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
 
     def null_action(self) -> torch.Tensor:

@@ -151,7 +151,9 @@ class SloshingEnv(FlowEnv):
         else:  # one start for all, cached
             g = float(p.g[0])
             key = dict(version=2, L=p.L, g=g)
-            start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"))
+            n = self.n_cells
+            shapes = {"h": (1, n), "q": (1, n), "fh_prev": (1, n), "fq_prev": (1, n), "u_prev": (1,)}
+            start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"), shapes)
             start = {k: v.expand(self.n_envs, *v.shape[1:]) for k, v in start.items()}
         # generated in float64 like the published code, then cast
         return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
