@@ -7,12 +7,21 @@ progress bar.
 A checkpoint holds, next to the state of every module and optimiser of the run, the env
 id, the algorithm, the settings, the observation normalisation and, by name and width,
 the network of its policy: evaluation rebuilds the policy from the checkpoint alone.
+
+A run killed at any moment (``kill -9``) loses at most the work since its last
+checkpoint: the replay buffer is written to a new folder and swapped in, then the
+checkpoint, which records how many transitions the buffer held, replaces the old one in
+one step; a resume takes that many transitions from the buffer (an interrupted swap
+leaves the previous folder, which is used) and drops the log lines written after the
+checkpoint.
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import os
+import shutil
 import time
 from importlib.util import find_spec
 from pathlib import Path
@@ -100,6 +109,8 @@ class Run:
             if self.state["env"] != env_id or self.state["algo"] != algo:
                 raise ValueError(f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {algo} on {env_id}")
         self.frames = self.state["frames"] if self.state else 0
+        if self.state is not None:
+            self._trim_logs()
         # counts a recipe keeps over resumes (updates dropped, ...), saved as they are
         self.counters: dict[str, int] = dict(self.state.get("counters", {})) if self.state else {}
         # training wall time, carried over resumes, so that results can state it
@@ -120,6 +131,15 @@ class Run:
             from tqdm.auto import tqdm
 
             self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}")
+
+    def _trim_logs(self) -> None:
+        """Drop the log lines of steps after the checkpoint (written before a stop), so
+        that the resumed run's lines follow on without repeated or backward steps."""
+        for file in (self.out / self.algo / "scalars").glob("*.csv"):
+            with file.open() as f:
+                rows = [row for row in csv.reader(f) if len(row) == 2 and float(row[0]) <= self.frames]
+            with file.open("w", newline="") as f:
+                csv.writer(f).writerows(rows)
 
     @classmethod
     def of(cls, settings) -> Run:
@@ -147,17 +167,22 @@ class Run:
             return
         for name, module in modules.items():
             module.load_state_dict(self.state["modules"][name])
-        if buffer is not None and (self.out / "buffer").exists():
-            capacity = self.counters.get("buffer_capacity", buffer.storage.max_size)
-            if capacity == buffer.storage.max_size:
-                buffer.loads(self.out / "buffer")
-            else:
-                # a resumed run with another total has a buffer of another size: the
-                # saved transitions are moved over
-                saved = type(buffer)(storage=type(buffer.storage)(capacity, device=buffer.storage.device))
-                saved.loads(self.out / "buffer")
-                kept = min(len(saved), buffer.storage.max_size)
-                buffer.extend(saved[len(saved) - kept : len(saved)])
+        if buffer is None or "buffer_len" not in self.counters:
+            return
+        folder = self.out / "buffer"
+        if not folder.exists() and (self.out / "buffer.old").exists():
+            folder = self.out / "buffer.old"  # a stop between the two renames of a swap
+        if not folder.exists():
+            raise FileNotFoundError(f"{self.out}: the checkpoint refers to a replay buffer of {self.counters['buffer_len']} transitions, and there is none")
+        # the transitions the checkpoint counted, oldest first (the buffer may hold more:
+        # a stop between its save and the checkpoint's), into a buffer of the resumed size
+        saved = type(buffer)(storage=type(buffer.storage)(self.counters["buffer_capacity"], device=buffer.storage.device))
+        saved.loads(folder)
+        n = self.counters["buffer_len"]
+        if len(saved) < n:
+            raise ValueError(f"{folder}: the replay buffer holds {len(saved)} transitions, the checkpoint counted {n}: it is damaged")
+        if n:
+            buffer.extend(saved[max(0, n - buffer.storage.max_size) : n])
 
     def seconds(self) -> float:
         return self.elapsed + time.perf_counter() - self._since
@@ -184,7 +209,7 @@ class Run:
         stopped while saving keeps its previous checkpoint."""
         network, hidden, actor = policy
         if buffer is not None:
-            self.counters["buffer_capacity"] = buffer.storage.max_size
+            self._save_buffer(buffer)
         state = {
             "env": self.env_id,
             "algo": self.algo,
@@ -200,8 +225,20 @@ class Run:
         partial = self.path.with_suffix(".pt.partial")
         torch.save(state, partial)
         os.replace(partial, self.path)
-        if buffer is not None:
-            buffer.dumps(self.out / "buffer")
+        shutil.rmtree(self.out / "buffer.old", ignore_errors=True)
+
+    def _save_buffer(self, buffer) -> None:
+        """The buffer into a new folder, swapped for the previous one; the checkpoint
+        written next records its size."""
+        new, current, old = self.out / "buffer.partial", self.out / "buffer", self.out / "buffer.old"
+        shutil.rmtree(new, ignore_errors=True)
+        buffer.dumps(new)
+        if current.exists():
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(current, old)
+        os.replace(new, current)
+        self.counters["buffer_capacity"] = buffer.storage.max_size
+        self.counters["buffer_len"] = len(buffer)
 
     def close(self, save) -> dict[str, Any]:
         """End the run: the last checkpoint (``save()``), the loggers flushed and, with
