@@ -410,3 +410,19 @@ def test_a_checkpoint_whose_pickle_runs_code_is_refused_unrun(tmp_path, capsys):
     with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
         ppo.main(configure(PPOConfig, "lorenz-v0", out=str(run), resume=True, progress=False))
     assert not (tmp_path / "pwned").exists()
+
+
+def test_a_replay_buffer_carrying_a_pickle_is_refused_unrun(tmp_path):
+    import pickle
+
+    td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), **TINY))
+    assert not list((tmp_path / "buffer").rglob("*.pkl"))  # what we write holds no pickle
+
+    class Payload:
+        def __reduce__(self):
+            return (open, (str(tmp_path / "pwned"), "w"))
+
+    (tmp_path / "buffer" / "prefetch.pkl").write_bytes(pickle.dumps(Payload()))
+    with pytest.raises(ValueError, match="pickle files is refused"):
+        td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
+    assert not (tmp_path / "pwned").exists()

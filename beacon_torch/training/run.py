@@ -174,6 +174,9 @@ class Run:
             folder = self.out / "buffer.old"  # a stop between the two renames of a swap
         if not folder.exists():
             raise FileNotFoundError(f"{self.out}: the checkpoint refers to a replay buffer of {self.counters['buffer_len']} transitions, and there is none")
+        if any(folder.rglob("*.pkl")):
+            # TorchRL unpickles these when it loads a buffer: code could run
+            raise ValueError(f"{folder}: a replay buffer folder with pickle files is refused (loading it could run code); ours hold tensors and JSON only")
         # the transitions the checkpoint counted, oldest first (the buffer may hold more:
         # a stop between its save and the checkpoint's), into a buffer of the resumed size
         saved = type(buffer)(storage=type(buffer.storage)(self.counters["buffer_capacity"], device=buffer.storage.device))
@@ -233,6 +236,10 @@ class Run:
         new, current, old = self.out / "buffer.partial", self.out / "buffer", self.out / "buffer.old"
         shutil.rmtree(new, ignore_errors=True)
         buffer.dumps(new)
+        # the state of TorchRL's prefetching, unused here, is its one pickle: not kept, so
+        # that loading a buffer never unpickles
+        for file in new.rglob("*.pkl"):
+            file.unlink()
         if current.exists():
             shutil.rmtree(old, ignore_errors=True)
             os.replace(current, old)
