@@ -64,6 +64,11 @@ def _as_dtype(dtype: Any) -> torch.dtype:
     return dtype
 
 
+# far beyond any use (the smallest env holds about 100 bytes a member), and below what
+# makes an allocation fail in the middle of a set-up
+MAX_MEMBERS = 2**24
+
+
 def _as_batch_size(batch_size: Any) -> torch.Size:
     if isinstance(batch_size, (bool, np.bool_)):
         raise TypeError(f"batch_size must be a positive integer, got {batch_size!r}")
@@ -77,6 +82,8 @@ def _as_batch_size(batch_size: Any) -> torch.Size:
         raise ValueError(
             f"batch_size must be a positive integer (a 1-D batch), got {tuple(size)}"
         )
+    if size[0] > MAX_MEMBERS:
+        raise ValueError(f"batch_size {size[0]} is beyond what one env holds (at most {MAX_MEMBERS:,} members); use several envs")
     return size
 
 

@@ -282,7 +282,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, ValueError, TypeError, FileNotFoundError) as err:
+    except (CliError, ValueError, TypeError, OSError) as err:  # OSError: a path that cannot be read or written, named in the message
         print(f"beacon-torch: error: {err}", file=sys.stderr)
         return 2
 

@@ -113,3 +113,16 @@ def test_bench_needs_positive_steps_and_repeats(capsys):
     for option in ("--steps", "--repeats"):
         assert cli(["bench", "--envs", "lorenz-v0", option, "0"]) == 2
         assert f"{option} must be a positive integer" in capsys.readouterr().err
+
+
+def test_absurd_batch_sizes_are_refused_before_any_allocation():
+    with pytest.raises(ValueError, match="beyond what one env holds"):
+        beacon_torch.make("lorenz-v0", 10**12)
+
+
+def test_cli_paths_that_cannot_be_written_are_one_line(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where a folder should go")
+    assert cli(["run", "lorenz-v0", "--batch-size", "1", "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(blocker) in err

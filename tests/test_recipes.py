@@ -407,6 +407,7 @@ def test_a_checkpoint_whose_pickle_runs_code_is_refused_unrun(tmp_path, capsys):
     with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
         load_checkpoint(run)
     assert cli(["eval", str(run), "--no-gif"]) == 2 and "unreadable checkpoint" in capsys.readouterr().err
+    assert cli(["plot", str(run), "--out", str(tmp_path / "p.png")]) == 2 and "unreadable checkpoint" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
         ppo.main(configure(PPOConfig, "lorenz-v0", out=str(run), resume=True, progress=False))
     assert not (tmp_path / "pwned").exists()
