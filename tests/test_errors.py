@@ -126,3 +126,18 @@ def test_cli_paths_that_cannot_be_written_are_one_line(tmp_path, capsys):
     assert cli(["run", "lorenz-v0", "--batch-size", "1", "--out", str(blocker / "sub")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and str(blocker) in err
+
+
+def test_a_member_stepped_after_its_episode_goes_on_as_documented():
+    env = beacon_torch.make("lorenz-v0", 2, rho=[28.0, 1e6], seed=0)
+    td = env.reset()
+    for _ in range(env.episode_length):
+        td["action"] = torch.ones(2, dtype=torch.int64)
+        out = env.step(td)["next"]
+        td = out
+    assert out["truncated"].all() and out["terminated"][1] and not out["terminated"][0]
+    td["action"] = torch.ones(2, dtype=torch.int64)
+    again = env.step(td)["next"]
+    assert again["truncated"].all() and int(env.step_count[0]) == env.episode_length + 1
+    assert torch.isfinite(again["observation"]).all()
+    assert again["terminated"][1] and again["reward"][1] == env.blowup_reward
