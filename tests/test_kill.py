@@ -105,3 +105,14 @@ def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
         obs = buffer[: len(buffer)]["observation"]
         assert torch.isfinite(obs).all() and (obs.abs().sum(-1) > 0).all(), "zeroed transitions in the buffer"
         assert not (run / "buffer.old").exists() and not (run / "buffer.partial").exists()
+
+
+def test_a_truncated_replay_buffer_is_reported_not_trained_on(tmp_path):
+    import td3
+
+    cfg = dict(TD3, frames=128)
+    td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), progress=False, logger="csv", **cfg))
+    memmap = tmp_path / "buffer" / "storage" / "observation.memmap"
+    memmap.write_bytes(memmap.read_bytes()[: memmap.stat().st_size // 2])
+    with pytest.raises(ValueError, match="replay buffer is damaged \\(storage/observation.memmap"):
+        td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), resume=True, progress=False, logger="csv", **{**cfg, "frames": 192}))

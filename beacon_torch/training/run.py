@@ -111,8 +111,9 @@ class Run:
         self.frames = self.state["frames"] if self.state else 0
         if self.state is not None:
             self._trim_logs()
-        # counts a recipe keeps over resumes (updates dropped, ...), saved as they are
-        self.counters: dict[str, int] = dict(self.state.get("counters", {})) if self.state else {}
+        # what a recipe keeps over resumes (updates dropped, the buffer's size and files),
+        # saved as it is
+        self.counters: dict[str, Any] = dict(self.state.get("counters", {})) if self.state else {}
         # training wall time, carried over resumes, so that results can state it
         self.elapsed = self.state.get("elapsed", 0.0) if self.state else 0.0
         self._since = time.perf_counter()
@@ -174,6 +175,11 @@ class Run:
             folder = self.out / "buffer.old"  # a stop between the two renames of a swap
         if not folder.exists():
             raise FileNotFoundError(f"{self.out}: the checkpoint refers to a replay buffer of {self.counters['buffer_len']} transitions, and there is none")
+        for name, size in self.counters.get("buffer_files", {}).items():
+            file = folder / name
+            if not file.is_file() or file.stat().st_size != size:
+                found = file.stat().st_size if file.is_file() else "no"
+                raise ValueError(f"{folder}: the replay buffer is damaged ({name}: {found} bytes, {size} when saved); resume from a copy of the run or start it again")
         if any(folder.rglob("*.pkl")):
             # TorchRL unpickles these when it loads a buffer: code could run
             raise ValueError(f"{folder}: a replay buffer folder with pickle files is refused (loading it could run code); ours hold tensors and JSON only")
@@ -240,6 +246,9 @@ class Run:
         # that loading a buffer never unpickles
         for file in new.rglob("*.pkl"):
             file.unlink()
+        # the size of every file, which a resume checks (a truncated file is never read
+        # as zeros); a buffer's files have the size of its capacity, however full
+        self.counters["buffer_files"] = {str(f.relative_to(new)): f.stat().st_size for f in sorted(new.rglob("*")) if f.is_file()}
         if current.exists():
             shutil.rmtree(old, ignore_errors=True)
             os.replace(current, old)
