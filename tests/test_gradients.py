@@ -111,7 +111,8 @@ def test_default_mode_keeps_no_graph():
     env = beacon_torch.make("burgers-v0", batch_size=2, u_target=theta)
     env.reset()
     action = torch.zeros((2, 1), requires_grad=True)
-    td = env.step(TensorDict({"action": action}, batch_size=[2]))
+    with pytest.warns(UserWarning, match="gradient is dropped"):
+        td = env.step(TensorDict({"action": action}, batch_size=[2]))
     assert not td["next", "reward"].requires_grad
     assert not td["next", "observation"].requires_grad
 
