@@ -403,11 +403,15 @@ class FlowEnv(EnvBase):
         self._count = count.expand(self.batch_size).clone()
         return obs
 
-    # ------------------------------------------------------------------ TorchRL API
-    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
-        mask = None
-        if tensordict is not None:
-            mask = tensordict.get("_reset", None)
+    # ------------------------------------------------------------------ the step itself
+    # TorchRL's ``reset``/``step`` and the gymnasium and Stable-Baselines3 adapters all
+    # go through these two, so every path runs the same checks and blow-up handling;
+    # the adapters skip TensorDict construction and TorchRL's step wrappers, which at a
+    # batch of one cost more than the physics of the fast envs.
+    def reset_members(self, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Start new episodes for the members where ``mask`` (``[batch]`` or
+        ``[batch, 1]`` bool) is true, for all of them when it is None; returns the
+        observation of every member (the others keep theirs)."""
         if mask is not None:
             if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
                 raise TypeError(f"{self.env_id}: the '_reset' mask must be a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}")
@@ -439,22 +443,20 @@ class FlowEnv(EnvBase):
             )
         self._obs = obs
         self.history.reset(self._state, mask)
-        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
-        return TensorDict(
-            {**self._pack(obs, None), "done": false, "terminated": false.clone(), "truncated": false.clone()},
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        return obs
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def step_members(self, action: Any, stepping: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One action of every member (of those where ``stepping`` is true, when
+        given): ``(observation, reward, terminated, truncated)``, the reward as the
+        physics gives it (``[batch]``, ``[batch, n_agents]`` for multi-agent variants),
+        the two flags ``[batch]``. A member whose state leaves its bounds keeps its last
+        finite state and observation, gets ``blowup_reward`` and is terminated."""
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before step()")
-        raw = tensordict.get(self.action_key, None)
-        if isinstance(raw, torch.Tensor) and raw.requires_grad and not self.differentiable and not self._warned_grad:
+        if isinstance(action, torch.Tensor) and action.requires_grad and not self.differentiable and not self._warned_grad:
             self._warned_grad = True
-            warnings.warn(f"{self.env_id}: the action requires grad but the env is not differentiable; its gradient is dropped (make(..., differentiable=True) keeps it)", stacklevel=2)
-        action = self.check_action(raw)
-        stepping = tensordict.get("_step", None)
+            warnings.warn(f"{self.env_id}: the action requires grad but the env is not differentiable; its gradient is dropped (make(..., differentiable=True) keeps it)", stacklevel=3)
+        action = self.check_action(action)
         old = self._state
         with graph_mode(self.differentiable):
             if self.grad_checkpoint and torch.is_grad_enabled():
@@ -481,8 +483,21 @@ class FlowEnv(EnvBase):
                 count = torch.where(stepping, count, self._count)
         self._state, self._obs, self._count = new, obs, count
         self.history.append(new)
-        terminated = (~ok)[:, None]
-        truncated = (count >= self.episode_length)[:, None]
+        return obs, reward, ~ok, count >= self.episode_length
+
+    # ------------------------------------------------------------------ TorchRL API
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        obs = self.reset_members(None if tensordict is None else tensordict.get("_reset", None))
+        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
+        return TensorDict(
+            {**self._pack(obs, None), "done": false, "terminated": false.clone(), "truncated": false.clone()},
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs, reward, terminated, truncated = self.step_members(tensordict.get(self.action_key, None), tensordict.get("_step", None))
+        terminated, truncated = terminated[:, None], truncated[:, None]
         return TensorDict(
             {
                 **self._pack(obs, reward),

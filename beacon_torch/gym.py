@@ -4,7 +4,13 @@
 environment with numpy observations over a batch-of-one :class:`~beacon_torch.FlowEnv`.
 ``gymnasium.make_vec("beacon/lorenz-v0", num_envs=64)`` gives :class:`BeaconVectorEnv`,
 which steps all copies in one batched tensor operation (next-step autoreset, gymnasium's
-default). Environment parameters pass through as keyword arguments of either call.
+default). Environment parameters pass through as keyword arguments of either call, and
+so do ``compile`` and the env's other options.
+
+Both step the env through :meth:`FlowEnv.step_members`, the same code as TorchRL's
+``step`` (checks, blow-up handling, trajectories bit for bit) without building
+TensorDicts or running TorchRL's step wrappers, which at a batch of one cost more than
+the physics of the fast envs.
 """
 
 from __future__ import annotations
@@ -17,7 +23,6 @@ import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
-from tensordict import TensorDict
 
 from beacon_torch.base import FlowEnv
 from beacon_torch.registry import list_envs, make
@@ -41,12 +46,16 @@ def _spaces(env: FlowEnv) -> tuple[spaces.Space, spaces.Space]:
     return obs, act
 
 
-def _team_reward(env: FlowEnv, td) -> torch.Tensor:
-    """``[batch]`` rewards; for multi-agent variants, the mean over the agents."""
-    return td[env.reward_key].reshape(env.n_envs, -1).to(torch.float64).mean(-1)
+def team_reward(env: FlowEnv, reward: torch.Tensor) -> np.ndarray:
+    """``[batch]`` float64 rewards of :meth:`FlowEnv.step_members`; for multi-agent
+    variants, the mean over the agents."""
+    reward = reward.detach().to(torch.float64)
+    if reward.ndim > 1:
+        reward = reward.reshape(env.n_envs, -1).mean(-1)
+    return reward.cpu().numpy()
 
 
-def _batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
+def batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
     """numpy/python actions of a gymnasium caller as the env's action batch."""
     a = np.asarray(action)
     if env.discrete:
@@ -79,24 +88,18 @@ class BeaconGymEnv(gymnasium.Env):
         self.observation_space, self.action_space = _spaces(self.env)
         self._np_dtype = self.observation_space.dtype
 
+    def _numpy(self, obs: torch.Tensor) -> np.ndarray:
+        return obs[0].detach().cpu().numpy().astype(self._np_dtype)
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(seed)
-        td = self.env.reset()
-        return td[self.env.observation_key][0].cpu().numpy().astype(self._np_dtype), {}
+        return self._numpy(self.env.reset_members()), {}
 
     def step(self, action):
-        a = _batched_action(self.env, action, 1)
-        td = self.env.step(TensorDict({self.env.action_key: a}, batch_size=self.env.batch_size))["next"]
-        obs = td[self.env.observation_key][0].cpu().numpy().astype(self._np_dtype)
-        return (
-            obs,
-            float(_team_reward(self.env, td)[0]),
-            bool(td["terminated"][0, 0]),
-            bool(td["truncated"][0, 0]),
-            {},
-        )
+        obs, reward, terminated, truncated = self.env.step_members(batched_action(self.env, action, 1))
+        return self._numpy(obs), float(team_reward(self.env, reward)[0]), bool(terminated[0]), bool(truncated[0]), {}
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -155,24 +158,22 @@ class BeaconVectorEnv(VectorEnv):
             self.env.set_seed(seed)
         mask = None if options is None else options.get("reset_mask")
         if mask is None:
-            self.env.reset()
+            self.env.reset_members()
             self._autoreset[:] = False
         else:
             mask = np.asarray(mask, dtype=bool).reshape(self.num_envs)
-            self.env.reset(TensorDict({"_reset": torch.as_tensor(mask)[:, None]}, batch_size=self.env.batch_size))
+            self.env.reset_members(torch.as_tensor(mask))
             self._autoreset[mask] = False
         return self._obs(), {}
 
     def step(self, actions):
-        a = _batched_action(self.env, actions, self.num_envs)
-        td = self.env.step(TensorDict({self.env.action_key: a}, batch_size=self.env.batch_size))["next"]
+        _, reward, terminated, truncated = self.env.step_members(batched_action(self.env, actions, self.num_envs))
         obs = self._obs()
-        reward = _team_reward(self.env, td).cpu().numpy()
-        terminated = td["terminated"][:, 0].cpu().numpy().copy()
-        truncated = td["truncated"][:, 0].cpu().numpy().copy()
+        reward = team_reward(self.env, reward)
+        terminated = terminated.cpu().numpy().copy()
+        truncated = truncated.cpu().numpy().copy()
         if self._autoreset.any():
-            mask = torch.as_tensor(self._autoreset)[:, None]
-            self.env.reset(TensorDict({"_reset": mask}, batch_size=self.env.batch_size))
+            self.env.reset_members(torch.as_tensor(self._autoreset))
             obs[self._autoreset] = self._obs()[self._autoreset]
             reward[self._autoreset] = 0.0
             terminated[self._autoreset] = False

@@ -9,7 +9,7 @@ from gymnasium.utils.env_checker import check_env
 import beacon_torch
 import beacon_torch.gym
 
-from conftest import ALL_ENVS, FAST
+from conftest import ALL_ENVS, EXPENSIVE_ENVS, FAST
 
 
 @pytest.mark.parametrize("env_id", ALL_ENVS)
@@ -102,3 +102,38 @@ def test_vector_env_partial_reset_mask():
     again, _ = venv.reset(options={"reset_mask": np.array([False, True, False])})
     np.testing.assert_array_equal(again[1], first[1])
     np.testing.assert_array_equal(again[[0, 2]], obs[[0, 2]])
+
+
+# ---------------------------------------------------------------- the lean path
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_gym_env_steps_bit_for_bit_as_the_torchrl_env(env_id):
+    """The gymnasium env skips TensorDicts and TorchRL's step wrappers, not any of the
+    step: same seed, same actions, identical observations, rewards and flags."""
+    kw = FAST.get(env_id, {})
+    env = gymnasium.make(f"beacon/{env_id}", **kw).unwrapped
+    obs, _ = env.reset(seed=3)
+    ref = beacon_torch.make(env_id, 1, seed=3, **kw)
+    td = ref.reset()
+    np.testing.assert_array_equal(obs, td[ref.observation_key][0].numpy())
+    env.action_space.seed(0)
+    for _ in range(3 if env_id in EXPENSIVE_ENVS else 12):
+        action = env.action_space.sample()
+        obs, reward, terminated, truncated, _ = env.step(action)
+        td[ref.action_key] = torch.as_tensor(np.asarray(action))[None]
+        td = ref.step(td)["next"]
+        np.testing.assert_array_equal(obs, td[ref.observation_key][0].numpy())
+        assert reward == td[ref.reward_key].double().mean().item()
+        assert (terminated, truncated) == (bool(td["terminated"][0, 0]), bool(td["truncated"][0, 0]))
+
+
+def test_gym_env_blow_up_terminates_with_the_penalty():
+    env = gymnasium.make("beacon/burgers-v0", amp=1e8).unwrapped
+    last, _ = env.reset(seed=0)
+    for _ in range(5):
+        obs, reward, terminated, truncated, _ = env.step(np.ones(1, dtype=np.float32))
+        assert np.isfinite(obs).all() and np.isfinite(reward)
+        if terminated:
+            break
+        last = obs
+    assert terminated and reward == env.env.blowup_reward
+    np.testing.assert_array_equal(obs, last)  # the last finite observation is kept

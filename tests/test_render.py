@@ -32,6 +32,31 @@ def test_render_without_history_draws_the_current_state():
     assert env.render().shape[2] == 3
 
 
+def test_history_follows_each_member_through_partial_resets():
+    """Any member can be drawn, each with its own episode so far; memory stays within
+    one episode of the batch."""
+    import torch
+
+    env = beacon_torch.make("lorenz-v0", 3, record_history=True, rho=[28.0, 30.0, 35.0])
+    env.reset()
+    for _ in range(5):
+        env.step_members(torch.ones(3, dtype=torch.int64))
+    env.reset_members(torch.tensor([False, True, False]))
+    for _ in range(3):
+        env.step_members(torch.ones(3, dtype=torch.int64))
+    lengths = {}
+    for index in range(3):
+        env.render_index = index
+        lengths[index] = len(env.history)
+        last = env.history.frames(env.state)[-1]
+        assert torch.equal(last["xyz"], env.state["xyz"][index])
+    assert lengths == {0: 9, 1: 4, 2: 9}
+    env.render_index = 1
+    assert torch.equal(env.history.frames(env.state)[0]["xyz"], env.initial_state(None)["xyz"][1])
+    env.reset_members(torch.tensor([True, False, True]))
+    assert len(env.history.states) == 4  # what member 1 still draws; older states dropped
+
+
 def test_render_before_reset_is_an_error():
     with pytest.raises(RuntimeError, match="reset"):
         beacon_torch.make("lorenz-v0").render()

@@ -1,0 +1,123 @@
+"""One env at a time: the published code's single-env speed against ours at batch 1.
+
+    .venv/bin/python benchmarks/single_env.py [--envs ...] [--out DIR]
+
+For every env, random actions (fixed seed) through
+- ``gymnasium.make("beacon/<id>")``: the lean path (``FlowEnv.step_members``, numpy in
+  and out), eager and compiled;
+- a batch-of-one TorchRL env's ``step`` (TensorDicts and TorchRL's step wrappers), for
+  comparison;
+- the physics alone (``advance`` and ``observe`` with no checks), the floor of any
+  wrapper: what the lean step costs beyond it is the adapter's share.
+
+Prints a markdown table and writes ``single_env.json`` to ``--out``. The numbers in
+benchmarks/RESULTS.md come from this script, run on an otherwise idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+import beacon_torch
+import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
+from beacon_torch.bench import CAVITIES, PUBLISHED, machine
+
+ENVS = ["lorenz-v0", "vortex-v0", "burgers-v0", "sloshing-v0", "shkadov-v0", "rayleigh-v0", "mixing-v0"]
+
+
+def rate(step, seconds: float, repeats: int) -> float:
+    """Median steps per second over ``repeats`` timed runs of about ``seconds`` each
+    (after warm-up steps, which also compile)."""
+    for _ in range(3):
+        step()
+    start, n = time.perf_counter(), 0
+    while time.perf_counter() - start < 0.2 * seconds or n < 2:
+        step()
+        n += 1
+    per = (time.perf_counter() - start) / n
+    count = max(2, int(seconds / per))
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(count):
+            step()
+        rates.append(count / (time.perf_counter() - start))
+    return statistics.median(rates)
+
+
+def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
+    gym_env = gymnasium.make(f"beacon/{env_id}", compile=compiled).unwrapped
+    gym_env.reset(seed=0)
+    gym_env.action_space.seed(0)
+    actions = [gym_env.action_space.sample() for _ in range(64)]
+    index = [0]
+
+    def lean():
+        _, _, terminated, truncated, _ = gym_env.step(actions[index[0] % 64])
+        index[0] += 1
+        if terminated or truncated:
+            gym_env.reset()
+
+    out = {"env": env_id, "mode": "compiled" if compiled else "eager", "published": PUBLISHED[env_id]}
+    out["gymnasium"] = rate(lean, seconds, repeats)
+
+    env = gym_env.env  # the batch-of-one FlowEnv behind it
+    env.reset()
+    batch = [TensorDict({env.action_key: torch.as_tensor(np.asarray(a)).reshape(env.action_spec.shape).to(env.action_spec.dtype)}, batch_size=env.batch_size) for a in actions[:8]]
+
+    def torchrl_step():
+        td = env.step(batch[index[0] % 8])
+        index[0] += 1
+        if bool(td["next", "done"].any()):
+            env.reset()
+
+    out["torchrl"] = rate(torchrl_step, seconds, repeats)
+    env.reset()
+    state, action, count = env.state, env.check_action(batch[0][env.action_key]), env.step_count
+
+    def physics():
+        new, _ = env.advance(state, action, count)
+        env.observe(new)
+
+    with torch.no_grad():
+        out["physics"] = rate(physics, seconds, repeats)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", default=ENVS)
+    parser.add_argument("--modes", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    parser.add_argument("--seconds", type=float, default=2.0, help="length of one timed run (cavities: at least 2 steps)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (the published code runs on one core)")
+    parser.add_argument("--out", default="runs/single_env")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"# {machine()}")
+    print("| env | mode | gymnasium (lean) /s | TorchRL step /s | physics alone /s | published /s | lean vs published |")
+    print("|---|---|---|---|---|---|---|")
+    rows = []
+    for env_id in args.envs:
+        for mode in args.modes:
+            seconds = args.seconds * (3 if env_id in CAVITIES else 1)
+            r = measure(env_id, mode == "compiled", seconds, args.repeats)
+            rows.append(r)
+            print(f"| {env_id} | {mode} | {r['gymnasium']:,.1f} | {r['torchrl']:,.1f} | {r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x |", flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "single_env.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
+    print(f"results: {out / 'single_env.json'}")
+
+
+if __name__ == "__main__":
+    main()
