@@ -177,6 +177,15 @@ def machine() -> str:
     return text
 
 
+def save_rows(rows: list[dict], out: str | Path, name: str) -> Path:
+    """``rows`` with the machine they were measured on, as ``out/name.json``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.json"
+    path.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
+    return path
+
+
 def run(
     env_ids: Iterable[str],
     *,

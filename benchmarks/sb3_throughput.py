@@ -13,9 +13,7 @@ otherwise idle machine.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -23,10 +21,10 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
-from beacon_torch.bench import CAVITIES, machine
+from beacon_torch.bench import CAVITIES, PUBLISHED, machine, save_rows
 from beacon_torch.sb3 import BeaconVecEnv
 
-ENVS = ["lorenz-v0", "vortex-v0", "burgers-v0", "sloshing-v0", "shkadov-v0", "rayleigh-v0", "mixing-v0"]
+ENVS = list(PUBLISHED)  # the seven benchmark envs
 
 
 def rate(venv, seconds: float) -> float:
@@ -64,10 +62,7 @@ def main() -> None:
             dummy = rate(DummyVecEnv([lambda name=env_id: gymnasium.make(f"beacon/{name}") for _ in range(copies)]), seconds)
             rows.append({"env": env_id, "copies": copies, "batched": batched, "dummy": dummy, "ratio": batched / dummy})
             print(f"| {env_id} | {copies} | {batched:,.1f} | {dummy:,.1f} | {batched / dummy:.1f}x |", flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "sb3_throughput.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
-    print(f"results: {out / 'sb3_throughput.json'}")
+    print("results:", save_rows(rows, args.out, "sb3_throughput"))
 
 
 if __name__ == "__main__":

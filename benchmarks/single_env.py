@@ -17,10 +17,8 @@ benchmarks/RESULTS.md come from this script, run on an otherwise idle machine.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -29,9 +27,9 @@ from tensordict import TensorDict
 
 import beacon_torch
 import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
-from beacon_torch.bench import CAVITIES, PUBLISHED, machine
+from beacon_torch.bench import CAVITIES, PUBLISHED, machine, save_rows
 
-ENVS = ["lorenz-v0", "vortex-v0", "burgers-v0", "sloshing-v0", "shkadov-v0", "rayleigh-v0", "mixing-v0"]
+ENVS = list(PUBLISHED)  # the seven benchmark envs
 
 
 def rate(step, seconds: float, repeats: int) -> float:
@@ -113,10 +111,7 @@ def main() -> None:
             r = measure(env_id, mode == "compiled", seconds, args.repeats)
             rows.append(r)
             print(f"| {env_id} | {mode} | {r['gymnasium']:,.1f} | {r['torchrl']:,.1f} | {r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x |", flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "single_env.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
-    print(f"results: {out / 'single_env.json'}")
+    print("results:", save_rows(rows, args.out, "single_env"))
 
 
 if __name__ == "__main__":
