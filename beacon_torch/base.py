@@ -167,6 +167,11 @@ class FlowEnv(EnvBase):
     # whether a compiled substep is one graph; False where part of it must stay eager
     # (the cavities' transport sweep), which torch.compile then runs between graphs
     compile_fullgraph: ClassVar[bool] = True
+    # whether, compiled, a whole step (the action's substeps, the reward, the
+    # observation and the blow-up bookkeeping) is one graph: for the envs of few
+    # substeps and no random draws, where at small batches the fixed cost of each
+    # compiled call and eager operation outweighs the physics
+    compile_whole_step: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -211,6 +216,7 @@ class FlowEnv(EnvBase):
         self.kernels = Kernels(self.inductor_options, self.compile_fullgraph)
         self.history = History(record_history)
         self._settle = self.kernels(settle)
+        self._whole_step = self.kernels(self._step_core)
         with torch.no_grad():
             self.setup()
         self._make_specs()
@@ -476,14 +482,17 @@ class FlowEnv(EnvBase):
         action = self.check_action(action)
         old = self._state
         with graph_mode(self.differentiable):
-            if self.grad_checkpoint and torch.is_grad_enabled():
-                new, reward = checkpointed(self.advance, self.rng, old, action, self._count)
+            if self.compile_whole_step and self.kernels.options is not None and not torch.is_grad_enabled():
+                new, obs, reward, ok = self._whole_step(old, self._obs, action, self._count)
             else:
-                new, reward = self.advance(old, action, self._count)
-            obs = self.observe(new)
-            # A member that left its bounds keeps its last finite state and observation
-            # and ends its episode; the others are untouched by the selection.
-            new, obs, reward, ok = self._settle(new, old, obs, self._obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
+                if self.grad_checkpoint and torch.is_grad_enabled():
+                    new, reward = checkpointed(self.advance, self.rng, old, action, self._count)
+                else:
+                    new, reward = self.advance(old, action, self._count)
+                obs = self.observe(new)
+                # A member that left its bounds keeps its last finite state and
+                # observation and ends its episode; the others are untouched.
+                new, obs, reward, ok = self._settle(new, old, obs, self._obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
             count = self._count + 1
             if stepping is not None:
                 stepping = stepping.reshape(self.batch_size).to(self.device)
@@ -495,6 +504,12 @@ class FlowEnv(EnvBase):
         self._state, self._obs, self._count = new, obs, count
         self.history.append(new)
         return obs, reward, ~ok, count >= self.episode_length
+
+    def _step_core(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor):
+        """A whole step as one function, for ``compile_whole_step`` envs: the physics
+        (whose own kernels then run inline) and :func:`settle`."""
+        new, reward = self.advance(old, action, count)
+        return settle(new, old, self.observe(new), old_obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
 
     # ------------------------------------------------------------------ TorchRL API
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:

@@ -88,7 +88,9 @@ class Kernels:
                 return state
 
         def run(*args, **kwargs):
-            if self.options is None:
+            # inside a larger compiled function (a whole step), a kernel is traced
+            # into that function's graph rather than called as a graph of its own
+            if self.options is None or torch.compiler.is_compiling():
                 return fn(*args, **kwargs)
             compiled = self._cache.get(fn)
             if compiled is None:

@@ -49,10 +49,9 @@ def _spaces(env: FlowEnv) -> tuple[spaces.Space, spaces.Space]:
 def team_reward(env: FlowEnv, reward: torch.Tensor) -> np.ndarray:
     """``[batch]`` float64 rewards of :meth:`FlowEnv.step_members`; for multi-agent
     variants, the mean over the agents."""
-    reward = reward.detach().to(torch.float64)
-    if reward.ndim > 1:
-        reward = reward.reshape(env.n_envs, -1).mean(-1)
-    return reward.cpu().numpy()
+    if reward.ndim == 1:
+        return reward.detach().cpu().numpy().astype(np.float64)
+    return reward.detach().to(torch.float64).reshape(env.n_envs, -1).mean(-1).cpu().numpy()
 
 
 def batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
@@ -72,7 +71,8 @@ def batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
     expected = full if batch > 1 else env.action_shape
     if a.shape != expected and a.shape != full:
         raise ValueError(f"{env.env_id}: action must have shape {expected}, got {a.shape}")
-    return torch.as_tensor(a.reshape(full).astype(np.float64))
+    # straight to the env's dtype: the conversion torch would make, without a tensor copy
+    return torch.as_tensor(a.reshape(full).astype(np.float32 if env.dtype == torch.float32 else np.float64))
 
 
 class BeaconGymEnv(gymnasium.Env):

@@ -67,3 +67,27 @@ def test_compiled_envs_leave_dynamo_settings_as_they_found_them():
     run_actions(env, [env.null_action()])
     assert seen and seen[0] >= 64  # traced while the limit was raised
     assert torch._dynamo.config.recompile_limit == before
+
+
+@pytest.mark.parametrize("env_id", ["lorenz-v0", "lorenz-continuous-v0"])
+def test_whole_step_compiled_handles_a_blow_up_as_the_eager_step(env_id):
+    """Envs compiled a whole step at a time (physics and bookkeeping in one graph) end a
+    blown-up member's episode exactly as the eager step does."""
+    params = {"rho": [28.0, 1e6]}
+    eager = beacon_torch.make(env_id, 2, dtype=torch.float64, **params)
+    compiled = beacon_torch.make(env_id, 2, dtype=torch.float64, compile=True, **params)
+    assert compiled.compile_whole_step
+    g = torch.Generator().manual_seed(0)
+    actions = [eager.random_action(g) for _ in range(60)]
+    out = []
+    for env in (eager, compiled):
+        env.reset_members()
+        steps = [env.step_members(a) for a in actions]
+        out.append([torch.stack([s[i] for s in steps]) for i in range(4)])
+    (obs_e, rew_e, term_e, trunc_e), (obs_c, rew_c, term_c, trunc_c) = out
+    assert term_e[:, 1].any(), "the extreme member never blew up"
+    assert torch.equal(term_c, term_e) and torch.equal(trunc_c, trunc_e)
+    assert (rew_c[term_c] == compiled.blowup_reward).all()
+    torch.testing.assert_close(obs_c, obs_e, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(rew_c, rew_e, rtol=1e-9, atol=1e-12)
+    assert [fn.__name__ for fn in compiled.kernels._cache] == ["_step_core"]  # nothing compiled apart

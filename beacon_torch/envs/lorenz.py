@@ -58,6 +58,10 @@ class LorenzEnv(FlowEnv):
     Params = LorenzParams
     episode_length = EPISODE_LENGTH
     discrete = True
+    # one graph per step, with a C++ wrapper: at small batches the step is all fixed
+    # cost of calls, which this removes (benchmarks/RESULTS.md, one env at a time)
+    compile_whole_step = True
+    inductor_options = {"cpp_wrapper": True}
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

@@ -91,6 +91,10 @@ class VortexEnv(FlowEnv):
     env_id = "vortex-v0"
     Params = VortexParams
     episode_length = EPISODE_LENGTH
+    # one graph per step, with a C++ wrapper: at small batches the step is all fixed
+    # cost of calls, which this removes (benchmarks/RESULTS.md, one env at a time)
+    compile_whole_step = True
+    inductor_options = {"cpp_wrapper": True}
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
