@@ -32,24 +32,30 @@ from beacon_torch.bench import CAVITIES, PUBLISHED, machine, save_rows
 ENVS = list(PUBLISHED)  # the seven benchmark envs
 
 
-def rate(step, seconds: float, repeats: int) -> float:
-    """Median steps per second over ``repeats`` timed runs of about ``seconds`` each
-    (after warm-up steps, which also compile)."""
-    for _ in range(3):
-        step()
-    start, n = time.perf_counter(), 0
-    while time.perf_counter() - start < 0.2 * seconds or n < 2:
-        step()
-        n += 1
-    per = (time.perf_counter() - start) / n
-    count = max(2, int(seconds / per))
-    rates = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(count):
+def rates(steps: dict, seconds: float, repeats: int) -> dict:
+    """Median steps per second of each of ``steps`` (name -> function), the repeats of
+    the paths alternating so that they are measured side by side, each run about
+    ``seconds`` long (at least 2 steps). A warm-up of ``seconds`` per path first: it
+    compiles, and lets the compiler's worker processes finish."""
+    counts = {}
+    for name, step in steps.items():
+        start, n = time.perf_counter(), 0
+        while n < 3 or time.perf_counter() - start < seconds:
             step()
-        rates.append(count / (time.perf_counter() - start))
-    return statistics.median(rates)
+            n += 1
+        start, n = time.perf_counter(), 0
+        while n < 2 or time.perf_counter() - start < 0.2 * seconds:
+            step()
+            n += 1
+        counts[name] = max(2, int(seconds * n / (time.perf_counter() - start)))
+    measured = {name: [] for name in steps}
+    for _ in range(repeats):
+        for name, step in steps.items():
+            start = time.perf_counter()
+            for _ in range(counts[name]):
+                step()
+            measured[name].append(counts[name] / (time.perf_counter() - start))
+    return {name: statistics.median(r) for name, r in measured.items()}
 
 
 def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
@@ -65,12 +71,8 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
         if terminated or truncated:
             gym_env.reset()
 
-    out = {"env": env_id, "mode": "compiled" if compiled else "eager", "published": PUBLISHED[env_id]}
-    out["gymnasium"] = rate(lean, seconds, repeats)
-
     env = gym_env.env  # the batch-of-one FlowEnv behind it
-    env.reset()
-    batch = [TensorDict({env.action_key: torch.as_tensor(np.asarray(a)).reshape(env.action_spec.shape).to(env.action_spec.dtype)}, batch_size=env.batch_size) for a in actions[:8]]
+    batch = [TensorDict({env.action_key: torch.as_tensor(np.asarray(a))[None]}, batch_size=env.batch_size) for a in actions[:8]]
 
     def torchrl_step():
         td = env.step(batch[index[0] % 8])
@@ -78,17 +80,18 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
         if bool(td["next", "done"].any()):
             env.reset()
 
-    out["torchrl"] = rate(torchrl_step, seconds, repeats)
-    env.reset()
-    state, action, count = env.state, env.check_action(batch[0][env.action_key]), env.step_count
+    # the physics alone, from a state of the episode, without the step's checks
+    frozen = {}
 
     def physics():
-        new, _ = env.advance(state, action, count)
-        env.observe(new)
+        if not frozen:
+            frozen.update(state=env.state, action=env.check_action(batch[0][env.action_key]), count=env.step_count)
+        with torch.no_grad():
+            new, _ = env.advance(frozen["state"], frozen["action"], frozen["count"])
+            env.observe(new)
 
-    with torch.no_grad():
-        out["physics"] = rate(physics, seconds, repeats)
-    return out
+    measured = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
+    return {"env": env_id, "mode": "compiled" if compiled else "eager", "published": PUBLISHED[env_id], **measured}
 
 
 def main() -> None:
