@@ -2,10 +2,13 @@
 ghost maps, predictor, projection, transport."""
 
 import math
+import shutil
+import warnings
 
 import pytest
 import torch
 
+from beacon_torch.numerics import native
 from beacon_torch.numerics.projection import (
     GRADIENT,
     NEUMANN,
@@ -175,8 +178,21 @@ def published_sweep(s, u, v, kappa, dt, dx, dy):
     return t[1:-1, 1:-1]
 
 
+@pytest.fixture(params=["C loop", "tensor recurrence"])
+def sweep_path(request, monkeypatch):
+    """Both ways the sweep runs without gradients: the C kernel (where a compiler is,
+    which it must then be built with) and the tensor recurrence."""
+    if request.param == "C loop":
+        if shutil.which("cc") is None and shutil.which("gcc") is None:
+            pytest.skip("no C compiler")
+        assert native.library() is not None
+    else:
+        monkeypatch.setenv("BEACON_TORCH_NATIVE", "0")
+    return request.param
+
+
 @pytest.mark.parametrize("shape", [(7, 5), (4, 9)])
-def test_sweep_is_the_published_in_place_transport(shape):
+def test_sweep_is_the_published_in_place_transport(shape, sweep_path):
     nx, ny = shape
     B = 3
     cavity = Cavity(nx, ny, 1 / nx, 0.8 / ny, **F64)
@@ -191,6 +207,39 @@ def test_sweep_is_the_published_in_place_transport(shape):
     with torch.enable_grad():
         graph = cavity.sweep(s.clone().requires_grad_(), u, v, kappa, 2e-3, cavity.dx, cavity.dy)
     torch.testing.assert_close(graph.detach(), out, rtol=1e-14, atol=1e-14)
+
+
+def test_sweep_paths_agree_in_float32():
+    nx, ny, B = 20, 30, 5
+    cavity = Cavity(nx, ny, 1 / nx, 1 / ny, dtype=torch.float32, device=None)
+    u, v = (f.float() for f in filled(Cavity(nx, ny, 1 / nx, 1 / ny, **F64), B, 3))
+    s = random((nx + 2, ny + 2, B), 4).float()
+    fast = cavity.sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
+    if native.library() is not None:
+        with pytest.raises(ValueError, match="do not fit"):
+            native.sweep(s.clone(), fast[:, :-1].contiguous(), fast[:, :-1].contiguous())
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BEACON_TORCH_NATIVE", "0")
+        slow = cavity.sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
+    torch.testing.assert_close(fast, slow, rtol=1e-6, atol=1e-6)
+
+
+def test_sweep_without_a_compiler_warns_once_and_keeps_the_tensor_path(monkeypatch):
+    monkeypatch.setattr(native, "_tried", False)
+    monkeypatch.setattr(native, "_library", None)
+    monkeypatch.setenv("CC", "false")  # a compiler that always fails
+    nx, ny, B = 6, 5, 2
+    cavity = Cavity(nx, ny, 1 / nx, 1 / ny, **F64)
+    u, v = filled(cavity, B, 1)
+    s = random((nx + 2, ny + 2, B), 2)
+    with pytest.warns(RuntimeWarning, match="could not be built"):
+        out = cavity.sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = cavity.sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
+    expected = torch.stack([published_sweep(s[..., m], u[..., m], v[..., m], 0.01, 1e-3, cavity.dx, cavity.dy) for m in range(B)], -1)
+    torch.testing.assert_close(out, expected, rtol=1e-13, atol=1e-13)
+    assert torch.equal(out, again)
 
 
 def test_sweep_keeps_constants_in_a_divergence_free_flow():
