@@ -11,9 +11,9 @@ The kernel is compiled from the source below with the system's C compiler, once 
 process, into a fresh private directory (nothing is read from a shared cache, so no
 file that someone else could have written is ever loaded), and called through
 ``ctypes`` on the tensors' memory. Where there is no compiler, the build fails, the
-tensors are not on the CPU, or ``BEACON_TORCH_NATIVE=0``, :func:`sweep` returns None
-and the caller keeps its tensor path. Gradients never go through here: the callers use
-it only when autograd has nothing to record.
+tensors are not on the CPU, or ``BEACON_TORCH_NATIVE=0``, :func:`applies` says no and
+the caller keeps its tensor path. Gradients never go through here: the callers use it
+only when autograd has nothing to record.
 """
 
 from __future__ import annotations
@@ -100,22 +100,35 @@ def library() -> ctypes.CDLL | None:
 _KERNELS = {torch.float32: ("sweep_f32", ctypes.c_float), torch.float64: ("sweep_f64", ctypes.c_double)}
 
 
-def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor | None:
-    """The in-place sweep on ``s`` (ghosted, ``[nx + 2, ny + 2, B]``, interior holding
-    each cell's part from old values): cell ``(i, j)`` becomes
+def applies(device, dtype) -> bool:
+    """Whether :func:`sweep` runs for fields of this device and dtype (building the
+    kernel on the first call)."""
+    return torch.device(device).type == "cpu" and dtype in _KERNELS and library() is not None
+
+
+# A custom operator, so that a compiled substep calls the loop inside its graph (no
+# graph break): out of place, as the graph's functional form wants.
+@torch.library.custom_op("beacon_torch::sweep", mutates_args=())
+def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The in-place sweep on a copy of ``s`` (ghosted, ``[nx + 2, ny + 2, B]``, interior
+    holding each cell's part from old values): cell ``(i, j)`` becomes
     ``s[i, j] + a * s[i - 1, j] + b * s[i, j - 1]`` with the new values of its west and
     south neighbours, for the interior coefficients ``a``, ``b`` (``[nx, ny, B]``).
-    Returns ``s`` swept, or None (``s`` untouched) where the kernel does not apply."""
-    if s.device.type != "cpu" or s.dtype not in _KERNELS or not (s.dtype == a.dtype == b.dtype):
-        return None
-    lib = library()
-    if lib is None:
-        return None
-    name, ctype = _KERNELS[s.dtype]
-    s, a, b = s.contiguous(), a.contiguous(), b.contiguous()
+    Only where :func:`applies`; never differentiated."""
     nx, ny, members = a.shape
-    if s.shape != (nx + 2, ny + 2, members) or b.shape != a.shape:
+    if s.shape != (nx + 2, ny + 2, members) or b.shape != a.shape or not (s.dtype == a.dtype == b.dtype):
         raise ValueError(f"sweep: the field {tuple(s.shape)} and coefficients {tuple(a.shape)}, {tuple(b.shape)} do not fit")
+    # the switch BEACON_TORCH_NATIVE is read where the caller decides (applies), not here
+    lib = _library if _tried else library()
+    if s.device.type != "cpu" or s.dtype not in _KERNELS or lib is None:
+        raise RuntimeError("sweep: the C kernel does not apply here (see native.applies)")
+    name, ctype = _KERNELS[s.dtype]
+    out, a, b = s.clone(memory_format=torch.contiguous_format), a.contiguous(), b.contiguous()
     pointer = ctypes.POINTER(ctype)
-    getattr(lib, name)(*(ctypes.cast(t.data_ptr(), pointer) for t in (s, a, b)), nx, ny, members)
-    return s
+    getattr(lib, name)(*(ctypes.cast(t.data_ptr(), pointer) for t in (out, a, b)), nx, ny, members)
+    return out
+
+
+@sweep.register_fake
+def _(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.empty_like(s, memory_format=torch.contiguous_format)

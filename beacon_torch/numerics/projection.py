@@ -265,7 +265,7 @@ class Cavity:
             self.solver = PoissonSolver(nx, ny, dx, dy, poisson_bc, dtype=dtype, device=device)
         else:
             self.solver = JacobiSolver(nx, ny, dx, dy, poisson_bc, jacobi_tol, dtype=dtype, device=device)
-        self.sweep = Sweep(nx, ny, device)
+        self.sweep = Sweep(nx, ny, device, dtype)
         self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
         self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
 
@@ -407,8 +407,10 @@ class Sweep:
     step. The tensor recurrence is the path everywhere else (GPU, gradients, no C
     compiler)."""
 
-    def __init__(self, nx: int, ny: int, device=None) -> None:
+    def __init__(self, nx: int, ny: int, device=None, dtype=torch.float32) -> None:
         self.nx, self.ny = nx, ny
+        # decided once, so that a compiled substep sees a constant
+        self.native = native.applies(device or "cpu", dtype)
         width, height = nx + 2, ny + 2
         k = torch.arange(nx + ny + 3)[:, None]
         i = torch.arange(width)[None, :]
@@ -443,10 +445,8 @@ class Sweep:
         b = dt * (ky + 0.5 * vs / dy)
         pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
         recording = torch.is_grad_enabled() and any(t.requires_grad for t in (s, u, v, c))
-        if not recording:
-            swept = _native_sweep(s + pad(c - sc), a, b)
-            if swept is not None:
-                return swept[1:-1, 1:-1]
+        if not recording and self.native and s.device.type == "cpu" and s.dtype in (torch.float32, torch.float64):
+            return native.sweep(s + pad(c - sc), a, b)[1:-1, 1:-1]
         # the ghosts keep their values (a = b = 0 there)
         c = self._skewed(s + pad(c - sc))
         a, b = self._skewed(pad(a)), self._skewed(pad(b))
@@ -456,11 +456,6 @@ class Sweep:
         else:
             rows = _rows(c, a, b, last)
         return rows[self.unskew_k, self.unskew_i]
-
-
-@torch.compiler.disable
-def _native_sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor | None:
-    return native.sweep(s, a, b)
 
 
 # The two recurrences run eagerly even in a compiled substep: a chain of hundreds of
