@@ -29,12 +29,27 @@ def random(shape, seed):
     return torch.randn(shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
 
 
+@pytest.fixture(params=["C", "tensors"])
+def native_path(request, monkeypatch):
+    """Both ways the sweep and the Poisson solve run without gradients: the C kernels
+    (where a compiler is, which they must then be built with) and the tensor path."""
+    if request.param == "C":
+        if shutil.which("cc") is None and shutil.which("gcc") is None:
+            pytest.skip("no C compiler")
+        assert native.applies("cpu", torch.float64)
+    else:
+        monkeypatch.setenv("BEACON_TORCH_NATIVE", "0")
+    return request.param
+
+
+
 @pytest.mark.parametrize("bc", BCS)
 @pytest.mark.parametrize("nx", [30, 31])  # even: the folded x products; odd: the dense ones
 @pytest.mark.parametrize("members", [4, 40])  # y products as one matrix product, or batched over x
-def test_poisson_solve_is_exact_to_round_off(bc, nx, members):
+def test_poisson_solve_is_exact_to_round_off(bc, nx, members, native_path):
     ny, dx, dy = 20, 1 / nx, 0.5 / 20
     solver = PoissonSolver(nx, ny, dx, dy, bc)
+    assert solver.native == (native_path == "C")
     assert solver.x.folded == (nx % 2 == 0 and bc[0] == bc[1])
     rhs = random((nx, ny, members), 0)
     if ZERO_GHOST not in bc:  # solvable only for a zero-sum source
@@ -61,7 +76,7 @@ def test_poisson_manufactured_solution_converges_at_second_order():
 
 
 @pytest.mark.parametrize("bc", BCS)
-def test_solver_matches_a_dense_reference_solve(bc):
+def test_solver_matches_a_dense_reference_solve(bc, native_path):
     nx, ny = 6, 5
     solver = PoissonSolver(nx, ny, 0.2, 0.3, bc)
     dense = torch.kron(solver.lx, torch.eye(ny, dtype=torch.float64)) + torch.kron(torch.eye(nx, dtype=torch.float64), solver.ly)
@@ -77,13 +92,38 @@ def test_solver_matches_a_dense_reference_solve(bc):
 
 
 @pytest.mark.parametrize("members", [3, 40])
-def test_members_are_solved_independently(members):
+def test_members_are_solved_independently(members, native_path):
     """A member's solution does not depend on the others, nor on how many there are
     (few members take another order of the same products: equal to round-off)."""
     solver = PoissonSolver(12, 10, 0.1, 0.1, BCS[1])
     rhs = random((12, 10, members), 2)
     alone = solver.solve(rhs[..., 1:2])
     torch.testing.assert_close(solver.solve(rhs)[..., 1:2], alone, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("bc", BCS[:2])
+def test_poisson_paths_agree_in_float32_and_gradients_take_the_tensor_path(bc):
+    """The C line solves against the y eigenvector products at a cavity's size, in
+    float32; with autograd recording, the solve is the differentiable tensor path."""
+    n, members = 64, 5
+    fast = PoissonSolver(n, n, 1 / n, 1 / n, bc, dtype=torch.float32)
+    rhs = random((n, n, members), 9)
+    rhs = (rhs - rhs.mean((0, 1))).float()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BEACON_TORCH_NATIVE", "0")
+        slow = PoissonSolver(n, n, 1 / n, 1 / n, bc, dtype=torch.float32)
+    assert not slow.native
+    expected = slow.solve(rhs)
+    scale = expected.abs().max()
+    torch.testing.assert_close(fast.solve(rhs), expected, rtol=0, atol=2e-5 * scale)
+    if fast.native:
+        with pytest.raises(ValueError, match="do not fit"):
+            native.lines(rhs, *fast.lines[0], fast.upper)
+    grad_in = rhs.clone().requires_grad_()
+    with torch.enable_grad():
+        out = fast.solve(grad_in)
+    assert out.grad_fn is not None
+    torch.testing.assert_close(out.detach(), expected, rtol=0, atol=2e-5 * scale)
 
 
 def filled(cavity: Cavity, B: int, seed: int, walls=None):
@@ -139,7 +179,7 @@ def test_fields_and_stored_round_trip_the_batch_first_state():
     v[:, 1:-1, 2:-1] = random((B, 8, 5), 5)
     c = random((B, 10, 8), 6)
     state = {"u": u, "v": v, "p": random((B, 8, 6), 7), "c": c}
-    ghosts = Ghosts.cells(8, 6, *(GRADIENT,) * 4, **F64)
+    ghosts = Ghosts.cells(8, 6, *(GRADIENT,) * 4)
     fields = cavity.fields(state, {"c": (ghosts, None)})
     assert fields["u"].shape == (9, 6, B) and fields["v"].shape == (8, 7, B) and fields["c"].shape == (10, 8, B)
     back = cavity.stored(fields, cavity.walls(like=fields["u"]))
@@ -178,21 +218,8 @@ def published_sweep(s, u, v, kappa, dt, dx, dy):
     return t[1:-1, 1:-1]
 
 
-@pytest.fixture(params=["C loop", "tensor recurrence"])
-def sweep_path(request, monkeypatch):
-    """Both ways the sweep runs without gradients: the C kernel (where a compiler is,
-    which it must then be built with) and the tensor recurrence."""
-    if request.param == "C loop":
-        if shutil.which("cc") is None and shutil.which("gcc") is None:
-            pytest.skip("no C compiler")
-        assert native.applies("cpu", torch.float64)
-    else:
-        monkeypatch.setenv("BEACON_TORCH_NATIVE", "0")
-    return request.param
-
-
 @pytest.mark.parametrize("shape", [(7, 5), (4, 9)])
-def test_sweep_is_the_published_in_place_transport(shape, sweep_path):
+def test_sweep_is_the_published_in_place_transport(shape, native_path):
     nx, ny = shape
     B = 3
     cavity = Cavity(nx, ny, 1 / nx, 0.8 / ny, **F64)
@@ -207,6 +234,20 @@ def test_sweep_is_the_published_in_place_transport(shape, sweep_path):
     with torch.enable_grad():
         graph = cavity.sweep(s.clone().requires_grad_(), u, v, kappa, 2e-3, cavity.dx, cavity.dy)
     torch.testing.assert_close(graph.detach(), out, rtol=1e-14, atol=1e-14)
+
+
+def test_c_sweep_keeps_the_ghosts_it_was_given():
+    if not native.applies("cpu", torch.float64):
+        pytest.skip("no C compiler")
+    nx, ny, B = 5, 4, 3
+    s = random((nx + 2, ny + 2, B), 13)
+    a, b = random((nx, ny, B), 14) * 0.1, random((nx, ny, B), 15) * 0.1
+    out = native.sweep(s, a, b)
+    ring = torch.ones(nx + 2, ny + 2, dtype=torch.bool)
+    ring[1:-1, 1:-1] = False
+    assert torch.equal(out[ring], s[ring])
+    # the first interior cell reads its ghost neighbours only
+    torch.testing.assert_close(out[1, 1], s[1, 1] + a[0, 0] * s[0, 1] + b[0, 0] * s[1, 0], rtol=1e-15, atol=0)
 
 
 def test_sweep_paths_agree_in_float32():

@@ -7,6 +7,12 @@ cost per operation (a few microseconds) is most of a cavity step at small batche
 same loop written in C, over the cells with the members innermost, costs what its
 arithmetic costs.
 
+The pressure increment's solve has a recurrence of the same kind: once the field is in
+the eigenbasis of the x operator, each x mode is a tridiagonal system along y, whose
+elimination (forward, then back) is a chain of ``ny`` dependent steps. In C it costs a
+few operations a cell, against the ``ny`` multiply-adds a cell of the dense y
+eigenvector products it replaces.
+
 The kernel is compiled from the source below with the system's C compiler, once per
 process, into a fresh private directory (nothing is read from a shared cache, so no
 file that someone else could have written is ever loaded), and called through
@@ -34,21 +40,58 @@ import torch
 # published ones to the last bits that plain arithmetic allows.
 _SOURCE = r"""
 #define SWEEP(NAME, T)                                                              \
-void NAME(T *s, const T *a, const T *b, long nx, long ny, long members) {          \
+void NAME(T *out, const T *s, const T *a, const T *b, long nx, long ny, long members) { \
     const long column = (ny + 2) * members;                                         \
+    for (long m = 0; m < column; ++m) {  /* the ghosts keep their values */         \
+        out[m] = s[m];                                                              \
+        out[(nx + 1) * column + m] = s[(nx + 1) * column + m];                      \
+    }                                                                               \
     for (long i = 1; i <= nx; ++i) {                                                \
+        T *o = out + i * column;                                                    \
+        const T *si = s + i * column;                                               \
+        for (long m = 0; m < members; ++m) {                                        \
+            o[m] = si[m];                                                           \
+            o[(ny + 1) * members + m] = si[(ny + 1) * members + m];                 \
+        }                                                                           \
         for (long j = 1; j <= ny; ++j) {                                            \
-            T *x = s + i * column + j * members;                                    \
-            const T *west = x - column, *south = x - members;                       \
+            T *x = o + j * members;                                                 \
+            const T *old = si + j * members, *west = x - column, *south = x - members; \
             const T *ai = a + ((i - 1) * ny + (j - 1)) * members;                   \
             const T *bi = b + ((i - 1) * ny + (j - 1)) * members;                   \
             for (long m = 0; m < members; ++m)                                      \
-                x[m] = (x[m] + ai[m] * west[m]) + bi[m] * south[m];                 \
+                x[m] = (old[m] + ai[m] * west[m]) + bi[m] * south[m];               \
         }                                                                           \
     }                                                                               \
 }
 SWEEP(sweep_f32, float)
 SWEEP(sweep_f64, double)
+
+/* Tridiagonal systems along the second axis of f [modes, n, members], one per mode,
+   solved from their precomputed elimination into out: row j of mode k is
+   x[j] = (y[j] - upper[j] x[j + 1]) inv[k, j] after y[j] = f[j] - lower[k, j] y[j - 1]
+   (a singular mode has inv 0 on its last row, which leaves that value at 0). */
+#define LINES(NAME, T)                                                              \
+void NAME(T *out, const T *f, const T *lower, const T *inv, const T *upper,         \
+          long modes, long n, long members) {                                       \
+    for (long k = 0; k < modes; ++k) {                                              \
+        T *x = out + k * n * members;                                               \
+        const T *r = f + k * n * members, *l = lower + k * n, *w = inv + k * n;     \
+        for (long m = 0; m < members; ++m) x[m] = r[m];                             \
+        for (long j = 1; j < n; ++j) {                                              \
+            T *row = x + j * members, *prev = row - members;                        \
+            const T *rj = r + j * members;                                          \
+            for (long m = 0; m < members; ++m) row[m] = rj[m] - l[j] * prev[m];     \
+        }                                                                           \
+        for (long m = 0; m < members; ++m) x[(n - 1) * members + m] *= w[n - 1];   \
+        for (long j = n - 2; j >= 0; --j) {                                         \
+            T *row = x + j * members, *next = row + members;                        \
+            for (long m = 0; m < members; ++m)                                      \
+                row[m] = (row[m] - upper[j] * next[m]) * w[j];                      \
+        }                                                                           \
+    }                                                                               \
+}
+LINES(lines_f32, float)
+LINES(lines_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
@@ -70,16 +113,17 @@ def _build() -> ctypes.CDLL | None:
         subprocess.run([compiler, *_FLAGS, source, "-o", library], check=True, capture_output=True, timeout=120)
         lib = ctypes.CDLL(library)
     except (OSError, subprocess.SubprocessError) as err:
-        warnings.warn(f"beacon_torch: the C transport sweep could not be built ({err}); using the slower tensor sweep", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"beacon_torch: the C kernels could not be built ({err}); using the slower tensor paths", RuntimeWarning, stacklevel=3)
         return None
     finally:
         # the loaded library stays mapped after its file is gone
         shutil.rmtree(folder, ignore_errors=True)
-    for name, ctype in (("sweep_f32", ctypes.c_float), ("sweep_f64", ctypes.c_double)):
-        fn = getattr(lib, name)
-        pointer = ctypes.POINTER(ctype)
-        fn.argtypes = (pointer, pointer, pointer, ctypes.c_long, ctypes.c_long, ctypes.c_long)
-        fn.restype = None
+    for suffix, ctype in (("f32", ctypes.c_float), ("f64", ctypes.c_double)):
+        pointer, size = ctypes.POINTER(ctype), ctypes.c_long
+        for name, arrays in (("sweep", 4), ("lines", 5)):
+            fn = getattr(lib, f"{name}_{suffix}")
+            fn.argtypes = (*(pointer,) * arrays, size, size, size)
+            fn.restype = None
     return lib
 
 
@@ -97,38 +141,66 @@ def library() -> ctypes.CDLL | None:
     return _library
 
 
-_KERNELS = {torch.float32: ("sweep_f32", ctypes.c_float), torch.float64: ("sweep_f64", ctypes.c_double)}
+_KERNELS = {torch.float32: ("f32", ctypes.c_float), torch.float64: ("f64", ctypes.c_double)}
 
 
 def applies(device, dtype) -> bool:
-    """Whether :func:`sweep` runs for fields of this device and dtype (building the
-    kernel on the first call)."""
-    return torch.device(device).type == "cpu" and dtype in _KERNELS and library() is not None
+    """Whether :func:`sweep` and :func:`lines` run for tensors of this device and dtype
+    (building the kernels on the first call)."""
+    return torch.device(device or "cpu").type == "cpu" and dtype in _KERNELS and library() is not None
+
+
+def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int, ...]) -> torch.Tensor:
+    """The kernel ``name`` from ``first`` and the other arrays (made contiguous) into a
+    new tensor shaped like ``first``: the kernels write their result out of place, so
+    that no copy of the input is needed for the operator's functional form."""
+    # the switch BEACON_TORCH_NATIVE is read where the caller decides (applies), not here
+    lib = _library if _tried else library()
+    if first.device.type != "cpu" or first.dtype not in _KERNELS or lib is None:
+        raise RuntimeError(f"{name}: the C kernel does not apply here (see native.applies)")
+    suffix, ctype = _KERNELS[first.dtype]
+    arrays = [t.contiguous() for t in (first, *rest)]
+    out = torch.empty_like(arrays[0])
+    pointer = ctypes.POINTER(ctype)
+    getattr(lib, f"{name}_{suffix}")(*(ctypes.cast(t.data_ptr(), pointer) for t in (out, *arrays)), *sizes)
+    return out
 
 
 # A custom operator, so that a compiled substep calls the loop inside its graph (no
 # graph break): out of place, as the graph's functional form wants.
 @torch.library.custom_op("beacon_torch::sweep", mutates_args=())
 def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """The in-place sweep on a copy of ``s`` (ghosted, ``[nx + 2, ny + 2, B]``, interior
-    holding each cell's part from old values): cell ``(i, j)`` becomes
+    """The published in-place sweep of ``s`` (ghosted, ``[nx + 2, ny + 2, B]``, the
+    interior holding each cell's part from old values), written to a new tensor with
+    the same ghosts: cell ``(i, j)`` becomes
     ``s[i, j] + a * s[i - 1, j] + b * s[i, j - 1]`` with the new values of its west and
     south neighbours, for the interior coefficients ``a``, ``b`` (``[nx, ny, B]``).
     Only where :func:`applies`; never differentiated."""
     nx, ny, members = a.shape
     if s.shape != (nx + 2, ny + 2, members) or b.shape != a.shape or not (s.dtype == a.dtype == b.dtype):
         raise ValueError(f"sweep: the field {tuple(s.shape)} and coefficients {tuple(a.shape)}, {tuple(b.shape)} do not fit")
-    # the switch BEACON_TORCH_NATIVE is read where the caller decides (applies), not here
-    lib = _library if _tried else library()
-    if s.device.type != "cpu" or s.dtype not in _KERNELS or lib is None:
-        raise RuntimeError("sweep: the C kernel does not apply here (see native.applies)")
-    name, ctype = _KERNELS[s.dtype]
-    out, a, b = s.clone(memory_format=torch.contiguous_format), a.contiguous(), b.contiguous()
-    pointer = ctypes.POINTER(ctype)
-    getattr(lib, name)(*(ctypes.cast(t.data_ptr(), pointer) for t in (out, a, b)), nx, ny, members)
-    return out
+    return _call("sweep", s, a, b, sizes=(nx, ny, members))
 
 
 @sweep.register_fake
 def _(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.empty_like(s, memory_format=torch.contiguous_format)
+
+
+@torch.library.custom_op("beacon_torch::lines", mutates_args=())
+def lines(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    """Solves, into a new tensor shaped like ``f`` (``[modes, n, B]``), one tridiagonal system along the
+    second axis per mode and member, from its elimination: ``lower`` and ``inv``
+    (``[modes, n]``: the multipliers below the diagonal and the inverse pivots) and
+    ``upper`` (``[n]``: the entries above the diagonal, the same for every mode). A zero
+    last pivot (a singular mode) gives the solution whose last value is 0. Only where
+    :func:`applies`; never differentiated."""
+    modes, n, members = f.shape
+    if lower.shape != (modes, n) or inv.shape != (modes, n) or upper.shape != (n,) or not (f.dtype == lower.dtype == inv.dtype == upper.dtype):
+        raise ValueError(f"lines: the field {tuple(f.shape)} and elimination {tuple(lower.shape)}, {tuple(inv.shape)}, {tuple(upper.shape)} do not fit")
+    return _call("lines", f, lower, inv, upper, sizes=(modes, n, members))
+
+
+@lines.register_fake
+def _(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    return torch.empty_like(f, memory_format=torch.contiguous_format)

@@ -122,6 +122,27 @@ class _Basis:
         return [ordered[:h], ordered[h:]]
 
 
+def _eliminate(ly: torch.Tensor, shifts: torch.Tensor, tol: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Gaussian elimination (no pivoting: the systems are diagonally dominant) of the
+    tridiagonal ``ly + shift`` for each shift: the multipliers below the diagonal and
+    the inverse pivots, ``[shifts, n]`` each, and which systems are singular (their last
+    pivot is zero to ``tol``; its inverse is set to zero)."""
+    n = ly.shape[0]
+    diag = ly.diagonal()[None, :] + shifts[:, None]
+    sub, sup = ly.diagonal(-1), ly.diagonal(1)
+    lower, pivot = torch.zeros_like(diag), torch.zeros_like(diag)
+    pivot[:, 0] = diag[:, 0]
+    for j in range(1, n):
+        lower[:, j] = sub[j - 1] / pivot[:, j - 1]
+        pivot[:, j] = diag[:, j] - lower[:, j] * sup[j - 1]
+    singular = pivot[:, -1].abs() < tol
+    if (pivot[:, :-1].abs() < tol).any():
+        raise AssertionError("only the last pivot of a diagonally dominant system can vanish")
+    inv = 1.0 / pivot
+    inv[singular, -1] = 0.0
+    return lower, inv, singular
+
+
 class PoissonSolver:
     """Direct solver of the 5-point Poisson equation on an ``nx x ny`` cell grid, for
     batch-last fields ``[nx, ny, B]``.
@@ -133,6 +154,14 @@ class PoissonSolver:
     gradient on every wall the constant mode has eigenvalue 0 and is dropped: the
     solution has zero mean and the source must have zero sum (it does, for the
     divergence of a field with no flux through the walls).
+
+    On the CPU, where autograd has nothing to record, the two y products and the
+    division are replaced by what they compute: in the x eigenbasis each x mode k is the
+    tridiagonal system (Ly + ex_k) phi_k = rhs_k along y, eliminated once here and solved
+    in C (:func:`beacon_torch.numerics.native.lines`), a few operations a cell instead
+    of ``2 ny`` multiply-adds (the y products were two thirds of a mixing substep's
+    solve). The singular mode of the all-walls-Neumann problem keeps a zero last value
+    and then loses its mean along y, which is the same zero-mean solution.
 
     ``bc`` gives the conditions on the (left, right, bottom, top) walls.
     """
@@ -161,13 +190,31 @@ class PoissonSolver:
         self.qy = qy.to(dtype=dtype, device=device)
         self.qyt = qy.T.contiguous().to(dtype=dtype, device=device)
         self.inv = [block[:, :, None].to(dtype=dtype, device=device).contiguous() for block in self.x.blocks(inv)]
+        # decided once, so that a compiled step sees a constant
+        self.native = native.applies(device, dtype)
+        if self.native:
+            cast = lambda t: t.to(dtype=dtype, device=device)
+            self.upper = cast(torch.cat((ly.diagonal(1), ly.new_zeros(1))))
+            self.lines, self.singular = [], []
+            for shift in self.x.blocks(ex):
+                lower, inverse, singular = _eliminate(ly, shift, 1e-9 * scale)
+                self.lines.append((cast(lower), cast(inverse)))
+                # per block, a 0/1 factor on the modes whose mean along y goes
+                self.singular.append(cast(singular)[:, None, None] if bool(singular.any()) else None)
         self.bc = tuple(bc)
         factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
         # the increment's ghost values, for its gradient on the wall faces
-        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
+        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc))
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """phi with L phi = rhs, both ``[nx, ny, B]``."""
+        recording = torch.is_grad_enabled() and rhs.requires_grad
+        if self.native and not recording and rhs.device.type == "cpu" and rhs.dtype == self.upper.dtype:
+            hat = []
+            for c, (lower, inv), singular in zip(self.x.forward(rhs), self.lines, self.singular, strict=True):
+                c = native.lines(c, lower, inv, self.upper)
+                hat.append(c if singular is None else c - singular * c.mean(1, keepdim=True))
+            return self.x.inverse(hat)
         blocks = zip(self.x.forward(rhs), self.inv, strict=True)
         if rhs.shape[-1] < FEW_MEMBERS:
             hat = [_mm_second(self.qy, _mm_second(self.qyt, c) * inv) for c, inv in blocks]
@@ -182,51 +229,50 @@ class PoissonSolver:
 
 
 class Ghosts:
-    """A field with ghost values, gathered from its stored values: along each axis an
-    index map into the stored positions and a factor per extended position (the
-    product of the two axes' factors multiplies the gathered value), plus an optional
-    offset that carries prescribed wall values (``ghost = 2 value - neighbour``)."""
+    """A field with ghost values, built from its stored values by slicing. Along each
+    axis either a ghost position is added at each end, holding its neighbour times the
+    wall's factor (cell-centred fields), or the end positions themselves are multiplied
+    by it (a velocity's wall faces, zeroed); corner ghosts take both factors, or zero
+    (``corners`` False). An optional offset carries prescribed wall values
+    (``ghost = 2 value - neighbour``). Slices and concatenations compile to direct loads
+    fused into the stencil's kernel: an index map gathering the same values compiles to
+    indirect loads, which made the fused kernels of a mixing substep 1.3 times slower
+    (docs/performance.md)."""
 
-    def __init__(self, index_x, factor_x, index_y, factor_y, *, dtype, device) -> None:
-        as_index = lambda i: None if i is None else torch.tensor(i, dtype=torch.int64, device=device)
-        self.ix, self.iy = as_index(index_x), as_index(index_y)
-        fx = torch.tensor(factor_x, dtype=torch.float64)
-        fy = torch.tensor(factor_y, dtype=torch.float64)
-        self.factor = (fx[:, None, None] * fy[None, :, None]).to(dtype=dtype, device=device)
+    def __init__(self, x: tuple[bool, float, float], y: tuple[bool, float, float], *, corners: bool = True) -> None:
+        self.x, self.y, self.corners = x, y, corners
 
     @staticmethod
-    def _cell_axis(n: int, low: float, high: float):
-        return [0, *range(n), n - 1], [low, *[1.0] * n, high]
+    def _ends(f: torch.Tensor, axis: int, extend: bool, low: float, high: float, bare: bool = False) -> torch.Tensor:
+        n = f.shape[axis]
+        first, last = f.narrow(axis, 0, 1) * low, f.narrow(axis, n - 1, 1) * high
+        if bare:  # zero the corner ghosts: the ends of the new rows along the other axis
+            first, last = (Ghosts._ends(g, 1, False, 0.0, 0.0) for g in (first, last))
+        middle = f if extend else f.narrow(axis, 1, n - 2)
+        return torch.cat((first, middle, last), axis)
 
     @classmethod
-    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw) -> Ghosts:
+    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True) -> Ghosts:
         """Cell-centred ``[nx, ny, B]`` to ``[nx + 2, ny + 2, B]``; each wall's factor is
         GRADIENT, VALUE or ZERO. No stencil reads the four corner ghosts; ``corners``
         False leaves them at zero (where a reward averages over the ghosted array, as
         the published mixing reward does)."""
-        ghosts = cls(*cls._cell_axis(nx, left, right), *cls._cell_axis(ny, bottom, top), **kw)
-        if not corners:
-            ghosts.factor[[0, 0, -1, -1], [0, -1, 0, -1]] = 0.0
-        return ghosts
+        return cls((True, left, right), (True, bottom, top), corners=corners)
 
     @classmethod
-    def u_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
+    def u_faces(cls, nx: int, ny: int) -> Ghosts:
         """x-face velocity ``[nx + 1, ny, B]`` to ``[nx + 1, ny + 2, B]``: impermeable
         side walls (zeroed), tangential velocity on the bottom and top through the
         ghosts."""
-        return cls(None, [0.0, *[1.0] * (nx - 1), 0.0], *cls._cell_axis(ny, VALUE, VALUE), **kw)
+        return cls((False, 0.0, 0.0), (True, VALUE, VALUE))
 
     @classmethod
-    def v_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
+    def v_faces(cls, nx: int, ny: int) -> Ghosts:
         """y-face velocity ``[nx, ny + 1, B]`` to ``[nx + 2, ny + 1, B]``."""
-        return cls(*cls._cell_axis(nx, VALUE, VALUE), None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
+        return cls((True, VALUE, VALUE), (False, 0.0, 0.0))
 
     def __call__(self, f: torch.Tensor, offset: torch.Tensor | None = None) -> torch.Tensor:
-        if self.ix is not None:
-            f = f[self.ix]
-        if self.iy is not None:
-            f = f[:, self.iy]
-        f = f * self.factor
+        f = self._ends(self._ends(f, 1, *self.y), 0, *self.x, bare=not self.corners)
         return f if offset is None else f + offset
 
 
@@ -266,8 +312,8 @@ class Cavity:
         else:
             self.solver = JacobiSolver(nx, ny, dx, dy, poisson_bc, jacobi_tol, dtype=dtype, device=device)
         self.sweep = Sweep(nx, ny, device, dtype)
-        self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
-        self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
+        self.u_ghosts = Ghosts.u_faces(nx, ny)
+        self.v_ghosts = Ghosts.v_faces(nx, ny)
 
 
     def walls(self, u_bottom=0.0, u_top=0.0, v_left=0.0, v_right=0.0, *, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -500,7 +546,7 @@ class JacobiSolver:
         if tuple(bc[:3]) != (NEUMANN,) * 3:
             raise ValueError("the published Jacobi solve has zero normal gradient on the left, right and bottom walls")
         factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
-        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
+        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc))
         self.iterations: list[int] = []  # per solve, the most any member took
 
     def _ghosted(self, inner: torch.Tensor) -> torch.Tensor:
