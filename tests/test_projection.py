@@ -179,7 +179,7 @@ def test_fields_and_stored_round_trip_the_batch_first_state():
     v[:, 1:-1, 2:-1] = random((B, 8, 5), 5)
     c = random((B, 10, 8), 6)
     state = {"u": u, "v": v, "p": random((B, 8, 6), 7), "c": c}
-    ghosts = Ghosts.cells(8, 6, *(GRADIENT,) * 4)
+    ghosts = Ghosts.cells(8, 6, *(GRADIENT,) * 4, **F64)
     fields = cavity.fields(state, {"c": (ghosts, None)})
     assert fields["u"].shape == (9, 6, B) and fields["v"].shape == (8, 7, B) and fields["c"].shape == (10, 8, B)
     back = cavity.stored(fields, cavity.walls(like=fields["u"]))

@@ -83,7 +83,7 @@ class MixingEnv(CavityEnv):
 
     def scalar_ghosts(self) -> Ghosts:
         # the published reward averages over the ghosted array, whose corners stay zero
-        return Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, corners=False)
+        return Ghosts.cells(self.nx, self.ny, *(GRADIENT,) * 4, corners=False, dtype=self.dtype, device=self.device)
 
     # derived from the parameters at each use, so that every differentiated step has
     # its own graph to them

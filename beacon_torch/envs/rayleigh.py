@@ -58,11 +58,10 @@ class RayleighParams:
             raise ValueError(f"parameter 'n_sgts' = {self.n_sgts} must divide the {nx} cells along L = {self.L:g}")
 
 
-def temperature_offset(bottom: torch.Tensor, ny: int) -> torch.Tensor:
+def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.Tensor:
     """The ghost offset of bottom cells at the temperatures ``bottom`` (``[B, nx]``)
     and the cold top plate, ``[nx + 2, ny + 2, B]``."""
-    low = bottom.T
-    low = torch.cat((low[:1], low, low[-1:]))[:, None]  # the side ghosts take their neighbour's value
+    low = bottom.T[ghosts.ix][:, None]  # the side ghosts take their neighbour's value
     return edge_offset(ny + 2, 1, low, T_COLD, bottom)
 
 
@@ -100,7 +99,7 @@ def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = 
     state = rest_state(1, env.nx, env.ny, torch.float64, "cpu")
     state["theta"] = PERTURBATION * (2.0 * torch.rand(state["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
     bottom = torch.full((1, env.nx), T_HOT, dtype=torch.float64)
-    state = env.run(state, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ny))
+    state = env.run(state, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny))
     return {k: v[0] for k, v in state.items()}
 
 
@@ -140,7 +139,7 @@ class RayleighEnv(CavityEnv):
 
     def scalar_ghosts(self) -> Ghosts:
         # adiabatic sides; the plates' temperatures through the ghost offset
-        return Ghosts.cells(self.nx, self.ny, GRADIENT, GRADIENT, VALUE, VALUE)
+        return Ghosts.cells(self.nx, self.ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=self.dtype, device=self.device)
 
     # derived from ra at each use, so that every differentiated step has its own graph
     @property
@@ -175,7 +174,7 @@ class RayleighEnv(CavityEnv):
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
-        new = self.run(state, SUBSTEPS, self.nu, self.kappa, offset=temperature_offset(bottom, self.ny))
+        new = self.run(state, SUBSTEPS, self.nu, self.kappa, offset=temperature_offset(bottom, self.ghosts, self.ny))
         new["bottom"] = bottom
         return self.observed(new, state), -nusselt(new["theta"], self.dy)
 

@@ -204,7 +204,7 @@ class PoissonSolver:
         self.bc = tuple(bc)
         factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
         # the increment's ghost values, for its gradient on the wall faces
-        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc))
+        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """phi with L phi = rhs, both ``[nx, ny, B]``."""
@@ -229,50 +229,51 @@ class PoissonSolver:
 
 
 class Ghosts:
-    """A field with ghost values, built from its stored values by slicing. Along each
-    axis either a ghost position is added at each end, holding its neighbour times the
-    wall's factor (cell-centred fields), or the end positions themselves are multiplied
-    by it (a velocity's wall faces, zeroed); corner ghosts take both factors, or zero
-    (``corners`` False). An optional offset carries prescribed wall values
-    (``ghost = 2 value - neighbour``). Slices and concatenations compile to direct loads
-    fused into the stencil's kernel: an index map gathering the same values compiles to
-    indirect loads, which made the fused kernels of a mixing substep 1.3 times slower
-    (docs/performance.md)."""
+    """A field with ghost values, gathered from its stored values: along each axis an
+    index map into the stored positions and a factor per extended position (the
+    product of the two axes' factors multiplies the gathered value), plus an optional
+    offset that carries prescribed wall values (``ghost = 2 value - neighbour``)."""
 
-    def __init__(self, x: tuple[bool, float, float], y: tuple[bool, float, float], *, corners: bool = True) -> None:
-        self.x, self.y, self.corners = x, y, corners
+    def __init__(self, index_x, factor_x, index_y, factor_y, *, dtype, device) -> None:
+        as_index = lambda i: None if i is None else torch.tensor(i, dtype=torch.int64, device=device)
+        self.ix, self.iy = as_index(index_x), as_index(index_y)
+        fx = torch.tensor(factor_x, dtype=torch.float64)
+        fy = torch.tensor(factor_y, dtype=torch.float64)
+        self.factor = (fx[:, None, None] * fy[None, :, None]).to(dtype=dtype, device=device)
 
     @staticmethod
-    def _ends(f: torch.Tensor, axis: int, extend: bool, low: float, high: float, bare: bool = False) -> torch.Tensor:
-        n = f.shape[axis]
-        first, last = f.narrow(axis, 0, 1) * low, f.narrow(axis, n - 1, 1) * high
-        if bare:  # zero the corner ghosts: the ends of the new rows along the other axis
-            first, last = (Ghosts._ends(g, 1, False, 0.0, 0.0) for g in (first, last))
-        middle = f if extend else f.narrow(axis, 1, n - 2)
-        return torch.cat((first, middle, last), axis)
+    def _cell_axis(n: int, low: float, high: float):
+        return [0, *range(n), n - 1], [low, *[1.0] * n, high]
 
     @classmethod
-    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True) -> Ghosts:
+    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw) -> Ghosts:
         """Cell-centred ``[nx, ny, B]`` to ``[nx + 2, ny + 2, B]``; each wall's factor is
         GRADIENT, VALUE or ZERO. No stencil reads the four corner ghosts; ``corners``
         False leaves them at zero (where a reward averages over the ghosted array, as
         the published mixing reward does)."""
-        return cls((True, left, right), (True, bottom, top), corners=corners)
+        ghosts = cls(*cls._cell_axis(nx, left, right), *cls._cell_axis(ny, bottom, top), **kw)
+        if not corners:
+            ghosts.factor[[0, 0, -1, -1], [0, -1, 0, -1]] = 0.0
+        return ghosts
 
     @classmethod
-    def u_faces(cls, nx: int, ny: int) -> Ghosts:
+    def u_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
         """x-face velocity ``[nx + 1, ny, B]`` to ``[nx + 1, ny + 2, B]``: impermeable
         side walls (zeroed), tangential velocity on the bottom and top through the
         ghosts."""
-        return cls((False, 0.0, 0.0), (True, VALUE, VALUE))
+        return cls(None, [0.0, *[1.0] * (nx - 1), 0.0], *cls._cell_axis(ny, VALUE, VALUE), **kw)
 
     @classmethod
-    def v_faces(cls, nx: int, ny: int) -> Ghosts:
+    def v_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
         """y-face velocity ``[nx, ny + 1, B]`` to ``[nx + 2, ny + 1, B]``."""
-        return cls((True, VALUE, VALUE), (False, 0.0, 0.0))
+        return cls(*cls._cell_axis(nx, VALUE, VALUE), None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
 
     def __call__(self, f: torch.Tensor, offset: torch.Tensor | None = None) -> torch.Tensor:
-        f = self._ends(self._ends(f, 1, *self.y), 0, *self.x, bare=not self.corners)
+        if self.ix is not None:
+            f = f[self.ix]
+        if self.iy is not None:
+            f = f[:, self.iy]
+        f = f * self.factor
         return f if offset is None else f + offset
 
 
@@ -312,8 +313,8 @@ class Cavity:
         else:
             self.solver = JacobiSolver(nx, ny, dx, dy, poisson_bc, jacobi_tol, dtype=dtype, device=device)
         self.sweep = Sweep(nx, ny, device, dtype)
-        self.u_ghosts = Ghosts.u_faces(nx, ny)
-        self.v_ghosts = Ghosts.v_faces(nx, ny)
+        self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
+        self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
 
 
     def walls(self, u_bottom=0.0, u_top=0.0, v_left=0.0, v_right=0.0, *, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -546,7 +547,7 @@ class JacobiSolver:
         if tuple(bc[:3]) != (NEUMANN,) * 3:
             raise ValueError("the published Jacobi solve has zero normal gradient on the left, right and bottom walls")
         factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
-        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc))
+        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
         self.iterations: list[int] = []  # per solve, the most any member took
 
     def _ghosted(self, inner: torch.Tensor) -> torch.Tensor:
