@@ -35,6 +35,9 @@ def checkpoint(run):
 def test_config_holds_the_papers_table_and_checks_overrides():
     assert configure(PPOConfig, "rayleigh-v0").entropy == 0.001 and configure(PPOConfig, "rayleigh-v0").n_rollout == 1000
     assert configure(PPOConfig, "sloshing-v0").epochs == 16 and configure(PPOConfig, "sloshing-v0").critic_lr == 1e-3
+    # sloshing's rollouts hold whole episodes of each member (the measured difference)
+    sloshing = configure(PPOConfig, "sloshing-v0")
+    assert sloshing.n_rollout // sloshing.num_envs > beacon_torch.make("sloshing-v0").episode_length
     assert configure(PPOConfig, "mixing-continuous-v0").n_rollout == PPO["mixing-v0"]["n_rollout"]
     assert configure(PPOConfig, "lorenz-v0", epochs=4).epochs == 4
     with pytest.raises(ValueError, match="unknown ppo setting"):
