@@ -150,6 +150,19 @@ def applies(device, dtype) -> bool:
     return torch.device(device or "cpu").type == "cpu" and dtype in _KERNELS and library() is not None
 
 
+def recording(*tensors: torch.Tensor) -> bool:
+    """Whether autograd records an operation on these tensors (the kernels must not
+    run then: they are not differentiable)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def takes(*tensors: torch.Tensor) -> bool:
+    """Whether the kernels run on these tensors now: CPU tensors of one kernel dtype
+    that autograd does not record (the caller has asked :func:`applies` once)."""
+    first = tensors[0]
+    return first.device.type == "cpu" and first.dtype in _KERNELS and all(t.dtype == first.dtype for t in tensors) and not recording(*tensors)
+
+
 def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int, ...]) -> torch.Tensor:
     """The kernel ``name`` from ``first`` and the other arrays (made contiguous) into a
     new tensor shaped like ``first``: the kernels write their result out of place, so

@@ -208,8 +208,7 @@ class PoissonSolver:
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """phi with L phi = rhs, both ``[nx, ny, B]``."""
-        recording = torch.is_grad_enabled() and rhs.requires_grad
-        if self.native and not recording and rhs.device.type == "cpu" and rhs.dtype == self.upper.dtype:
+        if self.native and native.takes(rhs, self.upper):
             hat = []
             for c, (lower, inv), singular in zip(self.x.forward(rhs), self.lines, self.singular, strict=True):
                 c = native.lines(c, lower, inv, self.upper)
@@ -457,7 +456,7 @@ class Sweep:
     def __init__(self, nx: int, ny: int, device=None, dtype=torch.float32) -> None:
         self.nx, self.ny = nx, ny
         # decided once, so that a compiled substep sees a constant
-        self.native = native.applies(device or "cpu", dtype)
+        self.native = native.applies(device, dtype)
         width, height = nx + 2, ny + 2
         k = torch.arange(nx + ny + 3)[:, None]
         i = torch.arange(width)[None, :]
@@ -491,8 +490,8 @@ class Sweep:
         a = dt * (kx + 0.5 * uw / dx)
         b = dt * (ky + 0.5 * vs / dy)
         pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
-        recording = torch.is_grad_enabled() and any(t.requires_grad for t in (s, u, v, c))
-        if not recording and self.native and s.device.type == "cpu" and s.dtype in (torch.float32, torch.float64):
+        recording = native.recording(s, u, v, c)
+        if self.native and native.takes(s, u, v, c):
             return native.sweep(s + pad(c - sc), a, b)[1:-1, 1:-1]
         # the ghosts keep their values (a = b = 0 there)
         c = self._skewed(s + pad(c - sc))
