@@ -134,10 +134,11 @@ def test_vec_env_renders_each_copy():
     assert BeaconVecEnv("lorenz-v0", 2).get_images() == [None, None]
 
 
-def test_sb3_ppo_trains_on_the_vec_env_with_its_wrappers():
+def test_sb3_ppo_trains_on_the_vec_env_with_its_wrappers(tmp_path, monkeypatch):
     """SB3's PPO, unmodified, through VecMonitor, VecNormalize and VecCheckNan (which
     raises on any non-finite observation, reward or action): it runs, the networks
     change, and the monitor sees whole episodes."""
+    monkeypatch.setenv("SB3_LOGDIR", str(tmp_path))  # SB3 makes a log folder even when silent
     torch.manual_seed(0)
     venv = VecCheckNan(VecNormalize(VecMonitor(BeaconVecEnv("burgers-v0", 8, seed=0))), raise_exception=True)
     model = PPO("MlpPolicy", venv, n_steps=64, batch_size=128, n_epochs=2, seed=0, device="cpu")
