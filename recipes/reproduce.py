@@ -118,14 +118,7 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
 def write_results_page(recorded: Path, page: Path, images: Path) -> Path:
     """Write the generated part between the markers of the results page (appended when
     they are missing)."""
-    text = page.read_text() if page.exists() else ""
-    block = f"{BEGIN}\n{results_block(recorded, page, images)}\n{END}"
-    if BEGIN in text:
-        text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END) :]
-    else:
-        text = text + "\n" + block + "\n"
-    page.write_text(text)
-    return page
+    return report.write_block(page, BEGIN, END, results_block(recorded, page, images))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -67,3 +67,44 @@ def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, 
     assert "no pretrained td3 policy for vortex-v0" in capsys.readouterr().err
     assert cli(["eval"]) == 2
     assert "one of the two" in capsys.readouterr().err
+
+
+def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp_path):
+    """benchmarks/pretrained.py runs each shipped policy as a user loads it and writes
+    its table between the page's markers; the folded normalisation scores what the
+    training's checkpoint scores on the same episodes."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from beacon_torch.training.evaluation import evaluate_run
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pretrained.py"
+    spec = importlib.util.spec_from_file_location("bench_pretrained", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    page = tmp_path / "results.md"
+    page.write_text(f"# Results\n\nby hand\n\n{bench.BEGIN}\nold\n{bench.END}\n\nnotes\n")
+    bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json")])
+    text = page.read_text()
+    assert "old" not in text and "by hand" in text and text.endswith("notes\n")
+    assert "| ppo/vortex-v0 | 400 (0) |" in text
+    (row,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
+    assert row["policy"] == "ppo/vortex-v0" and row["recorded"] == 1.0
+    checkpoint = evaluate_run(shipped, members=2)
+    assert row["uncontrolled"] == checkpoint["uncontrolled"]
+    assert abs(row["score"] - checkpoint["score_mean"]) <= 1e-4 * max(1.0, abs(checkpoint["score_mean"]))
+    assert row["normalised"] == pytest.approx((row["score"] - row["uncontrolled"]) / (38 - row["uncontrolled"]))
+    with pytest.raises(SystemExit):
+        bench.main(["--members", "0", "--page", str(page)])
+
+
+def test_a_generated_part_without_its_end_marker_is_refused(tmp_path):
+    from beacon_torch.training.report import write_block
+
+    page = tmp_path / "page.md"
+    page.write_text("# Page\n\n<!-- begin -->\nold\n")
+    with pytest.raises(ValueError, match="no end marker"):
+        write_block(page, "<!-- begin -->", "<!-- end -->", "new")
+    page.write_text("# Page\n")
+    assert write_block(page, "<!-- begin -->", "<!-- end -->", "new").read_text() == "# Page\n\n<!-- begin -->\nnew\n<!-- end -->\n"

@@ -157,3 +157,20 @@ def report(run_dirs, out: str | Path) -> dict:
     (out / "report.json").write_text(json.dumps(rows, indent=1))
     png = figure(rows, out / "report.png")
     return {"rows": rows, "table": text, "png": str(png)}
+
+
+def write_block(page: str | Path, begin: str, end: str, block: str) -> Path:
+    """Replace the generated part of a markdown page, between the lines ``begin`` and
+    ``end``, with ``block`` (appended with its markers when the page has none), leaving
+    the hand-written rest as it is."""
+    page = Path(page)
+    text = page.read_text() if page.exists() else ""
+    new = f"{begin}\n{block}\n{end}"
+    if begin in text:
+        if end not in text[text.index(begin) :]:
+            raise ValueError(f"{page}: the generated part starting {begin!r} has no end marker {end!r}")
+        text = text[: text.index(begin)] + new + text[text.index(end, text.index(begin)) + len(end) :]
+    else:
+        text = text + "\n" + new + "\n"
+    page.write_text(text)
+    return page

@@ -1,0 +1,89 @@
+"""Every shipped policy evaluated again, as a user gets it.
+
+    .venv/bin/python benchmarks/pretrained.py [--members 8] [--page docs/results.md]
+
+Loads each policy of ``beacon_torch.pretrained.available()`` through
+``pretrained.load`` (raw observations, the training's normalisation folded into the
+network), runs it deterministically on the fixed evaluation episodes
+(``evaluation.EVAL_SEED``, float32) beside no control on the same episodes, and writes
+the table into the page between its markers, and the numbers to
+``benchmarks/results/pretrained.json``. The score recorded in the file at shipping
+came from the training's checkpoint (normalisation as a transform); the two agree to
+round-off, up to what chaotic envs make of it over an episode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from beacon_torch import pretrained
+from beacon_torch.training.evaluation import EVAL_SEED, evaluate_policy
+from beacon_torch.training.report import normalised, write_block
+
+ROOT = Path(__file__).resolve().parents[1]
+BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of shipped policies -->"
+
+
+def evaluate_all(members: int = 8, seed: int = EVAL_SEED) -> list[dict]:
+    """One row per shipped policy: its deterministic score against no control."""
+    rows = []
+    for name in pretrained.available():
+        algo, env_id = name.split("/")
+        info = pretrained.info(algo, env_id)
+        start = time.perf_counter()
+        result = evaluate_policy(env_id, pretrained.load(algo, env_id), members=members, seed=seed)
+        rows.append(
+            {
+                "policy": name,
+                "trained_seed": info.get("seed"),
+                "frames": info["frames"],
+                "score": result["score_mean"],
+                "score_std": result["score_std"],
+                "uncontrolled": result["uncontrolled"],
+                "normalised": float(normalised(result["score_mean"], result["uncontrolled"], env_id)),
+                "recorded": info.get("score"),
+                "seconds": time.perf_counter() - start,
+            }
+        )
+    return rows
+
+
+def table(rows: list[dict], members: int, seed: int) -> str:
+    lines = [
+        f"Every shipped policy, loaded with `beacon_torch.pretrained.load` and run deterministically on {members} episodes"
+        f" of evaluation seed {seed} (float32), against no control on the same episodes (`benchmarks/pretrained.py`):",
+        "",
+        "| policy | trained on (seed) | score (std over episodes) | uncontrolled | normalised | recorded at shipping |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        recorded = "-" if r["recorded"] is None else f"{r['recorded']:.4g}"
+        lines.append(f"| {r['policy']} | {r['frames']:,} ({r['trained_seed']}) | {r['score']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {r['normalised']:.2f} | {recorded} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--members", type=int, default=8, help="evaluation episodes per policy")
+    parser.add_argument("--seed", type=int, default=EVAL_SEED)
+    parser.add_argument("--page", default=str(ROOT / "docs" / "results.md"), help="the page whose marked part is rewritten")
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "pretrained.json"))
+    args = parser.parse_args(argv)
+    if args.members < 1:
+        parser.error(f"--members must be at least 1, got {args.members}")
+    torch.set_num_threads(1)
+    rows = evaluate_all(args.members, args.seed)
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"members": args.members, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1))
+    text = table(rows, args.members, args.seed)
+    write_block(args.page, BEGIN, END, text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
