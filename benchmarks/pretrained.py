@@ -76,7 +76,6 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.members < 1:
         parser.error(f"--members must be at least 1, got {args.members}")
-    torch.set_num_threads(1)
     rows = evaluate_all(args.members, args.seed)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"members": args.members, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1))
@@ -86,4 +85,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    # one thread, as the scores recorded at shipping were computed; set here rather than
+    # in main so that a caller's process keeps its own setting
+    torch.set_num_threads(1)
     main()
