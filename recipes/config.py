@@ -26,8 +26,11 @@ from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 # variants train like their base env
 PPO = {
     "shkadov-v0": dict(n_rollout=3200, frames=200_000, critic_optim="nadam"),
-    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128),
-    "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90),
+    # the cavities step their compiled physics; mixing's step costs most of its
+    # training, so two collector processes step it on both cores (58 transitions/s
+    # against 41 with 2 x 8, a seed in 28 minutes; docs/results.md)
+    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128, compile=True),
+    "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90, compile=True, collectors=2),
     "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
     "burgers-v0": dict(n_rollout=4000, frames=500_000, critic_lr=1e-3),
     # sloshing collects with 4 members, so that each rollout holds 500 steps of each,
@@ -108,6 +111,9 @@ class PPOConfig(Config):
     batch: ClassVar[str] = "n_rollout"
     positive: ClassVar[tuple[str, ...]] = ("n_rollout", "minibatches", "epochs")
 
+    # the members of the recorded PPO campaign; an update's rollout holds n_rollout
+    # transitions however many members collect them
+    num_envs: int = setting(16, "members of the batched env collecting together")
     n_rollout: int = setting(2000, "transitions collected between two updates")
     minibatches: int = setting(2, "minibatches per epoch")
     epochs: int = setting(32, "passes over each collected batch")

@@ -4,6 +4,7 @@ driver) and the training layer they share: short runs on small batches."""
 import functools
 import subprocess
 import sys
+from dataclasses import replace
 from importlib.util import find_spec
 from pathlib import Path
 
@@ -33,19 +34,19 @@ def checkpoint(run):
 
 
 def test_config_holds_the_papers_table_and_checks_overrides():
-    assert configure(PPOConfig, "rayleigh-v0").entropy == 0.001 and configure(PPOConfig, "rayleigh-v0").n_rollout == 1000
+    assert configure(PPOConfig, "rayleigh-v0").entropy == 0.001 and PPO["rayleigh-v0"]["n_rollout"] == 1000
     assert configure(PPOConfig, "sloshing-v0").epochs == 16 and configure(PPOConfig, "sloshing-v0").critic_lr == 1e-3
     # sloshing's rollouts hold whole episodes of each member (the measured difference)
     sloshing = configure(PPOConfig, "sloshing-v0")
     assert sloshing.n_rollout // sloshing.num_envs > beacon_torch.make("sloshing-v0").episode_length
-    assert configure(PPOConfig, "mixing-continuous-v0").n_rollout == PPO["mixing-v0"]["n_rollout"]
+    assert configure(PPOConfig, "mixing-continuous-v0") == replace(configure(PPOConfig, "mixing-v0"), env="mixing-continuous-v0", out="runs/ppo-mixing-continuous-v0/seed0")
     assert configure(PPOConfig, "lorenz-v0", epochs=4).epochs == 4
     with pytest.raises(ValueError, match="unknown ppo setting"):
         configure(PPOConfig, "lorenz-v0", epoch=4)
     with pytest.raises(ValueError, match="frames"):
         configure(PPOConfig, "lorenz-v0", frames=-5)
     # values given as text or numbers take the field's type, or are refused
-    assert configure(PPOConfig, "mixing-v0", compile="true").compile is True and configure(PPOConfig, "mixing-v0", epochs=8.0).epochs == 8
+    assert configure(PPOConfig, "mixing-v0", compile="false").compile is False and configure(PPOConfig, "mixing-v0", epochs=8.0).epochs == 8
     with pytest.raises(ValueError, match="'epochs' must be of type int"):
         configure(PPOConfig, "lorenz-v0", epochs=2.5)
     with pytest.raises(ValueError, match="'compile' must be of type bool"):
@@ -59,6 +60,12 @@ def test_config_holds_the_papers_table_and_checks_overrides():
     with pytest.raises(ValueError, match="multiple of num_envs x collectors"):
         configure(PPOConfig, "lorenz-v0", num_envs=16, n_rollout=1000)
     assert configure(PPOConfig, "lorenz-v0", seed=2).out == "runs/ppo-lorenz-v0/seed2"
+    # the recorded campaign's ways of stepping are the defaults: 16 members, the cavities
+    # compiled, mixing on two collector processes (its rollout rounded to their 32 members)
+    rayleigh, mixing = configure(PPOConfig, "rayleigh-v0"), configure(PPOConfig, "mixing-v0")
+    assert (rayleigh.num_envs, rayleigh.compile, rayleigh.collectors, rayleigh.n_rollout) == (16, True, 1, 992)
+    assert (mixing.num_envs, mixing.compile, mixing.collectors, mixing.n_rollout) == (16, True, 2, 1984)
+    assert (configure(PPOConfig, "burgers-v0").num_envs, configure(TD3Config, "burgers-v0").num_envs, configure(TD3Config, "mixing-continuous-v0").compile) == (16, 8, False)
 
 
 @pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0"])  # discrete and continuous
@@ -177,7 +184,7 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
         monkeypatch.setattr(recipe, "make_env", functools.partial(training_env.make_env, **SMALL_CAVITY))
 
     assert set(ALGORITHMS) == set(beacon_torch.registry.ENVS)
-    tiny = dict(frames=2, num_envs=2, hidden=8, norm_steps=1, out=str(tmp_path), progress=False)
+    tiny = dict(frames=2, num_envs=2, hidden=8, norm_steps=1, compile=False, collectors=1, out=str(tmp_path), progress=False)
     if algo == "ppo":
         cfg = configure(PPOConfig, env_id, n_rollout=2, minibatches=1, epochs=1, **tiny)
     else:
