@@ -1,6 +1,6 @@
 """Every shipped policy evaluated again, as a user gets it.
 
-    .venv/bin/python benchmarks/pretrained.py [--members 8] [--page docs/results.md]
+    .venv/bin/python benchmarks/pretrained.py [--members 8] [--page docs/results.md] [--changed]
 
 Loads each policy of ``beacon_torch.pretrained.available()`` through
 ``pretrained.load`` (raw observations, the training's normalisation folded into the
@@ -9,7 +9,10 @@ network), runs it deterministically on the fixed evaluation episodes
 the table into the page between its markers, and the numbers to
 ``benchmarks/results/pretrained.json``. The score recorded in the file at shipping
 came from the training's checkpoint (normalisation as a transform); the two agree to
-round-off, up to what chaotic envs make of it over an episode.
+round-off, up to what chaotic envs make of it over an episode. ``--changed`` evaluates
+only the policies shipped since the numbers file was written (a policy whose shipping
+record, seed, transitions and recorded score, differs from its row's, or is new) and
+keeps the other rows: the cavities' policies take minutes each.
 """
 
 from __future__ import annotations
@@ -29,12 +32,19 @@ ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of shipped policies -->"
 
 
-def evaluate_all(members: int = 8, seed: int = EVAL_SEED) -> list[dict]:
-    """One row per shipped policy: its deterministic score against no control."""
+def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()) -> list[dict]:
+    """One row per shipped policy: its deterministic score against no control. A row of
+    ``keep`` (taken with the same members and seed) stands for its policy while the
+    policy's shipping record is the one the row holds."""
+    kept = {row["policy"]: row for row in keep}
     rows = []
     for name in pretrained.available():
         algo, env_id = name.split("/")
         info = pretrained.info(algo, env_id)
+        old = kept.get(name)
+        if old is not None and (old["trained_seed"], old["frames"], old["recorded"]) == (info.get("seed"), info["frames"], info.get("score")):
+            rows.append(old)
+            continue
         start = time.perf_counter()
         result = evaluate_policy(env_id, pretrained.load(algo, env_id), members=members, seed=seed)
         rows.append(
@@ -73,10 +83,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=EVAL_SEED)
     parser.add_argument("--page", default=str(ROOT / "docs" / "results.md"), help="the page whose marked part is rewritten")
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "pretrained.json"))
+    parser.add_argument("--changed", action="store_true", help="evaluate only the policies shipped since --json was written, keep its other rows")
     args = parser.parse_args(argv)
     if args.members < 1:
         parser.error(f"--members must be at least 1, got {args.members}")
-    rows = evaluate_all(args.members, args.seed)
+    keep = []
+    if args.changed and Path(args.json).is_file():
+        before = json.loads(Path(args.json).read_text())
+        if (before["members"], before["seed"]) == (args.members, args.seed):
+            keep = before["rows"]
+        else:
+            print(f"{args.json} was taken with {before['members']} members and seed {before['seed']}: evaluating every policy")
+    rows = evaluate_all(args.members, args.seed, keep)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"members": args.members, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1))
     text = table(rows, args.members, args.seed)

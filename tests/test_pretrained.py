@@ -95,6 +95,14 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     assert row["uncontrolled"] == checkpoint["uncontrolled"]
     assert abs(row["score"] - checkpoint["score_mean"]) <= 1e-4 * max(1.0, abs(checkpoint["score_mean"]))
     assert row["normalised"] == pytest.approx((row["score"] - row["uncontrolled"]) / (38 - row["uncontrolled"]))
+    # --changed keeps the row of a policy shipped as it was, and evaluates it again once
+    # it is shipped anew
+    bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
+    assert json.loads((tmp_path / "pretrained.json").read_text())["rows"] == [row]
+    pretrained.export(shipped, pretrained.path_of("ppo", "vortex-v0"), seed=0, score=2.0)
+    bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
+    (again,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
+    assert again["recorded"] == 2.0 and again["seconds"] != row["seconds"] and "| 2 |" in page.read_text()
     with pytest.raises(SystemExit):
         bench.main(["--members", "0", "--page", str(page)])
 
