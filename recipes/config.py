@@ -28,7 +28,7 @@ PPO = {
     "shkadov-v0": dict(n_rollout=3200, frames=200_000, critic_optim="nadam"),
     # the cavities step their compiled physics; mixing's step costs most of its
     # training, so two collector processes step it on both cores (58 transitions/s
-    # against 41 with 2 x 8, a seed in 28 minutes; docs/results.md)
+    # against 41 with 2 x 8, 25 minutes a seed; docs/results.md)
     "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128, compile=True),
     "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90, compile=True, collectors=2),
     "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
