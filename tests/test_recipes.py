@@ -377,9 +377,14 @@ def test_settings_follow_the_papers_runs_where_its_table_is_silent():
     assert configure(PPOConfig, "lorenz-v0").norm_steps == 0  # raw observations
     dqn_ = configure(DQNConfig, "lorenz-v0")
     assert (dqn_.eps_init, dqn_.eps_end, dqn_.eps_frames, dqn_.target_every, dqn_.lr, dqn_.batch_size, dqn_.hidden) == (0.5, 0.05, 2_000_000, 50, 5e-4, 64, 64)
-    td3_ = configure(TD3Config, "burgers-v0")
-    assert (td3_.hidden, td3_.lr, td3_.tau, td3_.exploration_sigma, td3_.policy_noise, td3_.noise_clip, td3_.init_random_frames) == (128, 1e-3, 0.02, 0.001, 0.002, 0.005, 1000)
+    td3_ = configure(TD3Config, "vortex-v0")
+    assert (td3_.hidden, td3_.lr, td3_.tau, td3_.exploration_sigma, td3_.policy_noise, td3_.noise_clip, td3_.init_random_frames, td3_.norm_steps) == (128, 1e-3, 0.02, 0.001, 0.002, 0.005, 1000, 0)
     assert td3_.updates_per_batch == td3_.frames_per_batch  # one update per transition
+    # burgers' TD3 alone normalises its observations and explores with the DDPG noise
+    burgers = configure(TD3Config, "burgers-v0")
+    assert (burgers.norm_steps, burgers.exploration_sigma, burgers.frames) == (64, 0.01, 500_000)
+    assert replace(burgers, norm_steps=0, exploration_sigma=0.001, env="vortex-v0", out=td3_.out, frames=td3_.frames) == td3_
+    assert configure(TD3Config, "burgers-v0", exploration_sigma=0.001, norm_steps=0).exploration_sigma == 0.001
     with pytest.raises(ValueError, match="'critic_optim' must be one of"):
         configure(PPOConfig, "lorenz-v0", critic_optim="sgd")
 
