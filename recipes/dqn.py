@@ -35,6 +35,7 @@ def main(cfg: DQNConfig) -> dict:
     loss = DQNLoss(qvalue, delay_value=True, double_dqn=False, action_space="categorical")
     loss.make_value_estimator(gamma=cfg.gamma)
     target = HardUpdate(loss, value_network_update_interval=cfg.target_every)
+    target.counter = run.counters.get("target_counter", 0)  # a resume keeps the copies' schedule
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
 
     # epsilon-greedy exploration, annealed over the transitions; the replay buffer
@@ -46,6 +47,7 @@ def main(cfg: DQNConfig) -> dict:
         return run.last
 
     def save() -> None:
+        run.counters["target_counter"] = target.counter
         run.save(env, policy=("qvalue_actor", cfg.hidden, qvalue), buffer=buffer, loss=loss, optim=optim)
 
     random_frames = max(0, cfg.init_random_frames - run.frames)

@@ -47,7 +47,11 @@ def main(cfg: TD3Config) -> dict:
     if run.remaining <= 0:
         return run.last
 
+    # counted across a resume, so that the actor's delay keeps its phase
+    updates = run.counters.get("updates", 0)
+
     def save() -> None:
+        run.counters["updates"] = updates
         run.save(env, policy=("deterministic_actor", cfg.hidden, actor), buffer=buffer, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
 
     random_frames = max(0, cfg.init_random_frames - run.frames)
@@ -56,7 +60,6 @@ def main(cfg: TD3Config) -> dict:
         collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device,
     )
 
-    updates = 0
     for data in collector:
         buffer.extend(data.reshape(-1))
         values = episode_values(data)

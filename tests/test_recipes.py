@@ -153,9 +153,13 @@ def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(recipe, 
     assert state["algo"] == recipe.__name__ and state["frames"] == 256
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
     assert (tmp_path / "buffer").exists()  # the collected transitions survive a stop
+    # the schedules counted in updates (TD3's actor delay, DQN's copies into the target)
+    # go on across a resume: 3 rounds of 4 updates after the warm-up round, then 2 more
+    counter = {"td3": "updates", "dqn": "target_counter"}[recipe.__name__]
+    assert state["counters"][counter] == 12
     recipe.main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
     state = checkpoint(tmp_path)
-    assert state["frames"] == 384
+    assert state["frames"] == 384 and state["counters"][counter] == 20
     assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), "training did not change the policy"
     capsys.readouterr()
     assert cli(["eval", str(tmp_path), "--members", "2", "--no-gif"]) == 0
