@@ -46,7 +46,8 @@ PPO = {
 # TD3, where its settings differ from the paper's agent. burgers' sensors read 0.49 with
 # a spread of 0.03: raw, the networks hardly tell its states apart and the paper's
 # agent stayed level with no control up to the full 500 k; normalised, and exploring
-# with the paper's DDPG noise, it beats no control by 100 k (docs/training.md)
+# with the noise of the paper's DDPG runs, its three seeds beat no control by 100 k
+# (docs/training.md, docs/results.md)
 TD3 = {
     "burgers-v0": dict(norm_steps=64, exploration_sigma=0.01),
 }
