@@ -158,7 +158,8 @@ class TD3Config(OffPolicyConfig):
 
     hidden: int = setting(128, "width of the hidden layers")
     init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
-    lr: float = setting(1e-3, "learning rate of the actor and the critics (Adam)", domain=POSITIVE)
+    lr: float = setting(1e-3, "learning rate of the critics, and of the actor unless ACTOR_LR is given (Adam)", domain=POSITIVE)
+    actor_lr: float = setting(0.0, "learning rate of the actor (0: LR, as in the paper's agent)", domain=NON_NEGATIVE)
     tau: float = setting(0.02, "soft update of the target networks", domain=(0.0, 1.0, True))
     policy_noise: float = setting(0.002, "target policy smoothing noise, in action units", domain=NON_NEGATIVE)
     noise_clip: float = setting(0.005, "clipping of the smoothing noise", domain=NON_NEGATIVE)

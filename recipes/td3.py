@@ -37,7 +37,7 @@ def main(cfg: TD3Config) -> dict:
     loss = TD3Loss(actor, qvalue, bounds=networks.action_bounds(env), policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip, loss_function="l2")
     loss.make_value_estimator(gamma=cfg.gamma)
     target = SoftUpdate(loss, tau=cfg.tau)
-    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.lr)
+    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_lr or cfg.lr)
     critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr)
 
     # exploration, the replay buffer and the collector

@@ -166,6 +166,18 @@ def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(recipe, 
     assert "uncontrolled" in capsys.readouterr().out
 
 
+def test_td3_actor_rate_is_the_critics_unless_given(tmp_path):
+    def rates(**settings):
+        td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path / str(len(settings))), **TINY, **settings))
+        modules = checkpoint(tmp_path / str(len(settings)))["modules"]
+        return [modules[name]["param_groups"][0]["lr"] for name in ("actor_optim", "critic_optim")]
+
+    assert rates() == [1e-3, 1e-3]  # the paper's agent: one rate
+    assert rates(actor_lr=1e-4) == [1e-4, 1e-3]
+    with pytest.raises(ValueError, match="'actor_lr' must be finite and >= 0"):
+        configure(TD3Config, "vortex-v0", actor_lr=-1e-4)
+
+
 @pytest.mark.slow(seconds=30)
 def test_multi_agent_ppo_shares_one_policy_and_scores_the_team(tmp_path):
     ppo.main(configure(PPOConfig, "shkadov-separable-v0", frames=200, n_rollout=200, num_envs=4, epochs=1, hidden=16, out=str(tmp_path), progress=False))
@@ -383,6 +395,7 @@ def test_settings_follow_the_papers_runs_where_its_table_is_silent():
     assert (dqn_.eps_init, dqn_.eps_end, dqn_.eps_frames, dqn_.target_every, dqn_.lr, dqn_.batch_size, dqn_.hidden) == (0.5, 0.05, 2_000_000, 50, 5e-4, 64, 64)
     td3_ = configure(TD3Config, "vortex-v0")
     assert (td3_.hidden, td3_.lr, td3_.tau, td3_.exploration_sigma, td3_.policy_noise, td3_.noise_clip, td3_.init_random_frames, td3_.norm_steps) == (128, 1e-3, 0.02, 0.001, 0.002, 0.005, 1000, 0)
+    assert td3_.actor_lr == 0.0  # the actor at the critics' rate
     assert td3_.updates_per_batch == td3_.frames_per_batch  # one update per transition
     # burgers' TD3 alone normalises its observations and explores with the DDPG noise
     burgers = configure(TD3Config, "burgers-v0")
