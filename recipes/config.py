@@ -155,6 +155,7 @@ class TD3Config(OffPolicyConfig):
     algo: ClassVar[str] = "td3"
     actions: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = TD3
+    positive: ClassVar[tuple[str, ...]] = (*OffPolicyConfig.positive, "n_steps")
 
     hidden: int = setting(128, "width of the hidden layers")
     init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
@@ -164,6 +165,7 @@ class TD3Config(OffPolicyConfig):
     policy_noise: float = setting(0.002, "target policy smoothing noise, in action units", domain=NON_NEGATIVE)
     noise_clip: float = setting(0.005, "clipping of the smoothing noise", domain=NON_NEGATIVE)
     exploration_sigma: float = setting(0.001, "Gaussian exploration noise, in action units", domain=NON_NEGATIVE)
+    n_steps: int = setting(1, "transitions summed into each critic target (1: the paper's agent)")
 
 
 @dataclass(frozen=True, kw_only=True)

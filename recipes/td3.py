@@ -1,7 +1,8 @@
 """TD3 on a BEACON env with continuous actions, from TorchRL's pieces: ``TD3Loss``
 (twin Q-networks, target policy smoothing, delayed actor and target updates through
 ``SoftUpdate``), ``AdditiveGaussianModule`` exploration, a ``Collector`` over the
-batched env and a ``ReplayBuffer`` saved with each checkpoint.
+batched env and a ``ReplayBuffer`` saved with each checkpoint; with ``--n-steps`` above
+1, ``MultiStepTransform`` targets over that many transitions.
 
     python recipes/td3.py --env burgers-v0 --frames 200000
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import MultiStepTransform
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
@@ -21,6 +23,25 @@ from beacon_torch.training.run import Run, episode_values
 from config import TD3Config, parse
 
 ACTOR_DELAY = 2  # critic updates per actor update
+ENDS = ("done", "terminated")
+
+
+def n_step_transitions(transform: MultiStepTransform, data):
+    """``data`` (members x time, in collection order) as transitions whose reward is the
+    discounted sum over ``transform.n_steps`` steps and whose next observation is the
+    one after them; ``None`` until a batch reaches past the first window. The
+    transform keeps the first step's end flags, so the last step's are carried under
+    other names and put back: a termination inside the window then stops the
+    bootstrap, as it must."""
+    for key in ENDS:
+        data.set(("next", f"window_{key}"), data.get(("next", key)))
+    out = transform.inv(data)
+    if out is None:
+        return None
+    for key in ENDS:
+        out.set(("next", key), out.get(("next", f"window_{key}")))
+        del out["next", f"window_{key}"]
+    return out
 
 
 def main(cfg: TD3Config) -> dict:
@@ -43,6 +64,8 @@ def main(cfg: TD3Config) -> dict:
     # exploration, the replay buffer and the collector
     policy = TensorDictSequential(actor, AdditiveGaussianModule(spec=env.action_spec, sigma_init=cfg.exploration_sigma, sigma_end=cfg.exploration_sigma, annealing_num_steps=1))
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size)
+    # the window's tail waits for the next batch; after a resume windows start afresh
+    multi_step = MultiStepTransform(cfg.n_steps, cfg.gamma) if cfg.n_steps > 1 else None
     run.restore(buffer, actor=actor, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
     if run.remaining <= 0:
         return run.last
@@ -61,8 +84,10 @@ def main(cfg: TD3Config) -> dict:
     )
 
     for data in collector:
-        buffer.extend(data.reshape(-1))
         values = episode_values(data)
+        stored = data if multi_step is None else n_step_transitions(multi_step, data)
+        if stored is not None:
+            buffer.extend(stored.reshape(-1))
         if run.frames + data.numel() > cfg.init_random_frames:
             for _ in range(cfg.updates_per_batch):
                 sample = buffer.sample()

@@ -178,6 +178,44 @@ def test_td3_actor_rate_is_the_critics_unless_given(tmp_path):
         configure(TD3Config, "vortex-v0", actor_lr=-1e-4)
 
 
+def test_td3_n_step_targets_sum_their_window_and_stop_at_a_termination(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+    from torchrl.envs import MultiStepTransform
+
+    # one member, 9 steps; the first episode terminates at its 4th step (index 3)
+    steps = torch.arange(9.0).view(1, 9, 1)
+    ends = torch.zeros(1, 9, 1, dtype=torch.bool)
+    ends[0, 3] = True
+    data = TensorDict(
+        {"observation": steps, "action": steps, "next": {"observation": steps + 1, "reward": steps + 1, "done": ends, "terminated": ends, "truncated": torch.zeros_like(ends)}},
+        batch_size=[1, 9],
+    )
+    transform = MultiStepTransform(3, 0.5)
+    # collected in batches of three: a window reaching into the next batch waits for it
+    out = [td3.n_step_transitions(transform, data[:, k : k + 3].clone()) for k in (0, 3, 6)]
+    assert out[0] is None
+    out = torch.cat(out[1:], -1)[0]
+    assert out["observation"].flatten().tolist() == [0, 1, 2, 3, 4, 5]
+    assert out["steps_to_next_obs"].flatten().tolist() == [3, 3, 2, 1, 3, 3]
+    assert out["next", "observation"].flatten().tolist() == [3, 4, 4, 4, 7, 8]
+    assert out["next", "reward"].flatten().tolist() == [1 + 2 / 2 + 3 / 4, 2 + 3 / 2 + 4 / 4, 3 + 4 / 2, 4, 5 + 6 / 2 + 7 / 4, 6 + 7 / 2 + 8 / 4]
+    # a window holding the termination must not bootstrap from the state after it
+    assert out["next", "terminated"].flatten().tolist() == [False, True, True, True, False, False]
+
+    # in the recipe the buffer holds such windows: 4 members of 16 steps a batch, each
+    # batch's last 4 steps a member wait for the next
+    td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), **TINY, n_steps=4))
+    assert checkpoint(tmp_path)["counters"]["buffer_len"] == 256 - 4 * 4
+    buffer = ReplayBuffer(storage=LazyTensorStorage(256))
+    buffer.loads(tmp_path / "buffer")
+    stored = buffer[:]
+    assert (stored["steps_to_next_obs"] == 4).all()  # no episode ends in 64 of vortex's 800 steps
+    assert not torch.equal(stored["next", "reward"], stored["next", "original_reward"])
+    with pytest.raises(ValueError, match="n_steps"):
+        configure(TD3Config, "vortex-v0", n_steps=0)
+
+
 @pytest.mark.slow(seconds=30)
 def test_multi_agent_ppo_shares_one_policy_and_scores_the_team(tmp_path):
     ppo.main(configure(PPOConfig, "shkadov-separable-v0", frames=200, n_rollout=200, num_envs=4, epochs=1, hidden=16, out=str(tmp_path), progress=False))
