@@ -88,7 +88,8 @@ def main(cfg: TD3Config) -> dict:
         stored = data if multi_step is None else n_step_transitions(multi_step, data)
         if stored is not None:
             buffer.extend(stored.reshape(-1))
-        if run.frames + data.numel() > cfg.init_random_frames:
+        # an n-step window fills only after n steps of every member
+        if run.frames + data.numel() > cfg.init_random_frames and len(buffer):
             for _ in range(cfg.updates_per_batch):
                 sample = buffer.sample()
                 critic_loss = loss.value_loss(sample)[0]

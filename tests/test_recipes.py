@@ -212,6 +212,9 @@ def test_td3_n_step_targets_sum_their_window_and_stop_at_a_termination(tmp_path)
     stored = buffer[:]
     assert (stored["steps_to_next_obs"] == 4).all()  # no episode ends in 64 of vortex's 800 steps
     assert not torch.equal(stored["next", "reward"], stored["next", "original_reward"])
+    # updates wait until a window has filled, however short the warm-up
+    last = td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path / "no-warm-up"), **{**TINY, "init_random_frames": 0}, n_steps=20))
+    assert checkpoint(tmp_path / "no-warm-up")["counters"]["updates"] == 12 and torch.isfinite(torch.tensor(last["loss"]))
     with pytest.raises(ValueError, match="n_steps"):
         configure(TD3Config, "vortex-v0", n_steps=0)
 
@@ -242,7 +245,8 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
     if algo == "ppo":
         cfg = configure(PPOConfig, env_id, n_rollout=2, minibatches=1, epochs=1, **tiny)
     else:
-        cfg = configure(CONFIGS[algo], env_id, frames_per_batch=2, init_random_frames=0, batch_size=2, updates_per_batch=1, **tiny)
+        # one step a member: one-step targets, as no longer window fills in it
+        cfg = configure(CONFIGS[algo], env_id, frames_per_batch=2, init_random_frames=0, batch_size=2, updates_per_batch=1, **tiny, **({"n_steps": 1} if algo == "td3" else {}))
     last = recipe.main(cfg)
     assert last["frames"] == 2 and torch.isfinite(torch.tensor(last["loss"]))
 
