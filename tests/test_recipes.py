@@ -444,6 +444,9 @@ def test_settings_follow_the_papers_runs_where_its_table_is_silent():
     assert (burgers.norm_steps, burgers.exploration_sigma, burgers.frames) == (64, 0.01, 500_000)
     assert replace(burgers, norm_steps=0, exploration_sigma=0.001, env="vortex-v0", out=td3_.out, frames=td3_.frames) == td3_
     assert configure(TD3Config, "burgers-v0", exploration_sigma=0.001, norm_steps=0) == replace(burgers, exploration_sigma=0.001, norm_steps=0)
+    # shkadov's TD3 alone learns from targets over 20 transitions
+    assert td3_.n_steps == 1 and configure(TD3Config, "shkadov-v0").n_steps == 20
+    assert replace(configure(TD3Config, "shkadov-v0"), n_steps=1, env="vortex-v0", out=td3_.out, frames=td3_.frames) == td3_
     with pytest.raises(ValueError, match="'critic_optim' must be one of"):
         configure(PPOConfig, "lorenz-v0", critic_optim="sgd")
 
