@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import ClassVar
@@ -322,10 +323,18 @@ def resumed(cfg: Config, given: dict) -> Config:
     for name, value in given.items():
         if name in names and name in saved and saved[name] != value:
             raise ValueError(f"setting '{name}' = {value!r} differs from the resumed run's {saved[name]!r}; a resumed run keeps the settings it was started with")
+    kinds = {f.name: f.type for f in fields(cfg)}
+    try:
+        saved = {name: _typed(name, kinds[name], saved[name]) for name in (names | {"frames"}) & set(saved)}
+    except ValueError as err:
+        raise ValueError(f"resuming {Path(cfg.out) / CHECKPOINT}: {err}") from None
     frames = given.get("frames", saved.get("frames", cfg.frames))
     if frames != saved.get("frames", frames):
         print(f"resuming {cfg.out}: {saved['frames']:,} -> {frames:,} transitions")
-    return replace(cfg, frames=frames, **{name: saved[name] for name in names if name in saved})
+    try:
+        return _check(replace(cfg, frames=frames, **{name: saved[name] for name in names if name in saved}))
+    except ValueError as err:
+        raise ValueError(f"resuming {Path(cfg.out) / CHECKPOINT}: {err}") from None
 
 
 def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
@@ -352,3 +361,15 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
     except (ValueError, KeyError) as err:
         parser.error(str(err))
 
+
+
+def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
+    """A recipe run from the command line: its settings parsed, then ``main``; a bad
+    run directory, a diverged training or a full disk end it with one line naming the
+    problem (exit status 2), as a bad setting does."""
+    cfg = parse(cls, argv)
+    try:
+        main(cfg)
+    except (ValueError, OSError) as err:
+        print(f"{cls.algo}: error: {err}", file=sys.stderr)
+        sys.exit(2)

@@ -19,7 +19,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.run import Run, episode_values
 
-from config import DQNConfig, parse
+from config import DQNConfig, script
 
 
 def main(cfg: DQNConfig) -> dict:
@@ -76,4 +76,4 @@ def main(cfg: DQNConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main(parse(DQNConfig))
+    script(main, DQNConfig)

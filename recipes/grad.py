@@ -24,7 +24,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import Run
 
-from config import GradConfig, parse
+from config import GradConfig, script
 
 
 def main(cfg: GradConfig) -> dict:
@@ -69,7 +69,9 @@ def main(cfg: GradConfig) -> dict:
         # the next update differentiates from here on: cut the graph behind the state
         base.detach_state()
         td = td.detach()
-        values = {"reward": -loss.item() / discount.mean().item(), "grad_norm": norm.item(), "skipped_updates": float(run.counters["skipped"])}
+        values = {"reward": -loss.item() / discount.mean().item(), "skipped_updates": float(run.counters["skipped"])}
+        if torch.isfinite(norm):
+            values["grad_norm"] = norm.item()
         if scores:
             values["episode_score"] = torch.cat(scores).mean().item()
         run.log(cfg.horizon * cfg.num_envs, values, save)
@@ -77,4 +79,4 @@ def main(cfg: GradConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main(parse(GradConfig))
+    script(main, GradConfig)

@@ -24,7 +24,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.run import Run, episode_values
 
-from config import PPOConfig, parse
+from config import PPOConfig, script
 
 
 def main(cfg: PPOConfig) -> dict:
@@ -90,4 +90,4 @@ def main(cfg: PPOConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main(parse(PPOConfig))
+    script(main, PPOConfig)

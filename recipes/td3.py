@@ -20,7 +20,7 @@ from beacon_torch.training import networks
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.run import Run, episode_values
 
-from config import TD3Config, parse
+from config import TD3Config, script
 
 ACTOR_DELAY = 2  # critic updates per actor update
 ENDS = ("done", "terminated")
@@ -111,4 +111,4 @@ def main(cfg: TD3Config) -> dict:
 
 
 if __name__ == "__main__":
-    main(parse(TD3Config))
+    script(main, TD3Config)

@@ -14,12 +14,21 @@ checkpoint, which records how many transitions the buffer held, replaces the old
 one step; a resume takes that many transitions from the buffer (an interrupted swap
 leaves the previous folder, which is used) and drops the log lines written after the
 checkpoint.
+
+A run directory may come from someone else, so everything in it is read as data and
+checked: the checkpoint holds tensors and plain values only, each of the type and range
+a run writes, and every log line is two numbers; anything else stops the command with
+one line naming the file. A directory holding a symbolic link is refused, a fresh run
+refuses a directory that holds a run, and a lock keeps a second process out of a
+directory while a run writes to it. A non-finite loss or weight stops the run before
+its checkpoint is written, so the last checkpoint stays the last good one.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import math
 import os
 import shutil
 import time
@@ -30,20 +39,110 @@ from typing import Any
 import torch
 from torchrl.record.loggers import CSVLogger
 
+from beacon_torch import files
+from beacon_torch.registry import ENVS
 from beacon_torch.training.env import sibling
+from beacon_torch.training.networks import NETWORKS
 
 CHECKPOINT = "checkpoint.pt"
+# the algorithms whose runs a checkpoint may record (the recipes' names)
+ALGORITHMS = ("ppo", "td3", "dqn", "grad")
+# the widest hidden layer a checkpoint may ask evaluation to build (the recipes use 32
+# to 128): a forged width cannot make it allocate gigabytes
+MAX_HIDDEN = 4096
+
+
+class BadRun(ValueError):
+    """A run directory's file that is not what a run writes: one line naming the file
+    and what is wrong."""
 
 
 def load_checkpoint(run: str | Path) -> dict:
-    """The checkpoint of a run folder, with a clear error for a bad file. It holds
-    tensors, numbers, strings and containers of them only, read as such: a file whose
-    pickle would run code is refused."""
+    """The checkpoint of a run folder, checked (:func:`check_checkpoint`), with a clear
+    error for a bad file. It holds tensors, numbers, strings and containers of them
+    only, read as such: a file whose pickle would run code is refused."""
     path = Path(run) / CHECKPOINT
+    if path.is_symlink():
+        raise files.UnsafeFile(f"{path}: a symbolic link is refused as a checkpoint")
     try:
-        return torch.load(path, weights_only=True, map_location="cpu")
+        state = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as err:  # a missing, truncated or foreign file
         raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
+    check_checkpoint(state, path)
+    return state
+
+
+def _number(value, low: float = 0.0, high: float = math.inf, integer: bool = True) -> bool:
+    kinds = (int,) if integer else (int, float)
+    return isinstance(value, kinds) and not isinstance(value, bool) and math.isfinite(value) and low <= value <= high
+
+
+def _finite_tensors(tree) -> bool:
+    """Whether every tensor in a state dict (nested dicts and lists of them) is finite."""
+    if isinstance(tree, torch.Tensor):
+        return not (tree.is_floating_point() or tree.is_complex()) or bool(torch.isfinite(tree).all())
+    if isinstance(tree, dict):
+        return all(_finite_tensors(v) for v in tree.values())
+    if isinstance(tree, (list, tuple)):
+        return all(_finite_tensors(v) for v in tree)
+    return True
+
+
+def check_checkpoint(state, path: str | Path) -> None:
+    """Refuse a checkpoint that is not what :meth:`Run.save` writes: known env,
+    algorithm and policy network, counts and sizes of the right type and range, the
+    observation statistics and module states as tensors, every weight finite."""
+    def bad(what: str):
+        return BadRun(f"{path}: not a checkpoint of a run ({what})")
+
+    if not isinstance(state, dict):
+        raise bad(f"a {type(state).__name__}, not a dict")
+    for key in ("env", "algo", "frames", "config", "policy", "obs_norm", "modules"):
+        if key not in state:
+            raise bad(f"no {key!r}")
+    if state["env"] not in ENVS:
+        raise bad(f"unknown env {state['env']!r}")
+    if state["algo"] not in ALGORITHMS:
+        raise bad(f"unknown algorithm {state['algo']!r}; known: {', '.join(ALGORITHMS)}")
+    if not _number(state["frames"]):
+        raise bad(f"'frames' must be a non-negative integer, got {state['frames']!r}")
+    if not _number(state.get("elapsed", 0.0), integer=False) or not _number(state.get("seed", 0), high=2**64):
+        raise bad("'elapsed' and 'seed' must be non-negative numbers")
+    if not isinstance(state["config"], dict) or not all(isinstance(k, str) for k in state["config"]):
+        raise bad("'config' must be a dict of settings")
+    policy = state["policy"]
+    if not isinstance(policy, dict) or policy.get("network") not in NETWORKS or not _number(policy.get("hidden"), 1, MAX_HIDDEN):
+        raise bad(f"'policy' must name a network of {sorted(NETWORKS)} and a width in [1, {MAX_HIDDEN}], got {policy!r}")
+    norm = state["obs_norm"]
+    if not isinstance(norm, dict) or not all(isinstance(norm.get(k), torch.Tensor) for k in ("loc", "scale")):
+        raise bad("'obs_norm' must hold the tensors 'loc' and 'scale'")
+    if not _finite_tensors(norm) or not bool((norm["scale"] > 0).all()):
+        raise bad("the observation statistics must be finite with a positive scale")
+    modules = state["modules"]
+    if not isinstance(modules, dict) or not isinstance(modules.get("actor"), dict) or not all(isinstance(m, dict) for m in modules.values()):
+        raise bad("'modules' must hold the state of each module, 'actor' among them")
+    if not _finite_tensors(modules):
+        raise bad("non-finite weights")
+    config = state["config"]
+    total = config.get("frames")
+    if _number(total):
+        # a run stops at its total, past it by less than one collected batch
+        sizes = [config.get(k) for k in ("n_rollout", "frames_per_batch")] + [config.get("horizon", 0) * config.get("num_envs", 0) if _number(config.get("horizon")) and _number(config.get("num_envs")) else 0]
+        slack = max(v for v in sizes if _number(v)) if any(_number(v) for v in sizes) else 0
+        if state["frames"] > total + slack:
+            raise bad(f"it records {state['frames']:,} transitions, past its run's total of {total:,}")
+    counters = state.get("counters", {})
+    if not isinstance(counters, dict):
+        raise bad("'counters' must be a dict")
+    for name in ("updates", "target_counter", "skipped", "buffer_len"):
+        if name in counters and not _number(counters[name]):
+            raise bad(f"counter {name!r} must be a non-negative integer, got {counters[name]!r}")
+    if "buffer_len" in counters:
+        files_ = counters.get("buffer_files")
+        if not _number(counters.get("buffer_capacity"), 1) or counters["buffer_len"] > counters["buffer_capacity"]:
+            raise bad("the replay buffer's capacity must be a positive integer of at least its length")
+        if not isinstance(files_, dict) or not all(isinstance(k, str) and ".." not in Path(k).parts and not Path(k).is_absolute() and _number(v) for k, v in files_.items()):
+            raise bad("'buffer_files' must map file names inside the buffer to their sizes")
 
 
 def seed_dirs(run: str | Path) -> list[Path]:
@@ -55,6 +154,49 @@ def seed_dirs(run: str | Path) -> list[Path]:
     if not found:
         raise FileNotFoundError(f"{run}: not a run directory (no {CHECKPOINT} in it or in seed* folders)")
     return found
+
+
+def holds_run(folder: str | Path, algo: str) -> str:
+    """What in ``folder`` belongs to a run ("" when nothing does): its checkpoint,
+    its logs or its replay buffer."""
+    folder = Path(folder)
+    found = [name for name in (CHECKPOINT, algo, "buffer", "buffer.old") if (folder / name).exists() or (folder / name).is_symlink()]
+    return ", ".join(found)
+
+
+def read_log(file: str | Path) -> list[tuple[float, float]]:
+    """The ``(step, value)`` lines of a CSV log, checked: each line two numbers, the
+    step a non-negative integer count of transitions."""
+    rows = []
+    try:
+        with open(file, newline="", encoding="utf-8") as f:
+            for number, row in enumerate(csv.reader(f), 1):
+                try:
+                    step, value = (float(x) for x in row) if len(row) == 2 else (None, None)
+                except ValueError:
+                    step = None
+                if step is None or not (math.isfinite(step) and step >= 0 and step.is_integer()):
+                    raise BadRun(f"{file}, line {number}: not a log line of a run (a step and a value), got {','.join(row)[:60]!r}")
+                rows.append((step, value))
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise BadRun(f"{file}: not a log of a run ({type(err).__name__})") from None
+    return rows
+
+
+def _write_rows(path: Path, rows) -> None:
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows((int(step), value) for step, value in rows)
+
+
+class Diverged(ValueError):
+    """Training reached a non-finite loss or weight."""
+
+
+def _transition_bytes(buffer) -> float:
+    """Bytes a transition of ``buffer`` takes on disk (0 while it is empty)."""
+    if len(buffer) == 0:
+        return 0.0
+    return sum(t.element_size() * t[0].numel() for t in buffer.storage._storage.values(True, True) if isinstance(t, torch.Tensor))
 
 
 def tensorboard_installed() -> bool:
@@ -97,20 +239,19 @@ class Run:
     ) -> None:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
+        files.refuse_links(self.out)
         self.path = self.out / CHECKPOINT
         self.env_id, self.algo, self.total, self.seed = env_id, algo, total, seed
         self.settings = settings or {}
         self.checkpoint_every, self.rounds = checkpoint_every, 0
         self.state: dict | None = None
-        if resume:
-            if not self.path.is_file():
-                raise FileNotFoundError(f"no checkpoint to resume in {self.out}")
-            self.state = load_checkpoint(self.out)
-            if self.state["env"] != env_id or self.state["algo"] != algo:
-                raise ValueError(f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {algo} on {env_id}")
+        self.lock = files.Lock(self.out)
+        try:
+            self._open(resume)
+        except BaseException:
+            self.lock.release()
+            raise
         self.frames = self.state["frames"] if self.state else 0
-        if self.state is not None:
-            self._trim_logs()
         # what a recipe keeps over resumes (updates dropped, the buffer's size and files),
         # saved as it is
         self.counters: dict[str, Any] = dict(self.state.get("counters", {})) if self.state else {}
@@ -133,14 +274,34 @@ class Run:
 
             self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}")
 
-    def _trim_logs(self) -> None:
+    def _open(self, resume: bool) -> None:
+        """Check the directory for a new run or read the checkpoint of a resumed one;
+        trim the logs to it."""
+        found = holds_run(self.out, self.algo)
+        if not resume:
+            if found:
+                raise FileExistsError(f"{self.out} holds a run ({found}); continue it with --resume, or give a new --out")
+            return
+        if not self.path.is_file():
+            if not found:
+                raise FileNotFoundError(f"no checkpoint to resume in {self.out}")
+            # stopped before its first checkpoint: its logs are started again
+            self._trim_logs(0)
+            return
+        self.state = load_checkpoint(self.out)
+        if self.state["env"] != self.env_id or self.state["algo"] != self.algo:
+            raise BadRun(f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {self.algo} on {self.env_id}")
+        files.remove_partials(self.out)
+        self._trim_logs(self.state["frames"])
+
+    def _trim_logs(self, frames: int) -> None:
         """Drop the log lines of steps after the checkpoint (written before a stop), so
-        that the resumed run's lines follow on without repeated or backward steps."""
-        for file in (self.out / self.algo / "scalars").glob("*.csv"):
-            with file.open() as f:
-                rows = [row for row in csv.reader(f) if len(row) == 2 and float(row[0]) <= self.frames]
-            with file.open("w", newline="") as f:
-                csv.writer(f).writerows(rows)
+        that the resumed run's lines follow on without repeated or backward steps. Every
+        line must be what :meth:`log` writes, a step and a value; anything else stops
+        the resume, naming the file and line."""
+        for file in sorted((self.out / self.algo / "scalars").glob("*.csv")):
+            rows = read_log(file)
+            files.replace_file(file, lambda tmp, rows=rows: _write_rows(tmp, [r for r in rows if r[0] <= frames]))
 
     @classmethod
     def of(cls, settings) -> Run:
@@ -199,6 +360,10 @@ class Run:
     def log(self, collected: int, values: dict[str, float], save=None) -> None:
         """Count and log one round of ``collected`` transitions; ``save()`` writes the
         checkpoint, called every ``checkpoint_every`` rounds."""
+        bad = {name: value for name, value in values.items() if not math.isfinite(value)}
+        if bad:
+            # the networks are no longer usable: stop before the next checkpoint
+            raise Diverged(f"{self.out}: training diverged after {self.frames:,} transitions ({', '.join(f'{k} = {v}' for k, v in bad.items())}); its last checkpoint is kept. Lower the learning rate, or start again from a copy of that checkpoint")
         self.frames += collected
         self.rounds += 1
         self.last = {"frames": self.frames, **values}
@@ -231,16 +396,21 @@ class Run:
             "obs_norm": env.transform[0].state_dict(),
             "modules": {"actor": actor.state_dict(), **{name: m.state_dict() for name, m in modules.items()}},
         }
-        partial = self.path.with_suffix(".pt.partial")
-        torch.save(state, partial)
-        os.replace(partial, self.path)
+        if not _finite_tensors(state["modules"]):
+            raise Diverged(f"{self.out}: training diverged after {self.frames:,} transitions (non-finite weights); its last checkpoint is kept. Lower the learning rate")
+        files.replace_file(self.path, lambda tmp: torch.save(state, tmp))
         shutil.rmtree(self.out / "buffer.old", ignore_errors=True)
 
     def _save_buffer(self, buffer) -> None:
         """The buffer into a new folder, swapped for the previous one; the checkpoint
         written next records its size."""
-        new, current, old = self.out / "buffer.partial", self.out / "buffer", self.out / "buffer.old"
-        shutil.rmtree(new, ignore_errors=True)
+        current, old = self.out / "buffer", self.out / "buffer.old"
+        # a buffer's files are memory maps: on a full disk, writing them ends the
+        # process with SIGBUS, so the space is checked first (with room for the swap)
+        need, free = int(buffer.storage.max_size * _transition_bytes(buffer)), files.free_bytes(self.out)
+        if need > free:
+            raise OSError(f"{self.out}: no room to save the replay buffer ({need / 2**20:,.0f} MiB needed, {free / 2**20:,.0f} MiB free); free some space and resume")
+        new = files.new_folder(self.out, "buffer.partial")
         buffer.dumps(new)
         # the state of TorchRL's prefetching, unused here, is its one pickle: not kept, so
         # that loading a buffer never unpickles
@@ -257,10 +427,12 @@ class Run:
         self.counters["buffer_len"] = len(buffer)
 
     def close(self, save) -> dict[str, Any]:
-        """End the run: the last checkpoint (``save()``), the loggers flushed and, with
-        a progress bar, the learning curve drawn into ``learning_curve.png``. Returns
-        the last logged values and the transitions collected."""
+        """End the run: the last checkpoint (``save()``), the loggers flushed, the lock
+        released and, with a progress bar, the learning curve drawn into
+        ``learning_curve.png``. Returns the last logged values and the transitions
+        collected."""
         save()
+        self.lock.release()
         for logger in self.loggers[1:]:
             logger.experiment.flush()
         if self.bar is not None:

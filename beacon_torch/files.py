@@ -1,0 +1,114 @@
+"""Writing files next to files that may come from someone else.
+
+A run directory, a results summary or a downloaded archive is untrusted input: a
+symbolic link planted in it would make a command that writes a file of the same name
+write wherever the link points. So the commands refuse a directory that holds a link
+before they touch it, and write every file under a fresh temporary name (created here,
+never followed) that then replaces the target in one step: a replaced link is the link
+itself, not what it pointed to.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import weakref
+from collections.abc import Callable
+from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # not on Windows: no lock there
+    fcntl = None
+
+
+class UnsafeFile(ValueError):
+    """A file or directory that a command refuses to read or write (a planted link, a
+    directory another run holds)."""
+
+
+def refuse_links(root: str | Path) -> None:
+    """Refuse ``root`` when a symbolic link lies anywhere below it (``root`` itself may
+    be one: the user names it)."""
+    for folder, dirs, names in os.walk(root):  # links to folders are listed, not entered
+        for name in (*dirs, *names):
+            path = Path(folder) / name
+            if path.is_symlink():
+                raise UnsafeFile(f"{path}: a symbolic link inside {root} is refused (a command writing there would write where it points); remove it")
+
+
+def replace_file(path: str | Path, write: Callable[[Path], object]) -> Path:
+    """Write ``path`` by ``write(temporary)`` into a new file beside it, then put that
+    file in its place in one step: a reader never sees half a file, a stop keeps the
+    previous one, and a link at ``path`` is replaced, not followed."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=f"-{path.name}.partial")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def new_folder(parent: str | Path, name: str) -> Path:
+    """A new empty folder in ``parent`` whose name ends with ``name``, created here (so
+    that nothing planted under that name is written into)."""
+    return Path(tempfile.mkdtemp(dir=parent, prefix=".", suffix=f"-{name}"))
+
+
+def remove_partials(folder: str | Path) -> None:
+    """Remove what :func:`replace_file` and :func:`new_folder` left behind in
+    ``folder`` when a process stopped half way (never links: :func:`refuse_links`
+    runs first)."""
+    for path in Path(folder).glob(".*.partial"):
+        if path.is_symlink():
+            continue
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+
+
+def free_bytes(folder: str | Path) -> int:
+    return shutil.disk_usage(folder).free
+
+
+class Lock:
+    """An exclusive lock on ``folder`` while this object lives (or until
+    :meth:`release`): a second process asking for it is refused at once. The kernel
+    drops it when the process dies, so a killed run never leaves a stale lock."""
+
+    NAME = ".lock"
+    _held: weakref.WeakValueDictionary[str, Lock] = weakref.WeakValueDictionary()  # per folder, the lock this process holds
+
+    def __init__(self, folder: str | Path) -> None:
+        self.path = Path(folder) / self.NAME
+        self.key, self.fd = str(self.path.resolve()), None
+        earlier = Lock._held.pop(self.key, None)
+        if earlier is not None:  # a run of this process that ended without closing
+            earlier.release()
+        if self.path.is_symlink():
+            raise UnsafeFile(f"{self.path}: a symbolic link is refused")
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                raise UnsafeFile(f"{folder}: another process is running in this directory (its lock {self.path} is held); wait for it or give a new directory") from None
+        self.fd = fd
+        Lock._held[self.key] = self
+
+    def release(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+        if Lock._held.get(self.key) is self:
+            Lock._held.pop(self.key, None)
+
+    def __del__(self) -> None:
+        self.release()
