@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from beacon_torch.files import save_figure
 from beacon_torch.registry import make
 
 # The published single-environment NumPy/Numba code, one process on one core of this
@@ -271,7 +272,7 @@ def plot(results: Sequence[Measurement], path: str | Path) -> None:
         if k == 0:
             ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def full_table(results: Sequence[Measurement]) -> str:

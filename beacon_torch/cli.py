@@ -29,6 +29,7 @@ from typing import Any
 import torch
 
 from beacon_torch import evaluate
+from beacon_torch.files import save_figure, write_text
 from beacon_torch.params import describe
 from beacon_torch.registry import ENVS, env_class, list_envs, make
 
@@ -88,7 +89,7 @@ def _plot_run(path: Path, env_id: str, null_rewards: torch.Tensor, rand_rewards:
     ax.grid(alpha=0.4)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -127,7 +128,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     plot = out / "run.png"
     _plot_run(plot, args.env, rewards["uncontrolled"], rewards["random"])
-    (out / "scores.json").write_text(json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2))
+    write_text(out / "scores.json", json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2))
     print(f"plot: {plot}\nscores: {out / 'scores.json'}")
 
     if args.gif:

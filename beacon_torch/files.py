@@ -54,6 +54,18 @@ def replace_file(path: str | Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+def write_text(path: str | Path, text: str) -> Path:
+    """:func:`replace_file` with ``text``."""
+    return replace_file(path, lambda tmp: tmp.write_text(text))
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """:func:`replace_file` with a matplotlib figure, in the format of the name's
+    suffix."""
+    path = Path(path)
+    return replace_file(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or "png"))
+
+
 def new_folder(parent: str | Path, name: str) -> Path:
     """A new empty folder in ``parent`` whose name ends with ``name``, created here (so
     that nothing planted under that name is written into)."""

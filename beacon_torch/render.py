@@ -15,6 +15,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from beacon_torch.files import replace_file
+
 FRAME_SIZE = (6.4, 4.0)  # inches
 FRAME_DPI = 80
 ACTION_COLOR = "#d62728"
@@ -114,8 +116,8 @@ def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     duration = max(1, round(1000 / fps))
-    images[0].save(path, save_all=True, append_images=images[1:], duration=duration, loop=0)
-    return path
+    # under a new name, then in place: a link at ``path`` is replaced, never followed
+    return replace_file(path, lambda tmp: images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0))
 
 
 def _profile_axes(fig, with_bars_width: float = 0.16):

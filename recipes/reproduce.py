@@ -1,21 +1,26 @@
 """Reproduce the paper's training results: train, evaluate and plot each (algorithm,
-env) over several seeds, then write ``docs/results.md`` from what was recorded.
+env) over several seeds, then publish what was reached: the summary recorded in
+``docs/results/``, the curve in ``docs/img/results/``, the best seed's policy shipped
+with the package and ``docs/results.md`` written from every recorded summary.
 
     python recipes/reproduce.py train --algo ppo --envs lorenz-v0 vortex-v0 --seeds 3
     python recipes/reproduce.py summarise runs/results/ppo-lorenz-v0   # evaluate again
-    python recipes/reproduce.py report          # docs/results.md and its curves
+    python recipes/reproduce.py publish runs/results/ppo-lorenz-v0     # into the repository
+    python recipes/reproduce.py report      # docs/results.md from the recorded summaries
 
-A run goes to ``runs/results/<algo>-<env>/seedK`` (``beacon-torch eval/plot`` read it
-too); a stopped campaign is resumed by running the same command again (finished seeds
-are skipped, unfinished ones resume from their checkpoint). After the seeds of a pair,
-their deterministic-policy evaluation goes to ``runs/results/<algo>-<env>/summary.json``
-and the curve to ``docs/img/results/``.
+``train`` and ``summarise`` write inside ``--out`` only: a run goes to
+``runs/results/<algo>-<env>/seedK`` (``beacon-torch eval/plot`` read it too), the
+seeds' evaluation to ``summary.json`` and their curve to ``<algo>-<env>.png`` beside
+them. A stopped campaign is resumed by running the same command again (finished seeds
+are skipped, unfinished ones resume from their checkpoint). Only ``publish`` writes
+into the repository, and only a pair trained on at least the recorded budget (that of
+the pair's recorded summary, else its settings' default), so that a short trial never
+replaces a shipped policy or a recorded result.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import os
 import shutil
@@ -23,11 +28,12 @@ from pathlib import Path
 
 import torch
 
-from beacon_torch import pretrained
+from beacon_torch import files, pretrained
+from beacon_torch.registry import ENVS
 from beacon_torch.training import report
 from beacon_torch.training.evaluation import summarise
 from beacon_torch.training.report import PAPER_PPO
-from beacon_torch.training.run import CHECKPOINT, load_checkpoint
+from beacon_torch.training.run import CHECKPOINT, load_checkpoint, seed_dirs
 
 from config import CONFIGS, configure, paper_frames
 
@@ -44,6 +50,16 @@ def setting(item: str) -> tuple[str, str]:
     return name.strip(), value.strip()
 
 
+def positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}")
+    return value
+
+
 def text_value(text: str):
     """A setting's value as a number where it reads as one (``configure`` types it)."""
     for cast in (int, float):
@@ -54,64 +70,81 @@ def text_value(text: str):
     return text
 
 
-def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, members: int, images: Path, progress: bool) -> dict:
-    """Train the missing seeds of one (algorithm, env) pair, summarise it and ship its
-    best seed's policy."""
+def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, members: int, progress: bool) -> dict:
+    """Train the missing seeds of one (algorithm, env) pair and summarise it, inside
+    ``out``."""
+    import importlib
+
     recipe = importlib.import_module(algo)
     root = out / f"{algo}-{env_id}"
     for seed in range(seeds):
         run = root / f"seed{seed}"
-        started = (run / CHECKPOINT).is_file()
+        started = (run / CHECKPOINT).is_file() or (run / algo).is_dir()
         cfg = configure(CONFIGS[algo], env_id, **overrides, seed=seed, out=str(run), resume=started, progress=progress)
-        if not started or load_checkpoint(run)["frames"] < cfg.frames:
+        if not (run / CHECKPOINT).is_file() or load_checkpoint(run)["frames"] < cfg.frames:
             recipe.main(cfg)
-    summary = summarise(root, members=members, images=images)
-    ship(root)
+    return summarise(root, members=members)
+
+
+def read_summary(file: Path) -> dict:
+    """A summary written by ``summarise``, checked (``report.read``) and of a known
+    algorithm. Its paths are not used: files are found by the pair's name."""
+    summary = report.read(file)
+    if summary["algo"] not in CONFIGS:
+        raise ValueError(f"{file}: unknown algorithm {summary['algo']!r}; known: {', '.join(sorted(CONFIGS))}")
     return summary
 
 
-def record(out: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> list[Path]:
-    """Copy every ``out/*/summary.json`` into the repository's record of summaries
-    (``docs/results/ALGO-ENV.json``) and its curve into ``images``, so that the results
-    page can be written again without the runs."""
+def recorded_budget(algo: str, env_id: str, recorded: Path = RECORDED) -> int:
+    """The transitions a pair must have been trained on to be published: those of its
+    recorded summary, else its settings' default budget."""
+    file = recorded / f"{algo}-{env_id}.json"
+    if file.is_file():
+        return int(read_summary(file)["frames"])
+    return configure(CONFIGS[algo], env_id).frames
+
+
+def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> Path:
+    """Publish a summarised pair (``root``, holding ``summary.json`` and its seeds): its
+    summary into ``recorded``, its curve into ``images``, its best seed's policy into
+    the package; refused below the recorded budget or for a summary that does not
+    match its seeds. Returns the recorded summary's file."""
+    root = Path(root)
+    summary = read_summary(root / "summary.json")
+    algo, env_id = summary["algo"], summary["env"]
+    seeds = {run.name: run for run in seed_dirs(root)}
+    for s in summary["seeds"]:
+        if s["seed"] not in seeds or load_checkpoint(seeds[s["seed"]])["frames"] != s["frames"]:
+            raise ValueError(f"{root / 'summary.json'}: its seed {s['seed']!r} is not a run of {root} with {s['frames']} transitions; summarise it again")
+    budget = recorded_budget(algo, env_id, recorded)
+    if summary["frames"] < budget:
+        raise ValueError(f"{root}: trained on {summary['frames']:,} transitions, below the recorded budget of {algo} on {env_id} ({budget:,}); not published")
+    curve = root / f"{root.name}.png"
+    if not curve.is_file():
+        raise ValueError(f"{curve}: the pair's curve is missing; summarise it again")
     recorded.mkdir(parents=True, exist_ok=True)
     images.mkdir(parents=True, exist_ok=True)
-    written = []
-    for file in sorted(Path(out).glob("*/summary.json")):
-        summary = json.loads(file.read_text())
-        png = Path(summary["png"])
-        if png.resolve() != (images / png.name).resolve():
-            shutil.copyfile(png, images / png.name)
-        copy = (images / png.name).resolve()
-        summary["png"] = str(copy.relative_to(ROOT) if copy.is_relative_to(ROOT) else copy)
-        target = recorded / f"{summary['algo']}-{summary['env']}.json"
-        target.write_text(json.dumps(summary, indent=1))
-        written.append(target)
-    return written
-
-
-def ship(root: Path) -> Path:
-    """The best seed's policy of a trained pair (by its deterministic evaluation) as the
-    package's pretrained policy of that pair."""
-    summary = json.loads((root / "summary.json").read_text())
+    copy = images / f"{algo}-{env_id}.png"
+    files.replace_file(copy, lambda tmp: shutil.copyfile(curve, tmp))
+    summary["png"] = os.path.relpath(copy.resolve(), ROOT) if copy.resolve().is_relative_to(ROOT) else str(copy.resolve())
     best = max(summary["seeds"], key=lambda s: s["eval"])
-    path = pretrained.path_of(summary["algo"], summary["env"])
-    return pretrained.export(root / best["seed"], path, seed=best["seed"], score=best["eval"], uncontrolled=best["uncontrolled"])
+    pretrained.export(seeds[best["seed"]], pretrained.path_of(algo, env_id), seed=best["seed"], score=best["eval"], uncontrolled=best["uncontrolled"])
+    return files.write_text(recorded / f"{algo}-{env_id}.json", json.dumps(summary, indent=1))
 
 
 def results_block(recorded: Path, page: Path, images: Path) -> str:
     """The results page's generated part: the protocol's figure and table over every
     recorded summary, the PPO floors, and the curves."""
-    summaries = [json.loads(f.read_text()) for f in sorted(recorded.glob("*.json"))]
+    summaries = [read_summary(f) for f in sorted(recorded.glob("*.json"))]
     rows = report.report(sorted(recorded.glob("*.json")), images)
-    rel = lambda path: os.path.relpath(ROOT / path, page.resolve().parent)  # recorded paths are the repository's
+    rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = ["| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's deterministic policy | transitions (of the paper's budget) | floor met |", "|---|---|---|---|---|---|"]
     for s in summaries:
         if s["algo"] == "ppo" and s["env"] in PAPER_PPO:
             floor, best = PAPER_PPO[s["env"]], max(seed["eval"] for seed in s["seeds"])
             met = "met" if s["train_mean"] >= floor and best >= floor else "**missed**"
             floors.append(f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} of {paper_frames(s['env']):,} | {met} |")
-    curves = ", ".join(f"[{s['algo']} {s['env']}]({rel(s['png'])})" for s in summaries)
+    curves = ", ".join(f"[{s['algo']} {s['env']}]({rel(images / (s['algo'] + '-' + s['env'] + '.png'))})" for s in summaries)
     return "\n\n".join([f"![normalised scores]({rel(rows['png'])})", rows["table"], "\n".join(floors), f"Curves: {curves}."])
 
 
@@ -124,37 +157,42 @@ def write_results_page(recorded: Path, page: Path, images: Path) -> Path:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    tr = sub.add_parser("train", help="train, evaluate and plot (algorithm, env) pairs")
+    tr = sub.add_parser("train", help="train, evaluate and plot (algorithm, env) pairs, inside --out")
     tr.add_argument("--algo", default="ppo", choices=sorted(CONFIGS))
-    tr.add_argument("--envs", nargs="+", required=True)
-    tr.add_argument("--seeds", type=int, default=3)
+    tr.add_argument("--envs", nargs="+", required=True, choices=sorted(ENVS), metavar="ENV")
+    tr.add_argument("--seeds", type=positive, default=3)
     tr.add_argument("--set", type=setting, action="append", default=[], metavar="NAME=VALUE", help="a recipe setting for every env (e.g. frames=100000)")
-    tr.add_argument("--members", type=int, default=8, help="evaluation episodes per seed")
-    tr.add_argument("--threads", type=int, help="torch threads (default: torch's)")
+    tr.add_argument("--members", type=positive, default=8, help="evaluation episodes per seed")
+    tr.add_argument("--threads", type=positive, help="torch threads (default: torch's)")
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--out", default="runs/results")
-    tr.add_argument("--images", default=str(IMAGES), help="where the curves go (default docs/img/results)")
     su = sub.add_parser("summarise", help="evaluate and plot trained pairs again (e.g. after a stopped campaign)")
     su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo-burgers-v0")
-    su.add_argument("--members", type=int, default=8)
-    su.add_argument("--images", default=str(IMAGES))
-    rep = sub.add_parser("report", help="record the summaries of --out in docs/results/ and write docs/results.md from every recorded one")
-    rep.add_argument("--out", default="runs/results")
+    su.add_argument("--members", type=positive, default=8)
+    pu = sub.add_parser("publish", help="record summarised pairs in docs/results/, ship their best policies and write docs/results.md")
+    pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo-burgers-v0")
+    pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
+    rep = sub.add_parser("report", help="write docs/results.md from the recorded summaries (docs/results/)")
     rep.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
-    rep.add_argument("--images", default=str(IMAGES))
     args = parser.parse_args(argv)
-    if args.command == "report":
-        record(Path(args.out))
-        print(write_results_page(RECORDED, Path(args.doc), Path(args.images)))
-    elif args.command == "summarise":
-        for root in args.pairs:
-            summarise(root, members=args.members, images=args.images)
-    else:
-        if args.threads:
-            torch.set_num_threads(args.threads)
-        overrides = {name: text_value(value) for name, value in args.set}
-        for env_id in args.envs:
-            train_pair(args.algo, env_id, args.seeds, overrides, out=Path(args.out), members=args.members, images=Path(args.images), progress=not args.no_progress)
+    try:
+        if args.command == "summarise":
+            for root in args.pairs:
+                summarise(root, members=args.members)
+            return
+        if args.command == "train":
+            if args.threads:
+                torch.set_num_threads(args.threads)
+            overrides = {name: text_value(value) for name, value in args.set}
+            for env_id in args.envs:
+                train_pair(args.algo, env_id, args.seeds, overrides, out=Path(args.out), members=args.members, progress=not args.no_progress)
+            return
+        if args.command == "publish":
+            for root in args.pairs:
+                print(f"published {root}: {publish(Path(root))}")
+        print(write_results_page(RECORDED, Path(args.doc), IMAGES))
+    except (ValueError, OSError) as err:
+        parser.exit(2, f"reproduce: error: {err}\n")
 
 
 if __name__ == "__main__":

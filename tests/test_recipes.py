@@ -349,35 +349,45 @@ def test_continuous_actions_reach_the_env_clipped_and_the_data_keeps_the_sample(
     assert torch.allclose(out["next", "observation"] * norm.scale + norm.loc, ref["next", "observation"], atol=1e-6)
 
 
-def test_campaign_trains_summarises_ships_and_writes_the_results_page(tmp_path, monkeypatch):
-    """What ``recipes/reproduce.py`` records: per-seed evaluation, the curve, the best
-    seed's policy shipped, the summaries recorded and the results page written from
-    them with the benchmark protocol and the PPO floor; a second call skips the
-    finished seeds."""
+def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, monkeypatch):
+    """What ``recipes/reproduce.py`` does: ``train`` writes the seeds, their evaluation
+    and the curve inside ``--out`` and nothing else; a second call skips the finished
+    seeds; ``publish`` refuses a pair below the recorded budget, and otherwise records
+    the summary and the curve, ships the best seed's policy and writes the results
+    page with the benchmark protocol and the PPO floor."""
     import json
 
     from beacon_torch import pretrained
 
     import reproduce
 
-    monkeypatch.setattr(pretrained, "HERE", tmp_path / "shipped")
-    (tmp_path / "shipped").mkdir()
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    monkeypatch.setattr(pretrained, "HERE", shipped)
     out = tmp_path / "runs"
     settings = dict(frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
-    summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, images=tmp_path / "img", progress=False)
+    summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, progress=False)
     root = out / "ppo-burgers-v0"
     assert [s["seed"] for s in summary["seeds"]] == ["seed0", "seed1"] and summary["frames"] == 800
     assert summary["eval_std"] > 0 and summary["wall_s_per_seed"] > 0  # two seeds, two policies
     assert json.loads((root / "summary.json").read_text())["eval_mean"] == summary["eval_mean"]
-    best = max(summary["seeds"], key=lambda s: s["eval"])
-    assert pretrained.available() == ["ppo/burgers-v0"] and pretrained.info("ppo", "burgers-v0")["seed"] == best["seed"]
+    assert (root / "ppo-burgers-v0.png").stat().st_size > 5_000 and not list(shipped.iterdir())
     stamp = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
-    reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, images=tmp_path / "img", progress=False)
+    reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, progress=False)
     assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp, "a finished seed was trained again"
 
+    # 800 transitions are below the paper's 500,000: refused, nothing written
     recorded, images = tmp_path / "recorded", tmp_path / "docs" / "img"
-    reproduce.record(out, recorded, images)
+    with pytest.raises(ValueError, match=r"below the recorded budget .*\(500,000\)"):
+        reproduce.publish(root, recorded, images)
+    assert not recorded.exists() and not images.exists() and not list(shipped.iterdir())
+    # a pair recorded at 800 transitions: a run of that budget is published
+    recorded.mkdir()
+    (recorded / "ppo-burgers-v0.json").write_text(json.dumps(summary))
+    reproduce.publish(root, recorded, images)
     assert json.loads((recorded / "ppo-burgers-v0.json").read_text())["seeds"] == summary["seeds"]
+    best = max(summary["seeds"], key=lambda s: s["eval"])
+    assert pretrained.available() == ["ppo/burgers-v0"] and pretrained.info("ppo", "burgers-v0")["seed"] == best["seed"]
     page = tmp_path / "docs" / "results.md"
     page.write_text(f"# Results\n\n{reproduce.BEGIN}\nold\n{reproduce.END}\n\nnotes\n")
     text = reproduce.write_results_page(recorded, page, images).read_text()
@@ -386,7 +396,7 @@ def test_campaign_trains_summarises_ships_and_writes_the_results_page(tmp_path, 
     assert "| 2 |" in row and "-1.75" in row
     floor = next(line for line in text.splitlines() if line.startswith("| burgers-v0 | -1.75"))
     assert "**missed**" in floor and "800 of 500,000" in floor
-    assert "](img/ppo-burgers-v0.png)" in text
+    assert "](img/ppo-burgers-v0.png)" in text and (images / "ppo-burgers-v0.png").is_file()
 
 
 def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):

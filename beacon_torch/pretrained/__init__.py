@@ -13,7 +13,8 @@ action key, deterministic by default (the mean of a PPO policy, the greedy actio
 DQN one; TorchRL's ``set_exploration_type`` samples a PPO policy instead). It takes the
 raw observations of ``beacon_torch.make``: the observation normalisation a training used
 is folded into the network's first layer. A file holds tensors, numbers and strings
-only, read with ``torch.load(weights_only=True)``.
+only, read with ``torch.load(weights_only=True)`` and checked (known env and network,
+finite weights); ``load`` reads only the shipped files, ``load_file`` a file you name.
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from beacon_torch.registry import env_class
+from beacon_torch.files import replace_file
+from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
-from beacon_torch.training.run import load_checkpoint
+from beacon_torch.training.run import MAX_HIDDEN, load_checkpoint
 
 HERE = Path(__file__).resolve().parent
 
@@ -68,27 +70,75 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
         "weights": policy.state_dict(),
         **record,
     }
-    torch.save(out, path)
-    return Path(path)
+    return replace_file(path, lambda tmp: torch.save(out, tmp))
 
 
 def info(algo: str, env_id: str) -> dict:
     """What a shipped file records besides the weights (transitions, seed, score...)."""
-    return {k: v for k, v in _read(algo, env_id).items() if k != "weights"}
+    return {k: v for k, v in _read(shipped(algo, env_id)).items() if k != "weights"}
 
 
-def _read(algo: str, env_id: str) -> dict:
+def shipped(algo: str, env_id: str) -> Path:
+    """The file of a shipped policy: ``algo/env_id`` must be one of :func:`available`
+    (so that no name reaches outside the package's folder)."""
     env_class(env_id)  # an unknown id: the registry's error
+    if not isinstance(algo, str) or f"{algo}/{env_id}" not in available():
+        raise ValueError(f"no pretrained {algo!r} policy for {env_id}; available: {', '.join(available()) or 'none'}")
     path = path_of(algo, env_id)
-    if not path.is_file():
-        raise ValueError(f"no pretrained {algo} policy for {env_id}; available: {', '.join(available()) or 'none'}")
-    return torch.load(path, weights_only=True, map_location="cpu")
+    if path.is_symlink():
+        raise ValueError(f"{path}: a symbolic link is refused as a shipped policy")
+    return path
+
+
+def _read(path: Path, env_id: str | None = None) -> dict:
+    """A policy file, checked: tensors and plain values only (nothing in it runs), a
+    known env and network, finite weights; ``env_id``: the env it must have been
+    trained on."""
+    try:
+        record = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as err:  # a missing, truncated or foreign file
+        raise ValueError(f"{path}: unreadable policy file ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+    if not isinstance(record, dict) or not all(k in record for k in ("env", "network", "hidden", "weights")):
+        raise ValueError(f"{path}: not a policy file (it needs 'env', 'network', 'hidden' and 'weights')")
+    if record["env"] not in ENVS or record["network"] not in networks.NETWORKS:
+        raise ValueError(f"{path}: unknown env {record['env']!r} or network {record['network']!r}")
+    if not isinstance(record["hidden"], int) or isinstance(record["hidden"], bool) or not 1 <= record["hidden"] <= MAX_HIDDEN:
+        raise ValueError(f"{path}: the network's width must be an integer in [1, {MAX_HIDDEN}], got {record['hidden']!r}")
+    weights = record["weights"]
+    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+        raise ValueError(f"{path}: 'weights' must be a dict of tensors")
+    if not all(bool(torch.isfinite(v).all()) for v in weights.values() if v.is_floating_point()):
+        raise ValueError(f"{path}: the policy has non-finite weights")
+    if env_id is not None and record["env"] != env_id:
+        raise ValueError(f"{path}: a policy of {record['env']}, not of {env_id}")
+    return record
 
 
 def load(algo: str, env_id: str, *, device="cpu") -> TensorDictModule:
     """The shipped ``algo`` policy of ``env_id`` (see the module's docstring)."""
-    shipped = _read(algo, env_id)
+    return load_file(shipped(algo, env_id), env_id, device=device)
+
+
+def load_file(path: str | Path, env_id: str | None = None, *, device="cpu") -> TensorDictModule:
+    """The policy of a file written by :func:`export` (one you trained, or received):
+    read as data, checked, and refused if it was trained on another env than
+    ``env_id`` (when given)."""
+    path = Path(path)
+    record = _read(path, env_id)
+    env_id = record["env"]
     env = make_env(env_id, 1, norm_steps=0)
-    policy = networks.policy(env, shipped["network"], shipped["hidden"])
-    policy.load_state_dict(shipped["weights"])
+    policy = networks.policy(env, record["network"], record["hidden"])
+    try:
+        policy.load_state_dict(record["weights"])
+    except RuntimeError as err:
+        raise ValueError(f"{path}: the weights do not fit a {record['network']} of width {record['hidden']} on {env_id} ({str(err).splitlines()[0]})") from None
+    n_obs = networks.n_observations(env)
+    first = _first_layer(policy, n_obs)
+
+    def check(module, args):
+        # a policy given another env's observations: say so, not a matrix shape error
+        if args and isinstance(args[0], torch.Tensor) and args[0].shape[-1] != n_obs:
+            raise ValueError(f"this policy was trained on {env_id} ({n_obs} observations); it was given {args[0].shape[-1]}")
+
+    first.register_forward_pre_hook(check)
     return policy.to(device).eval()

@@ -6,7 +6,6 @@ A run directory is one seed's folder (``run.Run``) or a folder of ``seedK`` fold
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
@@ -16,9 +15,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
 from beacon_torch import evaluate
+from beacon_torch.files import save_figure, write_text
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
-from beacon_torch.training.run import load_checkpoint, seed_dirs
+from beacon_torch.training.run import load_checkpoint, read_log, seed_dirs
 
 # the seed of the evaluation episodes: every evaluation of an env sees the same episodes
 EVAL_SEED = 12345
@@ -73,9 +73,7 @@ def read_scalar(run: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     files = sorted(Path(run).glob(f"*/scalars/{name}.csv"))
     if not files:
         return np.zeros(0), np.zeros(0)
-    with files[0].open() as f:
-        rows = [(float(a), float(b)) for a, b in csv.reader(f)]
-    rows.sort()
+    rows = sorted(read_log(files[0]))
     return np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
 
 
@@ -116,7 +114,7 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     return Path(path)
 
 
@@ -138,7 +136,7 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
             {
                 "seed": run.name,
                 "frames": state["frames"],
-                "wall_s": state.get("elapsed", float("nan")),
+                "wall_s": state.get("elapsed", 0.0),
                 "eval": ev["score_mean"],
                 "train_tail": float(tail.mean()) if len(tail) else float("nan"),
                 "uncontrolled": ev["uncontrolled"],
@@ -164,7 +162,7 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
         "png": str(png.resolve()),
         "threads": torch.get_num_threads(),
     }
-    (root / "summary.json").write_text(json.dumps(summary, indent=1))
+    write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
         f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail {summary['train_mean']:.4g} "
         f"over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed"

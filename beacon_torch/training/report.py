@@ -12,10 +12,12 @@ directory without one is summarised first).
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
+from beacon_torch.files import save_figure, write_text
 from beacon_torch.training.evaluation import summarise
 
 # the score each env's PPO reaches in the paper, the 1 of the normalised score (read
@@ -93,17 +95,56 @@ def row(summary: dict) -> dict:
     }
 
 
+def check_summary(summary, file: str | Path) -> dict:
+    """Refuse a summary the protocol cannot score: an unknown env, no seeds, a score
+    or count that is not a finite number, an uncontrolled score equal to the
+    reference (nothing to normalise by)."""
+
+    def bad(what: str):
+        return ValueError(f"{file}: not a summary of trained seeds ({what})")
+
+    finite = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if not isinstance(summary, dict):
+        raise bad("not a JSON object")
+    if summary.get("env") not in PAPER_PPO and summary.get("env") not in VARIANT_OF:
+        raise bad(f"unknown env {summary.get('env')!r}")
+    if not isinstance(summary.get("algo"), str):
+        raise bad("no algorithm")
+    seeds = summary.get("seeds")
+    if not isinstance(seeds, list) or not seeds or not all(isinstance(s, dict) and finite(s.get("eval")) for s in seeds):
+        raise bad("'seeds' must list at least one seed, each with a finite 'eval' score")
+    for key in ("uncontrolled", "frames", "wall_s_per_seed"):
+        if not finite(summary.get(key)) or summary[key] < 0 and key != "uncontrolled":
+            raise bad(f"{key!r} must be a finite number, got {summary.get(key)!r}")
+    if "train_mean" in summary and not finite(summary["train_mean"]):
+        raise bad(f"'train_mean' must be finite, got {summary['train_mean']!r}")
+    if summary["uncontrolled"] == reference(summary["env"]):
+        raise bad(f"its uncontrolled score equals the reference {reference(summary['env'])}: no scale to normalise by")
+    return summary
+
+
+def read(file: str | Path) -> dict:
+    """A ``summary.json`` file, checked (:func:`check_summary`)."""
+    try:
+        summary = json.loads(Path(file).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{file}: unreadable summary ({err})") from None
+    return check_summary(summary, file)
+
+
 def summaries(run_dirs) -> list[dict]:
     """The summary of each run directory (a ``summary.json`` file, or a directory
-    holding one or to be summarised)."""
+    holding one or to be summarised), checked."""
     out = []
     for run in map(Path, run_dirs):
         if run.is_file():
-            out.append(json.loads(run.read_text()))
+            out.append(read(run))
         elif (run / "summary.json").is_file():
-            out.append(json.loads((run / "summary.json").read_text()))
+            out.append(read(run / "summary.json"))
         else:
-            out.append(summarise(run))
+            out.append(check_summary(summarise(run), run / "summary.json"))
+    if not out:
+        raise ValueError("no summaries to report")
     return out
 
 
@@ -142,7 +183,7 @@ def figure(rows: list[dict], path: str | Path) -> Path:
     ax.grid(alpha=0.3, axis="x")
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     return Path(path)
 
 
@@ -153,8 +194,8 @@ def report(run_dirs, out: str | Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rows = [row(s) for s in summaries(run_dirs)]
     text = table(rows)
-    (out / "report.md").write_text(text + "\n")
-    (out / "report.json").write_text(json.dumps(rows, indent=1))
+    write_text(out / "report.md", text + "\n")
+    write_text(out / "report.json", json.dumps(rows, indent=1))
     png = figure(rows, out / "report.png")
     return {"rows": rows, "table": text, "png": str(png)}
 
@@ -172,5 +213,5 @@ def write_block(page: str | Path, begin: str, end: str, block: str) -> Path:
         text = text[: text.index(begin)] + new + text[text.index(end, text.index(begin)) + len(end) :]
     else:
         text = text + "\n" + new + "\n"
-    page.write_text(text)
+    write_text(page, text)
     return page

@@ -127,7 +127,8 @@ def check_checkpoint(state, path: str | Path) -> None:
     total = config.get("frames")
     if _number(total):
         # a run stops at its total, past it by less than one collected batch
-        sizes = [config.get(k) for k in ("n_rollout", "frames_per_batch")] + [config.get("horizon", 0) * config.get("num_envs", 0) if _number(config.get("horizon")) and _number(config.get("num_envs")) else 0]
+        horizon = config.get("horizon", 0) * config.get("num_envs", 0) if _number(config.get("horizon")) and _number(config.get("num_envs")) else 0
+        sizes = [config.get("n_rollout"), config.get("frames_per_batch"), horizon]
         slack = max(v for v in sizes if _number(v)) if any(_number(v) for v in sizes) else 0
         if state["frames"] > total + slack:
             raise bad(f"it records {state['frames']:,} transitions, past its run's total of {total:,}")
@@ -148,6 +149,7 @@ def check_checkpoint(state, path: str | Path) -> None:
 def seed_dirs(run: str | Path) -> list[Path]:
     """The per-seed folders of a run directory (the directory itself for one seed)."""
     run = Path(run)
+    files.refuse_links(run)  # what is read from it, and written into it (an animation)
     if (run / CHECKPOINT).is_file():
         return [run]
     found = sorted(p for p in run.glob("seed*") if (p / CHECKPOINT).is_file())
@@ -363,7 +365,8 @@ class Run:
         bad = {name: value for name, value in values.items() if not math.isfinite(value)}
         if bad:
             # the networks are no longer usable: stop before the next checkpoint
-            raise Diverged(f"{self.out}: training diverged after {self.frames:,} transitions ({', '.join(f'{k} = {v}' for k, v in bad.items())}); its last checkpoint is kept. Lower the learning rate, or start again from a copy of that checkpoint")
+            what = ", ".join(f"{k} = {v}" for k, v in bad.items())
+            raise Diverged(f"{self.out}: training diverged after {self.frames:,} transitions ({what}); its last checkpoint is kept. Lower the learning rate")
         self.frames += collected
         self.rounds += 1
         self.last = {"frames": self.frames, **values}
