@@ -37,6 +37,7 @@ depends on differentiable parameters in ``advance``, not there.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import Any, ClassVar
 
@@ -107,11 +108,31 @@ def _as_device(device: Any) -> torch.device:
         device = torch.device(device)
     except (RuntimeError, TypeError) as err:
         raise ValueError(f"device {device!r} is not a torch device ({err})") from None
+    if device.type == "meta":
+        raise ValueError("device 'meta' holds no values, so an env cannot step there; use 'cpu' or an accelerator")
     try:
         torch.empty(0, device=device)
     except (RuntimeError, AssertionError) as err:
         raise ValueError(f"device {str(device)!r} cannot be used on this machine ({err})") from None
     return device
+
+
+# a step's temporaries, in states of the batch: what a batch's memory is estimated by
+WORKSPACE = 16
+
+
+def available_bytes(device: torch.device) -> int | None:
+    """The memory free for new tensors on ``device`` (None where it cannot be told)."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[0]
+    if device.type == "cpu":
+        try:
+            with open("/proc/meminfo") as f:
+                fields = dict(line.split(":", 1) for line in f)
+            return int(fields["MemAvailable"].split()[0]) * 1024
+        except (OSError, KeyError, ValueError):
+            return None
+    return None
 
 
 def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -217,9 +238,16 @@ class FlowEnv(EnvBase):
         self.history = History(record_history)
         self._settle = self.kernels(settle)
         self._whole_step = self.kernels(self._step_core)
+        if not differentiable:
+            traced = [name for name, value in vars(self.params).items() if isinstance(value, torch.Tensor) and value.requires_grad]
+            if traced:
+                why = "their gradients are dropped (make(..., differentiable=True) keeps them)"
+                warnings.warn(f"{self.env_id}: parameter(s) {traced} require grad but the env is not differentiable; {why}", stacklevel=3)
         with torch.no_grad():
             self.setup()
+        self._check_memory()
         self._make_specs()
+        self._closed = False
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
         self.rng = torch.Generator(device=device)
@@ -238,6 +266,62 @@ class FlowEnv(EnvBase):
         nothing to do here."""
         self.kernels.compile(**kwargs)
         return self
+
+    def _check_memory(self) -> None:
+        """Refuse a batch whose states would not fit in the device's free memory, before
+        anything of its size is allocated."""
+        free = available_bytes(self.device)
+        need = self.n_envs * self.member_floats() * self.dtype.itemsize * WORKSPACE
+        if free is not None and need > free:
+            fits = max(1, free // (self.member_floats() * self.dtype.itemsize * WORKSPACE))
+            raise ValueError(f"{self.env_id}: {self.n_envs:,} members need about {need / 2**30:,.1f} GiB on {self.device}, {free / 2**30:,.1f} GiB are free; at most about {fits:,} members fit")
+
+    def to(self, *args, **kwargs) -> FlowEnv:
+        """The env itself: its state, generator and kernels live on the device it was
+        made on, so moving it elsewhere is refused (``make(..., device=...)`` builds one
+        there)."""
+        device = torch._C._nn._parse_to(*args, **kwargs)[0]
+        if device is not None and _as_device(device) != self.device:
+            raise ValueError(f"{self.env_id}: an env stays on the device it was made on ({self.device}); make(..., device={str(device)!r}) builds one on {device}")
+        return self
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Free the state; stepping or resetting afterwards is an error."""
+        self._closed = True
+        self._state = None
+        super().close(raise_if_closed=raise_if_closed)
+
+    def _check_open(self, what: str) -> None:
+        if self._closed:
+            raise RuntimeError(f"{self.env_id}: {what}() on a closed env; make a new one")
+
+    def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
+        """Where the env is: the state of every member (``state.<key>``), the actions
+        taken in their episodes (``count``) and the generator's state (``rng``);
+        :meth:`load_state_dict` continues from there (an env of the same id, batch size
+        and parameters)."""
+        out = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
+        if self._state is not None:
+            for key, value in self._state.items():
+                out[f"{prefix}state.{key}"] = value if keep_vars else value.detach()
+            out[f"{prefix}count"] = self._count.clone()
+        out[f"{prefix}rng"] = self.rng.get_state()
+        return out
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Continue from :meth:`state_dict` (checked as :meth:`set_state` checks)."""
+        state = {key.removeprefix("state."): value for key, value in state_dict.items() if key.startswith("state.")}
+        unknown = set(state_dict) - {f"state.{k}" for k in state} - {"count", "rng"}
+        if strict and unknown:
+            raise KeyError(f"{self.env_id}: unknown entries {sorted(unknown)} in the state dict")
+        if state:
+            self.set_state(state, state_dict.get("count", 0))
+        if "rng" in state_dict:
+            rng = state_dict["rng"]
+            if not isinstance(rng, torch.Tensor) or rng.dtype != torch.uint8 or rng.shape != self.rng.get_state().shape:
+                raise ValueError(f"{self.env_id}: 'rng' must be a generator state of this device (a uint8 tensor of shape {tuple(self.rng.get_state().shape)})")
+            self.rng.set_state(rng)
+        return torch.nn.modules.module._IncompatibleKeys([], [])
 
     # ------------------------------------------------------------------ physics hooks
     @classmethod
@@ -260,6 +344,11 @@ class FlowEnv(EnvBase):
 
     def null_action(self) -> torch.Tensor:
         raise NotImplementedError
+
+    def member_floats(self) -> int:
+        """About how many numbers one member's state holds, once ``setup()`` has run
+        (what the memory of a batch is estimated from; fields override it)."""
+        return 4 * self.n_obs
 
     def out_of_bounds(self, state: State) -> torch.Tensor:
         return torch.zeros(self.batch_size, dtype=torch.bool, device=self.device)
@@ -354,8 +443,13 @@ class FlowEnv(EnvBase):
         name = self.env_id or type(self).__name__
         if action is None:
             raise KeyError(f"{name}: the input tensordict has no 'action' entry")
+        if not isinstance(action, (torch.Tensor, np.ndarray, list, tuple, int, float, np.number)):
+            raise TypeError(f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__}")
         if not isinstance(action, torch.Tensor):
-            action = torch.as_tensor(np.asarray(action))
+            try:
+                action = torch.as_tensor(np.asarray(action))
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__} ({err})") from None
         shape = (*B, *self.action_shape)
         if self.discrete:
             expected = f"shape {shape} with integer values in [0, {self.n_actions - 1}]"
@@ -411,12 +505,18 @@ class FlowEnv(EnvBase):
             if value.ndim == 0 or value.shape[0] != self.n_envs:
                 raise ValueError(f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got shape {tuple(value.shape)}")
         for key, value in state.items():
-            if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value.detach()).all()):
+            if value.is_complex() or value.dtype == torch.bool:
+                raise TypeError(f"{name}: state[{key!r}] must hold real numbers, got dtype {value.dtype}")
+            if value.is_floating_point() and not bool(torch.isfinite(value.detach()).all()):
                 raise ValueError(f"{name}: state[{key!r}] has non-finite values")
+        traced = [key for key, value in state.items() if value.requires_grad]
+        if traced and not self.differentiable:
+            warnings.warn(f"{name}: state{traced} require grad but the env is not differentiable; their gradients are dropped (make(..., differentiable=True) keeps them)", stacklevel=2)
         count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
         if bool(((count < 0) | (count >= self.episode_length)).any()):
             raise ValueError(f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}")
-        state = {k: v.to(self.device, self.dtype) if v.is_floating_point() else v.to(self.device) for k, v in state.items()}
+        # every state is of the env's dtype (integers given are cast), as its specs say
+        state = {k: v.to(self.device, self.dtype) for k, v in state.items()}
         with graph_mode(self.differentiable):
             try:
                 obs = self.observe(state)
@@ -435,6 +535,7 @@ class FlowEnv(EnvBase):
         """Start new episodes for the members where ``mask`` (``[batch]`` or
         ``[batch, 1]`` bool) is true, for all of them when it is None; returns the
         observation of every member (the others keep theirs)."""
+        self._check_open("reset")
         if mask is not None:
             if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
                 raise TypeError(f"{self.env_id}: the '_reset' mask must be a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}")
@@ -474,25 +575,26 @@ class FlowEnv(EnvBase):
         physics gives it (``[batch]``, ``[batch, n_agents]`` for multi-agent variants),
         the two flags ``[batch]``. A member whose state leaves its bounds keeps its last
         finite state and observation, gets ``blowup_reward`` and is terminated."""
+        self._check_open("step")
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before step()")
         if isinstance(action, torch.Tensor) and action.requires_grad and not self.differentiable and not self._warned_grad:
             self._warned_grad = True
             warnings.warn(f"{self.env_id}: the action requires grad but the env is not differentiable; its gradient is dropped (make(..., differentiable=True) keeps it)", stacklevel=3)
         action = self.check_action(action)
+        if stepping is not None:
+            if not isinstance(stepping, torch.Tensor) or stepping.dtype != torch.bool:
+                raise TypeError(f"{self.env_id}: the '_step' mask must be a bool tensor, got {getattr(stepping, 'dtype', type(stepping).__name__)}")
+            if stepping.numel() != self.n_envs:
+                raise ValueError(f"{self.env_id}: the '_step' mask must have one entry per member ({self.n_envs}), got shape {tuple(stepping.shape)}")
         old = self._state
         with graph_mode(self.differentiable):
             if self.compile_whole_step and self.kernels.options is not None and not torch.is_grad_enabled():
                 new, obs, reward, ok = self._whole_step(old, self._obs, action, self._count)
+            elif self.differentiable and torch.is_grad_enabled():
+                new, obs, reward, ok = self._differentiated_step(old, action)
             else:
-                if self.grad_checkpoint and torch.is_grad_enabled():
-                    new, reward = checkpointed(self.advance, self.rng, old, action, self._count)
-                else:
-                    new, reward = self.advance(old, action, self._count)
-                obs = self.observe(new)
-                # A member that left its bounds keeps its last finite state and
-                # observation and ends its episode; the others are untouched.
-                new, obs, reward, ok = self._settle(new, old, obs, self._obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
+                new, obs, reward, ok = self._settled_step(self.advance, old, action)
             count = self._count + 1
             if stepping is not None:
                 stepping = stepping.reshape(self.batch_size).to(self.device)
@@ -504,6 +606,52 @@ class FlowEnv(EnvBase):
         self._state, self._obs, self._count = new, obs, count
         self.history.append(new)
         return obs, reward, ~ok, count >= self.episode_length
+
+    def _settled_step(self, advance, old: State, action: torch.Tensor, inside: torch.Tensor | None = None, start: State | None = None):
+        """``advance`` from ``start`` (default ``old``) and :func:`settle`: a member
+        that left its bounds (or is not ``inside``) keeps its last finite state ``old``
+        and observation and ends its episode; the others are untouched."""
+        start = old if start is None else start
+        if self.grad_checkpoint and torch.is_grad_enabled():
+            new, reward = checkpointed(advance, self.rng, start, action, self._count)
+        else:
+            new, reward = advance(start, action, self._count)
+        bounds = ~self.out_of_bounds(new)
+        return self._settle(new, old, self.observe(new), self._obs, reward, bounds if inside is None else bounds & inside, float(self.blowup_reward))
+
+    def _differentiated_step(self, old: State, action: torch.Tensor):
+        """A step that keeps its graph. A member that blows up keeps its last state, but
+        its own backward pass would still multiply a zero gradient by an infinite
+        derivative (0 * inf = NaN), which would reach the gradients of every other
+        member through whatever they share (a policy, a shared parameter). So such a
+        step is taken again, with the same noise, from inputs where the members that
+        blew up are given a copy of a sound member's (detached) state, action and
+        parameters: their discarded result is then finite, and they contribute zero."""
+        drawn_from = self.rng.get_state()
+        new, obs, reward, ok = self._settled_step(self.advance, old, action)
+        if bool(ok.all()):
+            return new, obs, reward, ok
+        if not bool(ok.any()):  # nothing to differentiate but the states kept
+            return old, self._obs, torch.full_like(reward.detach(), float(self.blowup_reward)), ok
+        donor = int(ok.nonzero()[0, 0])
+        stand_in = lambda t: select(ok, t, t[donor : donor + 1].detach().expand_as(t))
+        per_member = {name: stand_in(v) for name, v in vars(self.params).items() if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.n_envs}
+        params = dataclasses.replace(self.params, **per_member)
+        self.rng.set_state(drawn_from)
+        return self._settled_step(self._with_params(params), old, stand_in(action), ok, {k: stand_in(v) for k, v in old.items()})
+
+    def _with_params(self, params):
+        """``advance`` run with ``params`` in place of the env's own (in the backward
+        pass's recomputation too)."""
+
+        def advance(state, action, count):
+            own, self.params = self.params, params
+            try:
+                return self.advance(state, action, count)
+            finally:
+                self.params = own
+
+        return advance
 
     def _step_core(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor):
         """A whole step as one function, for ``compile_whole_step`` envs: the physics

@@ -17,12 +17,13 @@ import hashlib
 import json
 import os
 import pickle
-import tempfile
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
+
+from beacon_torch.files import replace_file
 
 State = dict[str, torch.Tensor]
 
@@ -31,7 +32,9 @@ _memory: dict[str, State] = {}
 
 
 def cache_dir() -> Path:
-    return Path(os.environ.get("BEACON_TORCH_CACHE", Path.home() / ".cache" / "beacon-torch"))
+    """``$BEACON_TORCH_CACHE`` when set to a path (an empty value is unset, not the
+    working directory), else ``~/.cache/beacon-torch``."""
+    return Path(os.environ.get("BEACON_TORCH_CACHE") or Path.home() / ".cache" / "beacon-torch")
 
 
 def file_name(name: str, key: dict) -> str:
@@ -71,9 +74,8 @@ def _problem(state, shapes: dict[str, tuple[int, ...]] | None) -> str | None:
 def save(state: State, path: Path) -> None:
     """Write atomically, so that concurrent processes never read half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as tmp:
-        torch.save({k: v.detach().cpu() for k, v in state.items()}, tmp)
-    os.replace(tmp.name, path)
+    # a path that cannot be replaced (a folder of that name) removes the temporary file
+    replace_file(path, lambda tmp: torch.save({k: v.detach().cpu() for k, v in state.items()}, tmp))
 
 
 def cached(name: str, key: dict, compute: Callable[[], State], shapes: dict[str, tuple[int, ...]] | None = None) -> State:

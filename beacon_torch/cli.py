@@ -29,6 +29,7 @@ from typing import Any
 import torch
 
 from beacon_torch import evaluate
+from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.params import describe
 from beacon_torch.registry import ENVS, env_class, list_envs, make
@@ -185,6 +186,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     if args.members < 1:
         raise CliError(f"--members must be a positive integer, got {args.members}")
+    _as_device(args.device)  # before a policy is moved there
     if (args.run is None) == (args.pretrained is None):
         raise CliError("eval takes a run directory or --pretrained ALGO/ENV, one of the two")
     if args.pretrained is not None:

@@ -79,23 +79,41 @@ class Kernels:
         code (guards, wrapper: about 0.1 ms on CPU) is paid once for all of them.
         Later envs of the same shapes reuse the compiled code (tensors are arguments,
         not constants)."""
-        if unroll > 1:
-            single = fn
+        return _Kernel(self, _Unrolled(fn, unroll) if unroll > 1 else fn)
 
-            def fn(state, *args, **kwargs):
-                for _ in range(unroll):
-                    state = single(state, *args, **kwargs)
-                return state
+    def __getstate__(self) -> dict:
+        # compiled code is this process's: a copy of the env (pickled for another
+        # process) compiles its own on its first call
+        return {**self.__dict__, "_cache": {}}
 
-        def run(*args, **kwargs):
-            # inside a larger compiled function (a whole step), a kernel is traced
-            # into that function's graph rather than called as a graph of its own
-            if self.options is None or torch.compiler.is_compiling():
-                return fn(*args, **kwargs)
-            compiled = self._cache.get(fn)
-            if compiled is None:
-                compiled = self._cache[fn] = torch.compile(fn, **self.options)
-            with _LIMIT:
-                return compiled(*args, **kwargs)
 
-        return run
+class _Unrolled:
+    """``fn`` applied ``unroll`` times to its first argument."""
+
+    def __init__(self, fn: Callable, unroll: int) -> None:
+        self.fn, self.unroll = fn, unroll
+
+    def __call__(self, state, *args, **kwargs):
+        for _ in range(self.unroll):
+            state = self.fn(state, *args, **kwargs)
+        return state
+
+
+class _Kernel:
+    """A kernel as :meth:`Kernels.__call__` returns it (an object, not a closure, so
+    that an env can be pickled)."""
+
+    def __init__(self, kernels: Kernels, fn: Callable) -> None:
+        self.kernels, self.fn = kernels, fn
+
+    def __call__(self, *args, **kwargs):
+        kernels, fn = self.kernels, self.fn
+        # inside a larger compiled function (a whole step), a kernel is traced into
+        # that function's graph rather than called as a graph of its own
+        if kernels.options is None or torch.compiler.is_compiling():
+            return fn(*args, **kwargs)
+        compiled = kernels._cache.get(fn)
+        if compiled is None:
+            compiled = kernels._cache[fn] = torch.compile(fn, **kernels.options)
+        with _LIMIT:
+            return compiled(*args, **kwargs)

@@ -80,7 +80,8 @@ class BeaconGymEnv(gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
-    def __init__(self, env_id: str, render_mode: str | None = None, dtype: Any = "float32", **params: Any):
+    def __init__(self, env_id: str | None = None, render_mode: str | None = None, dtype: Any = "float32", *, registered_id: str | None = None, **params: Any):
+        env_id = _own_id(env_id, registered_id)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
@@ -122,13 +123,16 @@ class BeaconVectorEnv(VectorEnv):
 
     def __init__(
         self,
-        env_id: str,
+        env_id: str | None = None,
         num_envs: int = 1,
         render_mode: str | None = None,
         dtype: Any = "float32",
         device: Any = "cpu",
+        *,
+        registered_id: str | None = None,
         **params: Any,
     ):
+        env_id = _own_id(env_id, registered_id)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.env = make(
@@ -152,7 +156,12 @@ class BeaconVectorEnv(VectorEnv):
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
         if isinstance(seed, (list, tuple)):
-            seed = seed[0]
+            # the copies draw from one random stream, seeded once: a list can only be
+            # the seeds gymnasium derives from one (s, s + 1, ...) or s for copy 0 alone
+            first = seed[0] if len(seed) == self.num_envs else None
+            if not isinstance(first, int) or list(seed) not in ([first + i for i in range(self.num_envs)], [first] + [None] * (self.num_envs - 1)):
+                raise ValueError(f"{self.env.env_id}: the {self.num_envs} copies share one random stream, so they take one seed (or s, s + 1, ...), not {list(seed)}")
+            seed = first
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(seed)
@@ -187,6 +196,18 @@ class BeaconVectorEnv(VectorEnv):
         return None
 
 
+def _own_id(env_id: str | None, registered_id: str | None) -> str:
+    """The env a gymnasium id stands for: ``env_id`` given to ``gymnasium.make`` beside
+    an id of ours may only repeat it."""
+    if registered_id is None:
+        if env_id is None:
+            raise TypeError("an env id is needed (e.g. 'burgers-v0')")
+        return env_id
+    if env_id is not None and env_id != registered_id:
+        raise ValueError(f"{gym_id(registered_id)} is {registered_id}, so env_id={env_id!r} cannot change it; make {gym_id(env_id)!r} instead")
+    return registered_id
+
+
 def register() -> None:
     """Register every BEACON env id with gymnasium (idempotent)."""
     for env_id in list_envs():
@@ -197,7 +218,7 @@ def register() -> None:
             id=name,
             entry_point="beacon_torch.gym:BeaconGymEnv",
             vector_entry_point="beacon_torch.gym:BeaconVectorEnv",
-            kwargs={"env_id": env_id},
+            kwargs={"registered_id": env_id},
         )
 
 

@@ -141,8 +141,8 @@ def _check_differentiable(name: str, value: torch.Tensor, m, n: int, device, dty
     if not value.is_floating_point():
         raise TypeError(f"parameter {name!r} requires grad, so it must be a floating tensor, got {value.dtype}")
     if value.ndim == 0:
-        _check_scalar(name, value.item(), m)
-        value = value.to(device=device, dtype=dtype)
+        given = _check_scalar(name, value.item(), m)
+        value = _still_admissible(name, value.to(device=device, dtype=dtype), [given], m)
         # per-member parameters are tensors of the batch's length wherever they are tensors
         return value.expand(n) if m["per_member"] else value
     if not m["per_member"]:
@@ -152,9 +152,8 @@ def _check_differentiable(name: str, value: torch.Tensor, m, n: int, device, dty
             f"parameter {name!r} must be a number or one value per batch member "
             f"(shape ({n},)), got shape {tuple(value.shape)}"
         )
-    for i, v in enumerate(value.detach().cpu().tolist()):
-        _check_scalar(name, v, m, f"[{i}]")
-    return value.to(device=device, dtype=dtype)
+    given = [_check_scalar(name, v, m, f"[{i}]") for i, v in enumerate(value.detach().cpu().tolist())]
+    return _still_admissible(name, value.to(device=device, dtype=dtype), given, m)
 
 
 def _check_choice(name: str, value: Any, m) -> str | None:
@@ -185,19 +184,31 @@ def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
                 f"(shape ({n},)), got shape {shape}"
             )
         checked = [_check_scalar(name, v, m, f"[{i}]") for i, v in enumerate(values)]
-        return _member_tensor(checked, m, device, dtype)
+        return _member_tensor(name, checked, m, device, dtype)
     value = _check_scalar(name, value, m)
-    return _member_tensor([value] * n, m, device, dtype) if m["per_member"] else value
+    return _member_tensor(name, [value] * n, m, device, dtype) if m["per_member"] else value
 
 
-def _member_tensor(values: list, m, device, dtype) -> torch.Tensor:
-    """One value per member as a tensor of the parameter's kind."""
-    if m["kind"] == "complex":
-        cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
-        return torch.tensor(values, dtype=cdtype, device=device)
+def _member_tensor(name: str, values: list, m, device, dtype) -> torch.Tensor:
+    """One value per member as a tensor of the parameter's kind, whose values (after
+    the cast to the env's precision) are still admissible."""
     if m["kind"] == "int":
         return torch.tensor(values, dtype=torch.int64, device=device)
-    return torch.tensor(values, dtype=dtype, device=device)
+    if m["kind"] == "complex":
+        dtype = torch.complex128 if dtype == torch.float64 else torch.complex64
+    return _still_admissible(name, torch.tensor(values, dtype=dtype, device=device), values, m)
+
+
+def _still_admissible(name: str, tensor: torch.Tensor, given: list, m) -> torch.Tensor:
+    """``tensor`` (``given`` cast to a precision), refused where the cast took a value
+    out of the parameter's range (``re=1e-300`` is 0 in float32)."""
+    for value, cast in zip(given, tensor.detach().cpu().reshape(-1).tolist(), strict=True):
+        if cast != value:
+            try:
+                _check_scalar(name, cast, m)
+            except ValueError as err:
+                raise ValueError(f"parameter {name!r} = {value!r} becomes {cast!r} in {tensor.dtype} ({err}); use float64 or another value") from None
+    return tensor
 
 
 def resolve_params(

@@ -42,8 +42,12 @@ try:
 except ImportError as err:  # pragma: no cover - exercised without the extra only
     raise ImportError("beacon_torch.sb3 needs Stable-Baselines3: pip install 'beacon-torch[sb3]'") from err
 
+from beacon_torch.base import _as_flag, _as_seed
 from beacon_torch.gym import _spaces, batched_action, team_reward
 from beacon_torch.registry import make
+
+# what ``set_attr`` may change on a made env, each with its check
+SETTABLE = {"render_index": lambda index: index, "check_actions": lambda flag: _as_flag("check_actions", flag)}
 
 
 class BeaconVecEnv(VecEnv):
@@ -129,8 +133,17 @@ class BeaconVecEnv(VecEnv):
         return [value for _ in chosen]
 
     def set_attr(self, attr_name: str, value: Any, indices: Iterable[int] | int | None = None) -> None:
+        """Set one of :data:`SETTABLE` on the batched env (the copies' parameters,
+        size, precision and device are fixed when it is made)."""
         self._all(indices, f"set_attr({attr_name!r})")
-        setattr(self.env, attr_name, value)
+        if attr_name not in SETTABLE:
+            fixed = "a parameter of the env" if hasattr(self.env.params, attr_name) else "not settable"
+            raise AttributeError(f"{self.env_id}: {attr_name!r} is {fixed}; set_attr sets {', '.join(SETTABLE)} (make a new BeaconVecEnv for other settings)")
+        setattr(self.env, attr_name, SETTABLE[attr_name](value))
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        # an integer of the generator's range (not 1.5, not "a"), or None for a random one
+        return super().seed(None if seed is None else _as_seed(seed))
 
     def env_method(self, method_name: str, *method_args, indices: Iterable[int] | int | None = None, **method_kwargs) -> list[Any]:
         if method_name == "render":

@@ -50,6 +50,9 @@ def choose_start(params, shaping: tuple[str, ...]) -> None:
     defaults = {f.name: f.default for f in fields(params)}
     changed = [name for name in shaping if _differs(getattr(params, name), defaults[name])]
     start = params.start
+    # whether the start was left to this choice (then members whose own parameters are
+    # the published ones may still start from the stored state: published_members)
+    object.__setattr__(params, "start_chosen", start is None)
     if start is None:
         start = GENERATED if changed else PUBLISHED
     elif start == PUBLISHED and changed:
@@ -60,6 +63,25 @@ def choose_start(params, shaping: tuple[str, ...]) -> None:
             f"use start='generated' (or leave start unset)"
         )
     object.__setattr__(params, "start", start)
+
+
+def published_members(params, shaping: tuple[str, ...]) -> torch.Tensor | None:
+    """Per member, whether it may start from the stored state although the batch as a
+    whole does not: the start was left to :func:`choose_start` and every ``shaping``
+    parameter of the member is the published one (``g=[5, 9.81]``: the second member).
+    None where no member may."""
+    if not getattr(params, "start_chosen", False):
+        return None
+    defaults = {f.name: f.default for f in fields(params)}
+    mask = None
+    for name in shaping:
+        value = getattr(params, name)
+        if isinstance(value, torch.Tensor) and value.ndim == 1:
+            same = value.detach() == torch.as_tensor(defaults[name], dtype=value.dtype, device=value.device)
+            mask = same if mask is None else mask & same
+        elif _differs(value, defaults[name]):
+            return None
+    return mask if mask is not None and bool(mask.any()) else None
 
 
 @functools.cache

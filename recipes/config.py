@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import beacon_torch
+from beacon_torch.base import _as_device
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.report import VARIANT_OF  # the env each variant trains and is scored like
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
@@ -275,6 +276,7 @@ def _check(cfg: Config) -> Config:
         if f.metadata["choices"] and getattr(cfg, f.name) not in f.metadata["choices"]:
             raise ValueError(f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, got {getattr(cfg, f.name)!r}")
     env = beacon_torch.registry.env_class(cfg.env)
+    _as_device(cfg.device)
     if cfg.actions == "continuous" and env.discrete:
         raise ValueError(f"{cfg.algo} needs continuous actions; {cfg.env} has discrete ones (use ppo or dqn)")
     if cfg.actions == "discrete" and not env.discrete:
@@ -320,14 +322,14 @@ def resumed(cfg: Config, given: dict) -> Config:
     if saved.get("env", cfg.env) != cfg.env:
         raise ValueError(f"{cfg.out} holds a run on {saved['env']}, not {cfg.env}")
     names = {f.name for f in fields(cfg)} - {"env", "frames", *RUN_OPTIONS}
-    for name, value in given.items():
-        if name in names and name in saved and saved[name] != value:
-            raise ValueError(f"setting '{name}' = {value!r} differs from the resumed run's {saved[name]!r}; a resumed run keeps the settings it was started with")
     kinds = {f.name: f.type for f in fields(cfg)}
     try:
         saved = {name: _typed(name, kinds[name], saved[name]) for name in (names | {"frames"}) & set(saved)}
     except ValueError as err:
         raise ValueError(f"resuming {Path(cfg.out) / CHECKPOINT}: {err}") from None
+    for name, value in given.items():
+        if name in names and name in saved and saved[name] != value:
+            raise ValueError(f"setting '{name}' = {value!r} differs from the resumed run's {saved[name]!r}; a resumed run keeps the settings it was started with")
     frames = given.get("frames", saved.get("frames", cfg.frames))
     if frames != saved.get("frames", frames):
         print(f"resuming {cfg.out}: {saved['frames']:,} -> {frames:,} transitions")

@@ -108,7 +108,8 @@ def test_detach_state_truncates_backpropagation():
 
 def test_default_mode_keeps_no_graph():
     theta = torch.tensor(0.5, requires_grad=True)
-    env = beacon_torch.make("burgers-v0", batch_size=2, u_target=theta)
+    with pytest.warns(UserWarning, match="require grad but the env is not differentiable"):
+        env = beacon_torch.make("burgers-v0", batch_size=2, u_target=theta)
     env.reset()
     action = torch.zeros((2, 1), requires_grad=True)
     with pytest.warns(UserWarning, match="gradient is dropped"):

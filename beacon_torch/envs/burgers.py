@@ -66,6 +66,9 @@ class BurgersEnv(FlowEnv):
     def sizes(cls, p) -> tuple[int, int]:
         return N_OBS, 1
 
+    def member_floats(self) -> int:
+        return 2 * self.n_cells  # u and its previous value
+
     def setup(self) -> None:
         p = self.params
         self.n_cells = int(round(p.L / DX))

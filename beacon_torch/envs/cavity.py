@@ -93,6 +93,9 @@ class CavityEnv(FlowEnv):
     # the names of the actuation bars of a frame (None: numbered)
     action_labels: ClassVar[Sequence[str] | None] = None
 
+    def member_floats(self) -> int:
+        return 5 * (self.nx + 2) * (self.ny + 2)  # u, v, p, the scalar and a projection's work
+
     def setup(self) -> None:
         p = self.params
         self.nx, self.ny, self.dx, self.dy = grid(p.L, p.H, self.cells_per_unit)

@@ -190,6 +190,9 @@ class ShkadovEnv(FlowEnv):
     def sizes(cls, p) -> tuple[int, int]:
         return p.n_jets * int(round(OBS_LENGTH)), p.n_jets  # the flow rates upstream of every jet
 
+    def member_floats(self) -> int:
+        return 4 * self.n_cells  # h, q and their previous slopes
+
     def setup(self) -> None:
         p = self.params
         self.n_cells = int(round(p.length / DX))

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
+from beacon_torch.base import FlowEnv, State, where_members
 from beacon_torch.cache import cached
 from beacon_torch.numerics import ab2_step, interpolated_action, rusanov
 from beacon_torch.params import param
-from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
+from beacon_torch.starts import PUBLISHED, choose_start, published_members, published_table, start_param
 
 CELLS_PER_UNIT = 80
 DT = 1e-3
@@ -135,6 +135,9 @@ class SloshingEnv(FlowEnv):
     def sizes(cls, p) -> tuple[int, int]:
         return (int(round(p.L * CELLS_PER_UNIT)) + 1) // 2, 1  # q in every second cell
 
+    def member_floats(self) -> int:
+        return 5 * self.n_cells  # h, q and their previous slopes
+
     def setup(self) -> None:
         self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
         self.dx = self.params.L / self.n_cells
@@ -143,14 +146,19 @@ class SloshingEnv(FlowEnv):
 
     def _start_state(self) -> State:
         p = self.params
+        table = published_table("sloshing")  # rows: x, h, q of the interior cells
+        h, q = table[:, 1].expand(self.n_envs, -1), table[:, 2].expand(self.n_envs, -1)
+        zero = torch.zeros_like(h)
+        published = {"h": h, "q": q, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
         if p.start == PUBLISHED:
-            table = published_table("sloshing")  # rows: x, h, q of the interior cells
-            h, q = table[:, 1].expand(self.n_envs, -1), table[:, 2].expand(self.n_envs, -1)
-            zero = torch.zeros_like(h)
-            start = {"h": h, "q": q, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+            start = published
         elif bool((p.g != p.g[0]).any()):  # one start per member
             g = p.g.detach().to(torch.float64)[:, None]
             start = excited_state(p.L, g, self.n_envs, torch.float64, self.device)
+            # a member at the published g starts as it would alone
+            chosen = published_members(p, ("L", "g"))
+            if chosen is not None:
+                start = where_members(chosen.to(self.device), {k: v.to(self.device) for k, v in published.items()}, start)
         else:  # one start for all, cached
             g = float(p.g[0])
             key = dict(version=2, L=p.L, g=g)

@@ -83,7 +83,7 @@ def shipped(algo: str, env_id: str) -> Path:
     (so that no name reaches outside the package's folder)."""
     env_class(env_id)  # an unknown id: the registry's error
     if not isinstance(algo, str) or f"{algo}/{env_id}" not in available():
-        raise ValueError(f"no pretrained {algo!r} policy for {env_id}; available: {', '.join(available()) or 'none'}")
+        raise ValueError(f"no pretrained {algo} policy for {env_id}; available: {', '.join(available()) or 'none'}")
     path = path_of(algo, env_id)
     if path.is_symlink():
         raise ValueError(f"{path}: a symbolic link is refused as a shipped policy")
@@ -100,7 +100,7 @@ def _read(path: Path, env_id: str | None = None) -> dict:
         raise ValueError(f"{path}: unreadable policy file ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
     if not isinstance(record, dict) or not all(k in record for k in ("env", "network", "hidden", "weights")):
         raise ValueError(f"{path}: not a policy file (it needs 'env', 'network', 'hidden' and 'weights')")
-    if record["env"] not in ENVS or record["network"] not in networks.NETWORKS:
+    if not all(isinstance(record[k], str) for k in ("env", "network")) or record["env"] not in ENVS or record["network"] not in networks.NETWORKS:
         raise ValueError(f"{path}: unknown env {record['env']!r} or network {record['network']!r}")
     if not isinstance(record["hidden"], int) or isinstance(record["hidden"], bool) or not 1 <= record["hidden"] <= MAX_HIDDEN:
         raise ValueError(f"{path}: the network's width must be an integer in [1, {MAX_HIDDEN}], got {record['hidden']!r}")

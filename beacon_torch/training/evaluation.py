@@ -15,6 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
 from beacon_torch import evaluate
+from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
@@ -60,6 +61,7 @@ def evaluate_policy(env_id: str, policy, *, norm: dict | None = None, members: i
 
 def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
+    device = _as_device(device)  # before the policy is moved there
     state = load_checkpoint(run)
     env = make_env(state["env"], 1, norm=state["obs_norm"])
     actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)

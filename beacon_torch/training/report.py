@@ -106,7 +106,7 @@ def check_summary(summary, file: str | Path) -> dict:
     finite = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
     if not isinstance(summary, dict):
         raise bad("not a JSON object")
-    if summary.get("env") not in PAPER_PPO and summary.get("env") not in VARIANT_OF:
+    if not isinstance(summary.get("env"), str) or summary["env"] not in PAPER_PPO and summary["env"] not in VARIANT_OF:
         raise bad(f"unknown env {summary.get('env')!r}")
     if not isinstance(summary.get("algo"), str):
         raise bad("no algorithm")

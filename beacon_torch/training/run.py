@@ -100,9 +100,9 @@ def check_checkpoint(state, path: str | Path) -> None:
     for key in ("env", "algo", "frames", "config", "policy", "obs_norm", "modules"):
         if key not in state:
             raise bad(f"no {key!r}")
-    if state["env"] not in ENVS:
+    if not isinstance(state["env"], str) or state["env"] not in ENVS:
         raise bad(f"unknown env {state['env']!r}")
-    if state["algo"] not in ALGORITHMS:
+    if not isinstance(state["algo"], str) or state["algo"] not in ALGORITHMS:
         raise bad(f"unknown algorithm {state['algo']!r}; known: {', '.join(ALGORITHMS)}")
     if not _number(state["frames"]):
         raise bad(f"'frames' must be a non-negative integer, got {state['frames']!r}")
@@ -111,7 +111,7 @@ def check_checkpoint(state, path: str | Path) -> None:
     if not isinstance(state["config"], dict) or not all(isinstance(k, str) for k in state["config"]):
         raise bad("'config' must be a dict of settings")
     policy = state["policy"]
-    if not isinstance(policy, dict) or policy.get("network") not in NETWORKS or not _number(policy.get("hidden"), 1, MAX_HIDDEN):
+    if not isinstance(policy, dict) or not isinstance(policy.get("network"), str) or policy["network"] not in NETWORKS or not _number(policy.get("hidden"), 1, MAX_HIDDEN):
         raise bad(f"'policy' must name a network of {sorted(NETWORKS)} and a width in [1, {MAX_HIDDEN}], got {policy!r}")
     norm = state["obs_norm"]
     if not isinstance(norm, dict) or not all(isinstance(norm.get(k), torch.Tensor) for k in ("loc", "scale")):

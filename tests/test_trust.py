@@ -1,0 +1,596 @@
+"""Untrusted files and bad input: run directories, summaries and policy files from
+someone else are read as data and checked, nothing is written outside or over what a
+command did not create, no NaN is trained on, saved or reported, and every bad input
+is one clear error. Each case plants what an attacker or an accident would leave and
+asserts that nothing outside changed."""
+
+import json
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import beacon_torch
+from beacon_torch import files, pretrained
+from beacon_torch.cli import main as cli
+from beacon_torch.training import report
+from beacon_torch.training.run import BadRun, Diverged, check_checkpoint, load_checkpoint, read_log
+
+import dqn
+import ppo
+import reproduce
+import td3
+from config import DQNConfig, PPOConfig, TD3Config, configure
+
+ROOT = Path(__file__).resolve().parents[1]
+PPO = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger="csv")
+TD3 = dict(frames=256, frames_per_batch=64, num_envs=4, updates_per_batch=4, init_random_frames=64, batch_size=32, hidden=32, progress=False, logger="csv")
+
+
+def snapshot(folder: Path) -> dict:
+    """Every file under ``folder`` with its bytes: what must not change."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file() and not p.is_symlink()}
+
+
+@pytest.fixture
+def outside(tmp_path):
+    """A folder of someone else's files that no command may touch."""
+    folder = tmp_path / "outside"
+    folder.mkdir()
+    (folder / "precious.txt").write_text("mine\n")
+    (folder / "keep.pkl").write_bytes(b"not yours")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def ppo_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("ppo") / "run"
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+    return run
+
+
+def copy_run(run: Path, to: Path) -> Path:
+    import shutil
+
+    shutil.copytree(run, to)
+    return to
+
+
+# ---------------------------------------------------------------- writes outside, deletes
+def test_a_planted_partial_checkpoint_link_is_refused_and_its_target_untouched(ppo_run, tmp_path, outside):
+    run = copy_run(ppo_run, tmp_path / "run")
+    os.symlink(outside / "precious.txt", run / "checkpoint.pt.partial")
+    before = snapshot(outside)
+    with pytest.raises(files.UnsafeFile, match="symbolic link"):
+        ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), resume=True, **{**PPO, "frames": 600}))
+    assert snapshot(outside) == before and not (run / "checkpoint.pt").is_symlink()
+    # even where no check ran first, a write replaces a link rather than following it
+    os.symlink(outside / "precious.txt", tmp_path / "target.txt")
+    files.write_text(tmp_path / "target.txt", "new")
+    assert (tmp_path / "target.txt").read_text() == "new" and not (tmp_path / "target.txt").is_symlink()
+    assert snapshot(outside) == before
+
+
+def test_a_planted_partial_buffer_link_is_refused_and_its_target_untouched(tmp_path, outside):
+    run = tmp_path / "run"
+    td3.main(configure(TD3Config, "vortex-v0", out=str(run), **TD3))
+    os.symlink(outside, run / "buffer.partial")
+    before = snapshot(outside)
+    with pytest.raises(files.UnsafeFile, match="symbolic link"):
+        td3.main(configure(TD3Config, "vortex-v0", out=str(run), resume=True, **{**TD3, "frames": 384}))
+    assert snapshot(outside) == before
+    # the buffer is written into a folder the run creates, whatever lies beside it
+    (run / "buffer.partial").unlink()
+    (run / "buffer.partial").mkdir()
+    (run / "buffer.partial" / "keep.pkl").write_bytes(b"not yours")
+    td3.main(configure(TD3Config, "vortex-v0", out=str(run), resume=True, **{**TD3, "frames": 384}))
+    assert (run / "buffer.partial" / "keep.pkl").read_bytes() == b"not yours" and load_checkpoint(run)["frames"] == 384
+
+
+def test_eval_refuses_a_run_with_a_planted_animation_link(ppo_run, tmp_path, outside, capsys):
+    run = copy_run(ppo_run, tmp_path / "run")
+    os.symlink(outside / "precious.txt", run / "controlled.gif")
+    before = snapshot(outside)
+    assert cli(["eval", str(run), "--members", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "controlled.gif" in err and "symbolic link" in err and len(err.strip().splitlines()) == 1
+    assert snapshot(outside) == before
+
+
+def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outside):
+    pair = tmp_path / "runs" / "ppo-vortex-v0"
+    copy_run(ppo_run, pair / "seed0")
+    summary = {"algo": "../../../../outside/owned", "env": "vortex-v0", "seeds": [{"seed": "seed0", "eval": 1.0, "frames": 400, "uncontrolled": 0.0}],
+               "uncontrolled": 0.0, "frames": 400, "wall_s_per_seed": 1.0, "png": str(outside / "precious.txt")}
+    (pair / "summary.json").write_text(json.dumps(summary))
+    recorded, images = tmp_path / "repo" / "recorded", tmp_path / "repo" / "img"
+    before = snapshot(outside)
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        reproduce.publish(pair, recorded, images)
+    # a known algorithm, recorded at this budget: the curve is the pair's own, never
+    # the file the summary names
+    recorded.mkdir(parents=True)
+    (recorded / "ppo-vortex-v0.json").write_text(json.dumps({**summary, "algo": "ppo"}))
+    (pair / "summary.json").write_text(json.dumps({**summary, "algo": "ppo"}))
+    with pytest.raises(ValueError, match="curve is missing"):
+        reproduce.publish(pair, recorded, images)
+    assert snapshot(outside) == before and not (tmp_path / "outside" / "owned.json").exists()
+    assert not images.exists() or not list(images.iterdir())
+    # a recorded summary naming an unknown algorithm stops the page, writing nothing
+    (recorded / "x.json").write_text(json.dumps(summary))
+    page = tmp_path / "repo" / "results.md"
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        reproduce.write_results_page(recorded, page, images)
+    assert not page.exists() and snapshot(outside) == before
+
+
+@pytest.mark.parametrize("algo", ["../../somewhere/evil", "ppo/../../x", "ppo\x00", 3])
+def test_pretrained_load_reads_only_the_shipped_files(algo, tmp_path):
+    evil = tmp_path / "evil-lorenz-v0.pt"
+    torch.save({"env": "lorenz-v0"}, evil)
+    with pytest.raises(ValueError, match="no pretrained"):
+        pretrained.load(algo, "lorenz-v0")
+    with pytest.raises(ValueError, match="unknown env id"):
+        pretrained.load("ppo", "../lorenz-v0")
+
+
+# ---------------------------------------------------------------- nothing overwritten
+def test_a_fresh_run_refuses_a_directory_holding_a_run(ppo_run, tmp_path, capsys):
+    run = copy_run(ppo_run, tmp_path / "run")
+    before = snapshot(run)
+    with pytest.raises(FileExistsError, match="--resume"):
+        ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+    assert snapshot(run) == before
+    # from the command line: one line and status 2
+    done = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), "--env", "vortex-v0", "--out", str(run), "--frames", "400", "--n-rollout", "200", "--num-envs", "4", "--no-progress"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "holds a run" in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert snapshot(run) == before
+    # an empty directory, or one with files of the user's own, is fine for a new run
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("x")
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(tmp_path / "mine"), **PPO))
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "x"
+
+
+def test_a_second_process_on_a_running_directory_is_refused(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", f"from beacon_torch.files import Lock; import time; lock = Lock({str(run)!r}); print('held', flush=True); time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(files.UnsafeFile, match="another process"):
+            ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+        assert not (run / "checkpoint.pt").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    # the kernel dropped the killed holder's lock
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+    assert load_checkpoint(run)["frames"] == 400
+
+
+def rewrite_checkpoint(run: Path, **changes):
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    for key, value in changes.items():
+        *path, last = key.split(".")
+        target = state
+        for part in path:
+            target = target[part]
+        if value is None:
+            del target[last]
+        elif isinstance(value, str) and value == "nan":
+            target[last] = {k: torch.full_like(v, float("nan")) for k, v in target[last].items()}
+        else:
+            target[last] = value
+    torch.save(state, run / "checkpoint.pt")
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (dict(frames=10**12), "past its run's total"),
+        (dict(frames=1e12), "'frames' must be a non-negative integer"),
+        (dict(frames=-500), "'frames' must be a non-negative integer"),
+        (dict(algo="../../x"), "unknown algorithm"),
+        (dict(env="nowhere-v0"), "unknown env"),
+        (dict(modules=None), "no 'modules'"),
+        (dict(**{"policy.hidden": -5}), "width in \\[1, 4096\\]"),
+        (dict(**{"policy.hidden": 100_000}), "width in \\[1, 4096\\]"),
+        (dict(**{"policy.network": "os.system"}), "must name a network"),
+        (dict(**{"obs_norm.scale": torch.zeros(8)}), "positive scale"),
+        (dict(**{"modules.actor": "nan"}), "non-finite weights"),
+        (dict(counters={"buffer_len": 5, "buffer_capacity": 2, "buffer_files": {}}), "capacity"),
+    ],
+)
+def test_a_resume_and_an_eval_refuse_forged_checkpoint_records(ppo_run, tmp_path, change, words, capsys):
+    run = copy_run(ppo_run, tmp_path / "run")
+    rewrite_checkpoint(run, **change)
+    logs = snapshot(run / "ppo")
+    with pytest.raises(BadRun, match=words):
+        ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), resume=True, **{**PPO, "frames": 600}))
+    assert snapshot(run / "ppo") == logs, "a refused resume changed the logs"
+    assert cli(["eval", str(run), "--no-gif", "--members", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "checkpoint.pt" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "setting, value, words", [("hidden", "wide", "'hidden' must be of type int"), ("epochs", 2.5, "'epochs' must be of type int"), ("entropy", -1.0, "'entropy' must be finite and >= 0")]
+)
+def test_a_resume_refuses_recorded_settings_of_the_wrong_type_or_range(ppo_run, tmp_path, setting, value, words):
+    run = copy_run(ppo_run, tmp_path / "run")
+    rewrite_checkpoint(run, **{f"config.{setting}": value})
+    with pytest.raises(ValueError, match=words) as err:
+        configure(PPOConfig, "vortex-v0", out=str(run), resume=True, **{**PPO, "frames": 600})
+    assert "checkpoint.pt" in str(err.value)
+
+
+@pytest.mark.parametrize("line", [b"1,2,3\n", b"step,value\n", b"\xff\xfe\x00binary\n", b"-5,1.0\n", b"1.5,1.0\n", b"nan,1.0\n"])
+def test_a_resume_refuses_a_log_it_did_not_write_and_mends_nothing(ppo_run, tmp_path, line):
+    run = copy_run(ppo_run, tmp_path / "run")
+    log = run / "ppo" / "scalars" / "reward.csv"
+    log.write_bytes(log.read_bytes() + line)
+    before = log.read_bytes()
+    with pytest.raises(BadRun, match="reward.csv"):
+        ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), resume=True, **{**PPO, "frames": 600}))
+    assert log.read_bytes() == before
+    with pytest.raises(BadRun, match="reward.csv"):
+        read_log(log)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.lists(st.one_of(st.text(max_size=6), st.integers(-10, 10**6).map(str), st.floats(allow_nan=True).map(str)), min_size=0, max_size=4), max_size=5))
+def test_log_lines_are_two_numbers_or_a_clear_error(tmp_path, rows):
+    import csv
+
+    file = tmp_path / "x.csv"
+    with file.open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    try:
+        read = read_log(file)
+    except BadRun as err:
+        assert str(file) in str(err)
+    else:
+        assert all(step >= 0 and float(step).is_integer() for step, _ in read)
+
+
+def valid_state():
+    from beacon_torch.training.env import make_env
+    from beacon_torch.training.networks import stochastic_actor
+
+    env = make_env("vortex-v0", 1, norm_steps=0)
+    return {"env": "vortex-v0", "algo": "ppo", "frames": 400, "elapsed": 1.0, "seed": 0, "config": {"frames": 400, "n_rollout": 200}, "policy": {"network": "stochastic_actor", "hidden": 8},
+            "counters": {}, "obs_norm": env.transform[0].state_dict(), "modules": {"actor": stochastic_actor(env, 8).state_dict()}}
+
+
+JUNK = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=8), st.lists(st.integers(), max_size=3),
+                 st.dictionaries(st.text(max_size=4), st.integers(), max_size=2))
+
+
+@settings(max_examples=150, deadline=None)
+@given(key=st.sampled_from(["env", "algo", "frames", "elapsed", "seed", "config", "policy", "counters", "obs_norm", "modules", "policy.hidden", "policy.network", "config.frames"]), value=JUNK)
+def test_any_forged_checkpoint_field_is_one_clear_error(key, value):
+    state = valid_state()
+    check_checkpoint(state, "ok.pt")
+    *path, last = key.split(".")
+    target = state
+    for part in path:
+        target = target[part]
+    target[last] = value
+    try:
+        check_checkpoint(state, "forged.pt")
+    except BadRun as err:
+        assert str(err).startswith("forged.pt: not a checkpoint of a run (")
+
+
+# ---------------------------------------------------------------- no NaN as a result
+def test_a_diverging_training_stops_and_keeps_its_last_good_checkpoint(tmp_path):
+    settings_ = dict(frames=640, frames_per_batch=64, num_envs=4, updates_per_batch=16, batch_size=32, hidden=16, progress=False, logger="csv", checkpoint_every=1)
+    run = tmp_path / "run"
+    dqn.main(configure(DQNConfig, "lorenz-v0", out=str(run), **{**settings_, "frames": 128}))
+    # the run's optimiser at a rate that diverges from here on
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    state["modules"]["optim"]["param_groups"][0]["lr"] = 1e30
+    torch.save(state, run / "checkpoint.pt")
+    good = (run / "checkpoint.pt").read_bytes()
+    with pytest.raises(Diverged, match="diverged after 128 transitions"):
+        dqn.main(configure(DQNConfig, "lorenz-v0", out=str(run), resume=True, **settings_))
+    assert (run / "checkpoint.pt").read_bytes() == good, "a diverged update reached the checkpoint"
+    # from the command line: one line, status 2, and no checkpoint of NaN weights
+    done = subprocess.run([sys.executable, str(ROOT / "recipes" / "dqn.py"), "--env", "lorenz-v0", "--out", str(tmp_path / "cli"), "--lr", "1e30", "--frames", "640", "--num-envs", "4",
+                           "--frames-per-batch", "64", "--updates-per-batch", "16", "--batch-size", "32", "--hidden", "16", "--checkpoint-every", "1", "--no-progress", "--logger", "csv"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "diverged" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "cli" / "checkpoint.pt").exists() or load_checkpoint(tmp_path / "cli")["frames"] < 640
+
+
+def summary_of(**changes):
+    summary = {"env": "sloshing-v0", "algo": "ppo", "uncontrolled": -2.1, "frames": 200_000, "wall_s_per_seed": 120.0, "seeds": [{"eval": e} for e in (-1.1, -1.6, -2.1)]}
+    return {**summary, **changes}
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (dict(seeds=[]), "at least one seed"),
+        (dict(seeds=None), "at least one seed"),
+        (dict(seeds=[{"eval": float("nan")}]), "finite 'eval'"),
+        (dict(seeds=[{"eval": float("inf")}]), "finite 'eval'"),
+        (dict(uncontrolled=float("nan")), "'uncontrolled' must be a finite"),
+        (dict(uncontrolled=-1.1), "equals the reference"),
+        (dict(env="nowhere-v0"), "unknown env"),
+        (dict(frames=-1), "'frames' must be"),
+    ],
+)
+def test_report_refuses_empty_or_non_finite_summaries(tmp_path, change, words, capsys):
+    file = tmp_path / "ppo-sloshing-v0.json"
+    file.write_text(json.dumps(summary_of(**change)))
+    with pytest.raises(ValueError, match=words):
+        report.summaries([file])
+    assert cli(["report", str(file), "--out", str(tmp_path / "report")]) == 2
+    err = capsys.readouterr().err
+    assert str(file) in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "report" / "report.md").exists()
+
+
+def differentiated_grads(env_id: str, n_steps: int, *, scale: float | None = None, shared=None, **params):
+    """The gradient of the summed rewards with respect to a policy weight shared by
+    every member (and to ``shared``, a parameter shared by them), float64."""
+    members = len(next(iter(params.values()))) if params else 2
+    env = beacon_torch.make(env_id, members, dtype="float64", differentiable=True, **params)
+    env.reset()
+    if scale is not None:  # the second member's state scaled out of any range
+        env.set_state({k: torch.cat([v[:1], v[1:] * scale]) for k, v in env.state.items()})
+    w = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
+    total = 0.0
+    ended = torch.zeros(members, dtype=torch.bool)
+    for _ in range(n_steps):
+        action = torch.tanh(w * env.observation[:, : env.n_actions]).reshape(members, env.n_actions)
+        _, reward, terminated, _ = env.step_members(action)
+        ended |= terminated
+        total = total + reward.sum()
+    leaves = [w] + ([shared] if shared is not None else [])
+    return torch.autograd.grad(total, leaves), ended
+
+
+@pytest.mark.parametrize(
+    "env_id, blown, alone",
+    [
+        ("sloshing-v0", dict(amp=[5.0, 1e6]), dict(amp=[5.0])),
+        ("lorenz-continuous-v0", dict(reward_width=[1.0, 1.0], rho=[28.0, 1e6]), dict(reward_width=[1.0], rho=[28.0])),
+        ("lorenz-continuous-v0", dict(reward_width=[1.0, 1.0], scale=1e30), dict(reward_width=[1.0])),
+        ("sloshing-v0", dict(amp=[5.0, 5.0], scale=1e30), dict(amp=[5.0])),
+    ],
+)
+def test_a_blown_up_member_adds_zero_not_nan_to_shared_gradients(env_id, blown, alone):
+    (grad,), ended = differentiated_grads(env_id, 20, **blown)
+    assert ended.tolist() == [False, True], "the second member did not blow up"
+    (reference,), _ = differentiated_grads(env_id, 20, **alone)
+    assert torch.isfinite(grad) and grad != 0
+    assert torch.allclose(grad, reference, rtol=1e-10, atol=0), (grad, reference)
+
+
+def test_a_blown_up_member_adds_zero_to_a_parameter_the_batch_shares_and_to_its_own():
+    rho = torch.tensor([28.0, 1e6], dtype=torch.float64, requires_grad=True)
+    (_, g_rho), ended = differentiated_grads("lorenz-continuous-v0", 20, shared=rho, reward_width=[1.0, 1.0], rho=rho)
+    assert ended.tolist() == [False, True] and torch.isfinite(g_rho).all() and g_rho[1] == 0 and g_rho[0] != 0
+    alone = torch.tensor([28.0], dtype=torch.float64, requires_grad=True)
+    (_, g_alone), _ = differentiated_grads("lorenz-continuous-v0", 20, shared=alone, reward_width=[1.0], rho=alone)
+    assert torch.allclose(g_rho[:1], g_alone, rtol=1e-10, atol=0)
+
+
+def test_a_blown_up_member_steps_as_without_gradients():
+    """The retaken step draws the same noise: with and without a graph, the rewards of
+    a batch with a blown-up member are the same."""
+    rewards = []
+    for differentiable in (True, False):
+        env = beacon_torch.make("burgers-v0", 2, dtype="float64", seed=4, differentiable=differentiable)
+        env.reset()
+        env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in env.state.items()})
+        action = torch.full((2, 1), 0.3, dtype=torch.float64, requires_grad=differentiable)
+        rewards.append(torch.stack([env.step_members(action)[1] for _ in range(5)]).detach())
+    assert torch.equal(*rewards)
+
+
+# ---------------------------------------------------------------- one clear error each
+def test_cli_bad_inputs_are_one_line_with_status_2(ppo_run, tmp_path, capsys):
+    def one_line(argv, words):
+        assert cli(argv) == 2
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1, err
+
+    one_line(["eval", str(ppo_run), "--device", "meta", "--no-gif"], "meta")
+    one_line(["plot", str(tmp_path / "nothing"), "--out", str(tmp_path / "p.png")], "not a run directory")
+    run = copy_run(ppo_run, tmp_path / "run")
+    (run / "ppo" / "scalars" / "episode_score.csv").write_text("step,value\n")
+    one_line(["plot", str(run), "--out", str(tmp_path / "p.png")], "episode_score.csv, line 1")
+    with pytest.raises(SystemExit) as exit_:
+        reproduce.main(["train", "--envs", "lorenz-v0", "--seeds", "0"])
+    assert exit_.value.code == 2 and "--seeds: expects a positive integer" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        reproduce.main(["publish", str(tmp_path / "nothing")])
+    assert exit_.value.code == 2 and "reproduce: error:" in capsys.readouterr().err
+
+
+def test_a_replay_buffer_that_cannot_fit_on_the_disk_is_one_clear_error(tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    monkeypatch.setattr(files, "free_bytes", lambda folder: 1000)
+    with pytest.raises(OSError, match="no room to save the replay buffer"):
+        td3.main(configure(TD3Config, "vortex-v0", out=str(run), **{**TD3, "checkpoint_every": 1}))
+    assert not (run / "buffer").exists() and not list(run.glob(".*partial"))
+
+
+@pytest.mark.parametrize(
+    "record, words",
+    [({"weights": "nan"}, "non-finite"), ({"env": "vortex-v0"}, "a policy of vortex-v0, not of lorenz-v0"), ({"hidden": 10**5}, "width"), ({"network": "builtins.eval"}, "unknown")],
+)
+def test_policy_files_are_checked_before_use(tmp_path, record, words):
+    shipped = pretrained._read(pretrained.shipped("ppo", "lorenz-v0"))
+    forged = dict(shipped)
+    for key, value in record.items():
+        if value == "nan":
+            forged["weights"] = {k: torch.full_like(v, float("nan")) if v.is_floating_point() else v for k, v in shipped["weights"].items()}
+        else:
+            forged[key] = value
+    file = tmp_path / "policy.pt"
+    torch.save(forged, file)
+    with pytest.raises(ValueError, match=words) as err:
+        pretrained.load_file(file, "lorenz-v0")
+    assert str(file) in str(err.value)
+
+
+def test_a_tampered_policy_file_is_named_and_a_policy_on_another_env_says_so(tmp_path):
+    file = tmp_path / "policy.pt"
+    file.write_bytes(pretrained.shipped("ppo", "lorenz-v0").read_bytes()[:500])
+    with pytest.raises(ValueError, match=f"{file}: unreadable policy file"):
+        pretrained.load_file(file)
+    policy = pretrained.load("ppo", "lorenz-v0")
+    env = beacon_torch.make("vortex-v0", 2)
+    with pytest.raises(ValueError, match="trained on lorenz-v0 \\(6 observations\\); it was given 8"):
+        policy(env.reset())
+
+
+def test_a_non_tensor_action_is_a_type_error_not_a_hang():
+    env = beacon_torch.make("lorenz-v0", 2)
+    td = env.reset()
+    td.set_non_tensor("action", [1, 1])
+    signal.alarm(30)  # the failure this guards against is a hang
+    try:
+        with pytest.raises(TypeError, match="the action must be a tensor"):
+            env.step(td)
+    finally:
+        signal.alarm(0)
+
+
+def test_masks_states_and_devices_of_the_wrong_kind_are_named():
+    env = beacon_torch.make("vortex-v0", 2)
+    td = env.reset()
+    td["action"] = torch.zeros(2, 2)
+    with pytest.raises(TypeError, match="'_step' mask must be a bool tensor"):
+        env.step(td.set("_step", torch.ones(2, 1)))
+    with pytest.raises(ValueError, match="device 'meta'"):
+        beacon_torch.make("vortex-v0", 2, device="meta")
+    # another device: refused, whether this machine has it or not
+    with pytest.raises(ValueError, match="stays on the device it was made on|cannot be used on this machine"):
+        env.to("cuda")
+    with pytest.raises(ValueError, match="meta"):
+        env.to("meta")
+    assert env.to("cpu") is env
+    state = {k: v.to(torch.int64) for k, v in env.state.items()}
+    obs = env.set_state(state)
+    assert obs.dtype == torch.float32 and env.state["ay"].dtype == torch.float32
+    with pytest.raises(TypeError, match="real numbers"):
+        env.set_state({k: v.to(torch.complex64) for k, v in env.state.items()})
+    env.close()
+    with pytest.raises(RuntimeError, match="closed env"):
+        env.step(td)
+    with pytest.raises(RuntimeError, match="closed env"):
+        env.reset()
+
+
+def test_gradients_that_would_be_dropped_warn():
+    rho = torch.tensor(28.0, requires_grad=True)
+    with pytest.warns(UserWarning, match="parameter\\(s\\) \\['rho'\\] require grad but the env is not differentiable"):
+        env = beacon_torch.make("lorenz-v0", 2, rho=rho)
+    env.reset()
+    with pytest.warns(UserWarning, match="require grad but the env is not differentiable"):
+        env.set_state({k: v.clone().requires_grad_() for k, v in env.state.items()})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        beacon_torch.make("lorenz-v0", 2, rho=rho, differentiable=True)
+
+
+@settings(max_examples=40, deadline=None)
+@given(value=st.floats(min_value=1e-320, max_value=1e-38))
+def test_a_parameter_the_precision_takes_out_of_range_is_refused(value):
+    try:
+        env = beacon_torch.make("vortex-v0", 1, re=value)
+    except ValueError as err:
+        assert "becomes" in str(err) and "float32" in str(err) and torch.tensor(value, dtype=torch.float32).item() == 0.0
+    else:
+        assert env.params.re.item() > 0
+
+
+def test_a_member_at_the_published_gravity_starts_from_the_published_state():
+    mixed = beacon_torch.make("sloshing-v0", 2, g=[5.0, 9.81], dtype="float64")
+    mixed.reset()
+    for g, row in ((9.81, 1), (5.0, 0)):
+        alone = beacon_torch.make("sloshing-v0", 1, g=g, dtype="float64")
+        alone.reset()
+        assert all(torch.equal(mixed.state[k][row], alone.state[k][0]) for k in alone.state)
+
+
+def test_huge_batches_are_refused_before_allocating_and_envs_pickle():
+    with pytest.raises(ValueError, match="members need about .* at most about"):
+        beacon_torch.make("mixing-v0", 2**24)
+    env = beacon_torch.make("burgers-v0", 2, seed=3)
+    copy = pickle.loads(pickle.dumps(env))
+    rewards = []
+    for e in (env, copy):
+        e.reset()
+        rewards.append(torch.stack([e.step_members(e.null_action())[1] for _ in range(3)]))
+    assert torch.equal(*rewards)
+
+
+def test_state_dict_continues_an_episode_bit_for_bit():
+    env = beacon_torch.make("burgers-v0", 3, seed=1)
+    env.reset()
+    for _ in range(5):
+        env.step_members(env.null_action())
+    saved = env.state_dict()
+    assert {"count", "rng", "state.u"} <= set(saved)
+    other = beacon_torch.make("burgers-v0", 3, seed=99)
+    other.load_state_dict(saved)
+    assert torch.equal(other.step_count, env.step_count)
+    for _ in range(5):
+        assert torch.equal(env.step_members(env.null_action())[1], other.step_members(other.null_action())[1])
+    with pytest.raises(KeyError, match="unknown entries"):
+        other.load_state_dict({**saved, "extra": torch.zeros(1)})
+
+
+def test_adapters_refuse_what_they_cannot_honour():
+    import gymnasium
+
+    import beacon_torch.gym  # noqa: F401
+    from beacon_torch.sb3 import BeaconVecEnv
+
+    with pytest.raises(ValueError, match="cannot change it"):
+        gymnasium.make("beacon/burgers-v0", env_id="lorenz-v0")
+    venv = gymnasium.make_vec("beacon/lorenz-v0", num_envs=2)
+    venv.reset(seed=[3, 4])
+    with pytest.raises(ValueError, match="share one random stream"):
+        venv.reset(seed=[0, 99])
+    sb3 = BeaconVecEnv("sloshing-v0", n_envs=2)
+    for name, value in (("n_envs", 3), ("amp", 1e9), ("dtype", torch.float16)):
+        with pytest.raises(AttributeError, match="not settable|a parameter of the env"):
+            sb3.set_attr(name, value)
+    with pytest.raises(TypeError, match="True or False"):
+        sb3.set_attr("check_actions", "no")
+    sb3.set_attr("render_index", 1)
+    for seed in ("a", 1.5, -1):
+        with pytest.raises((TypeError, ValueError), match="seed must be an integer"):
+            sb3.seed(seed)
+
+
+def test_the_cache_ignores_an_empty_path_and_leaves_no_temporary_file(tmp_path, monkeypatch):
+    from beacon_torch import cache
+
+    monkeypatch.setenv("BEACON_TORCH_CACHE", "")
+    assert cache.cache_dir() == Path.home() / ".cache" / "beacon-torch"
+    blocked = tmp_path / "blocked"
+    (blocked / "x.pt").mkdir(parents=True)  # a folder where the file should go
+    with pytest.raises(OSError):
+        cache.save({"a": torch.zeros(2)}, blocked / "x.pt")
+    assert sorted(p.name for p in blocked.iterdir()) == ["x.pt"]
+    np.testing.assert_equal(len(list(blocked.rglob("*"))), 1)
