@@ -294,6 +294,31 @@ def test_any_forged_checkpoint_field_is_one_clear_error(key, value):
         assert str(err).startswith("forged.pt: not a checkpoint of a run (")
 
 
+def test_a_tampered_replay_buffer_is_named(tmp_path):
+    run = tmp_path / "run"
+    td3.main(configure(TD3Config, "vortex-v0", out=str(run), **TD3))
+    meta = next((run / "buffer").rglob("*.json"))
+    meta.write_bytes(b"{" * len(meta.read_bytes()))  # the size it had: only its reading can tell
+    with pytest.raises(BadRun, match="unreadable replay buffer"):
+        td3.main(configure(TD3Config, "vortex-v0", out=str(run), resume=True, **{**TD3, "frames": 384}))
+
+
+SUMMARY_KEYS = ["env", "algo", "seeds", "uncontrolled", "frames", "wall_s_per_seed", "train_mean"]
+
+
+@settings(max_examples=150, deadline=None)
+@given(key=st.sampled_from(SUMMARY_KEYS), value=st.one_of(JUNK, st.lists(st.fixed_dictionaries({"eval": JUNK}), max_size=2)))
+def test_any_forged_summary_field_is_one_clear_error(key, value):
+    summary = {**summary_of(train_mean=-1.5), key: value}
+    try:
+        report.check_summary(summary, "forged.json")
+    except ValueError as err:
+        assert str(err).startswith("forged.json: not a summary of trained seeds (")
+    else:
+        report.row(summary)  # what passes is scored without error or NaN
+        assert np.isfinite(report.row(summary)["iqm"])
+
+
 # ---------------------------------------------------------------- no NaN as a result
 def test_a_diverging_training_stops_and_keeps_its_last_good_checkpoint(tmp_path):
     settings_ = dict(frames=640, frames_per_batch=64, num_envs=4, updates_per_batch=16, batch_size=32, hidden=16, progress=False, logger="csv", checkpoint_every=1)

@@ -349,7 +349,10 @@ class Run:
         # the transitions the checkpoint counted, oldest first (the buffer may hold more:
         # a stop between its save and the checkpoint's), into a buffer of the resumed size
         saved = type(buffer)(storage=type(buffer.storage)(self.counters["buffer_capacity"], device=buffer.storage.device))
-        saved.loads(folder)
+        try:
+            saved.loads(folder)
+        except Exception as err:  # a tampered or foreign buffer: TorchRL's own errors name no file
+            raise BadRun(f"{folder}: unreadable replay buffer ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); resume from a copy of the run or start it again") from None
         n = self.counters["buffer_len"]
         if len(saved) < n:
             raise ValueError(f"{folder}: the replay buffer holds {len(saved)} transitions, the checkpoint counted {n}: it is damaged")
