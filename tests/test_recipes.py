@@ -418,6 +418,10 @@ def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
 
 def test_config_module_is_the_one_place_of_the_algorithms():
     assert set(CONFIGS) == {"ppo", "td3", "dqn", "grad"}
+    # the algorithms a checkpoint may name, which the package checks without the recipes
+    from beacon_torch.training.run import ALGORITHMS as RECORDED
+
+    assert set(RECORDED) == set(CONFIGS)
     assert {algo for algos in ALGORITHMS.values() for algo in algos} <= set(CONFIGS)
     assert config.paper_frames("shkadov-separable-v0") == 200_000
 

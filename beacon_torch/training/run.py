@@ -160,9 +160,9 @@ def seed_dirs(run: str | Path) -> list[Path]:
 
 def holds_run(folder: str | Path, algo: str) -> str:
     """What in ``folder`` belongs to a run ("" when nothing does): its checkpoint,
-    its logs or its replay buffer."""
+    its logs, its replay buffer or its curve."""
     folder = Path(folder)
-    found = [name for name in (CHECKPOINT, algo, "buffer", "buffer.old") if (folder / name).exists() or (folder / name).is_symlink()]
+    found = [name for name in (CHECKPOINT, algo, "buffer", "buffer.old", "learning_curve.png") if (folder / name).exists() or (folder / name).is_symlink()]
     return ", ".join(found)
 
 
