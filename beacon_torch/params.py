@@ -186,28 +186,33 @@ def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
         checked = [_check_scalar(name, v, m, f"[{i}]") for i, v in enumerate(values)]
         return _member_tensor(name, checked, m, device, dtype)
     value = _check_scalar(name, value, m)
-    return _member_tensor(name, [value] * n, m, device, dtype) if m["per_member"] else value
+    return _member_tensor(name, [value], m, device, dtype, repeat=n) if m["per_member"] else value
 
 
-def _member_tensor(name: str, values: list, m, device, dtype) -> torch.Tensor:
-    """One value per member as a tensor of the parameter's kind, whose values (after
-    the cast to the env's precision) are still admissible."""
+def _member_tensor(name: str, values: list, m, device, dtype, repeat: int = 1) -> torch.Tensor:
+    """One value per member (``values``, each repeated ``repeat`` times) as a tensor of
+    the parameter's kind, whose values (after the cast to the env's precision) are still
+    admissible."""
     if m["kind"] == "int":
-        return torch.tensor(values, dtype=torch.int64, device=device)
+        return torch.tensor(values, dtype=torch.int64, device=device).repeat(repeat)
     if m["kind"] == "complex":
         dtype = torch.complex128 if dtype == torch.float64 else torch.complex64
-    return _still_admissible(name, torch.tensor(values, dtype=dtype, device=device), values, m)
+    return _still_admissible(name, torch.tensor(values, dtype=dtype, device=device), values, m).repeat(repeat)
 
 
 def _still_admissible(name: str, tensor: torch.Tensor, given: list, m) -> torch.Tensor:
     """``tensor`` (``given`` cast to a precision), refused where the cast took a value
-    out of the parameter's range (``re=1e-300`` is 0 in float32)."""
-    for value, cast in zip(given, tensor.detach().cpu().reshape(-1).tolist(), strict=True):
-        if cast != value:
-            try:
-                _check_scalar(name, cast, m)
-            except ValueError as err:
-                raise ValueError(f"parameter {name!r} = {value!r} becomes {cast!r} in {tensor.dtype} ({err}); use float64 or another value") from None
+    out of the parameter's range (``re=1e-300`` is 0 in float32, ``1e39`` infinite)."""
+    size = tensor.detach().abs() if tensor.is_complex() else tensor.detach()
+    bad = ~torch.isfinite(size)
+    if m["low"] is not None:
+        bad |= size <= m["low"] if m["low_open"] else size < m["low"]
+    if m["high"] is not None:
+        bad |= size >= m["high"] if m["high_open"] else size > m["high"]
+    if bool(bad.any()):
+        i = int(bad.reshape(-1).nonzero()[0, 0])
+        cast = tensor.detach().reshape(-1)[i].item()
+        raise ValueError(f"parameter {name!r} = {given[i]!r} becomes {cast!r} in {tensor.dtype} (its range is {_range_text(m)}); use float64 or another value")
     return tensor
 
 
