@@ -14,25 +14,10 @@ def graph_mode(differentiable: bool) -> contextlib.AbstractContextManager:
     return contextlib.nullcontext() if differentiable else torch.no_grad()
 
 
-def checkpointed(step: Callable, rng: torch.Generator, *tensors):
+def checkpointed(step: Callable, *tensors):
     """``step(*tensors)`` under activation checkpointing: the memory of a differentiated
-    episode becomes one state per action. The recomputation in the backward pass must
-    draw the same noise as the step did, from the env's generator ``rng``, and leave
-    the generator where the episode has since taken it."""
+    episode becomes one state per action. The step draws nothing itself (its noise is
+    among ``tensors``), so its recomputation in the backward pass is the same step."""
     from torch.utils.checkpoint import checkpoint
 
-    drawn_from = rng.get_state()
-    calls = []
-
-    def run(*tensors):
-        if not calls:
-            calls.append(1)
-            return step(*tensors)
-        now = rng.get_state()
-        rng.set_state(drawn_from)
-        try:
-            return step(*tensors)
-        finally:
-            rng.set_state(now)
-
-    return checkpoint(run, *tensors, use_reentrant=False)
+    return checkpoint(step, *tensors, use_reentrant=False)

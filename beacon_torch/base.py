@@ -14,18 +14,24 @@ dict of state tensors (each with a leading batch dimension):
 ``initial_state(mask)``
     the state at the start of an episode for the whole batch (``mask`` says which members
     are being reset, so that costly starts can restrict their work);
-``advance(state, action, count)``
+``advance(state, action, count, noise)``
     the state after one action and the reward earned by it (``[batch]``, or
     ``[batch, n_agents]`` for multi-agent variants); ``count`` is the number of actions
-    already taken in the episode, per member;
+    already taken in the episode, per member, and ``noise`` what ``noise()`` drew;
 ``observe(state)``
     the observation tensor ``[batch, n_obs]`` (``[batch, n_agents, n_obs]``);
 ``null_action()``
     the "no control" action of the benchmark, for the whole batch.
 
 and optionally ``setup()`` (grid and kernels derived from the parameters, before the
-specs are built; substeps go through ``self.kernels``) and ``out_of_bounds(state)``
-(physical bounds beyond finiteness).
+specs are built; substeps go through ``self.kernels``), ``noise()`` (the random numbers
+of one action, drawn from the env's generator: a dict of tensors, empty for
+deterministic physics) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
+
+Compiled, a whole step (the action's substeps, the reward, the observation and the
+blow-up bookkeeping) is one graph and one call, its substep loop a ``while_loop``
+(``Kernels.loop``); the random numbers are drawn before it, which is why they come
+from ``noise()`` rather than from inside ``advance``.
 
 With ``differentiable=True`` the steps keep the autograd graph through the state, so the
 rewards can be differentiated with respect to the actions, to parameters given as
@@ -145,6 +151,23 @@ def where_members(mask: torch.Tensor, a: State, b: State) -> State:
     return {key: select(mask, va, b[key]) for key, va in a.items()}
 
 
+def _standard(t):
+    """``t`` (a tensor or a dict of them) in standard strides, as a step leaves its
+    results: a compiled step is specialised on its inputs' strides, and a start's
+    views (a slice, a member of size one) would otherwise compile it again."""
+    if isinstance(t, dict):
+        return {k: _standard(v) for k, v in t.items()}
+    return t if t.stride() == _strides(t.shape) else t.clone(memory_format=torch.contiguous_format)
+
+
+def _strides(shape) -> tuple[int, ...]:
+    out, step = [], 1
+    for size in reversed(shape):
+        out.append(step)
+        step *= size
+    return tuple(reversed(out))
+
+
 def _finite_members(t: torch.Tensor) -> torch.Tensor:
     return torch.isfinite(t).flatten(1).all(1) if t.ndim > 1 else torch.isfinite(t)
 
@@ -182,17 +205,10 @@ class FlowEnv(EnvBase):
     # False where the physics draws from the env's generator (noisy inflows, random
     # starts): members then depend on the seed and on the batch size
     deterministic: ClassVar[bool] = True
-    # inductor options of the compiled path (compile()); the cavities' graphs gain from
-    # a C++ wrapper, which costs the small 1-D graphs more compile time than it saves
-    inductor_options: ClassVar[dict] = {}
-    # whether a compiled substep is one graph; False where part of it must stay eager
-    # (the cavities' transport sweep), which torch.compile then runs between graphs
-    compile_fullgraph: ClassVar[bool] = True
-    # whether, compiled, a whole step (the action's substeps, the reward, the
-    # observation and the blow-up bookkeeping) is one graph: for the envs of few
-    # substeps and no random draws, where at small batches the fixed cost of each
-    # compiled call and eager operation outweighs the physics
-    compile_whole_step: ClassVar[bool] = False
+    # inductor options of the compiled path (compile()): with the C++ wrapper a compiled
+    # call costs a few microseconds instead of tens, and a while_loop's iteration runs
+    # in C++ rather than in the generated Python wrapper
+    inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
 
     def __init__(
         self,
@@ -234,7 +250,7 @@ class FlowEnv(EnvBase):
         # recompute each action's substeps in the backward pass instead of keeping them
         self.grad_checkpoint = grad_checkpoint
         self._warned_grad = False
-        self.kernels = Kernels(self.inductor_options, self.compile_fullgraph)
+        self.kernels = Kernels(self.inductor_options)
         self.history = History(record_history)
         self._settle = self.kernels(settle)
         self._whole_step = self.kernels(self._step_core)
@@ -345,6 +361,11 @@ class FlowEnv(EnvBase):
     def null_action(self) -> torch.Tensor:
         raise NotImplementedError
 
+    def noise(self) -> State:
+        """The random numbers one action of the whole batch uses, drawn from
+        ``self.rng`` (none for deterministic physics)."""
+        return {}
+
     def member_floats(self) -> int:
         """About how many numbers one member's state holds, once ``setup()`` has run
         (what the memory of a batch is estimated from; fields override it)."""
@@ -439,6 +460,30 @@ class FlowEnv(EnvBase):
         Continuous actions are clipped to [-1, 1]; NaN/inf, a wrong shape or a
         non-floating dtype raise. Discrete actions must be integers in [0, n).
         """
+        action = self._action_form(action)
+        taken, valid = self._action_values(action)
+        if self.check_actions and not bool(valid):
+            self._refuse_values(action)
+        return taken
+
+    def _action_values(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The action as the physics takes it (continuous: clipped to the spec, as
+        exploration noise leaves the box and the actuators saturate; discrete: kept in
+        range, so that no table is indexed out of it) and whether all its values are
+        admissible (a 0-dim bool tensor: read once, after a compiled step)."""
+        if self.discrete:
+            return action.clamp(0, self.n_actions - 1), ((action >= 0) & (action < self.n_actions)).all()
+        return action.clamp(-1.0, 1.0), torch.isfinite(action).all()
+
+    def _refuse_values(self, action: torch.Tensor) -> None:
+        name = self.env_id or type(self).__name__
+        if self.discrete:
+            raise ValueError(f"{name}: action values must be in [0, {self.n_actions - 1}], got {action.tolist()}")
+        raise ValueError(f"{name}: action contains NaN or inf; expected shape {(*self.batch_size, *self.action_shape)} with values in [-1, 1]")
+
+    def _action_form(self, action: Any) -> torch.Tensor:
+        """The action batch as a tensor of the env's device and dtype, its type and
+        shape checked (its values are checked by :meth:`_action_values`)."""
         B = tuple(self.batch_size)
         name = self.env_id or type(self).__name__
         if action is None:
@@ -457,21 +502,13 @@ class FlowEnv(EnvBase):
                 raise TypeError(f"{name}: action must be an integer tensor of {expected}, got dtype {action.dtype}")
             if tuple(action.shape) != shape:
                 raise ValueError(f"{name}: action must have {expected}, got shape {tuple(action.shape)}")
-            action = action.to(device=self.device, dtype=torch.int64)
-            if self.check_actions and bool(((action < 0) | (action >= self.n_actions)).any()):
-                raise ValueError(f"{name}: action values must be in [0, {self.n_actions - 1}], got {action.tolist()}")
-            return action
+            return action.to(device=self.device, dtype=torch.int64)
         expected = f"shape {shape} with values in [-1, 1]"
         if not action.is_floating_point():
             raise TypeError(f"{name}: action must be a floating tensor of {expected}, got dtype {action.dtype}")
         if tuple(action.shape) != shape:
             raise ValueError(f"{name}: action must have {expected}, got shape {tuple(action.shape)}")
-        action = action.to(device=self.device, dtype=self.dtype)
-        if self.check_actions and not bool(torch.isfinite(action).all()):
-            raise ValueError(f"{name}: action contains NaN or inf; expected {expected}")
-        # Out-of-range values are clipped to the spec rather than rejected: exploration
-        # noise routinely leaves the box and the benchmark's actuators saturate.
-        return action.clamp(-1.0, 1.0)
+        return action.to(device=self.device, dtype=self.dtype)
 
     # ------------------------------------------------------------------ gradients
     def detach_state(self) -> None:
@@ -522,9 +559,9 @@ class FlowEnv(EnvBase):
                 obs = self.observe(state)
             except KeyError as err:
                 raise KeyError(f"{name}: set_state got a state without {err}") from None
-        self._state, self._obs = state, obs
+        self._state, self._obs = _standard(state), _standard(obs)
         self._count = count.expand(self.batch_size).clone()
-        return obs
+        return self._obs
 
     # ------------------------------------------------------------------ the step itself
     # TorchRL's ``reset``/``step`` and the gymnasium and Stable-Baselines3 adapters all
@@ -565,7 +602,7 @@ class FlowEnv(EnvBase):
                 f"{self.env_id}: the initial state of batch member(s) {bad} is not finite; "
                 f"check their parameters ({self.params})"
             )
-        self._obs = obs
+        self._state, self._obs = _standard(self._state), _standard(obs)
         self.history.reset(self._state, mask)
         return obs
 
@@ -581,45 +618,75 @@ class FlowEnv(EnvBase):
         if isinstance(action, torch.Tensor) and action.requires_grad and not self.differentiable and not self._warned_grad:
             self._warned_grad = True
             warnings.warn(f"{self.env_id}: the action requires grad but the env is not differentiable; its gradient is dropped (make(..., differentiable=True) keeps it)", stacklevel=3)
-        action = self.check_action(action)
+        action = self._action_form(action)
         if stepping is not None:
             if not isinstance(stepping, torch.Tensor) or stepping.dtype != torch.bool:
                 raise TypeError(f"{self.env_id}: the '_step' mask must be a bool tensor, got {getattr(stepping, 'dtype', type(stepping).__name__)}")
             if stepping.numel() != self.n_envs:
                 raise ValueError(f"{self.env_id}: the '_step' mask must have one entry per member ({self.n_envs}), got shape {tuple(stepping.shape)}")
-        old = self._state
+            stepping = stepping.reshape(self.batch_size).to(self.device)
+        with torch.no_grad():
+            noise = self.noise()
         with graph_mode(self.differentiable):
-            if self.compile_whole_step and self.kernels.options is not None and not torch.is_grad_enabled():
-                new, obs, reward, ok = self._whole_step(old, self._obs, action, self._count)
-            elif self.differentiable and torch.is_grad_enabled():
-                new, obs, reward, ok = self._differentiated_step(old, action)
+            if self.differentiable and torch.is_grad_enabled():
+                out = self._graph_step(self._state, self._obs, action, self._count, noise, stepping)
             else:
-                new, obs, reward, ok = self._settled_step(self.advance, old, action)
-            count = self._count + 1
-            if stepping is not None:
-                stepping = stepping.reshape(self.batch_size).to(self.device)
-                new = where_members(stepping, new, old)
-                obs = select(stepping, obs, self._obs)
-                reward = select(stepping, reward, torch.zeros_like(reward))
-                ok = ok | ~stepping
-                count = torch.where(stepping, count, self._count)
+                # compiled, this is one call: the checks of the action's values, the
+                # physics, the blow-up bookkeeping and the counters
+                out = self._whole_step(self._state, self._obs, action, self._count, noise, stepping)
+        new, obs, reward, terminated, truncated, count, valid = out
+        if self.check_actions and not bool(valid):
+            self._refuse_values(action)
         self._state, self._obs, self._count = new, obs, count
         self.history.append(new)
-        return obs, reward, ~ok, count >= self.episode_length
+        return obs, reward, terminated, truncated
 
-    def _settled_step(self, advance, old: State, action: torch.Tensor, inside: torch.Tensor | None = None, start: State | None = None):
+    def _step_core(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor, noise: State, stepping: torch.Tensor | None):
+        """A whole step as one function of tensors, what the compiled path runs as one
+        graph (the env's own kernels and substep loops run inline): the action's
+        values, the physics, :func:`settle` and the counters. Returns ``(state,
+        observation, reward, terminated, truncated, count, valid)``, ``valid`` whether
+        the action's values were admissible (the caller refuses them otherwise, before
+        anything is kept)."""
+        action, valid = self._action_values(action)
+        new, reward = self.advance(old, action, count, noise)
+        out = settle(new, old, self.observe(new), old_obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
+        return (*self._bookkept(old, old_obs, count, stepping, *out), valid)
+
+    def _graph_step(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor, noise: State, stepping: torch.Tensor | None):
+        """:meth:`_step_core` keeping the autograd graph (differentiable mode), its
+        action checked first: a blow-up must not reach the other members' gradients."""
+        action, valid = self._action_values(action)
+        if self.check_actions and not bool(valid):
+            self._refuse_values(action)
+        out = self._differentiated_step(old, action, noise)
+        return (*self._bookkept(old, old_obs, count, stepping, *out), valid)
+
+    def _bookkept(self, old: State, old_obs: torch.Tensor, count: torch.Tensor, stepping: torch.Tensor | None, new: State, obs: torch.Tensor, reward: torch.Tensor, ok: torch.Tensor):
+        """A settled step's results with the members outside ``stepping`` left as they
+        were: ``(state, observation, reward, terminated, truncated, count)``."""
+        after = count + 1
+        if stepping is not None:
+            new = where_members(stepping, new, old)
+            obs = select(stepping, obs, old_obs)
+            reward = select(stepping, reward, torch.zeros_like(reward))
+            ok = ok | ~stepping
+            after = torch.where(stepping, after, count)
+        return new, obs, reward, ~ok, after >= self.episode_length, after
+
+    def _settled_step(self, advance, old: State, action: torch.Tensor, noise: State, inside: torch.Tensor | None = None, start: State | None = None):
         """``advance`` from ``start`` (default ``old``) and :func:`settle`: a member
         that left its bounds (or is not ``inside``) keeps its last finite state ``old``
         and observation and ends its episode; the others are untouched."""
         start = old if start is None else start
         if self.grad_checkpoint and torch.is_grad_enabled():
-            new, reward = checkpointed(advance, self.rng, start, action, self._count)
+            new, reward = checkpointed(advance, start, action, self._count, noise)
         else:
-            new, reward = advance(start, action, self._count)
+            new, reward = advance(start, action, self._count, noise)
         bounds = ~self.out_of_bounds(new)
         return self._settle(new, old, self.observe(new), self._obs, reward, bounds if inside is None else bounds & inside, float(self.blowup_reward))
 
-    def _differentiated_step(self, old: State, action: torch.Tensor):
+    def _differentiated_step(self, old: State, action: torch.Tensor, noise: State):
         """A step that keeps its graph. A member that blows up keeps its last state, but
         its own backward pass would still multiply a zero gradient by an infinite
         derivative (0 * inf = NaN), which would reach the gradients of every other
@@ -627,8 +694,7 @@ class FlowEnv(EnvBase):
         step is taken again, with the same noise, from inputs where the members that
         blew up are given a copy of a sound member's (detached) state, action and
         parameters: their discarded result is then finite, and they contribute zero."""
-        drawn_from = self.rng.get_state()
-        new, obs, reward, ok = self._settled_step(self.advance, old, action)
+        new, obs, reward, ok = self._settled_step(self.advance, old, action, noise)
         if bool(ok.all()):
             return new, obs, reward, ok
         if not bool(ok.any()):  # nothing to differentiate but the states kept
@@ -637,27 +703,20 @@ class FlowEnv(EnvBase):
         stand_in = lambda t: select(ok, t, t[donor : donor + 1].detach().expand_as(t))
         per_member = {name: stand_in(v) for name, v in vars(self.params).items() if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.n_envs}
         params = dataclasses.replace(self.params, **per_member)
-        self.rng.set_state(drawn_from)
-        return self._settled_step(self._with_params(params), old, stand_in(action), ok, {k: stand_in(v) for k, v in old.items()})
+        return self._settled_step(self._with_params(params), old, stand_in(action), noise, ok, {k: stand_in(v) for k, v in old.items()})
 
     def _with_params(self, params):
         """``advance`` run with ``params`` in place of the env's own (in the backward
         pass's recomputation too)."""
 
-        def advance(state, action, count):
+        def advance(state, action, count, noise):
             own, self.params = self.params, params
             try:
-                return self.advance(state, action, count)
+                return self.advance(state, action, count, noise)
             finally:
                 self.params = own
 
         return advance
-
-    def _step_core(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor):
-        """A whole step as one function, for ``compile_whole_step`` envs: the physics
-        (whose own kernels then run inline) and :func:`settle`."""
-        new, reward = self.advance(old, action, count)
-        return settle(new, old, self.observe(new), old_obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
 
     # ------------------------------------------------------------------ TorchRL API
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:

@@ -47,12 +47,10 @@ _LIMIT = _RecompileLimit()
 
 class Kernels:
     """The compiled kernels of one env. ``inductor_options`` are the env class's
-    defaults for inductor; ``fullgraph`` whether each kernel must compile to one graph
-    (False where part of it stays eager on purpose)."""
+    defaults for inductor."""
 
-    def __init__(self, inductor_options: dict | None = None, fullgraph: bool = True) -> None:
+    def __init__(self, inductor_options: dict | None = None) -> None:
         self.inductor_options = dict(inductor_options or {})
-        self.fullgraph = fullgraph
         # the ``torch.compile`` options, None while the kernels run eagerly
         self.options: dict | None = None
         self._cache: dict[Callable, Callable] = {}
@@ -62,7 +60,7 @@ class Kernels:
         dtype): one fused graph with static shapes (``fullgraph``, ``dynamic=False``)
         unless ``kwargs`` (``torch.compile`` options) say otherwise."""
         given = kwargs.pop("options", {})
-        self.options = {"fullgraph": self.fullgraph, "dynamic": False, **kwargs}
+        self.options = {"fullgraph": True, "dynamic": False, **kwargs}
         # torch.compile takes a mode or inductor options, not both: a mode asked for
         # replaces the env's default options (options given with it are torch's to refuse)
         options = given if "mode" in kwargs else {**self.inductor_options, **given}
@@ -81,6 +79,19 @@ class Kernels:
         not constants)."""
         return _Kernel(self, _Unrolled(fn, unroll) if unroll > 1 else fn)
 
+    def loop(self, fn: Callable) -> Callable:
+        """``fn(i, carried, *inputs) -> carried`` (a substep, ``i`` its index in the
+        action: an int, or a 0-dim int64 tensor inside a graph) applied for
+        ``i = 0, ..., n - 1``; the returned function takes ``(n, carried, *inputs)``.
+        Eagerly, and wherever autograd records, it is a Python loop over ``fn`` (each
+        call compiled after :meth:`compile`); inside a compiled step, or compiled and
+        without a graph to keep, it is one ``while_loop``: the whole loop in one
+        compiled call whose code does not grow with ``n``. ``fn`` must not
+        return an input unchanged (higher-order ops refuse aliases), and what
+        it reads per substep it takes with :func:`at` (an eager int and a traced
+        tensor pick the same values)."""
+        return _Loop(self, fn)
+
     def __getstate__(self) -> dict:
         # compiled code is this process's: a copy of the env (pickled for another
         # process) compiles its own on its first call
@@ -97,6 +108,71 @@ class _Unrolled:
         for _ in range(self.unroll):
             state = self.fn(state, *args, **kwargs)
         return state
+
+
+class _Loop:
+    """A substep loop as :meth:`Kernels.loop` returns it."""
+
+    def __init__(self, kernels: Kernels, fn: Callable) -> None:
+        self.kernels, self.fn = kernels, fn
+        self._step = _Kernel(kernels, fn)
+        self._whole = _Kernel(kernels, self._graph)
+
+    def __call__(self, n: int, carried, *inputs):
+        if self.kernels.options is None or _records(carried, inputs):
+            for i in range(n):
+                carried = self._step(i, carried, *inputs)
+            return carried
+        if torch.compiler.is_compiling():
+            return self._graph(n, carried, *inputs)
+        return self._whole(n, carried, *inputs)
+
+    def _graph(self, n: int, carried, *inputs):
+        from torch._higher_order_ops import while_loop
+
+        fn = self.fn
+
+        def body(i, carried):
+            given = torch.utils._pytree.tree_leaves(carried)
+            # a carried value handed on unchanged is copied: the loop's body may not
+            # return its own input
+            out = torch.utils._pytree.tree_map(lambda t: t.clone() if any(t is g for g in given) else t, fn(i, carried, *inputs))
+            return i + 1, out
+
+        start = torch.zeros((), dtype=torch.int64, device=_device(carried))
+        return while_loop(lambda i, carried: i < n, body, (start, _unaliased(carried)))[1]
+
+
+def at(t: torch.Tensor, i) -> torch.Tensor:
+    """``t[i]`` for a loop's substep index ``i``: an int eagerly, a 0-dim tensor inside
+    a compiled loop (where indexing by it would read its value on the host)."""
+    return t[i] if isinstance(i, int) else t.index_select(0, i.reshape(1)).squeeze(0)
+
+
+def _unaliased(tree):
+    """``tree`` with a tensor that appears in it more than once copied (a start may
+    share one zero tensor between two fields; a loop's carried values may not alias)."""
+    seen = []
+
+    def once(t):
+        if any(t is s for s in seen):
+            return t.clone()
+        seen.append(t)
+        return t
+
+    return torch.utils._pytree.tree_map(once, tree)
+
+
+def _records(carried, inputs) -> bool:
+    """Whether autograd records the loop (a graph to keep: no ``while_loop`` then)."""
+    if not torch.is_grad_enabled():
+        return False
+    leaves = torch.utils._pytree.tree_leaves((carried, inputs))
+    return any(isinstance(t, torch.Tensor) and t.requires_grad for t in leaves)
+
+
+def _device(tree) -> torch.device:
+    return next(t for t in torch.utils._pytree.tree_leaves(tree) if isinstance(t, torch.Tensor)).device
 
 
 class _Kernel:

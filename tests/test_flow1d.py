@@ -73,7 +73,8 @@ def test_shkadov_flat_film_is_steady_and_jets_remove_flow_rate():
     prof = shkadov.jet_profiles([50], n, torch.float64, "cpu")
     assert prof[0, 50] == 1.0 and prof[0, 40] == 0.0 and prof[0, 60] == 0.0 and prof[0, 39] == 0.0
     state = shkadov.flat_state(1, n, 1, torch.float64, "cpu")
-    out = shkadov.run_action(state, torch.ones(1, 1, dtype=torch.float64), prof[:, 1:-1], 0.1, 0.2, None)
+    noise = shkadov.inlet_noise(None, 1, torch.float64)
+    out = shkadov.run_action(state, torch.ones(1, 1, dtype=torch.float64), prof[:, 1:-1], 0.1, 0.2, noise)
     assert out["q"][0, 50] < 1.0
 
 

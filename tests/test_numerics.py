@@ -86,6 +86,7 @@ from beacon_torch.numerics import (  # noqa: E402
     ab2_step,
     bdf2_explicit_step,
     interpolated_action,
+    interpolation_weights,
     minmod,
     rusanov,
     third_derivative,
@@ -202,7 +203,12 @@ def test_explicit_bdf2_is_consistent_and_first_order():
 
 def test_interpolated_action():
     prev, new = torch.tensor([0.0, 1.0]), torch.tensor([1.0, -1.0])
-    torch.testing.assert_close(interpolated_action(prev, new, 0, 10), prev)
-    torch.testing.assert_close(interpolated_action(prev, new, 5, 10), torch.tensor([0.5, 0.0]))
-    torch.testing.assert_close(interpolated_action(prev, new, 10, 10), new)
-    torch.testing.assert_close(interpolated_action(prev, new, 49, 10), new)
+    alpha = interpolation_weights(50, 10, torch.float32)
+    assert alpha.shape == (50,) and alpha[10:].eq(1.0).all()
+    torch.testing.assert_close(interpolated_action(prev, new, alpha[0]), prev)
+    torch.testing.assert_close(interpolated_action(prev, new, alpha[5]), torch.tensor([0.5, 0.0]))
+    torch.testing.assert_close(interpolated_action(prev, new, alpha[10]), new)
+    torch.testing.assert_close(interpolated_action(prev, new, alpha[49]), new)
+    # the weights are those of the Python numbers i / n, rounded once to the dtype
+    assert interpolation_weights(50, 10, torch.float32)[3].item() == torch.tensor(3 / 10, dtype=torch.float32).item()
+    assert interpolation_weights(5, 0, torch.float64).eq(1.0).all()

@@ -23,7 +23,6 @@ from beacon_torch.params import param
 DX = 0.004
 DT = 0.2 * DX
 SUBSTEPS = int(0.05 / DT)  # 62: the published code truncates 62.5
-UNROLL = 2  # substeps per call of the (compiled) kernel; divides SUBSTEPS
 EPISODE_LENGTH = 200
 N_OBS = 5
 
@@ -44,9 +43,10 @@ class BurgersParams:
             )
 
 
-def burgers_substep(fields: tuple[torch.Tensor, torch.Tensor], inlet: torch.Tensor, forcing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """One explicit BDF2 step of ``(u, u_prev)`` (``[B, n]``) with the inlet value
-    ``inlet`` ``[B, 1]`` and the point forcing ``forcing`` ``[B, n - 2]``."""
+def burgers_substep(i, fields: tuple[torch.Tensor, torch.Tensor], inlet: torch.Tensor, forcing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Substep ``i`` of an action: one explicit BDF2 step of ``(u, u_prev)`` (``[B, n]``)
+    with the inlet value ``inlet`` ``[B, 1]`` and the point forcing ``forcing``
+    ``[B, n - 2]``, both held over the action."""
     u, u_prev = fields
     ui = u[:, 1:-1]
     f = -ui * tvd_derivative(u, DX, van_leer) - forcing
@@ -76,7 +76,7 @@ class BurgersEnv(FlowEnv):
         source = torch.zeros(self.n_cells - 2, dtype=self.dtype, device=self.device)
         source[self.ctrl - 1] = 1.0  # interior cells start at index 1
         self._source = source
-        self._substeps = self.kernels(burgers_substep, unroll=UNROLL)
+        self._substeps = self.kernels.loop(burgers_substep)
 
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)
@@ -86,15 +86,15 @@ class BurgersEnv(FlowEnv):
         u = u * self.member(self.params.u_target)
         return {"u": u, "u_prev": u.clone(), "a": torch.zeros_like(u[:, 0])}
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+    def noise(self) -> State:
+        # one inlet value per action
+        return {"inlet": torch.rand(self.n_envs, generator=self.rng, dtype=self.dtype, device=self.device)}
+
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         p = self.params
-        noise = 2.0 * torch.rand(self.n_envs, generator=self.rng, dtype=self.dtype, device=self.device) - 1.0
-        inlet = (p.u_target + p.sigma * noise)[:, None]
+        inlet = (p.u_target + p.sigma * (2.0 * noise["inlet"] - 1.0))[:, None]
         forcing = (self.member(p.amp) * action) * self._source  # [B, n-2]
-        fields = (state["u"], state["u_prev"])
-        for _ in range(SUBSTEPS // UNROLL):
-            fields = self._substeps(fields, inlet, forcing)
-        u, u_prev = fields
+        u, u_prev = self._substeps(SUBSTEPS, (state["u"], state["u_prev"]), inlet, forcing)
         reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
         return {"u": u, "u_prev": u_prev, "a": action[:, 0]}, reward
 

@@ -3,13 +3,14 @@ their history, the set-up of the projection solver, the loop over substeps, the
 scalar's transport step, the observation and the render call.
 
 A cavity env declares its numbers (cells per unit length, time step, substeps per
-action and per compiled call, the pressure increment's boundary conditions, the
+action, the pressure increment's boundary conditions, the
 published Jacobi tolerance), its transported scalar (``theta``, ``c``) with its ghost
 conditions, and one substep of its physics; :meth:`CavityEnv.run` advances a state.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import ClassVar
 
@@ -71,20 +72,22 @@ def transport(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, ghosts: Ghosts,
     return torch.cat((s[:1], torch.cat((s[1:-1, :1], interior, s[1:-1, -1:]), 1), s[-1:]), 0)
 
 
+def _any_substep(substep: Callable, i, fields: State, *inputs) -> State:
+    """A cavity's substep as the loop over an action's substeps calls it (every
+    substep of an action is the same)."""
+    return substep(fields, *inputs)
+
+
 class CavityEnv(FlowEnv):
     """Base of the cavity envs: the solver set up from the parameters ``L``, ``H`` and
     ``solver``, probes of the scalar and the velocities, their history as observation."""
 
     episode_length: ClassVar[int] = 100
-    # the cavities' graphs gain from a C++ wrapper; their transport sweep stays eager
-    inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
-    compile_fullgraph: ClassVar[bool] = False
 
     scalar: ClassVar[str]  # the transported scalar's name in the state
     cells_per_unit: ClassVar[int]
     dt: ClassVar[float]
     substeps: ClassVar[int]  # per action
-    unroll: ClassVar[int]  # substeps per call of the (compiled) kernel; divides substeps
     poisson_bc: ClassVar[Sequence[str]] = (NEUMANN,) * 4
     jacobi_tol: ClassVar[float]  # the published solve's stopping tolerance (solver="jacobi")
     # (fields, walls, offset, cavity, ghosts, nu, kappa) -> fields: one substep on the
@@ -103,7 +106,7 @@ class CavityEnv(FlowEnv):
         self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, self.poisson_bc, jacobi_tol=tol, dtype=self.dtype, device=self.device)
         self.solver = self.cavity.solver
         self.ghosts = self.scalar_ghosts()
-        self._substeps = self.kernels(self.substep, unroll=self.unroll)
+        self._substeps = self.kernels.loop(functools.partial(_any_substep, self.substep))
         self.probes = Probes((self.scalar, "u", "v"), self.nx, self.ny, self.device)
 
     def scalar_ghosts(self) -> Ghosts:
@@ -111,12 +114,11 @@ class CavityEnv(FlowEnv):
         raise NotImplementedError
 
     def run(self, state: State, n: int, nu, kappa, *, walls=None, offset: torch.Tensor | None = None) -> State:
-        """``n`` substeps (a multiple of ``unroll``) from a batch-first ghosted state
+        """``n`` substeps from a batch-first ghosted state
         (``u``, ``v``, ``p`` and the scalar) with the wall-velocity offsets ``walls``
         (``Cavity.walls``; None for walls at rest) and the scalar's ghost offset."""
         fields = self.cavity.fields(state, {self.scalar: (self.ghosts, offset)})
-        for _ in range(n // self.unroll):
-            fields = self._substeps(fields, walls, offset, self.cavity, self.ghosts, nu, kappa)
+        fields = self._substeps(n, fields, walls, offset, self.cavity, self.ghosts, nu, kappa)
         return self.cavity.stored(fields, walls if walls is not None else self.cavity.walls(like=fields["u"]))
 
     def observed(self, new: State, old: State | None = None) -> State:

@@ -58,10 +58,6 @@ class LorenzEnv(FlowEnv):
     Params = LorenzParams
     episode_length = EPISODE_LENGTH
     discrete = True
-    # one graph per step, with a C++ wrapper: at small batches the step is all fixed
-    # cost of calls, which this removes (benchmarks/RESULTS.md, one env at a time)
-    compile_whole_step = True
-    inductor_options = {"cpp_wrapper": True}
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -81,7 +77,7 @@ class LorenzEnv(FlowEnv):
         # the published reset observes zero time derivatives
         return {"xyz": xyz, "rate": torch.zeros_like(xyz), "u": torch.zeros_like(xyz[:, 0])}
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         u = self.forcing(action)
         xyz, rate = self._lorenz(state["xyz"], u, self.params)
         reward = self.reward(xyz[:, 0])

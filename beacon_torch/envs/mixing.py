@@ -66,7 +66,6 @@ class MixingEnv(CavityEnv):
     cells_per_unit = 100
     dt = DT
     substeps = SUBSTEPS
-    unroll = 5
     # the pressure increment: zero normal gradient but on the top wall, where its ghost is 0
     poisson_bc = (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST)
     jacobi_tol = 1e-4
@@ -126,7 +125,7 @@ class MixingEnv(CavityEnv):
         state = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c, "walls": zeros(4)}
         return self.observed(state)
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         walls = self.walls(action)
         lids = (walls * self.u_max).T
         new = self.run(state, SUBSTEPS, self.nu, self.kappa, walls=self.cavity.walls(*lids, like=lids))

@@ -129,7 +129,6 @@ class RayleighEnv(CavityEnv):
     cells_per_unit = CELLS_PER_UNIT
     dt = DT
     substeps = SUBSTEPS
-    unroll = 2
     jacobi_tol = 1e-8
     substep = staticmethod(substep)
 
@@ -171,7 +170,7 @@ class RayleighEnv(CavityEnv):
         state["bottom"] = torch.full((self.n_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
         return self.observed(state)
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
         new = self.run(state, SUBSTEPS, self.nu, self.kappa, offset=temperature_offset(bottom, self.ghosts, self.ny))

@@ -33,7 +33,8 @@ from torchrl.data import Composite, Unbounded
 
 from beacon_torch.base import FlowEnv, State, where_members
 from beacon_torch.cache import cached
-from beacon_torch.numerics import ab2_step, interpolated_action, minmod, third_derivative, tvd_derivative
+from beacon_torch.compiled import Kernels, at
+from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, minmod, third_derivative, tvd_derivative
 from beacon_torch.params import number, param
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 
@@ -121,30 +122,40 @@ def shkadov_substep(fields: tuple[torch.Tensor, ...], forcing: torch.Tensor, inl
     return h, q, dh, dq
 
 
+def action_substep(i, fields: tuple[torch.Tensor, ...], forcing_prev: torch.Tensor, forcing_new: torch.Tensor, alpha: torch.Tensor, inlet: torch.Tensor, delta, dx: float) -> tuple[torch.Tensor, ...]:
+    """Substep ``i`` of an action: :func:`shkadov_substep` with the forcing
+    interpolated by ``alpha[i]`` (:func:`interpolation_weights`) and the inlet
+    ``inlet[i]`` (``inlet``: ``[SUBSTEPS, B, 1]``)."""
+    return shkadov_substep(fields, interpolated_action(forcing_prev, forcing_new, at(alpha, i)), at(inlet, i), delta, dx)
+
+
+def inlet_noise(generator: torch.Generator | None, members: int, dtype: torch.dtype, device=None) -> torch.Tensor:
+    """The random numbers of one action's inlet, ``[SUBSTEPS, members, 1]`` uniform in
+    [0, 1): one draw per substep and member."""
+    return torch.rand((SUBSTEPS, members, 1), generator=generator, dtype=dtype, device=device)
+
+
 def run_action(
     state: State,
     action: torch.Tensor,
     profiles: torch.Tensor,
     delta,
     dx: float,
-    generator: torch.Generator | None,
+    noise: torch.Tensor,
     amp=5.0,
-    step=shkadov_substep,
+    substeps=Kernels().loop(action_substep),
 ) -> State:
-    """One action period (``SUBSTEPS`` AB2 steps) of jet amplitudes ``action`` ``[B, n_jets]``;
-    ``amp`` is a number or a ``[B, 1]`` tensor; ``step`` is :func:`shkadov_substep` or
-    its compiled form."""
-    h = state["h"]
-    B = h.shape[0]
-    noise = 2.0 * torch.rand((SUBSTEPS, B, 1), generator=generator, dtype=h.dtype, device=h.device) - 1.0
-    inlet = 1.0 + NOISE * noise
+    """One action period (``SUBSTEPS`` AB2 steps) of jet amplitudes ``action`` ``[B, n_jets]``
+    with the inlet drawn from ``noise`` (:func:`inlet_noise`); ``amp`` is a number or a
+    ``[B, 1]`` tensor; ``substeps`` is the loop of :func:`action_substep` (an env's
+    ``kernels.loop``, eager by default)."""
+    inlet = 1.0 + NOISE * (2.0 * noise - 1.0)
     # the forcing is linear in the jet amplitudes: interpolate it, not the amplitudes,
     # so that the profiles are summed twice per action instead of at every substep
     forcing_prev, forcing_new = amp * (state["u_prev"] @ profiles), amp * (action @ profiles)
-    fields = h, state["q"], state["dh_prev"], state["dq_prev"]
-    for i in range(SUBSTEPS):
-        fields = step(fields, interpolated_action(forcing_prev, forcing_new, i, N_INTERP), inlet[i], delta, dx)
-    h, q, dh_prev, dq_prev = fields
+    alpha = interpolation_weights(SUBSTEPS, N_INTERP, action.dtype, action.device)
+    fields = state["h"], state["q"], state["dh_prev"], state["dq_prev"]
+    h, q, dh_prev, dq_prev = substeps(SUBSTEPS, fields, forcing_prev, forcing_new, alpha, inlet, delta, dx)
     return {"h": h, "q": q, "dh_prev": dh_prev, "dq_prev": dq_prev, "u_prev": action}
 
 
@@ -169,7 +180,7 @@ def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float 
     profiles = torch.zeros((1, n - 2), dtype=torch.float64, device=device)
     zero = torch.zeros((1, 1), dtype=torch.float64, device=device)
     for _ in range(int(round(time / (DT * SUBSTEPS)))):
-        state = run_action(state, zero, profiles, delta, DX, g)
+        state = run_action(state, zero, profiles, delta, DX, inlet_noise(g, 1, torch.float64, device))
     return {"h": state["h"][0], "q": state["q"][0]}
 
 
@@ -201,7 +212,7 @@ class ShkadovEnv(FlowEnv):
         self.jet_centres = [int(round(p.jet_pos / DX)) + j * step for j in range(p.n_jets)]
         profiles = jet_profiles(self.jet_centres, self.n_cells, self.dtype, self.device)
         self._profiles = profiles[:, 1:-1].contiguous()
-        self._substep = self.kernels(shkadov_substep)
+        self._substeps = self.kernels.loop(action_substep)
         obs = [c - int(round(OBS_LENGTH / DX)) + CELLS_PER_UNIT * m for c in self.jet_centres for m in range(int(round(OBS_LENGTH)))]
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))
@@ -222,8 +233,11 @@ class ShkadovEnv(FlowEnv):
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, self.n_jets), dtype=self.dtype, device=self.device)
 
-    def _advance_state(self, state: State, action: torch.Tensor) -> State:
-        return run_action(state, action, self._profiles, self.params.delta, DX, self.rng, self.member(self.params.amp), self._substep)
+    def noise(self) -> State:
+        return {"inlet": inlet_noise(self.rng, self.n_envs, self.dtype, self.device)}
+
+    def _advance_state(self, state: State, action: torch.Tensor, noise: State) -> State:
+        return run_action(state, action, self._profiles, self.params.delta, DX, noise["inlet"], self.member(self.params.amp), self._substeps)
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         state = flat_state(self.n_envs, self.n_cells, self.n_jets, self.dtype, self.device)
@@ -239,14 +253,24 @@ class ShkadovEnv(FlowEnv):
         idx = (n_run > 0).nonzero()[:, 0]
         if idx.numel() == 0:
             return state
-        sub = {k: v[idx] for k, v in state.items()}
-        zero = torch.zeros((idx.numel(), self.n_jets), dtype=self.dtype, device=self.device)
+        # the members being reset are run as a batch of a power-of-two size (padded with
+        # copies of the first, whose results are dropped): a compiled action then
+        # exists for a few batch sizes, not for every count of members reset at once
+        n = idx.numel()
+        size = min(self.n_envs, 1 << (n - 1).bit_length())
+        rows = torch.cat((idx, idx[:1].expand(size - n)))
+        runs = torch.cat((n_run[idx], n_run.new_zeros(size - n)))
+        sub = {k: v[rows] for k, v in state.items()}
+        zero = torch.zeros((size, self.n_jets), dtype=self.dtype, device=self.device)
         for a in range(int(n_run.max())):
-            # uncontrolled: no jet forcing, whatever the (per-member) amplitude
-            new = run_action(sub, zero, self._profiles, self.params.delta, DX, self.rng, 0.0, self._substep)
-            sub = where_members(n_run[idx] > a, new, sub)
+            # uncontrolled: no jet forcing, whatever the (per-member) amplitude; the
+            # padding draws nothing from the generator
+            noise = inlet_noise(self.rng, n, self.dtype, self.device)
+            noise = torch.cat((noise, noise.new_zeros((SUBSTEPS, size - n, 1))), 1)
+            new = run_action(sub, zero, self._profiles, self.params.delta, DX, noise, 0.0, self._substeps)
+            sub = where_members(runs > a, new, sub)
         for k, v in sub.items():
-            state[k] = state[k].index_copy(0, idx, v)
+            state[k] = state[k].index_copy(0, idx, v[:n])
         return state
 
     def jet_rewards(self, h: torch.Tensor) -> torch.Tensor:
@@ -255,8 +279,8 @@ class ShkadovEnv(FlowEnv):
         region = h[:, self._reward_index]  # [B, n_jets, cells]
         return -DX * ((region - 1.0) ** 2).sum(-1) / region.shape[-1]
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
-        new = self._advance_state(state, action)
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+        new = self._advance_state(state, action, noise)
         return new, self.jet_rewards(new["h"]).mean(-1)
 
     def observe(self, state: State) -> torch.Tensor:
@@ -331,8 +355,8 @@ class ShkadovSeparableEnv(ShkadovEnv):
     def null_action(self) -> torch.Tensor:
         return torch.zeros((self.n_envs, self.n_jets, 1), dtype=self.dtype, device=self.device)
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
-        new = self._advance_state(state, action[..., 0])
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+        new = self._advance_state(state, action[..., 0], noise)
         return new, self.jet_rewards(new["h"])
 
     def observe(self, state: State) -> torch.Tensor:

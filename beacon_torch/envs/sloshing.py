@@ -24,7 +24,8 @@ import torch
 
 from beacon_torch.base import FlowEnv, State, where_members
 from beacon_torch.cache import cached
-from beacon_torch.numerics import ab2_step, interpolated_action, rusanov
+from beacon_torch.compiled import Kernels, at
+from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
 from beacon_torch.params import param
 from beacon_torch.starts import PUBLISHED, choose_start, published_members, published_table, start_param
 
@@ -81,24 +82,25 @@ def with_walls(h_in: torch.Tensor, q_in: torch.Tensor):
     return h, q
 
 
-def sloshing_substep(fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g, dx: float) -> tuple[torch.Tensor, ...]:
-    """One AB2 step of ``(h, q, fh_prev, fq_prev)`` with the tank acceleration
-    ``accel`` ``[B]``."""
+def sloshing_substep(i, fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g, dx: float) -> tuple[torch.Tensor, ...]:
+    """Substep ``i`` of an action: one AB2 step of ``(h, q, fh_prev, fq_prev)`` with
+    the tank acceleration ``accel[i]`` (``accel``: ``[SUBSTEPS, B]``)."""
     h, q, fh_prev, fq_prev = fields
     gh, gq = with_walls(h, q)
-    fh, fq = shallow_water_rhs(gh, gq, accel, g, dx)
+    fh, fq = shallow_water_rhs(gh, gq, at(accel, i), g, dx)
     return ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT), fh, fq
 
 
-def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, step=sloshing_substep) -> State:
+def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, substeps=Kernels().loop(sloshing_substep)) -> State:
     """Advance ``state`` through a sequence of action batches (each ``[B]``) scaled by
-    ``amp`` (a number or ``[B]``); ``step`` is :func:`sloshing_substep` or its compiled
-    form."""
+    ``amp`` (a number or ``[B]``), each interpolated from the one before; ``substeps``
+    is the loop of :func:`sloshing_substep` (an env's ``kernels.loop``, eager by
+    default)."""
     fields = state["h"], state["q"], state["fh_prev"], state["fq_prev"]
     u_prev = state["u_prev"]
+    alpha = interpolation_weights(SUBSTEPS, N_INTERP, u_prev.dtype, u_prev.device)[:, None]
     for u in actions:
-        for i in range(SUBSTEPS):
-            fields = step(fields, amp * interpolated_action(u_prev, u, i, N_INTERP), g, dx)
+        fields = substeps(SUBSTEPS, fields, amp * interpolated_action(u_prev, u, alpha), g, dx)
         u_prev = u
     h, q, fh_prev, fq_prev = fields
     return {"h": h, "q": q, "fh_prev": fh_prev, "fq_prev": fq_prev, "u_prev": u_prev}
@@ -141,7 +143,7 @@ class SloshingEnv(FlowEnv):
     def setup(self) -> None:
         self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
         self.dx = self.params.L / self.n_cells
-        self._substep = self.kernels(sloshing_substep)
+        self._substeps = self.kernels.loop(sloshing_substep)
         self._start = self._start_state()
 
     def _start_state(self) -> State:
@@ -178,10 +180,10 @@ class SloshingEnv(FlowEnv):
         # action start from zero
         return {"h": self._start["h"], "q": self._start["q"], "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         p = self.params
         u = action[:, 0]
-        new = run_actions(state, [u], p.amp, self.member(p.g), self.dx, self._substep)
+        new = run_actions(state, [u], p.amp, self.member(p.g), self.dx, self._substeps)
         h = new["h"]
         reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
         return new, reward

@@ -91,10 +91,6 @@ class VortexEnv(FlowEnv):
     env_id = "vortex-v0"
     Params = VortexParams
     episode_length = EPISODE_LENGTH
-    # one graph per step, with a C++ wrapper: at small batches the step is all fixed
-    # cost of calls, which this removes (benchmarks/RESULTS.md, one env at a time)
-    compile_whole_step = True
-    inductor_options = {"cpp_wrapper": True}
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -121,7 +117,7 @@ class VortexEnv(FlowEnv):
         # the published reset observes zero time derivatives
         return {"ay": s, "rate": torch.zeros_like(s), "k": zero, "phi": zero.clone(), "y_prev": displacement(s, zero)}
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         k = 0.5 * K_MAX * (action[:, 0] + 1.0)
         phi = math.pi * action[:, 1]
         s, rate = self._substeps((state["ay"], state["rate"]), k, phi, self.params.re)

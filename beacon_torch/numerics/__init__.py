@@ -20,6 +20,7 @@ from beacon_torch.numerics.integrators import (
     ab2_step,
     bdf2_explicit_step,
     interpolated_action,
+    interpolation_weights,
     lsrk4_step,
 )
 
@@ -30,6 +31,7 @@ __all__ = [
     "ab2_step",
     "bdf2_explicit_step",
     "interpolated_action",
+    "interpolation_weights",
     "lsrk4_step",
     "minmod",
     "rusanov",

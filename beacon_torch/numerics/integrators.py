@@ -78,11 +78,14 @@ def bdf2_explicit_step(u: torch.Tensor, u_prev: torch.Tensor, f: torch.Tensor, d
     return (4.0 * u - u_prev + 2.0 * dt * f) / 3.0
 
 
-def interpolated_action(
-    previous: torch.Tensor, new: torch.Tensor, substep: int, n_interp: int
-) -> torch.Tensor:
-    """The action applied at ``substep`` (0, 1, ...) of an action period: linear from the
-    previous action to the new one over the first ``n_interp`` substeps,
-    alpha = min(substep / n_interp, 1), then held."""
-    alpha = min(substep / n_interp, 1.0) if n_interp > 0 else 1.0
+def interpolation_weights(substeps: int, n_interp: int, dtype: torch.dtype, device=None) -> torch.Tensor:
+    """``[substeps]``: the weight of the new action at each substep of an action period,
+    alpha_i = min(i / n_interp, 1) (linear from the previous action to the new one over
+    the first ``n_interp`` substeps, then held)."""
+    alphas = [min(i / n_interp, 1.0) if n_interp > 0 else 1.0 for i in range(substeps)]
+    return torch.tensor(alphas, dtype=dtype, device=device)
+
+
+def interpolated_action(previous: torch.Tensor, new: torch.Tensor, alpha) -> torch.Tensor:
+    """The action applied at a substep of weight ``alpha`` (:func:`interpolation_weights`)."""
     return previous + alpha * (new - previous)
