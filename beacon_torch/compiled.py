@@ -1,10 +1,13 @@
 """The compiled path of an env's physics: which functions run through ``torch.compile``
 and the cache of their compiled versions.
 
-An env hands its substeps to :meth:`Kernels.__call__` once, at set-up, and calls what
-it gets back; whether that runs eagerly or compiled is decided later by
-:meth:`Kernels.compile`, so that ``make(..., compile=True)`` needs nothing of the env's
-code.
+An env hands its substep loops to :meth:`Kernels.loop` (and any other function of
+tensors to :meth:`Kernels.__call__`) once, at set-up, and calls what it gets back;
+whether that runs eagerly or compiled is decided later by :meth:`Kernels.compile`, so
+that ``make(..., compile=True)`` needs nothing of the env's code. Compiled, the base
+runs a whole step as one graph: the loops in it become ``while_loop``s, so that an
+action of tens or hundreds of substeps is one compiled call whose code does not grow
+with the number of substeps, and whose per-call cost (guards, wrapper) is paid once.
 """
 
 from __future__ import annotations
@@ -68,16 +71,12 @@ class Kernels:
             self.options["options"] = options
         self._cache = {}
 
-    def __call__(self, fn: Callable, unroll: int = 1) -> Callable:
-        """``fn`` (a substep, or any function of tensors called many times per action)
-        as the env runs it: itself in eager mode, compiled after :meth:`compile`. With
-        ``unroll`` > 1 the returned function applies ``fn`` that many times to its first
-        argument (the carried state; the others are passed unchanged), so that a
-        compiled call covers several substeps and the per-call overhead of the compiled
-        code (guards, wrapper: about 0.1 ms on CPU) is paid once for all of them.
-        Later envs of the same shapes reuse the compiled code (tensors are arguments,
-        not constants)."""
-        return _Kernel(self, _Unrolled(fn, unroll) if unroll > 1 else fn)
+    def __call__(self, fn: Callable) -> Callable:
+        """``fn`` (a function of tensors: a whole step, a substep) as the env runs it:
+        itself in eager mode, compiled after :meth:`compile`. Inside a larger compiled
+        function it runs inline, as part of that graph. Later envs of the same shapes
+        reuse the compiled code (tensors are arguments, not constants)."""
+        return _Kernel(self, fn)
 
     def loop(self, fn: Callable) -> Callable:
         """``fn(i, carried, *inputs) -> carried`` (a substep, ``i`` its index in the
@@ -96,18 +95,6 @@ class Kernels:
         # compiled code is this process's: a copy of the env (pickled for another
         # process) compiles its own on its first call
         return {**self.__dict__, "_cache": {}}
-
-
-class _Unrolled:
-    """``fn`` applied ``unroll`` times to its first argument."""
-
-    def __init__(self, fn: Callable, unroll: int) -> None:
-        self.fn, self.unroll = fn, unroll
-
-    def __call__(self, state, *args, **kwargs):
-        for _ in range(self.unroll):
-            state = self.fn(state, *args, **kwargs)
-        return state
 
 
 class _Loop:

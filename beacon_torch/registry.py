@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 from beacon_torch.base import FlowEnv
@@ -46,6 +47,14 @@ def env_class(env_id: str) -> type[FlowEnv]:
         ) from None
 
 
+def adapter_compiles() -> bool:
+    """Whether the gymnasium and Stable-Baselines3 adapters compile their env when not
+    told (``compile=...``): yes, unless the environment variable
+    ``BEACON_TORCH_COMPILE`` is ``0`` (a debugging session, a test suite that checks
+    behaviour rather than speed)."""
+    return os.environ.get("BEACON_TORCH_COMPILE", "1") != "0"
+
+
 def make(
     env_id: str,
     batch_size: int = 1,
@@ -63,8 +72,9 @@ def make(
     and the options every env has:
 
     ``compile``
-        True (or a dict of ``torch.compile`` options) runs the physics' substeps
-        compiled (:meth:`FlowEnv.compile`); default False, eager.
+        True (or a dict of ``torch.compile`` options) runs each step as one compiled
+        call (:meth:`FlowEnv.compile`); default False, eager (the gymnasium and
+        Stable-Baselines3 adapters default to True).
     ``differentiable``
         True keeps the autograd graph through the steps, so that rewards can be
         differentiated with respect to actions, parameters and states; default False

@@ -44,7 +44,7 @@ except ImportError as err:  # pragma: no cover - exercised without the extra onl
 
 from beacon_torch.base import _as_flag, _as_seed
 from beacon_torch.gym import _spaces, batched_action, team_reward
-from beacon_torch.registry import make
+from beacon_torch.registry import adapter_compiles, make
 
 # what ``set_attr`` may change on a made env, each with its check
 SETTABLE = {"render_index": lambda index: index, "check_actions": lambda flag: _as_flag("check_actions", flag)}
@@ -54,12 +54,14 @@ class BeaconVecEnv(VecEnv):
     """``n_envs`` copies of ``env_id`` as one batched env, behind SB3's ``VecEnv``.
 
     ``render_mode`` None or ``"rgb_array"``; ``dtype``, ``device``, ``seed``,
-    ``compile`` and the env's parameters go to :func:`beacon_torch.make`
-    (``BeaconVecEnv("rayleigh-v0", 16, compile=True)``)."""
+    ``compile`` (default True: one compiled call a step, unless
+    ``BEACON_TORCH_COMPILE=0``) and the env's parameters go to
+    :func:`beacon_torch.make` (``BeaconVecEnv("rayleigh-v0", 16, compile=False)``)."""
 
     def __init__(self, env_id: str, n_envs: int = 1, *, render_mode: str | None = None, dtype: Any = "float32", device: Any = "cpu", **options: Any) -> None:
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        options.setdefault("compile", adapter_compiles())
         self.env = make(env_id, batch_size=n_envs, dtype=dtype, device=device, record_history=render_mode is not None, **options)
         self.render_mode = render_mode
         self.env_id = env_id

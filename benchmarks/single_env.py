@@ -7,8 +7,9 @@ For every env, random actions (fixed seed) through
   and out), eager and compiled;
 - a batch-of-one TorchRL env's ``step`` (TensorDicts and TorchRL's step wrappers), for
   comparison;
-- the physics alone (``advance`` and ``observe`` with no checks), the floor of any
-  wrapper: what the lean step costs beyond it is the adapter's share.
+- the step call alone (``FlowEnv._step_core`` from a frozen state: the physics, the
+  action's checks and the bookkeeping; compiled, the one compiled call), the floor of
+  any wrapper: what the lean step costs beyond it is the adapter's share.
 
 Prints a markdown table and writes ``single_env.json`` to ``--out``. The numbers in
 benchmarks/RESULTS.md come from this script, run on an otherwise idle machine.
@@ -80,15 +81,14 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
         if bool(td["next", "done"].any()):
             env.reset()
 
-    # the physics alone, from a state of the episode, without the step's checks
+    # the step call alone, from a state of the episode
     frozen = {}
 
     def physics():
         if not frozen:
-            frozen.update(state=env.state, action=env.check_action(batch[0][env.action_key]), count=env.step_count)
+            frozen.update(state=env.state, obs=env.observation, action=env.check_action(batch[0][env.action_key]), count=env.step_count, noise=env.noise())
         with torch.no_grad():
-            new, _ = env.advance(frozen["state"], frozen["action"], frozen["count"])
-            env.observe(new)
+            env._whole_step(frozen["state"], frozen["obs"], frozen["action"], frozen["count"], frozen["noise"], None)
 
     measured = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
     return {"env": env_id, "mode": "compiled" if compiled else "eager", "published": PUBLISHED[env_id], **measured}
@@ -105,7 +105,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"# {machine()}")
-    print("| env | mode | gymnasium (lean) /s | TorchRL step /s | physics alone /s | published /s | lean vs published |")
+    print("| env | mode | gymnasium (lean) /s | TorchRL step /s | step call alone /s | published /s | lean vs published |")
     print("|---|---|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:

@@ -5,6 +5,10 @@ import torch
 
 import beacon_torch
 
+# the adapters compile by default; the behaviour tests run them eagerly (compiled and
+# eager steps are compared per env in test_compile.py, and the default is tested there)
+os.environ["BEACON_TORCH_COMPILE"] = "0"
+
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # one intra-op thread per worker: two workers with two threads each on two cores
     # slow the matrix-heavy 2-D solvers down several times

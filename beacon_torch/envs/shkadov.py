@@ -143,17 +143,18 @@ def run_action(
     dx: float,
     noise: torch.Tensor,
     amp=5.0,
-    substeps=Kernels().loop(action_substep),
+    substeps=None,
 ) -> State:
     """One action period (``SUBSTEPS`` AB2 steps) of jet amplitudes ``action`` ``[B, n_jets]``
     with the inlet drawn from ``noise`` (:func:`inlet_noise`); ``amp`` is a number or a
     ``[B, 1]`` tensor; ``substeps`` is the loop of :func:`action_substep` (an env's
-    ``kernels.loop``, eager by default)."""
+    ``kernels.loop``; None: eager)."""
     inlet = 1.0 + NOISE * (2.0 * noise - 1.0)
     # the forcing is linear in the jet amplitudes: interpolate it, not the amplitudes,
     # so that the profiles are summed twice per action instead of at every substep
     forcing_prev, forcing_new = amp * (state["u_prev"] @ profiles), amp * (action @ profiles)
     alpha = interpolation_weights(SUBSTEPS, N_INTERP, action.dtype, action.device)
+    substeps = Kernels().loop(action_substep) if substeps is None else substeps
     fields = state["h"], state["q"], state["dh_prev"], state["dq_prev"]
     h, q, dh_prev, dq_prev = substeps(SUBSTEPS, fields, forcing_prev, forcing_new, alpha, inlet, delta, dx)
     return {"h": h, "q": q, "dh_prev": dh_prev, "dq_prev": dq_prev, "u_prev": action}

@@ -91,11 +91,11 @@ def sloshing_substep(i, fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g
     return ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT), fh, fq
 
 
-def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, substeps=Kernels().loop(sloshing_substep)) -> State:
+def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, substeps=None) -> State:
     """Advance ``state`` through a sequence of action batches (each ``[B]``) scaled by
     ``amp`` (a number or ``[B]``), each interpolated from the one before; ``substeps``
-    is the loop of :func:`sloshing_substep` (an env's ``kernels.loop``, eager by
-    default)."""
+    is the loop of :func:`sloshing_substep` (an env's ``kernels.loop``; None: eager)."""
+    substeps = Kernels().loop(sloshing_substep) if substeps is None else substeps
     fields = state["h"], state["q"], state["fh_prev"], state["fq_prev"]
     u_prev = state["u_prev"]
     alpha = interpolation_weights(SUBSTEPS, N_INTERP, u_prev.dtype, u_prev.device)[:, None]

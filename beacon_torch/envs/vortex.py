@@ -78,8 +78,8 @@ def displacement(s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return 2.0 * (s[:, 2] * c - s[:, 3] * sn)
 
 
-def vortex_substep(carry: tuple[torch.Tensor, torch.Tensor], k: torch.Tensor, phi: torch.Tensor, re) -> tuple[torch.Tensor, torch.Tensor]:
-    """One LSRK4 step of dt = 0.1 with the feedback gain ``k`` and phase ``phi`` ``[B]``
+def vortex_substep(i, carry: tuple[torch.Tensor, torch.Tensor], k: torch.Tensor, phi: torch.Tensor, re) -> tuple[torch.Tensor, torch.Tensor]:
+    """Substep ``i`` of an action: one LSRK4 step of dt = 0.1 with the feedback gain ``k`` and phase ``phi`` ``[B]``
     on ``(state, rate)``; the rate carried in is replaced by the right-hand side of the
     step's last stage (what the published env observes)."""
     return lsrk4_step(lambda u, t: vortex_rhs(u, k, phi, re), carry[0], 0.0, DT)
@@ -97,8 +97,7 @@ class VortexEnv(FlowEnv):
         return 8, 2
 
     def setup(self) -> None:
-        # the 5 substeps of an action are one compiled region
-        self._substeps = self.kernels(vortex_substep, unroll=SUBSTEPS)
+        self._substeps = self.kernels.loop(vortex_substep)
 
     def null_action(self) -> torch.Tensor:
         a = torch.zeros((self.n_envs, 2), dtype=self.dtype, device=self.device)
@@ -120,7 +119,7 @@ class VortexEnv(FlowEnv):
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         k = 0.5 * K_MAX * (action[:, 0] + 1.0)
         phi = math.pi * action[:, 1]
-        s, rate = self._substeps((state["ay"], state["rate"]), k, phi, self.params.re)
+        s, rate = self._substeps(SUBSTEPS, (state["ay"], state["rate"]), k, phi, self.params.re)
         t = DT_ACT * (count + 1).to(self.dtype)
         y = displacement(s, t)
         # The published scores divide by the numerical step (0.1), not by the 0.5
