@@ -54,7 +54,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from beacon_torch.autograd import checkpointed, graph_mode
-from beacon_torch.compiled import Kernels
+from beacon_torch.compiled import Kernels, standard
 from beacon_torch.history import History
 from beacon_torch.params import resolve_params
 
@@ -155,17 +155,7 @@ def _standard(t):
     """``t`` (a tensor or a dict of them) in standard strides, as a step leaves its
     results: a compiled step is specialised on its inputs' strides, and a start's
     views (a slice, a member of size one) would otherwise compile it again."""
-    if isinstance(t, dict):
-        return {k: _standard(v) for k, v in t.items()}
-    return t if t.stride() == _strides(t.shape) else t.clone(memory_format=torch.contiguous_format)
-
-
-def _strides(shape) -> tuple[int, ...]:
-    out, step = [], 1
-    for size in reversed(shape):
-        out.append(step)
-        step *= size
-    return tuple(reversed(out))
+    return {k: standard(v) for k, v in t.items()} if isinstance(t, dict) else standard(t)
 
 
 def _finite_members(t: torch.Tensor) -> torch.Tensor:

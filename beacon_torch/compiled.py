@@ -137,17 +137,34 @@ def at(t: torch.Tensor, i) -> torch.Tensor:
 
 
 def _unaliased(tree):
-    """``tree`` with a tensor that appears in it more than once copied (a start may
-    share one zero tensor between two fields; a loop's carried values may not alias)."""
+    """``tree`` as a loop may carry it: a tensor that appears in it more than once
+    copied (a start may share one zero tensor between two fields; carried values may
+    not alias), and each in standard strides (those of the body's results, which a
+    loop requires of its inputs too)."""
     seen = []
 
     def once(t):
         if any(t is s for s in seen):
-            return t.clone()
+            return standard(t.clone())
         seen.append(t)
-        return t
+        return standard(t)
 
     return torch.utils._pytree.tree_map(once, tree)
+
+
+def standard(t: torch.Tensor) -> torch.Tensor:
+    """``t`` in standard (row-major) strides, copied only where they differ: a member
+    of size one or a permuted view can be contiguous in torch's sense with other
+    strides, on which compiled code is specialised."""
+    return t if t.stride() == _strides(t.shape) else t.clone(memory_format=torch.contiguous_format)
+
+
+def _strides(shape) -> tuple[int, ...]:
+    out, step = [], 1
+    for size in reversed(shape):
+        out.append(step)
+        step *= size
+    return tuple(reversed(out))
 
 
 def _records(carried, inputs) -> bool:
