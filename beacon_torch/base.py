@@ -151,11 +151,19 @@ def where_members(mask: torch.Tensor, a: State, b: State) -> State:
     return {key: select(mask, va, b[key]) for key, va in a.items()}
 
 
-def _standard(t):
-    """``t`` (a tensor or a dict of them) in standard strides, as a step leaves its
-    results: a compiled step is specialised on its inputs' strides, and a start's
-    views (a slice, a member of size one) would otherwise compile it again."""
-    return {k: standard(v) for k, v in t.items()} if isinstance(t, dict) else standard(t)
+def _standard(state: State, obs: torch.Tensor) -> tuple[State, torch.Tensor]:
+    """``state`` and ``obs`` as a step leaves them: standard strides, and no two
+    tensors sharing memory. A compiled step is specialised on its inputs' strides and
+    on which of them alias, and a start's views (a slice, a member of size one, an
+    observation that is a view of the state) or shared zeros would otherwise compile it
+    again on the second step."""
+    out, storages = {}, set()
+    for key, value in {**state, None: obs}.items():
+        storage = value.untyped_storage().data_ptr()
+        out[key] = standard(value) if storage not in storages else value.clone(memory_format=torch.contiguous_format)
+        storages.add(storage)
+    obs = out.pop(None)
+    return out, obs
 
 
 def _finite_members(t: torch.Tensor) -> torch.Tensor:
@@ -549,7 +557,7 @@ class FlowEnv(EnvBase):
                 obs = self.observe(state)
             except KeyError as err:
                 raise KeyError(f"{name}: set_state got a state without {err}") from None
-        self._state, self._obs = _standard(state), _standard(obs)
+        self._state, self._obs = _standard(state, obs)
         self._count = count.expand(self.batch_size).clone()
         return self._obs
 
@@ -592,7 +600,7 @@ class FlowEnv(EnvBase):
                 f"{self.env_id}: the initial state of batch member(s) {bad} is not finite; "
                 f"check their parameters ({self.params})"
             )
-        self._state, self._obs = _standard(self._state), _standard(obs)
+        self._state, self._obs = _standard(self._state, obs)
         self.history.reset(self._state, mask)
         return obs
 
@@ -662,7 +670,10 @@ class FlowEnv(EnvBase):
             reward = select(stepping, reward, torch.zeros_like(reward))
             ok = ok | ~stepping
             after = torch.where(stepping, after, count)
-        return new, obs, reward, ~ok, after >= self.episode_length, after
+        # in standard strides, as the next step's inputs were compiled for (a cavity's
+        # fields come out of its batch-last solver permuted)
+        new = {k: standard(v) for k, v in new.items()}
+        return new, standard(obs), reward, ~ok, after >= self.episode_length, after
 
     def _settled_step(self, advance, old: State, action: torch.Tensor, noise: State, inside: torch.Tensor | None = None, start: State | None = None):
         """``advance`` from ``start`` (default ``old``) and :func:`settle`: a member
