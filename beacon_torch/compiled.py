@@ -17,8 +17,9 @@ from typing import Any
 
 import torch
 
-# each env class, shape and dtype is one entry of a substep's compiled code; past
-# torch's default limit (8 entries) the substep would silently run eagerly
+# each env, shape and dtype is one entry of the step's compiled code (all env classes
+# share its code object); past torch's default limit (8 entries) the step would
+# silently run eagerly
 RECOMPILE_LIMIT = 64
 
 
@@ -85,10 +86,10 @@ class Kernels:
         Eagerly, and wherever autograd records, it is a Python loop over ``fn`` (each
         call compiled after :meth:`compile`); inside a compiled step, or compiled and
         without a graph to keep, it is one ``while_loop``: the whole loop in one
-        compiled call whose code does not grow with ``n``. ``fn`` must not
-        return an input unchanged (higher-order ops refuse aliases), and what
-        it reads per substep it takes with :func:`at` (an eager int and a traced
-        tensor pick the same values)."""
+        compiled call whose code does not grow with ``n`` (a carried value ``fn``
+        hands on unchanged is copied there: the loop may not alias). What ``fn`` reads
+        per substep it takes with :func:`at` (an eager int and a traced tensor pick
+        the same values)."""
         return _Loop(self, fn)
 
     def __getstate__(self) -> dict:
