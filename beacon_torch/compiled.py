@@ -23,30 +23,46 @@ import torch
 RECOMPILE_LIMIT = 64
 
 
-class _RecompileLimit:
-    """Raises dynamo's recompile limit while a compiled kernel runs, and only then:
-    the limit is a process-wide setting, which an env must not change for its user."""
+class _Settings:
+    """Two of torch's process-wide settings, changed while a compiled kernel runs (and
+    compiles) and only then, since an env must not change them for its user:
+
+    - dynamo's recompile limit, raised;
+    - ``while_loop`` graphs allowed into torch's on-disk graph caches. Torch bypasses
+      those caches for any higher-order operator not vetted for them, so each new
+      process would lower and generate a whole step's code again (seconds) though the
+      generated code itself is cached. The cache key is the pickled graph, the loop's
+      condition and body graphs included, so loops that differ only in their bodies
+      get different entries (checked in the tests, as is a warm-cache step against the
+      eager one)."""
 
     depth = 0
-    prior = 0
+    prior: tuple[int, bool] = (0, False)
 
     def __enter__(self) -> None:
-        import torch._dynamo
-
         if self.depth == 0:
-            self.prior = torch._dynamo.config.recompile_limit
-            torch._dynamo.config.recompile_limit = max(self.prior, RECOMPILE_LIMIT)
+            config, loop = _torch_settings()
+            self.prior = config.recompile_limit, loop._cacheable
+            config.recompile_limit = max(self.prior[0], RECOMPILE_LIMIT)
+            loop._cacheable = True
         self.depth += 1
 
     def __exit__(self, *exc: Any) -> None:
-        import torch._dynamo
-
         self.depth -= 1
         if self.depth == 0:
-            torch._dynamo.config.recompile_limit = self.prior
+            config, loop = _torch_settings()
+            config.recompile_limit, loop._cacheable = self.prior
 
 
-_LIMIT = _RecompileLimit()
+def _torch_settings():
+    # imported on first use: dynamo is not needed by an eager env
+    import torch._dynamo
+    from torch._higher_order_ops.while_loop import while_loop_op
+
+    return torch._dynamo.config, while_loop_op
+
+
+_SETTINGS = _Settings()
 
 
 class Kernels:
@@ -196,5 +212,5 @@ class _Kernel:
         compiled = kernels._cache.get(fn)
         if compiled is None:
             compiled = kernels._cache[fn] = torch.compile(fn, **kernels.options)
-        with _LIMIT:
+        with _SETTINGS:
             return compiled(*args, **kwargs)

@@ -113,19 +113,66 @@ def test_compiled_env_rolls_out_through_torchrl():
 
 
 def test_compiled_envs_leave_dynamo_settings_as_they_found_them():
-    """The recompile limit is raised while a kernel runs, so that many env shapes keep
-    their compiled code, and restored after: an env changes no process-wide setting."""
+    """The recompile limit is raised and loops are let into torch's graph caches while a
+    kernel runs, so that many env shapes keep their compiled code and a new process
+    finds it, and both are restored after: an env changes no process-wide setting."""
     import torch._dynamo
+    from torch._higher_order_ops.while_loop import while_loop_op
 
-    before = torch._dynamo.config.recompile_limit
+    before = torch._dynamo.config.recompile_limit, while_loop_op.cacheable()
     env = make("lorenz-v0", 3, compile=True)
     seen = []
     env.kernels._cache.clear()
-    kernel = env.kernels(lambda x: seen.append(torch._dynamo.config.recompile_limit) or x * 2)
+    kernel = env.kernels(lambda x: seen.append((torch._dynamo.config.recompile_limit, while_loop_op._cacheable)) or x * 2)
     assert torch.equal(kernel(torch.ones(2)), 2 * torch.ones(2))
     run_actions(env, [env.null_action()])
-    assert seen and seen[0] >= 64  # traced while the limit was raised
-    assert torch._dynamo.config.recompile_limit == before
+    assert seen and seen[0][0] >= 64 and seen[0][1]  # traced while the settings held
+    assert (torch._dynamo.config.recompile_limit, while_loop_op.cacheable()) == before == (before[0], False)
+
+
+# run twice in one fresh compile cache: two loops that differ only in their bodies, and
+# a few float64 burgers steps, compiled
+CACHED = """
+import json, sys, torch
+import beacon_torch
+from beacon_torch.compiled import Kernels
+from torch._dynamo.utils import counters
+
+kernels = Kernels()
+kernels.compile()
+loops = [kernels.loop(lambda i, x: x * 2.0 + 1.0), kernels.loop(lambda i, x: x * 3.0 - 1.0)]
+toy = [loop(5, torch.ones(3, dtype=torch.float64)).tolist() for loop in loops]
+env = beacon_torch.make("burgers-v0", 2, dtype=torch.float64, seed=3, compile=True)
+env.reset_members()
+g = torch.Generator().manual_seed(1)
+obs = [env.step_members(env.random_action(g))[0].tolist() for _ in range(3)]
+json.dump({"toy": toy, "obs": obs, "counters": dict(counters["inductor"])}, sys.stdout)
+"""
+
+
+@pytest.mark.slow(seconds=40)
+def test_a_new_process_finds_the_compiled_step_in_the_cache_and_the_same_trajectory(tmp_path):
+    """Torch caches no graph holding a loop unless told; the envs tell it, so a second
+    process loads the step instead of generating it again. Loops that differ only in
+    their bodies are different entries, and the cached step follows the eager one."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    environ = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
+    runs = [json.loads(subprocess.run([sys.executable, "-c", CACHED], env=environ, capture_output=True, text=True, check=True).stdout) for _ in range(2)]
+    cold, warm = (r["counters"] for r in runs)
+    assert cold.get("fxgraph_cache_miss", 0) >= 3 and not cold.get("fxgraph_cache_bypass")
+    assert warm.get("fxgraph_cache_hit", 0) >= 3 and not warm.get("fxgraph_cache_miss") and not warm.get("fxgraph_cache_bypass")
+    for run in runs:
+        assert run["toy"] == [[63.0] * 3, [122.0] * 3]  # 1 -> 3, 7, 15, 31, 63 and 1 -> 2, 5, 14, 41, 122
+    eager = make("burgers-v0", 2, dtype=torch.float64, seed=3)
+    eager.reset_members()
+    g = torch.Generator().manual_seed(1)
+    expected = torch.stack([eager.step_members(eager.random_action(g))[0] for _ in range(3)])
+    for run in runs:
+        torch.testing.assert_close(torch.tensor(run["obs"], dtype=torch.float64), expected, **ROUND_OFF)
 
 
 @pytest.mark.parametrize("env_id", ["lorenz-v0", "lorenz-continuous-v0"])
