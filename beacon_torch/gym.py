@@ -6,7 +6,7 @@ environment with numpy observations over a batch-of-one :class:`~beacon_torch.Fl
 which steps all copies in one batched tensor operation (next-step autoreset, gymnasium's
 default). Environment parameters pass through as keyword arguments of either call, and
 so do ``compile`` and the env's other options. Both compile their env unless given
-``compile=False`` (:func:`~beacon_torch.registry.adapter_compiles`): the first step of a
+``compile=False`` (:func:`~beacon_torch.registry.compiles_by_default`): the first step of a
 process then compiles (seconds to a minute, once per env and shape while torch's
 on-disk caches are warm), and every step after is one compiled call.
 
@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from beacon_torch.base import FlowEnv
-from beacon_torch.registry import adapter_compiles, list_envs, make
+from beacon_torch.registry import compiles_by_default, list_envs, make
 
 NAMESPACE = "beacon"
 RENDER_FPS = 20
@@ -88,7 +88,7 @@ class BeaconGymEnv(gymnasium.Env):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
-        params.setdefault("compile", adapter_compiles())
+        params.setdefault("compile", compiles_by_default())
         self.env = make(env_id, batch_size=1, dtype=dtype, record_history=render_mode is not None, **params)
         self.observation_space, self.action_space = _spaces(self.env)
         self._np_dtype = self.observation_space.dtype
@@ -139,7 +139,7 @@ class BeaconVectorEnv(VectorEnv):
         env_id = _own_id(env_id, registered_id)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        params.setdefault("compile", adapter_compiles())
+        params.setdefault("compile", compiles_by_default())
         self.env = make(
             env_id,
             batch_size=num_envs,

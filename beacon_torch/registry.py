@@ -47,11 +47,11 @@ def env_class(env_id: str) -> type[FlowEnv]:
         ) from None
 
 
-def adapter_compiles() -> bool:
-    """Whether the gymnasium and Stable-Baselines3 adapters compile their env when not
-    told (``compile=...``): yes, unless the environment variable
-    ``BEACON_TORCH_COMPILE`` is ``0`` (a debugging session, a test suite that checks
-    behaviour rather than speed)."""
+def compiles_by_default() -> bool:
+    """Whether the gymnasium and Stable-Baselines3 adapters and the training recipes
+    compile their env when not told (``compile=...``, ``--no-compile``): yes, unless the
+    environment variable ``BEACON_TORCH_COMPILE`` is ``0`` (a debugging session, a test
+    suite that checks behaviour rather than speed)."""
     return os.environ.get("BEACON_TORCH_COMPILE", "1") != "0"
 
 

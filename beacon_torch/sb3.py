@@ -44,7 +44,7 @@ except ImportError as err:  # pragma: no cover - exercised without the extra onl
 
 from beacon_torch.base import _as_flag, _as_seed
 from beacon_torch.gym import _spaces, batched_action, team_reward
-from beacon_torch.registry import adapter_compiles, make
+from beacon_torch.registry import compiles_by_default, make
 
 # what ``set_attr`` may change on a made env, each with its check
 SETTABLE = {"render_index": lambda index: index, "check_actions": lambda flag: _as_flag("check_actions", flag)}
@@ -61,7 +61,7 @@ class BeaconVecEnv(VecEnv):
     def __init__(self, env_id: str, n_envs: int = 1, *, render_mode: str | None = None, dtype: Any = "float32", device: Any = "cpu", **options: Any) -> None:
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        options.setdefault("compile", adapter_compiles())
+        options.setdefault("compile", compiles_by_default())
         self.env = make(env_id, batch_size=n_envs, dtype=dtype, device=device, record_history=render_mode is not None, **options)
         self.render_mode = render_mode
         self.env_id = env_id

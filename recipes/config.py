@@ -19,6 +19,7 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.base import _as_device
+from beacon_torch.registry import compiles_by_default
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.report import VARIANT_OF  # the env each variant trains and is scored like
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
@@ -28,11 +29,11 @@ from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 # variants train like their base env
 PPO = {
     "shkadov-v0": dict(n_rollout=3200, frames=200_000, critic_optim="nadam"),
-    # the cavities step their compiled physics; mixing's step costs most of its
-    # training, so two collector processes step it on both cores (58 transitions/s
-    # against 41 with 2 x 8, 25 minutes a seed; docs/results.md)
-    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128, compile=True),
-    "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90, compile=True, collectors=2),
+    # mixing's step costs most of its training, so two collector processes step it on
+    # both cores (58 transitions/s against 41 with 2 x 8, 25 minutes a seed;
+    # docs/results.md)
+    "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128),
+    "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90, collectors=2),
     "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
     "burgers-v0": dict(n_rollout=4000, frames=500_000, critic_lr=1e-3),
     # sloshing collects with 4 members, so that each rollout holds 500 steps of each,
@@ -99,7 +100,9 @@ class Config:
     num_envs: int = setting(8, "members of the batched env collecting together")
     hidden: int = setting(64, "width of the hidden layers")
     gamma: float = setting(0.99, "discount", domain=(0.0, 1.0, True))
-    compile: bool = setting(False, "the env's compiled physics (worth it for rayleigh and mixing)")
+    # one compiled call per action: a 1-D env collects 2 to 8 times faster at 16 members,
+    # for 15-35 s of compilation at the start (docs/performance.md)
+    compile: bool = setting(True, "the env's compiled physics (--no-compile: eager; BEACON_TORCH_COMPILE=0 turns this default off)")
     norm_steps: int = setting(0, f"random steps whose observations set a normalisation (0: raw observations, as the paper's agents saw them; {NORM_STEPS} reach past every env's start-up)")
     device: str = setting("cpu", "torch device of the env and the networks")
     out: str = setting("", "run directory (default runs/ALGO-ENV/seedSEED)")
@@ -207,6 +210,9 @@ class GradConfig(Config):
     lr: float = setting(1e-3, "learning rate", domain=POSITIVE)
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
     checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
+    # a differentiated step is compiled substep by substep, not as one call; the
+    # recorded runs are eager
+    compile: bool = setting(False, "the env's compiled physics")
 
 
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, DQNConfig, GradConfig)}
@@ -235,7 +241,8 @@ def paper_frames(env_id: str) -> int:
 def defaults(cls: type[Config], env_id: str) -> dict:
     """The per-env defaults of an algorithm: the paper's PPO budget, then the entry of
     the algorithm's own table."""
-    return {"frames": paper_frames(env_id), **cls.table.get(VARIANT_OF.get(env_id, env_id), {})}
+    off = {} if compiles_by_default() else {"compile": False}
+    return {"frames": paper_frames(env_id), **off, **cls.table.get(VARIANT_OF.get(env_id, env_id), {})}
 
 
 def _typed(name: str, kind: str, value):

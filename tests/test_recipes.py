@@ -60,12 +60,26 @@ def test_config_holds_the_papers_table_and_checks_overrides():
     with pytest.raises(ValueError, match="multiple of num_envs x collectors"):
         configure(PPOConfig, "lorenz-v0", num_envs=16, n_rollout=1000)
     assert configure(PPOConfig, "lorenz-v0", seed=2).out == "runs/ppo-lorenz-v0/seed2"
-    # the recorded campaign's ways of stepping are the defaults: 16 members, the cavities
-    # compiled, mixing on two collector processes (its rollout rounded to their 32 members)
+    # the recorded campaign's ways of stepping are the defaults: 16 members, mixing on two
+    # collector processes (its rollout rounded to their 32 members)
     rayleigh, mixing = configure(PPOConfig, "rayleigh-v0"), configure(PPOConfig, "mixing-v0")
-    assert (rayleigh.num_envs, rayleigh.compile, rayleigh.collectors, rayleigh.n_rollout) == (16, True, 1, 992)
-    assert (mixing.num_envs, mixing.compile, mixing.collectors, mixing.n_rollout) == (16, True, 2, 1984)
-    assert (configure(PPOConfig, "burgers-v0").num_envs, configure(TD3Config, "burgers-v0").num_envs, configure(TD3Config, "mixing-continuous-v0").compile) == (16, 8, False)
+    assert (rayleigh.num_envs, rayleigh.collectors, rayleigh.n_rollout) == (16, 1, 992)
+    assert (mixing.num_envs, mixing.collectors, mixing.n_rollout) == (16, 2, 1984)
+    assert (configure(PPOConfig, "burgers-v0").num_envs, configure(TD3Config, "burgers-v0").num_envs) == (16, 8)
+
+
+def test_recipes_compile_by_default(monkeypatch):
+    """Every env collects through its compiled step unless told otherwise (the flag, or
+    BEACON_TORCH_COMPILE=0 as this suite sets); gradient-based control stays eager."""
+    monkeypatch.delenv("BEACON_TORCH_COMPILE", raising=False)
+    for algo, env_id in (("ppo", "burgers-v0"), ("ppo", "mixing-v0"), ("td3", "mixing-continuous-v0"), ("dqn", "lorenz-v0")):
+        assert configure(CONFIGS[algo], env_id).compile is True
+    assert configure(PPOConfig, "burgers-v0", compile=False).compile is False
+    assert parse(PPOConfig, ["--env", "shkadov-v0", "--no-compile"]).compile is False
+    assert configure(GradConfig, "burgers-v0").compile is False
+    monkeypatch.setenv("BEACON_TORCH_COMPILE", "0")
+    assert configure(PPOConfig, "rayleigh-v0").compile is False
+    assert configure(PPOConfig, "rayleigh-v0", compile=True).compile is True
 
 
 @pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0"])  # discrete and continuous
