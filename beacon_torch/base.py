@@ -28,6 +28,11 @@ specs are built; substeps go through ``self.kernels``), ``noise()`` (the random 
 of one action, drawn from the env's generator: a dict of tensors, empty for
 deterministic physics) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
 
+Besides its physics a subclass declares its card, class attributes that say what the
+library knows of it (family, the published code's speed, the paper's PPO score, its
+gradient check, cheap settings for tests; see ``FlowEnv``), which benchmarks, reports
+and tests read instead of keeping lists of envs.
+
 Compiled, a whole step (the action's substeps, the reward, the observation and the
 blow-up bookkeeping) is one graph and one call, its substep loop a ``while_loop``
 (``Kernels.loop``); the random numbers are drawn before it, which is why they come
@@ -186,6 +191,20 @@ def settle(new: State, old: State, obs: torch.Tensor, old_obs: torch.Tensor, rew
     return new, obs, reward, ok
 
 
+@dataclasses.dataclass(frozen=True)
+class GradCheck:
+    """An env's gradient check (``beacon_torch.gradcheck``): the reward summed over
+    ``steps`` random actions after ``warmup`` of them, differentiated with respect to
+    the actions and to the parameter ``param`` at ``value``, with the other parameters
+    ``params``."""
+
+    param: str
+    value: float
+    warmup: int
+    steps: int
+    params: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
 class FlowEnv(EnvBase):
     """Base of the batched BEACON environments (see the module docstring)."""
 
@@ -203,10 +222,37 @@ class FlowEnv(EnvBase):
     # False where the physics draws from the env's generator (noisy inflows, random
     # starts): members then depend on the seed and on the batch size
     deterministic: ClassVar[bool] = True
+    # The env's card: what the library knows of it beyond its equations, declared in its
+    # module (a variant subclasses its base env and inherits it). Benchmarks, reports
+    # and the test suite read it; nothing keeps a list of envs of its own.
+    # "ode", "1-D" or "cavity" (the 2-D cavities, whose actions cost seconds: tests and
+    # benchmarks run fewer of their steps)
+    family: ClassVar[str]
+    # transitions per second of the published single-env NumPy/Numba code on one core
+    # of this project's Intel Xeon machine kind
+    published_speed: ClassVar[float]
+    # the speed-up over it aimed at, at the best batch size, float32, 2 CPU cores
+    speed_target: ClassVar[float]
+    # the score the paper's PPO reaches, read from its curves as the mean of the last
+    # tenth of its training episodes (the 1 of the reports' normalised scores)
+    paper_ppo: ClassVar[float]
+    # the gradient check on the published settings (None where the actions are discrete)
+    gradcheck: ClassVar[GradCheck | None] = None
+    # parameters that make an episode cheap, for the behaviour tests run on every env
+    test_settings: ClassVar[dict[str, Any]] = {}
     # inductor options of the compiled path (compile()): with the C++ wrapper a compiled
     # call costs a few microseconds instead of tens, and a while_loop's iteration runs
     # in C++ rather than in the generated Python wrapper
     inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
+
+    @classmethod
+    def base_id(cls) -> str:
+        """The benchmark env this one is a variant of, or its own id: a variant
+        subclasses its base env, against whose scores and speed it is measured."""
+        for klass in cls.__mro__[1:]:
+            if klass.__dict__.get("env_id"):
+                return klass.env_id
+        return cls.env_id
 
     def __init__(
         self,

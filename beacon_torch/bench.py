@@ -26,41 +26,19 @@ from pathlib import Path
 import torch
 
 from beacon_torch.files import save_figure
-from beacon_torch.registry import make
+from beacon_torch.registry import env_class, make
 
-# The published single-environment NumPy/Numba code, one process on one core of this
-# kind of machine, transitions per second.
-PUBLISHED = {
-    "lorenz-v0": 62_300.0,
-    "vortex-v0": 6_560.0,
-    "burgers-v0": 2_670.0,
-    "sloshing-v0": 1_060.0,
-    "shkadov-v0": 300.0,
-    "rayleigh-v0": 13.8,
-    "mixing-v0": 3.7,
-}
-# the speed-ups this project aims at, at the best batch size, float32, on 2 CPU cores
-TARGETS = {
-    "lorenz-v0": 20.0,
-    "vortex-v0": 20.0,
-    "burgers-v0": 5.0,
-    "sloshing-v0": 5.0,
-    "shkadov-v0": 5.0,
-    "rayleigh-v0": 20.0,
-    "mixing-v0": 30.0,
-}
 BATCH_SIZES = (1, 16, 64, 256, 1024)
 CAVITY_BATCH_SIZES = (1, 16, 32, 64)
-CAVITIES = ("rayleigh-v0", "mixing-v0", "mixing-continuous-v0")
 
 
 def default_batch_sizes(env_id: str) -> tuple[int, ...]:
-    return CAVITY_BATCH_SIZES if env_id in CAVITIES else BATCH_SIZES
+    return CAVITY_BATCH_SIZES if env_class(env_id).family == "cavity" else BATCH_SIZES
 
 
 def default_steps(env_id: str) -> int:
     """Timed steps per repeat: enough to dwarf the timer, few for the costly cavities."""
-    return 2 if env_id in CAVITIES else 20
+    return 2 if env_class(env_id).family == "cavity" else 20
 
 
 @dataclass
@@ -145,7 +123,7 @@ def measure(
         peak = torch.cuda.max_memory_allocated(dev) / 2**20
     else:
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
-    published = PUBLISHED.get(env_id.replace("-continuous", "").replace("-separable", ""))
+    published = env_class(env_id).published_speed
     return Measurement(
         env=env_id,
         batch=batch,
@@ -293,7 +271,7 @@ def markdown(results: Sequence[Measurement]) -> str:
     """The best float32 speed of each env against its target, as a Markdown table."""
     lines = ["| env | best transitions/s | at batch | mode | vs published | target | met |", "|---|---|---|---|---|---|---|"]
     for env_id, m in best(results).items():
-        target = TARGETS.get(env_id)
+        target = env_class(env_id).speed_target
         met = "" if target is None or m.speedup is None else ("yes" if m.speedup >= target else "**no**")
         vs = f"{m.speedup:.1f}x" if m.speedup is not None else "-"
         tgt = f"{target:g}x" if target else "-"

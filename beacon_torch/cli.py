@@ -32,7 +32,7 @@ from beacon_torch import evaluate
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.params import describe
-from beacon_torch.registry import ENVS, env_class, list_envs, make
+from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make
 
 
 class CliError(Exception):
@@ -155,7 +155,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from beacon_torch import bench
 
-    envs = args.envs or list(bench.PUBLISHED)
+    envs = args.envs or base_envs()
     for env_id in envs:
         env_class(env_id)
     for b in args.batch_sizes or ():

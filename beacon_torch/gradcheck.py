@@ -17,22 +17,9 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
-from beacon_torch.base import FlowEnv, State
-
-# env: (parameter, its value, other parameters, warm-up actions, differentiated actions)
-# of the check on the published settings; tests/test_gradients.py shrinks a few for time
-CASES = {
-    # the indicator reward has no gradient: its smooth version (docs/gradients.md)
-    "lorenz-continuous-v0": ("rho", 28.0, {"reward_width": 1.0}, 10, 20),
-    "vortex-v0": ("re", 50.0, {}, 20, 20),
-    # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
-    # sits on its kink everywhere there)
-    "burgers-v0": ("u_target", 0.5, {}, 60, 4),
-    "sloshing-v0": ("g", 9.81, {}, 5, 4),
-    "shkadov-v0": ("delta", 0.1, {}, 3, 3),
-    "rayleigh-v0": ("ra", 1e4, {}, 0, 2),
-    "mixing-continuous-v0": ("re", 100.0, {}, 1, 1),
-}
+from beacon_torch.base import FlowEnv, GradCheck, State
+from beacon_torch.registry import env_class
+from beacon_torch.registry import make as make_env
 
 
 @dataclass(frozen=True)
@@ -100,3 +87,16 @@ def check(make: Callable[..., FlowEnv], name: str, value: float, *, warmup: int,
     with torch.no_grad():
         fd = (summed_reward(plus, start, actions.detach()) - summed_reward(minus, start, actions.detach())) / (2 * dv)
     return {"actions": along, name: Derivative(float(grad_theta), float(fd))}
+
+
+def check_env(env_id: str, case: GradCheck | None = None) -> dict[str, Derivative]:
+    """:func:`check` of the env ``env_id`` (one member, float64) on ``case``, by default
+    the one its card declares (``gradcheck``)."""
+    case = case or env_class(env_id).gradcheck
+    if case is None:
+        raise ValueError(f"{env_id} declares no gradient check (its actions are discrete)")
+
+    def make(**kwargs):
+        return make_env(env_id, batch_size=1, dtype=torch.float64, seed=3, **case.params, **kwargs)
+
+    return check(make, case.param, case.value, warmup=case.warmup, steps=case.steps)

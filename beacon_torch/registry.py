@@ -36,6 +36,11 @@ def list_envs() -> list[str]:
     return sorted(ENVS)
 
 
+def base_envs() -> list[str]:
+    """The benchmark's own envs, without their variants, in the paper's order."""
+    return [env_id for env_id, cls in ENVS.items() if cls.base_id() == env_id]
+
+
 def env_class(env_id: str) -> type[FlowEnv]:
     if not isinstance(env_id, str):
         raise TypeError(f"env id must be a string, got {type(env_id).__name__}")

@@ -18,11 +18,9 @@ import torch
 
 import beacon_torch
 from beacon_torch import evaluate
-from beacon_torch.bench import PUBLISHED as ALL_PUBLISHED
-from beacon_torch.envs import mixing, rayleigh
+from beacon_torch.registry import ENVS, base_envs
 
-SUBSTEPS = {"rayleigh-v0": rayleigh.SUBSTEPS, "mixing-v0": mixing.SUBSTEPS}
-PUBLISHED = {env_id: ALL_PUBLISHED[env_id] for env_id in SUBSTEPS}
+PUBLISHED = {env_id: ENVS[env_id].published_speed for env_id in base_envs() if ENVS[env_id].family == "cavity"}
 
 
 def substep_breakdown(env, repeats: int = 50) -> dict:
@@ -46,7 +44,7 @@ def main() -> None:
     args = parser.parse_args()
     results = {"machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"}
     for env_id in args.envs:
-        substeps = SUBSTEPS[env_id]
+        substeps = ENVS[env_id].substeps
         env = beacon_torch.make(env_id, args.batch, dtype=args.dtype, compile=args.compile)
         compile_s = 0.0
         if args.compile:  # compile on a throw-away step, outside the timed episode

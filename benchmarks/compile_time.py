@@ -5,7 +5,8 @@
 For every env, two fresh processes share a new, empty torch compile cache
 (``TORCHINDUCTOR_CACHE_DIR``): the first compiles cold, the second finds the cache warm.
 Each times ``make``, ``reset`` and the first step (what a user waits for), then one
-more step (which must not compile again). Prints a markdown table and writes
+more step (which must not compile again), and counts the graphs torch found in its
+cache, compiled anew, or could not cache. Prints a markdown table and writes
 ``compile_time.json`` to ``--out``. The numbers in benchmarks/RESULTS.md come from this
 script, run on an otherwise idle machine.
 """
@@ -13,18 +14,21 @@ script, run on an otherwise idle machine.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
 import tempfile
 
-from beacon_torch.bench import PUBLISHED, machine, save_rows
+from beacon_torch.bench import machine, save_rows
+from beacon_torch.registry import base_envs
 
-ENVS = list(PUBLISHED)
+ENVS = base_envs()
 
 # run in the child: prints the seconds of the first step and of the second
 _CHILD = """
-import sys, time, torch
+import json, sys, time, torch
+from torch._dynamo.utils import counters
 torch.set_num_threads(1)
 import beacon_torch
 start = time.perf_counter()
@@ -35,15 +39,17 @@ env.step_members(env.random_action(g))
 first = time.perf_counter() - start
 start = time.perf_counter()
 env.step_members(env.random_action(g))
-print(first, time.perf_counter() - start)
+second = time.perf_counter() - start
+graphs = {k: counters["inductor"]["fxgraph_cache_" + k] for k in ("hit", "miss", "bypass")}
+print(json.dumps({"first": first, "second": second, **graphs}))
 """
 
 
-def first_steps(env_id: str, batch: int, cache: str) -> tuple[float, float]:
+def first_steps(env_id: str, batch: int, cache: str) -> dict:
+    """The child's seconds of the first and second steps, and its graph counts."""
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache}
     out = subprocess.run([sys.executable, "-c", _CHILD, env_id, str(batch)], env=env, capture_output=True, text=True, check=True)
-    first, second = out.stdout.split()[-2:]
-    return float(first), float(second)
+    return json.loads(out.stdout.splitlines()[-1])
 
 
 def main() -> None:
@@ -53,15 +59,16 @@ def main() -> None:
     parser.add_argument("--out", default="runs/compile_time")
     args = parser.parse_args()
     print(f"# {machine()}, batch {args.batch}, float32")
-    print("| env | first step, cold cache (s) | first step, warm cache (s) | second step (s) |")
-    print("|---|---|---|---|")
+    print("| env | first step, cold cache (s) | first step, warm cache (s) | second step (s) | warm: graphs from the cache / compiled / not cacheable |")
+    print("|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
         with tempfile.TemporaryDirectory(prefix="beacon-compile-") as cache:
-            cold, _ = first_steps(env_id, args.batch, cache)
-            warm, second = first_steps(env_id, args.batch, cache)
-        rows.append({"env": env_id, "batch": args.batch, "cold_s": cold, "warm_s": warm, "second_step_s": second})
-        print(f"| {env_id} | {cold:.1f} | {warm:.1f} | {second:.3f} |", flush=True)
+            cold = first_steps(env_id, args.batch, cache)
+            warm = first_steps(env_id, args.batch, cache)
+        graphs = {f"warm_graphs_{k}": warm[k] for k in ("hit", "miss", "bypass")}
+        rows.append({"env": env_id, "batch": args.batch, "cold_s": cold["first"], "warm_s": warm["first"], "second_step_s": warm["second"], **graphs})
+        print(f"| {env_id} | {cold['first']:.1f} | {warm['first']:.1f} | {warm['second']:.3f} | {warm['hit']} / {warm['miss']} / {warm['bypass']} |", flush=True)
     print("results:", save_rows(rows, args.out, "compile_time"))
 
 

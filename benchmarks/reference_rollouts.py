@@ -20,8 +20,7 @@ import time
 import torch
 
 from beacon_torch import reference
-
-CAVITIES = {"rayleigh-v0", "mixing-v0"}
+from beacon_torch.registry import env_class
 
 
 def main() -> None:
@@ -32,7 +31,7 @@ def main() -> None:
     torch.set_num_threads(1)
     rows = ["| env | solver | actions | return | published | running return, largest rel. difference | first obs. | last obs. | wall time |", "|---|---|---|---|---|---|---|---|---|"]
     for env_id in args.env_ids:
-        for solver in ("direct", "jacobi") if env_id in CAVITIES else (None,):
+        for solver in ("direct", "jacobi") if env_class(env_id).family == "cavity" else (None,):
             start = time.perf_counter()
             agreement = reference.replay(env_id, **({"solver": solver} if solver else {}))
             wall = time.perf_counter() - start

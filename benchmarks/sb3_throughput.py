@@ -21,10 +21,11 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
-from beacon_torch.bench import CAVITIES, PUBLISHED, machine, save_rows
+from beacon_torch.bench import machine, save_rows
+from beacon_torch.registry import base_envs, env_class
 from beacon_torch.sb3 import BeaconVecEnv
 
-ENVS = list(PUBLISHED)  # the seven benchmark envs
+ENVS = base_envs()  # the seven benchmark envs
 
 
 def rate(venv, seconds: float) -> float:
@@ -56,7 +57,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
-        seconds = args.seconds * (4 if env_id in CAVITIES else 1)
+        seconds = args.seconds * (4 if env_class(env_id).family == "cavity" else 1)
         for copies in args.copies:
             batched = rate(BeaconVecEnv(env_id, copies, seed=0), seconds)
             dummy = rate(DummyVecEnv([lambda name=env_id: gymnasium.make(f"beacon/{name}") for _ in range(copies)]), seconds)

@@ -28,9 +28,10 @@ from tensordict import TensorDict
 
 import beacon_torch
 import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
-from beacon_torch.bench import CAVITIES, PUBLISHED, machine, save_rows
+from beacon_torch.bench import machine, save_rows
+from beacon_torch.registry import base_envs, env_class
 
-ENVS = list(PUBLISHED)  # the seven benchmark envs
+ENVS = base_envs()  # the seven benchmark envs
 
 
 def rates(steps: dict, seconds: float, repeats: int) -> dict:
@@ -91,7 +92,7 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
             env._whole_step(frozen["state"], frozen["obs"], frozen["action"], frozen["count"], frozen["noise"], None)
 
     measured = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
-    return {"env": env_id, "mode": "compiled" if compiled else "eager", "published": PUBLISHED[env_id], **measured}
+    return {"env": env_id, "mode": "compiled" if compiled else "eager", "published": env_class(env_id).published_speed, **measured}
 
 
 def main() -> None:
@@ -110,7 +111,7 @@ def main() -> None:
     rows = []
     for env_id in args.envs:
         for mode in args.modes:
-            seconds = args.seconds * (3 if env_id in CAVITIES else 1)
+            seconds = args.seconds * (3 if env_class(env_id).family == "cavity" else 1)
             r = measure(env_id, mode == "compiled", seconds, args.repeats)
             rows.append(r)
             print(f"| {env_id} | {mode} | {r['gymnasium']:,.1f} | {r['torchrl']:,.1f} | {r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x |", flush=True)

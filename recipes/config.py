@@ -19,9 +19,8 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.base import _as_device
-from beacon_torch.registry import compiles_by_default
+from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
-from beacon_torch.training.report import VARIANT_OF  # the env each variant trains and is scored like
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 
 # the paper's PPO settings per env: its table, and what its runs used beyond the table
@@ -235,14 +234,14 @@ ALGORITHMS = {
 
 def paper_frames(env_id: str) -> int:
     """The paper's PPO budget of ``env_id``, the default budget of every algorithm."""
-    return PPO.get(VARIANT_OF.get(env_id, env_id), {}).get("frames", Config.frames)
+    return PPO.get(env_class(env_id).base_id(), {}).get("frames", Config.frames)
 
 
 def defaults(cls: type[Config], env_id: str) -> dict:
     """The per-env defaults of an algorithm: the paper's PPO budget, then the entry of
     the algorithm's own table."""
     off = {} if compiles_by_default() else {"compile": False}
-    return {"frames": paper_frames(env_id), **off, **cls.table.get(VARIANT_OF.get(env_id, env_id), {})}
+    return {"frames": paper_frames(env_id), **off, **cls.table.get(env_class(env_id).base_id(), {})}
 
 
 def _typed(name: str, kind: str, value):

@@ -29,10 +29,9 @@ from pathlib import Path
 import torch
 
 from beacon_torch import files, pretrained
-from beacon_torch.registry import ENVS
+from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
 from beacon_torch.training.evaluation import summarise
-from beacon_torch.training.report import PAPER_PPO
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint, seed_dirs
 
 from config import CONFIGS, configure, paper_frames
@@ -140,8 +139,8 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = ["| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's deterministic policy | transitions (of the paper's budget) | floor met |", "|---|---|---|---|---|---|"]
     for s in summaries:
-        if s["algo"] == "ppo" and s["env"] in PAPER_PPO:
-            floor, best = PAPER_PPO[s["env"]], max(seed["eval"] for seed in s["seeds"])
+        if s["algo"] == "ppo" and env_class(s["env"]).base_id() == s["env"]:
+            floor, best = env_class(s["env"]).paper_ppo, max(seed["eval"] for seed in s["seeds"])
             met = "met" if s["train_mean"] >= floor and best >= floor else "**missed**"
             floors.append(f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} of {paper_frames(s['env']):,} | {met} |")
     curves = ", ".join(f"[{s['algo']} {s['env']}]({rel(images / (s['algo'] + '-' + s['env'] + '.png'))})" for s in summaries)

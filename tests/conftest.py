@@ -14,29 +14,22 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # slow the matrix-heavy 2-D solvers down several times
     torch.set_num_threads(1)
 
+ENVS = beacon_torch.registry.ENVS
 ALL_ENVS = beacon_torch.list_envs()
-CONTINUOUS_ENVS = [e for e in ALL_ENVS if not beacon_torch.registry.ENVS[e].discrete]
-DISCRETE_ENVS = [e for e in ALL_ENVS if beacon_torch.registry.ENVS[e].discrete]
-DETERMINISTIC_ENVS = [e for e in ALL_ENVS if beacon_torch.registry.ENVS[e].deterministic]
+CONTINUOUS_ENVS = [e for e in ALL_ENVS if not ENVS[e].discrete]
+DISCRETE_ENVS = [e for e in ALL_ENVS if ENVS[e].discrete]
+DETERMINISTIC_ENVS = [e for e in ALL_ENVS if ENVS[e].deterministic]
 # the 2-D cavities take tens of seconds an episode: their whole episodes are run by
 # test_scores.py, the behaviour tests that need whole episodes run on the others
-EXPENSIVE_ENVS = {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0"}
+EXPENSIVE_ENVS = {e for e in ALL_ENVS if ENVS[e].family == "cavity"}
 CHEAP_ENVS = [e for e in ALL_ENVS if e not in EXPENSIVE_ENVS]
-
-# cheaper settings for the behaviour tests that run on every env (the published numbers
-# are checked with the defaults in test_scores.py): mixing on a 30 x 30 cavity of the
-# same scheme and the same probes, a tenth of the published grid's cost
-SMALL_CAVITY = {"L": 0.3, "H": 0.3, "side": 0.2}
-FAST = {
-    "shkadov-v0": {"random_start": 3},
-    "shkadov-separable-v0": {"random_start": 3},
-    "mixing-v0": SMALL_CAVITY,
-    "mixing-continuous-v0": SMALL_CAVITY,
-}
+# the cheaper settings each env declares for the behaviour tests run on every env (the
+# published numbers are checked with the defaults in test_scores.py)
+FAST = {e: ENVS[e].test_settings for e in ALL_ENVS}
 
 
 def make(env_id, batch_size=1, **kwargs):
-    return beacon_torch.make(env_id, batch_size, **{**FAST.get(env_id, {}), **kwargs})
+    return beacon_torch.make(env_id, batch_size, **{**FAST[env_id], **kwargs})
 
 
 @pytest.fixture(params=ALL_ENVS)

@@ -323,3 +323,34 @@ def test_a_blowup_never_pays(env_id, params, push):
     calm = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0, **{k: v for k, v in params.items() if k != "amp"})
     uncontrolled = evaluate.scores(evaluate.episode(calm, evaluate.null_policy(calm)))
     assert (blown <= env.blowup_reward).all() and (blown < uncontrolled).all()
+
+
+def test_every_env_declares_its_card():
+    """What benchmarks, reports and tests know of an env comes from its class: a family,
+    the published speed and the speed aimed at, the paper's PPO score, a gradient check
+    of a differentiable parameter wherever the actions are continuous; a variant is
+    measured against its base env, whose card it inherits."""
+    import dataclasses
+    import math
+
+    from beacon_torch.base import GradCheck
+
+    envs = beacon_torch.registry.ENVS
+    assert beacon_torch.registry.base_envs() == ["lorenz-v0", "vortex-v0", "burgers-v0", "sloshing-v0", "shkadov-v0", "rayleigh-v0", "mixing-v0"]
+    assert {e: envs[e].base_id() for e in envs if envs[e].base_id() != e} == {
+        "lorenz-continuous-v0": "lorenz-v0",
+        "shkadov-separable-v0": "shkadov-v0",
+        "mixing-continuous-v0": "mixing-v0",
+    }
+    assert EXPENSIVE_ENVS == {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0"}
+    for env_id, cls in envs.items():
+        assert cls.family in ("ode", "1-D", "cavity"), env_id
+        assert cls.published_speed > 0 and cls.speed_target > 0 and math.isfinite(cls.paper_ppo), env_id
+        base = envs[cls.base_id()]
+        assert (cls.published_speed, cls.paper_ppo, cls.family) == (base.published_speed, base.paper_ppo, base.family), env_id
+        assert (cls.gradcheck is None) == cls.discrete, env_id
+        if cls.gradcheck is not None:
+            assert isinstance(cls.gradcheck, GradCheck)
+            fields = {f.name: f for f in dataclasses.fields(cls.Params)}
+            assert fields[cls.gradcheck.param].metadata["differentiable"], env_id
+        cls.Params(**cls.test_settings)  # parameters the env knows, in range

@@ -15,33 +15,30 @@ from tensordict.nn import TensorDictModule
 
 import beacon_torch
 from beacon_torch import gradcheck
-from beacon_torch.gradcheck import check, generic_start, summed_reward
+from beacon_torch.gradcheck import generic_start, summed_reward
 
-from conftest import SMALL_CAVITY
+from conftest import ENVS
 
 F64 = torch.float64
 REL = 1e-5
 
-# gradcheck's cases on the published settings, but for time: shkadov without the random
-# start, one differentiated rayleigh action, and mixing-continuous-v0 on a 30 x 30 cavity
-# of the same scheme (the published-size check is benchmarks/gradcheck.py, recorded in
-# docs/gradients.md)
+# the gradient check each env declares, for time on its test settings and with one
+# differentiated action of a cavity (the check on the published settings is
+# benchmarks/gradcheck.py, recorded in docs/gradients.md)
 CASES = {
-    **gradcheck.CASES,
-    "shkadov-v0": ("delta", 0.1, {"random_start": 0}, 3, 3),
-    "rayleigh-v0": ("ra", 1e4, {}, 0, 1),
-    "mixing-continuous-v0": ("re", 100.0, SMALL_CAVITY, 1, 1),
+    env_id: dataclasses.replace(
+        cls.gradcheck,
+        params={**cls.test_settings, **cls.gradcheck.params},
+        steps=1 if cls.family == "cavity" else cls.gradcheck.steps,
+    )
+    for env_id, cls in ENVS.items()
+    if cls.gradcheck is not None
 }
 
 
 @pytest.mark.parametrize("env_id", list(CASES))
 def test_gradients_match_central_differences(env_id):
-    name, value, params, warmup, steps = CASES[env_id]
-
-    def make(**kwargs):
-        return beacon_torch.make(env_id, batch_size=1, dtype=F64, seed=3, **params, **kwargs)
-
-    result = check(make, name, value, warmup=warmup, steps=steps)
+    result = gradcheck.check_env(env_id, CASES[env_id])
     for derivative in result.values():
         assert abs(derivative.central) > 1e-10, "a flat direction checks nothing"
         assert derivative.relative_error < REL, result
@@ -185,14 +182,14 @@ REACH = {
     "shkadov-v0": (1, 2, {"random_start": 0}),
     "shkadov-separable-v0": (1, 2, {"random_start": 0}),
     "rayleigh-v0": (0, 1, {}),
-    "mixing-continuous-v0": (0, 1, SMALL_CAVITY),
+    "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].test_settings),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)
     for env_id, cls in beacon_torch.registry.ENVS.items()
     if not cls.discrete
     for f in dataclasses.fields(cls.Params)
-    if f.metadata["differentiable"] and f.name != CASES.get(env_id, (None,))[0]  # those are checked above
+    if f.metadata["differentiable"] and (env_id not in CASES or f.name != CASES[env_id].param)  # those are checked above
 ]
 
 

@@ -13,14 +13,13 @@ from hypothesis import strategies as st
 
 import beacon_torch
 
-from conftest import FAST
+from conftest import EXPENSIVE_ENVS, FAST
 
 ENVS = beacon_torch.list_envs()
 MEMBERS, STEPS = 3, 4
 CHECK = settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 # the cavities' steps cost a tenth of a second or more: fewer examples and steps there
 # (mixing on the small cavity of the same scheme)
-CAVITIES = {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0"}
 CAVITY_CHECK = settings(CHECK, max_examples=4)
 
 
@@ -60,13 +59,13 @@ def actions(env) -> st.SearchStrategy:
 def test_valid_parameters_and_any_actions_stay_finite_or_end_cleanly(env_id):
     fields = member_params(env_id)
     probe = beacon_torch.make(env_id, MEMBERS, **FAST.get(env_id, {}))
-    steps = 2 if env_id in CAVITIES else STEPS
+    steps = 2 if env_id in EXPENSIVE_ENVS else STEPS
     strategy = st.tuples(
         st.fixed_dictionaries({f.name: st.lists(in_range(f.metadata), min_size=MEMBERS, max_size=MEMBERS) for f in fields}),
         st.lists(actions(probe), min_size=steps, max_size=steps),
     )
 
-    @(CAVITY_CHECK if env_id in CAVITIES else CHECK)
+    @(CAVITY_CHECK if env_id in EXPENSIVE_ENVS else CHECK)
     @given(strategy)
     def check(example):
         params, sequence = example

@@ -24,7 +24,6 @@ import grad
 import ppo
 import td3
 from config import ALGORITHMS, CONFIGS, PPO, DQNConfig, GradConfig, PPOConfig, TD3Config, configure, parse
-from conftest import SMALL_CAVITY
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -252,7 +251,7 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
     if env_id.startswith("mixing"):
         # the small cavity (the observation is the same probe grid): a default-size
         # eager step costs about a second here, this one a tenth
-        monkeypatch.setattr(recipe, "make_env", functools.partial(training_env.make_env, **SMALL_CAVITY))
+        monkeypatch.setattr(recipe, "make_env", functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].test_settings))
 
     assert set(ALGORITHMS) == set(beacon_torch.registry.ENVS)
     tiny = dict(frames=2, num_envs=2, hidden=8, norm_steps=1, compile=False, collectors=1, out=str(tmp_path), progress=False)

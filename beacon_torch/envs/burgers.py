@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
+from beacon_torch.base import FlowEnv, GradCheck, State
 from beacon_torch.numerics import bdf2_explicit_step, tvd_derivative, van_leer
 from beacon_torch.params import param
 
@@ -61,6 +61,13 @@ class BurgersEnv(FlowEnv):
     Params = BurgersParams
     episode_length = EPISODE_LENGTH
     deterministic = False
+    family = "1-D"
+    published_speed = 2_670.0
+    speed_target = 5.0
+    paper_ppo = -1.75
+    # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
+    # sits on its kink everywhere there)
+    gradcheck = GradCheck("u_target", 0.5, warmup=60, steps=4)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

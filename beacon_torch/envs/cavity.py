@@ -83,6 +83,7 @@ class CavityEnv(FlowEnv):
     ``solver``, probes of the scalar and the velocities, their history as observation."""
 
     episode_length: ClassVar[int] = 100
+    family = "cavity"
 
     scalar: ClassVar[str]  # the transported scalar's name in the state
     cells_per_unit: ClassVar[int]

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
+from beacon_torch.base import FlowEnv, GradCheck, State
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -58,6 +58,10 @@ class LorenzEnv(FlowEnv):
     Params = LorenzParams
     episode_length = EPISODE_LENGTH
     discrete = True
+    family = "ode"
+    published_speed = 62_300.0
+    speed_target = 20.0
+    paper_ppo = 400.0
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -106,6 +110,8 @@ class LorenzContinuousEnv(LorenzEnv):
 
     env_id = "lorenz-continuous-v0"
     discrete = False
+    # the indicator reward has no gradient: its smooth version (docs/gradients.md)
+    gradcheck = GradCheck("rho", 28.0, warmup=10, steps=20, params={"reward_width": 1.0})
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

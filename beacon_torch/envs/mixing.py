@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import State
+from beacon_torch.base import GradCheck, State
 from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
 from beacon_torch.numerics.projection import GRADIENT, NEUMANN, ZERO_GHOST, Cavity, Ghosts, project
 from beacon_torch.params import param
@@ -62,6 +62,12 @@ class MixingEnv(CavityEnv):
     env_id = "mixing-v0"
     Params = MixingParams
     discrete = True
+    published_speed = 3.7
+    speed_target = 30.0
+    paper_ppo = -12.0
+    # a 30 x 30 cavity of the same scheme and the same probes, a tenth of the published
+    # grid's cost
+    test_settings = {"L": 0.3, "H": 0.3, "side": 0.2}
     scalar = "c"
     cells_per_unit = 100
     dt = DT
@@ -145,6 +151,7 @@ class MixingContinuousEnv(MixingEnv):
 
     env_id = "mixing-continuous-v0"
     discrete = False
+    gradcheck = GradCheck("re", 100.0, warmup=1, steps=1)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

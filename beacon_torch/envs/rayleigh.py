@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import State
+from beacon_torch.base import GradCheck, State
 from beacon_torch.cache import cached
 from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
 from beacon_torch.numerics.projection import GRADIENT, VALUE, Cavity, Ghosts, edge_offset, project
@@ -125,6 +125,10 @@ class RayleighEnv(CavityEnv):
     env_id = "rayleigh-v0"
     Params = RayleighParams
     blowup_reward = -1.0
+    published_speed = 13.8
+    speed_target = 20.0
+    paper_ppo = -130.0
+    gradcheck = GradCheck("ra", 1e4, warmup=0, steps=2)
     scalar = "theta"
     cells_per_unit = CELLS_PER_UNIT
     dt = DT

@@ -31,7 +31,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Composite, Unbounded
 
-from beacon_torch.base import FlowEnv, State, where_members
+from beacon_torch.base import FlowEnv, GradCheck, State, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, minmod, third_derivative, tvd_derivative
@@ -197,6 +197,13 @@ class ShkadovEnv(FlowEnv):
     # this whenever it happens (docs/envs/shkadov.md)
     blowup_reward = -100.0
     deterministic = False
+    family = "1-D"
+    published_speed = 300.0
+    speed_target = 5.0
+    paper_ppo = -0.8
+    gradcheck = GradCheck("delta", 0.1, warmup=3, steps=3)
+    # a reset runs up to 3 uncontrolled actions instead of 400
+    test_settings = {"random_start": 3}
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

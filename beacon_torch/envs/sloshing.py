@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State, where_members
+from beacon_torch.base import FlowEnv, GradCheck, State, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
@@ -126,6 +126,11 @@ class SloshingEnv(FlowEnv):
     env_id = "sloshing-v0"
     Params = SloshingParams
     episode_length = EPISODE_LENGTH
+    family = "1-D"
+    published_speed = 1_060.0
+    speed_target = 5.0
+    paper_ppo = -1.1
+    gradcheck = GradCheck("g", 9.81, warmup=5, steps=4)
     # Below every episode that completes: it keeps 0 <= h <= 2 (a negative depth makes
     # the wave speed non-finite, which ends the episode too), so each step earns at least
     # -(dx sqrt(n_cells) + alpha amp) = -0.179 and 200 steps at least -35.9 at the

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
+from beacon_torch.base import FlowEnv, GradCheck, State
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -91,6 +91,11 @@ class VortexEnv(FlowEnv):
     env_id = "vortex-v0"
     Params = VortexParams
     episode_length = EPISODE_LENGTH
+    family = "ode"
+    published_speed = 6_560.0
+    speed_target = 20.0
+    paper_ppo = 38.0
+    gradcheck = GradCheck("re", 50.0, warmup=20, steps=20)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

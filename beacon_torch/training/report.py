@@ -18,32 +18,16 @@ from pathlib import Path
 import numpy as np
 
 from beacon_torch.files import save_figure, write_text
+from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training.evaluation import summarise
 
-# the score each env's PPO reaches in the paper, the 1 of the normalised score (read
-# from its curves, as the mean of the last tenth of its training episodes)
-PAPER_PPO = {
-    "lorenz-v0": 400.0,
-    "vortex-v0": 38.0,
-    "burgers-v0": -1.75,
-    "sloshing-v0": -1.1,
-    "shkadov-v0": -0.8,
-    "rayleigh-v0": -130.0,
-    "mixing-v0": -12.0,
-}
-# the variants are scored against their base env's reference
-VARIANT_OF = {
-    "lorenz-continuous-v0": "lorenz-v0",
-    "mixing-continuous-v0": "mixing-v0",
-    "shkadov-separable-v0": "shkadov-v0",
-}
 BOOTSTRAP = 10_000  # resamples of the seeds
 CONFIDENCE = 0.95
 
 
 def reference(env_id: str) -> float:
     """The paper's PPO score of ``env_id`` (its base env's for a variant)."""
-    return PAPER_PPO[VARIANT_OF.get(env_id, env_id)]
+    return env_class(env_id).paper_ppo
 
 
 def normalised(score, uncontrolled, env_id: str):
@@ -106,7 +90,7 @@ def check_summary(summary, file: str | Path) -> dict:
     finite = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
     if not isinstance(summary, dict):
         raise bad("not a JSON object")
-    if not isinstance(summary.get("env"), str) or summary["env"] not in PAPER_PPO and summary["env"] not in VARIANT_OF:
+    if not isinstance(summary.get("env"), str) or summary["env"] not in ENVS:
         raise bad(f"unknown env {summary.get('env')!r}")
     if not isinstance(summary.get("algo"), str):
         raise bad("no algorithm")
