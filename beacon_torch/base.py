@@ -4,8 +4,9 @@ The base owns the env's core, everything that is not physics: batch size, device
 dtype, the seeded generator, specs, action checking, step counting and truncation,
 partial resets, blow-up handling and the state. The compiled path (``compiled``), the
 autograd plumbing (``autograd``) and the history kept for rendering (``history``) live in
-modules of their own. A subclass supplies the physics through five pure-ish methods on a
-dict of state tensors (each with a leading batch dimension):
+modules of their own. A subclass supplies the physics through four abstract methods on a
+dict of state tensors (each with a leading batch dimension; their contracts are in
+their docstrings):
 
 ``sizes(params)`` (a class method)
     the observation size and the action size (continuous) or number of actions
@@ -20,10 +21,9 @@ dict of state tensors (each with a leading batch dimension):
     already taken in the episode, per member, and ``noise`` what ``noise()`` drew;
 ``observe(state)``
     the observation tensor ``[batch, n_obs]`` (``[batch, n_agents, n_obs]``);
-``null_action()``
-    the "no control" action of the benchmark, for the whole batch.
 
-and optionally ``setup()`` (grid and kernels derived from the parameters, before the
+and optionally ``null_action()`` (the benchmark's "no control" action, zeros unless
+said otherwise), ``setup()`` (grid and kernels derived from the parameters, before the
 specs are built; substeps go through ``self.kernels``), ``noise()`` (the random numbers
 of one action, drawn from the env's generator: a dict of tensors, empty for
 deterministic physics) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
@@ -48,6 +48,7 @@ depends on differentiable parameters in ``advance``, not there.
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import warnings
 from typing import Any, ClassVar
@@ -385,25 +386,45 @@ class FlowEnv(EnvBase):
 
     # ------------------------------------------------------------------ physics hooks
     @classmethod
+    @abc.abstractmethod
     def sizes(cls, params) -> tuple[int, int]:
-        """``(n_obs, n_actions)`` of an env with these parameters."""
-        raise NotImplementedError
+        """``(n_obs, n_actions)`` of an env with the parameters ``params`` (an instance
+        of ``Params``): the observation size per member (per agent for multi-agent
+        layouts) and the action size (continuous) or number of actions (discrete)."""
 
     def setup(self) -> None:
-        """Derive what the parameters fix (grid, kernels, masks) before the specs are
-        built."""
+        """Derive what the parameters fix (grid, kernels, masks, the substep loops
+        through ``self.kernels``) before the specs are built. Runs without autograd:
+        what depends on a differentiable parameter is computed in :meth:`advance`."""
 
+    @abc.abstractmethod
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        raise NotImplementedError
+        """The state at the start of an episode, for the whole batch: a dict of tensors
+        whose first dimension is the batch, in the env's dtype (counters excepted) and
+        on its device. ``mask`` (``[batch]`` bool, or None for all) says which members
+        are being reset; the others' entries are discarded, so a costly start may
+        compute only the masked members. Random starts draw from ``self.rng``."""
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor):
-        raise NotImplementedError
+    @abc.abstractmethod
+    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State) -> tuple[State, torch.Tensor]:
+        """``(new_state, reward)`` after one action of the whole batch: ``action`` is
+        checked and in range (``[batch, *action_shape]``; int64 indices if discrete),
+        ``count`` the actions already taken in each member's episode (``[batch]``
+        int64), ``noise`` what :meth:`noise` drew for this action. The reward is
+        ``[batch]`` (``[batch, n_agents]`` for multi-agent layouts). Pure: no random
+        draws and no host reads (``.item()``, Python branches on values), so that a
+        compiled step is one graph; the state given is not modified in place."""
 
+    @abc.abstractmethod
     def observe(self, state: State) -> torch.Tensor:
-        raise NotImplementedError
+        """The observation of ``state``: ``[batch, n_obs]`` (``[batch, n_agents,
+        n_obs]`` for multi-agent layouts), in the env's dtype."""
 
     def null_action(self) -> torch.Tensor:
-        raise NotImplementedError
+        """The benchmark's "no control" action, for the whole batch: zeros (action 0
+        if discrete) unless the env says otherwise."""
+        dtype = torch.int64 if self.discrete else self.dtype
+        return torch.zeros((*self.batch_size, *self.action_shape), dtype=dtype, device=self.device)
 
     def noise(self) -> State:
         """The random numbers one action of the whole batch uses, drawn from
@@ -416,6 +437,9 @@ class FlowEnv(EnvBase):
         return 4 * self.n_obs
 
     def out_of_bounds(self, state: State) -> torch.Tensor:
+        """``[batch]`` bool: the members whose state left its physical bounds (beyond
+        non-finite values, which are always caught); their episode ends with
+        ``blowup_reward``."""
         return torch.zeros(self.batch_size, dtype=torch.bool, device=self.device)
 
     # ------------------------------------------------------------------ helpers

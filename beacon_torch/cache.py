@@ -20,12 +20,14 @@ import pickle
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from beacon_torch.files import replace_file
 
-State = dict[str, torch.Tensor]
+if TYPE_CHECKING:
+    from beacon_torch.base import State
 
 PACKAGE_DATA = Path(__file__).parent / "data"
 _memory: dict[str, State] = {}

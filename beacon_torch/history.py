@@ -3,9 +3,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
-State = dict[str, torch.Tensor]
+if TYPE_CHECKING:
+    from beacon_torch.base import State
 
 
 def _kept(state: State) -> State:

@@ -354,3 +354,20 @@ def test_every_env_declares_its_card():
             fields = {f.name: f for f in dataclasses.fields(cls.Params)}
             assert fields[cls.gradcheck.param].metadata["differentiable"], env_id
         cls.Params(**cls.test_settings)  # parameters the env knows, in range
+
+
+def test_an_env_missing_a_physics_hook_is_refused_when_built():
+    """The hooks an env must supply are abstract: a class without one cannot be built,
+    and the error names what is missing (rather than failing at the first step)."""
+    from beacon_torch.envs.burgers import BurgersEnv
+
+    class Incomplete(beacon_torch.base.FlowEnv):
+        env_id = "incomplete-v0"
+        Params = BurgersEnv.Params
+        episode_length = 10
+        sizes = BurgersEnv.sizes
+        initial_state = BurgersEnv.initial_state
+        observe = BurgersEnv.observe
+
+    with pytest.raises(TypeError, match="advance"):
+        Incomplete(1)

@@ -85,9 +85,6 @@ class BurgersEnv(FlowEnv):
         self._source = source
         self._substeps = self.kernels.loop(burgers_substep)
 
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)
-
     def initial_state(self, mask: torch.Tensor | None) -> State:
         u = torch.ones((self.n_envs, self.n_cells), dtype=self.dtype, device=self.device)
         u = u * self.member(self.params.u_target)

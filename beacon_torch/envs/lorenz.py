@@ -120,5 +120,6 @@ class LorenzContinuousEnv(LorenzEnv):
     def forcing(self, action: torch.Tensor) -> torch.Tensor:
         return action[:, 0]
 
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)
+    # zero forcing (the discrete env's "no control" is its action 1)
+    null_action = FlowEnv.null_action
+

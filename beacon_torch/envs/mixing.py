@@ -114,9 +114,6 @@ class MixingEnv(CavityEnv):
         in units of u_max."""
         return self._lids[action]
 
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros(self.batch_size, dtype=torch.int64, device=self.device)
-
     def initial_state(self, mask: torch.Tensor | None) -> State:
         p = self.params
         B, nx, ny = self.n_envs, self.nx, self.ny

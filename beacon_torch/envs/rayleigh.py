@@ -166,9 +166,6 @@ class RayleighEnv(CavityEnv):
             start = cached("rayleigh-convection", key, lambda: developed_convection(p), shapes)
         return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
 
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros((self.n_envs, self.n_actions), dtype=self.dtype, device=self.device)
-
     def initial_state(self, mask: torch.Tensor | None) -> State:
         state = {k: v.expand(self.n_envs, *v.shape).clone() for k, v in self._start.items()}
         state["bottom"] = torch.full((self.n_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)

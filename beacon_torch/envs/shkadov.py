@@ -238,9 +238,6 @@ class ShkadovEnv(FlowEnv):
             film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), {"h": (n,), "q": (n,)})
         return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
 
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros((self.n_envs, self.n_jets), dtype=self.dtype, device=self.device)
-
     def noise(self) -> State:
         return {"inlet": inlet_noise(self.rng, self.n_envs, self.dtype, self.device)}
 
@@ -359,9 +356,6 @@ class ShkadovSeparableEnv(ShkadovEnv):
         if reward is not None:
             agents["reward"] = reward[..., None]
         return {"agents": TensorDict(agents, batch_size=(*self.batch_size, self.n_jets), device=self.device)}
-
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros((self.n_envs, self.n_jets, 1), dtype=self.dtype, device=self.device)
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         new = self._advance_state(state, action[..., 0], noise)

@@ -176,9 +176,6 @@ class SloshingEnv(FlowEnv):
         # generated in float64 like the published code, then cast
         return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
 
-    def null_action(self) -> torch.Tensor:
-        return torch.zeros((self.n_envs, 1), dtype=self.dtype, device=self.device)
-
     def initial_state(self, mask: torch.Tensor | None) -> State:
         zero = torch.zeros_like(self._start["h"])
         # the published reset reloads h and q only: the AB2 history and the previous

@@ -547,7 +547,6 @@ class JacobiSolver:
             raise ValueError("the published Jacobi solve has zero normal gradient on the left, right and bottom walls")
         factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
         self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
-        self.iterations: list[int] = []  # per solve, the most any member took
 
     def _ghosted(self, inner: torch.Tensor) -> torch.Tensor:
         top = inner[:, -1:] * (0.0 if self.top_zero else 1.0)
@@ -561,15 +560,12 @@ class JacobiSolver:
         dx2, dy2 = self.dx**2, self.dy**2
         phi = rhs.new_zeros((self.nx + 2, self.ny + 2, rhs.shape[-1]))
         active = torch.ones(rhs.shape[-1], dtype=torch.bool, device=rhs.device)
-        count = 0
         while True:
             inner = 0.5 * ((phi[2:, 1:-1] + phi[:-2, 1:-1]) * dy2 + (phi[1:-1, 2:] + phi[1:-1, :-2]) * dx2 - rhs * dx2 * dy2) / (dx2 + dy2)
             new = self._ghosted(inner)
             err = ((new - phi) ** 2).sum((0, 1))
             phi = torch.where(active, new, phi)
             active = active & (err > self.tol)
-            count += 1
             if not bool(active.any()):
                 break
-        self.iterations.append(count)
         return phi[1:-1, 1:-1]
