@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from beacon_torch.base import FlowEnv
-from beacon_torch.registry import compiles_by_default, list_envs, make
+from beacon_torch.registry import _listeners, compiles_by_default, list_envs, make
 
 NAMESPACE = "beacon"
 RENDER_FPS = 20
@@ -213,18 +213,21 @@ def _own_id(env_id: str | None, registered_id: str | None) -> str:
     return registered_id
 
 
-def register() -> None:
-    """Register every BEACON env id with gymnasium (idempotent)."""
-    for env_id in list_envs():
-        name = gym_id(env_id)
+def register(env_id: str | None = None) -> None:
+    """Register ``env_id`` (by default every env id of the registry) with gymnasium
+    (idempotent); ids registered later with :func:`beacon_torch.register` are
+    registered here too."""
+    for own in [env_id] if env_id else list_envs():
+        name = gym_id(own)
         if name in gymnasium.registry:
             continue
         gymnasium.register(
             id=name,
             entry_point="beacon_torch.gym:BeaconGymEnv",
             vector_entry_point="beacon_torch.gym:BeaconVectorEnv",
-            kwargs={"registered_id": env_id},
+            kwargs={"registered_id": own},
         )
 
 
 register()
+_listeners.append(register)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import re
+from collections.abc import Callable
 from typing import Any
 
 from beacon_torch.base import FlowEnv
@@ -29,6 +32,50 @@ ENVS: dict[str, type[FlowEnv]] = {
         MixingContinuousEnv,
     )
 }
+
+
+# parameters and options that make() uses for a registered id unless given
+DEFAULTS: dict[str, dict[str, Any]] = {}
+# called with each id registered after import (the gymnasium adapter registers it too)
+_listeners: list[Callable[[str], None]] = []
+# what make() takes beside an env's physical parameters
+OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "check_actions")
+
+
+def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[FlowEnv]:
+    """Make an env available by id: :func:`make`, gymnasium's ``beacon/<id>`` (and
+    ``make_vec``), the Stable-Baselines3 vector env, the conformance kit, and the CLI and
+    recipes run in the same process. ``env_class`` is a :class:`FlowEnv` subclass whose
+    ``env_id`` is ``env_id`` (a new case), or a registered env's class: then the id is a
+    variant of it, measured against it, whose ``defaults`` (physical parameters and
+    :data:`OPTIONS`) :func:`make` uses unless told otherwise. Returns the registered
+    class. Registering an id again with the same class and defaults does nothing."""
+    if not isinstance(env_id, str) or not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*-v[0-9]+", env_id):
+        raise ValueError(f"an env id is lower-case words and a version, like 'heat-v0'; got {env_id!r}")
+    if not (isinstance(env_class, type) and issubclass(env_class, FlowEnv)):
+        raise TypeError(f"register needs a FlowEnv subclass, got {env_class!r}")
+    if not env_class.env_id:
+        raise ValueError(f"{env_class.__name__} declares no env_id (set env_id = {env_id!r} on the class)")
+    known = {f.name for f in dataclasses.fields(env_class.Params)} | set(OPTIONS)
+    unknown = sorted(set(defaults) - known)
+    if unknown:
+        raise ValueError(f"{env_id}: unknown default(s) {unknown}; {env_class.__name__} takes {sorted(known)}")
+    if env_class.env_id != env_id:
+        if ENVS.get(env_class.env_id) is not env_class:
+            raise ValueError(f"{env_class.__name__} is {env_class.env_id!r}, not {env_id!r}; a variant's base must be registered first")
+        variant = ENVS.get(env_id)
+        if variant is not None and variant.__mro__[1] is env_class and DEFAULTS.get(env_id) == defaults:
+            return variant
+        env_class = type(env_class.__name__ + "Variant", (env_class,), {"env_id": env_id, "__module__": env_class.__module__})
+    if env_id in ENVS:
+        if ENVS[env_id] is env_class and DEFAULTS.get(env_id, {}) == defaults:
+            return env_class
+        raise ValueError(f"{env_id} is registered already (as {ENVS[env_id].__name__}); register a new version instead")
+    ENVS[env_id] = env_class
+    DEFAULTS[env_id] = dict(defaults)
+    for listener in _listeners:
+        listener(env_id)
+    return env_class
 
 
 def list_envs() -> list[str]:
@@ -95,4 +142,4 @@ def make(
         False skips the check of action values (NaN, range), which synchronises with
         an accelerator on every step; default True.
     """
-    return env_class(env_id)(batch_size, device=device, dtype=dtype, seed=seed, **params)
+    return env_class(env_id)(batch_size, device=device, dtype=dtype, seed=seed, **{**DEFAULTS.get(env_id, {}), **params})

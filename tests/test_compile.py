@@ -19,21 +19,6 @@ ACTIONS = {"rayleigh-v0": 3, "mixing-v0": 3, "mixing-continuous-v0": 3}
 ROUND_OFF = dict(rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.slow(seconds=60)
-@pytest.mark.parametrize("env_id", ALL_ENVS)
-def test_compiled_episodes_follow_the_eager_ones(env_id):
-    eager = make(env_id, 2, dtype=torch.float64, seed=3)
-    compiled = make(env_id, 2, dtype=torch.float64, seed=3, compile=True)
-    assert compiled.kernels.options is not None and eager.kernels.options is None
-    g = torch.Generator().manual_seed(1)
-    actions = [eager.random_action(g) for _ in range(ACTIONS.get(env_id, eager.episode_length))]
-    obs_e, rew_e = run_actions(eager, actions)
-    obs_c, rew_c = run_actions(compiled, actions)
-    assert compiled.kernels._cache, "the step did not go through torch.compile"
-    torch.testing.assert_close(obs_c, obs_e, **ROUND_OFF)
-    torch.testing.assert_close(rew_c, rew_e, **ROUND_OFF)
-
-
 @pytest.mark.slow(seconds=20)
 @pytest.mark.parametrize("env_id", [e for e in ALL_ENVS if e not in EXPENSIVE_ENVS])
 def test_one_compiled_call_per_action(env_id):

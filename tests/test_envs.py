@@ -5,40 +5,12 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.data import Bounded, Categorical, Unbounded
 from torchrl.envs.utils import check_env_specs
 
 import beacon_torch
 from beacon_torch import evaluate
 
-from conftest import DETERMINISTIC_ENVS, EXPENSIVE_ENVS, FAST, make, run_actions
-
-
-@pytest.mark.parametrize("batch_size", [1, 8])
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_check_env_specs(env_id, batch_size, dtype):
-    if env_id in EXPENSIVE_ENVS and dtype == torch.float64:
-        pytest.skip("float32 covers the specs of the 2-D cavities; float64 runs in test_scores.py")
-    env = make(env_id, batch_size, dtype=dtype, seed=0)
-    check_env_specs(env, break_when_any_done="both")
-
-
-def test_specs_have_the_documented_types_and_shapes(env_id):
-    env = make(env_id, 5)
-    obs_spec = env.full_observation_spec[env.observation_key]
-    assert isinstance(obs_spec, Unbounded) and math.prod(obs_spec.shape) // 5 == env.n_obs
-    reward_spec = env.full_reward_spec[env.reward_key]
-    assert reward_spec.shape[0] == 5 and reward_spec.shape[-1] == 1 and reward_spec.dtype == torch.float32
-    action_spec = env.full_action_spec[env.action_key]
-    assert action_spec.shape == (5, *env.action_shape)
-    if env.discrete:
-        assert isinstance(action_spec, Categorical) and action_spec.space.n == env.n_actions
-    else:
-        assert isinstance(action_spec, Bounded)
-        assert action_spec.space.low.min() == -1 and action_spec.space.high.max() == 1
-    for key in ("done", "terminated", "truncated"):
-        assert env.full_done_spec[key].shape == (5, 1)
-        assert env.full_done_spec[key].dtype == torch.bool
+from conftest import EXPENSIVE_ENVS, make, run_actions
 
 
 def test_episode_truncates_at_its_length(cheap_env_id):
@@ -71,64 +43,6 @@ def test_rollout_keeps_going_with_auto_reset(cheap_env_id):
         first = env.reset()[env.observation_key]
         for b, t in done[:, :-1].nonzero().tolist():
             torch.testing.assert_close(r[env.observation_key][b, t + 1], first[b])
-
-
-def test_partial_reset_resets_only_the_masked_members(env_id):
-    env = make(env_id, 4, dtype=torch.float64, seed=1)
-    td = env.reset()
-    start = td[env.observation_key].clone()
-    g = torch.Generator().manual_seed(0)
-    for _ in range(7):
-        td[env.action_key] = env.random_action(g)
-        td = env.step(td)["next"]
-    before = {k: v.clone() for k, v in env.state.items()}
-    obs_before = td[env.observation_key].clone()
-    mask = torch.tensor([True, False, True, False])
-    out = env.reset(td.clone().set("_reset", mask[:, None]))
-    for k, v in env.state.items():
-        torch.testing.assert_close(v[~mask], before[k][~mask], rtol=0, atol=0)
-    assert env.step_count.tolist() == [0, 7, 0, 7]
-    torch.testing.assert_close(out[env.observation_key][~mask], obs_before[~mask], rtol=0, atol=0)
-    torch.testing.assert_close(env.observation[~mask], obs_before[~mask], rtol=0, atol=0)
-    if "random_start" in FAST.get(env_id, {}):
-        # a new random start: a fresh state, not the one left by the episode
-        assert not torch.equal(env.observation[mask], obs_before[mask])
-    else:
-        torch.testing.assert_close(out[env.observation_key][mask], start[mask], rtol=0, atol=0)
-    assert not out["done"].any()
-
-
-@pytest.mark.parametrize("env_id", DETERMINISTIC_ENVS)
-def test_members_are_independent(env_id):
-    """A member's trajectory does not depend on what the other members do."""
-    env1 = make(env_id, 1, dtype=torch.float64, seed=0)
-    env3 = make(env_id, 3, dtype=torch.float64, seed=0)
-    g = torch.Generator().manual_seed(5)
-    actions3 = [env3.random_action(g) for _ in range(5 if env_id in EXPENSIVE_ENVS else 20)]
-    obs3, rew3 = run_actions(env3, actions3)
-    obs1, rew1 = run_actions(env1, [a[1:2] for a in actions3])
-    torch.testing.assert_close(obs1[0], obs3[1], rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(rew1[0], rew3[1], rtol=1e-12, atol=1e-12)
-
-
-def test_same_seed_same_rollout_and_generator_is_per_instance(cheap_env_id):
-    env_id = cheap_env_id
-    a = make(env_id, 4, seed=123)
-    b = make(env_id, 4, seed=123)
-    ra = evaluate.episode(a, evaluate.random_policy(a, seed=9))
-    rb = evaluate.episode(b, evaluate.random_policy(b, seed=9))
-    assert (ra == rb).all()
-    # the env's generator is its own and set_seed re-seeds it
-    x = torch.rand(3, generator=a.rng)
-    a.set_seed(5)
-    b.set_seed(5)
-    y = torch.rand(3, generator=a.rng)
-    assert torch.equal(y, torch.rand(3, generator=b.rng))
-    assert not torch.equal(x, y)
-    # and the rollout after a re-seed repeats
-    a.set_seed(123)
-    rc = evaluate.episode(a, evaluate.random_policy(a, seed=9))
-    assert (ra == rc).all()
 
 
 def test_step_before_reset_is_an_error(env_id):
@@ -331,7 +245,6 @@ def test_every_env_declares_its_card():
     of a differentiable parameter wherever the actions are continuous; a variant is
     measured against its base env, whose card it inherits."""
     import dataclasses
-    import math
 
     from beacon_torch.base import GradCheck
 

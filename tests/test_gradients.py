@@ -14,35 +14,12 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 import beacon_torch
-from beacon_torch import gradcheck
 from beacon_torch.gradcheck import generic_start, summed_reward
 
 from conftest import ENVS
 
 F64 = torch.float64
 REL = 1e-5
-
-# the gradient check each env declares, for time on its test settings and with one
-# differentiated action of a cavity (the check on the published settings is
-# benchmarks/gradcheck.py, recorded in docs/gradients.md)
-CASES = {
-    env_id: dataclasses.replace(
-        cls.gradcheck,
-        params={**cls.test_settings, **cls.gradcheck.params},
-        steps=1 if cls.family == "cavity" else cls.gradcheck.steps,
-    )
-    for env_id, cls in ENVS.items()
-    if cls.gradcheck is not None
-}
-
-
-@pytest.mark.parametrize("env_id", list(CASES))
-def test_gradients_match_central_differences(env_id):
-    result = gradcheck.check_env(env_id, CASES[env_id])
-    for derivative in result.values():
-        assert abs(derivative.central) > 1e-10, "a flat direction checks nothing"
-        assert derivative.relative_error < REL, result
-
 
 def relative(a, b):
     return float(abs(a - b) / abs(b))
@@ -189,7 +166,7 @@ DIFFERENTIABLE = [
     for env_id, cls in beacon_torch.registry.ENVS.items()
     if not cls.discrete
     for f in dataclasses.fields(cls.Params)
-    if f.metadata["differentiable"] and (env_id not in CASES or f.name != CASES[env_id].param)  # those are checked above
+    if f.metadata["differentiable"]
 ]
 
 
