@@ -62,7 +62,7 @@ GRAD = {
     "burgers-v0": dict(frames=51_200, horizon=40),
     # 100 of the 800 actions per update: the high cycle takes that long to grow; at the
     # default rate (1e-3) the policies found the high cycle and lost it again
-    "vortex-v0": dict(frames=128_000, horizon=100, lr=3e-4, checkpoint=True),
+    "vortex-v0": dict(frames=128_000, horizon=100, lr=3e-4, grad_checkpoint=True),
 }
 
 
@@ -208,7 +208,7 @@ class GradConfig(Config):
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
     lr: float = setting(1e-3, "learning rate", domain=POSITIVE)
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
-    checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
+    grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
     # a differentiated step is compiled substep by substep, not as one call; the
     # recorded runs are eager
     compile: bool = setting(False, "the env's compiled physics")

@@ -12,8 +12,8 @@ in any collector. No critic, no sampling noise: what a simulator that is torch b
     python recipes/grad.py --env vortex-v0 --horizon 200
 
 The policy is TD3's deterministic actor, so ``beacon-torch eval`` and ``plot`` read
-these runs like any other. ``--checkpoint`` recomputes each action in the backward pass
-(``grad_checkpoint``), for horizons whose graph would not fit in memory.
+these runs like any other. ``--grad-checkpoint`` recomputes each action in the backward
+pass (the env's ``grad_checkpoint``), for horizons whose graph would not fit in memory.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def main(cfg: GradConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the differentiable env, with the saved normalisation when resuming
-    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile, differentiable=True, grad_checkpoint=cfg.checkpoint)
+    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile, differentiable=True, grad_checkpoint=cfg.grad_checkpoint)
     base = env.base_env
 
     # the policy and its optimiser; the count of updates dropped for a non-finite gradient
