@@ -92,11 +92,11 @@ def _as_batch_size(batch_size: Any) -> torch.Size:
     except TypeError:
         raise TypeError(f"batch_size must be a positive integer, got {batch_size!r}") from None
     if len(size) != 1 or size[0] < 1:
-        raise ValueError(
-            f"batch_size must be a positive integer (a 1-D batch), got {tuple(size)}"
-        )
+        raise ValueError(f"batch_size must be a positive integer (a 1-D batch), got {tuple(size)}")
     if size[0] > MAX_MEMBERS:
-        raise ValueError(f"batch_size {size[0]} is beyond what one env holds (at most {MAX_MEMBERS:,} members); use several envs")
+        raise ValueError(
+            f"batch_size {size[0]} is beyond what one env holds (at most {MAX_MEMBERS:,} members); use several envs"
+        )
     return size
 
 
@@ -176,7 +176,15 @@ def _finite_members(t: torch.Tensor) -> torch.Tensor:
     return torch.isfinite(t).flatten(1).all(1) if t.ndim > 1 else torch.isfinite(t)
 
 
-def settle(new: State, old: State, obs: torch.Tensor, old_obs: torch.Tensor, reward: torch.Tensor, inside: torch.Tensor, blowup_reward: float):
+def settle(
+    new: State,
+    old: State,
+    obs: torch.Tensor,
+    old_obs: torch.Tensor,
+    reward: torch.Tensor,
+    inside: torch.Tensor,
+    blowup_reward: float,
+):
     """The outcome of a step for every member: where the new state, observation and
     reward are finite and ``inside`` the physical bounds, they stand; elsewhere the
     member keeps its last state and observation and gets ``blowup_reward``. Returns
@@ -270,8 +278,15 @@ class FlowEnv(EnvBase):
     ) -> None:
         batch_size = _as_batch_size(batch_size)
         device = _as_device(device)
-        flags = dict(check_actions=check_actions, record_history=record_history, differentiable=differentiable, grad_checkpoint=grad_checkpoint)
-        check_actions, record_history, differentiable, grad_checkpoint = (_as_flag(name, value) for name, value in flags.items())
+        flags = dict(
+            check_actions=check_actions,
+            record_history=record_history,
+            differentiable=differentiable,
+            grad_checkpoint=grad_checkpoint,
+        )
+        check_actions, record_history, differentiable, grad_checkpoint = (
+            _as_flag(name, value) for name, value in flags.items()
+        )
         super().__init__(device=device, batch_size=batch_size)
         self.dtype = _as_dtype(dtype)
         self.n_envs = batch_size[0]
@@ -300,10 +315,17 @@ class FlowEnv(EnvBase):
         self._settle = self.kernels(settle)
         self._whole_step = self.kernels(self._step_core)
         if not differentiable:
-            traced = [name for name, value in vars(self.params).items() if isinstance(value, torch.Tensor) and value.requires_grad]
+            traced = [
+                name
+                for name, value in vars(self.params).items()
+                if isinstance(value, torch.Tensor) and value.requires_grad
+            ]
             if traced:
                 why = "their gradients are dropped (make(..., differentiable=True) keeps them)"
-                warnings.warn(f"{self.env_id}: parameter(s) {traced} require grad but the env is not differentiable; {why}", stacklevel=3)
+                warnings.warn(
+                    f"{self.env_id}: parameter(s) {traced} require grad but the env is not differentiable; {why}",
+                    stacklevel=3,
+                )
         with torch.no_grad():
             self.setup()
         self._check_memory()
@@ -335,7 +357,10 @@ class FlowEnv(EnvBase):
         need = self.n_envs * self.member_floats() * self.dtype.itemsize * WORKSPACE
         if free is not None and need > free:
             fits = max(1, free // (self.member_floats() * self.dtype.itemsize * WORKSPACE))
-            raise ValueError(f"{self.env_id}: {self.n_envs:,} members need about {need / 2**30:,.1f} GiB on {self.device}, {free / 2**30:,.1f} GiB are free; at most about {fits:,} members fit")
+            raise ValueError(
+                f"{self.env_id}: {self.n_envs:,} members need about {need / 2**30:,.1f} GiB on "
+                f"{self.device}, {free / 2**30:,.1f} GiB are free; at most about {fits:,} members fit"
+            )
 
     def to(self, *args, **kwargs) -> FlowEnv:
         """The env itself: its state, generator and kernels live on the device it was
@@ -343,7 +368,10 @@ class FlowEnv(EnvBase):
         there)."""
         device = torch._C._nn._parse_to(*args, **kwargs)[0]
         if device is not None and _as_device(device) != self.device:
-            raise ValueError(f"{self.env_id}: an env stays on the device it was made on ({self.device}); make(..., device={str(device)!r}) builds one on {device}")
+            raise ValueError(
+                f"{self.env_id}: an env stays on the device it was made on ({self.device}); "
+                f"make(..., device={str(device)!r}) builds one on {device}"
+            )
         return self
 
     def close(self, *, raise_if_closed: bool = True) -> None:
@@ -380,7 +408,10 @@ class FlowEnv(EnvBase):
         if "rng" in state_dict:
             rng = state_dict["rng"]
             if not isinstance(rng, torch.Tensor) or rng.dtype != torch.uint8 or rng.shape != self.rng.get_state().shape:
-                raise ValueError(f"{self.env_id}: 'rng' must be a generator state of this device (a uint8 tensor of shape {tuple(self.rng.get_state().shape)})")
+                raise ValueError(
+                    f"{self.env_id}: 'rng' must be a generator state of this device (a uint8 tensor "
+                    f"of shape {tuple(self.rng.get_state().shape)})"
+                )
             self.rng.set_state(rng)
         return torch.nn.modules.module._IncompatibleKeys([], [])
 
@@ -406,7 +437,9 @@ class FlowEnv(EnvBase):
         compute only the masked members. Random starts draw from ``self.rng``."""
 
     @abc.abstractmethod
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State) -> tuple[State, torch.Tensor]:
+    def advance(
+        self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State
+    ) -> tuple[State, torch.Tensor]:
         """``(new_state, reward)`` after one action of the whole batch: ``action`` is
         checked and in range (``[batch, *action_shape]``; int64 indices if discrete),
         ``count`` the actions already taken in each member's episode (``[batch]``
@@ -498,9 +531,7 @@ class FlowEnv(EnvBase):
         self.action_spec = self._action_leaf_spec((*B, *self.action_shape))
         self.reward_spec = Unbounded(shape=(*B, 1), dtype=self.dtype, device=dev)
         flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev
-        )
+        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev)
 
     def _action_leaf_spec(self, shape: tuple[int, ...]):
         if self.discrete:
@@ -547,7 +578,10 @@ class FlowEnv(EnvBase):
         name = self.env_id or type(self).__name__
         if self.discrete:
             raise ValueError(f"{name}: action values must be in [0, {self.n_actions - 1}], got {action.tolist()}")
-        raise ValueError(f"{name}: action contains NaN or inf; expected shape {(*self.batch_size, *self.action_shape)} with values in [-1, 1]")
+        raise ValueError(
+            f"{name}: action contains NaN or inf; expected shape "
+            f"{(*self.batch_size, *self.action_shape)} with values in [-1, 1]"
+        )
 
     def _action_form(self, action: Any) -> torch.Tensor:
         """The action batch as a tensor of the env's device and dtype, its type and
@@ -557,12 +591,16 @@ class FlowEnv(EnvBase):
         if action is None:
             raise KeyError(f"{name}: the input tensordict has no 'action' entry")
         if not isinstance(action, (torch.Tensor, np.ndarray, list, tuple, int, float, np.number)):
-            raise TypeError(f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__}")
+            raise TypeError(
+                f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__}"
+            )
         if not isinstance(action, torch.Tensor):
             try:
                 action = torch.as_tensor(np.asarray(action))
             except (TypeError, ValueError, RuntimeError) as err:
-                raise TypeError(f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__} ({err})") from None
+                raise TypeError(
+                    f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__} ({err})"
+                ) from None
         shape = (*B, *self.action_shape)
         if self.discrete:
             expected = f"shape {shape} with integer values in [0, {self.n_actions - 1}]"
@@ -599,7 +637,9 @@ class FlowEnv(EnvBase):
             missing = sorted(set(self._state) - set(state))
             extra = sorted(set(state) - set(self._state))
             if missing or extra:
-                raise KeyError(f"{name}: set_state needs the keys {sorted(self._state)}; missing {missing}, unknown {extra}")
+                raise KeyError(
+                    f"{name}: set_state needs the keys {sorted(self._state)}; missing {missing}, unknown {extra}"
+                )
             for key, value in state.items():
                 if value.shape != self._state[key].shape:
                     raise ValueError(
@@ -608,7 +648,10 @@ class FlowEnv(EnvBase):
                     )
         for key, value in state.items():
             if value.ndim == 0 or value.shape[0] != self.n_envs:
-                raise ValueError(f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got shape {tuple(value.shape)}")
+                raise ValueError(
+                    f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got "
+                    f"shape {tuple(value.shape)}"
+                )
         for key, value in state.items():
             if value.is_complex() or value.dtype == torch.bool:
                 raise TypeError(f"{name}: state[{key!r}] must hold real numbers, got dtype {value.dtype}")
@@ -616,10 +659,16 @@ class FlowEnv(EnvBase):
                 raise ValueError(f"{name}: state[{key!r}] has non-finite values")
         traced = [key for key, value in state.items() if value.requires_grad]
         if traced and not self.differentiable:
-            warnings.warn(f"{name}: state{traced} require grad but the env is not differentiable; their gradients are dropped (make(..., differentiable=True) keeps them)", stacklevel=2)
+            warnings.warn(
+                f"{name}: state{traced} require grad but the env is not differentiable; their "
+                f"gradients are dropped (make(..., differentiable=True) keeps them)",
+                stacklevel=2,
+            )
         count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
         if bool(((count < 0) | (count >= self.episode_length)).any()):
-            raise ValueError(f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}")
+            raise ValueError(
+                f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}"
+            )
         # every state is of the env's dtype (integers given are cast), as its specs say
         state = {k: v.to(self.device, self.dtype) for k, v in state.items()}
         with graph_mode(self.differentiable):
@@ -643,9 +692,15 @@ class FlowEnv(EnvBase):
         self._check_open("reset")
         if mask is not None:
             if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-                raise TypeError(f"{self.env_id}: the '_reset' mask must be a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}")
+                raise TypeError(
+                    f"{self.env_id}: the '_reset' mask must be a bool tensor, got "
+                    f"{getattr(mask, 'dtype', type(mask).__name__)}"
+                )
             if mask.numel() != self.n_envs:
-                raise ValueError(f"{self.env_id}: the '_reset' mask must have one entry per member ({self.n_envs}), got shape {tuple(mask.shape)}")
+                raise ValueError(
+                    f"{self.env_id}: the '_reset' mask must have one entry per member "
+                    f"({self.n_envs}), got shape {tuple(mask.shape)}"
+                )
             mask = mask.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
             init = self.initial_state(mask)
@@ -674,7 +729,9 @@ class FlowEnv(EnvBase):
         self.history.reset(self._state, mask)
         return obs
 
-    def step_members(self, action: Any, stepping: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def step_members(
+        self, action: Any, stepping: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """One action of every member (of those where ``stepping`` is true, when
         given): ``(observation, reward, terminated, truncated)``, the reward as the
         physics gives it (``[batch]``, ``[batch, n_agents]`` for multi-agent variants),
@@ -683,15 +740,30 @@ class FlowEnv(EnvBase):
         self._check_open("step")
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before step()")
-        if isinstance(action, torch.Tensor) and action.requires_grad and not self.differentiable and not self._warned_grad:
+        if (
+            isinstance(action, torch.Tensor)
+            and action.requires_grad
+            and not self.differentiable
+            and not self._warned_grad
+        ):
             self._warned_grad = True
-            warnings.warn(f"{self.env_id}: the action requires grad but the env is not differentiable; its gradient is dropped (make(..., differentiable=True) keeps it)", stacklevel=3)
+            warnings.warn(
+                f"{self.env_id}: the action requires grad but the env is not differentiable; its "
+                f"gradient is dropped (make(..., differentiable=True) keeps it)",
+                stacklevel=3,
+            )
         action = self._action_form(action)
         if stepping is not None:
             if not isinstance(stepping, torch.Tensor) or stepping.dtype != torch.bool:
-                raise TypeError(f"{self.env_id}: the '_step' mask must be a bool tensor, got {getattr(stepping, 'dtype', type(stepping).__name__)}")
+                raise TypeError(
+                    f"{self.env_id}: the '_step' mask must be a bool tensor, got "
+                    f"{getattr(stepping, 'dtype', type(stepping).__name__)}"
+                )
             if stepping.numel() != self.n_envs:
-                raise ValueError(f"{self.env_id}: the '_step' mask must have one entry per member ({self.n_envs}), got shape {tuple(stepping.shape)}")
+                raise ValueError(
+                    f"{self.env_id}: the '_step' mask must have one entry per member "
+                    f"({self.n_envs}), got shape {tuple(stepping.shape)}"
+                )
             stepping = stepping.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
             noise = self.noise()
@@ -709,7 +781,15 @@ class FlowEnv(EnvBase):
         self.history.append(new)
         return obs, reward, terminated, truncated
 
-    def _step_core(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor, noise: State, stepping: torch.Tensor | None):
+    def _step_core(
+        self,
+        old: State,
+        old_obs: torch.Tensor,
+        action: torch.Tensor,
+        count: torch.Tensor,
+        noise: State,
+        stepping: torch.Tensor | None,
+    ):
         """A whole step as one function of tensors, what the compiled path runs as one
         graph (the env's own kernels and substep loops run inline): the action's
         values, the physics, :func:`settle` and the counters. Returns ``(state,
@@ -721,7 +801,15 @@ class FlowEnv(EnvBase):
         out = settle(new, old, self.observe(new), old_obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
         return (*self._bookkept(old, old_obs, count, stepping, *out), valid)
 
-    def _graph_step(self, old: State, old_obs: torch.Tensor, action: torch.Tensor, count: torch.Tensor, noise: State, stepping: torch.Tensor | None):
+    def _graph_step(
+        self,
+        old: State,
+        old_obs: torch.Tensor,
+        action: torch.Tensor,
+        count: torch.Tensor,
+        noise: State,
+        stepping: torch.Tensor | None,
+    ):
         """:meth:`_step_core` keeping the autograd graph (differentiable mode), its
         action checked first: a blow-up must not reach the other members' gradients."""
         action, valid = self._action_values(action)
@@ -730,7 +818,17 @@ class FlowEnv(EnvBase):
         out = self._differentiated_step(old, action, noise)
         return (*self._bookkept(old, old_obs, count, stepping, *out), valid)
 
-    def _bookkept(self, old: State, old_obs: torch.Tensor, count: torch.Tensor, stepping: torch.Tensor | None, new: State, obs: torch.Tensor, reward: torch.Tensor, ok: torch.Tensor):
+    def _bookkept(
+        self,
+        old: State,
+        old_obs: torch.Tensor,
+        count: torch.Tensor,
+        stepping: torch.Tensor | None,
+        new: State,
+        obs: torch.Tensor,
+        reward: torch.Tensor,
+        ok: torch.Tensor,
+    ):
         """A settled step's results with the members outside ``stepping`` left as they
         were: ``(state, observation, reward, terminated, truncated, count)``."""
         after = count + 1
@@ -745,7 +843,15 @@ class FlowEnv(EnvBase):
         new = {k: standard(v) for k, v in new.items()}
         return new, standard(obs), reward, ~ok, after >= self.episode_length, after
 
-    def _settled_step(self, advance, old: State, action: torch.Tensor, noise: State, inside: torch.Tensor | None = None, start: State | None = None):
+    def _settled_step(
+        self,
+        advance,
+        old: State,
+        action: torch.Tensor,
+        noise: State,
+        inside: torch.Tensor | None = None,
+        start: State | None = None,
+    ):
         """``advance`` from ``start`` (default ``old``) and :func:`settle`: a member
         that left its bounds (or is not ``inside``) keeps its last finite state ``old``
         and observation and ends its episode; the others are untouched."""
@@ -755,7 +861,15 @@ class FlowEnv(EnvBase):
         else:
             new, reward = advance(start, action, self._count, noise)
         bounds = ~self.out_of_bounds(new)
-        return self._settle(new, old, self.observe(new), self._obs, reward, bounds if inside is None else bounds & inside, float(self.blowup_reward))
+        return self._settle(
+            new,
+            old,
+            self.observe(new),
+            self._obs,
+            reward,
+            bounds if inside is None else bounds & inside,
+            float(self.blowup_reward),
+        )
 
     def _differentiated_step(self, old: State, action: torch.Tensor, noise: State):
         """A step that keeps its graph. A member that blows up keeps its last state, but
@@ -772,9 +886,15 @@ class FlowEnv(EnvBase):
             return old, self._obs, torch.full_like(reward.detach(), float(self.blowup_reward)), ok
         donor = int(ok.nonzero()[0, 0])
         stand_in = lambda t: select(ok, t, t[donor : donor + 1].detach().expand_as(t))
-        per_member = {name: stand_in(v) for name, v in vars(self.params).items() if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.n_envs}
+        per_member = {
+            name: stand_in(v)
+            for name, v in vars(self.params).items()
+            if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.n_envs
+        }
         params = dataclasses.replace(self.params, **per_member)
-        return self._settled_step(self._with_params(params), old, stand_in(action), noise, ok, {k: stand_in(v) for k, v in old.items()})
+        return self._settled_step(
+            self._with_params(params), old, stand_in(action), noise, ok, {k: stand_in(v) for k, v in old.items()}
+        )
 
     def _with_params(self, params):
         """``advance`` run with ``params`` in place of the env's own (in the backward
@@ -800,7 +920,9 @@ class FlowEnv(EnvBase):
         )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs, reward, terminated, truncated = self.step_members(tensordict.get(self.action_key, None), tensordict.get("_step", None))
+        obs, reward, terminated, truncated = self.step_members(
+            tensordict.get(self.action_key, None), tensordict.get("_step", None)
+        )
         terminated, truncated = terminated[:, None], truncated[:, None]
         return TensorDict(
             {
@@ -821,8 +943,14 @@ class FlowEnv(EnvBase):
 
     @render_index.setter
     def render_index(self, index: int) -> None:
-        if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)) or not 0 <= index < self.n_envs:
-            raise ValueError(f"{self.env_id}: render_index must be a member's index in [0, {self.n_envs}), got {index!r}")
+        if (
+            isinstance(index, (bool, np.bool_))
+            or not isinstance(index, (int, np.integer))
+            or not 0 <= index < self.n_envs
+        ):
+            raise ValueError(
+                f"{self.env_id}: render_index must be a member's index in [0, {self.n_envs}), got {index!r}"
+            )
         self.history.index = int(index)
 
     def render(self) -> np.ndarray:

@@ -64,7 +64,10 @@ class Measurement:
         )
 
 
-HEADER = f"{'env':<22} {'mode':<8} {'dtype':<8} {'batch':>6} {'transitions/s':>14} {'vs pub':>8} {'step ms':>10} {'compile s':>9} {'peak MB':>9}"
+HEADER = (
+    f"{'env':<22} {'mode':<8} {'dtype':<8} {'batch':>6} {'transitions/s':>14} {'vs pub':>8} "
+    f"{'step ms':>10} {'compile s':>9} {'peak MB':>9}"
+)
 
 
 def _sync(device: torch.device) -> None:
@@ -205,13 +208,21 @@ def write(results: Sequence[Measurement], out_dir: str | Path) -> dict[str, Path
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = [asdict(m) for m in results]
-    paths = {"csv": out / "results.csv", "json": out / "results.json", "md": out / "results.md", "png": out / "throughput.png"}
+    paths = {
+        "csv": out / "results.csv",
+        "json": out / "results.json",
+        "md": out / "results.md",
+        "png": out / "throughput.png",
+    }
     with paths["csv"].open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     paths["json"].write_text(json.dumps({"machine": machine(), "results": rows}, indent=2))
-    paths["md"].write_text(f"Machine: {machine()}\n\n## Best speed per env\n\n{markdown(results)}\n\n## Every measurement\n\n{full_table(results)}\n")
+    paths["md"].write_text(
+        f"Machine: {machine()}\n\n## Best speed per env\n\n{markdown(results)}\n\n## Every "
+        f"measurement\n\n{full_table(results)}\n"
+    )
     plot(results, paths["png"])
     return paths
 
@@ -262,14 +273,18 @@ def full_table(results: Sequence[Measurement]) -> str:
     for m in results:
         vs = f"{m.speedup:.2f}x" if m.speedup is not None else "-"
         lines.append(
-            f"| {m.env} | {m.mode} | {m.dtype} | {m.batch} | {m.transitions_per_s:,.1f} | {vs} | {m.step_ms:.3f} | {m.compile_s:.1f} | {m.peak_mb:.0f} |"
+            f"| {m.env} | {m.mode} | {m.dtype} | {m.batch} | {m.transitions_per_s:,.1f} | {vs} | "
+            f"{m.step_ms:.3f} | {m.compile_s:.1f} | {m.peak_mb:.0f} |"
         )
     return "\n".join(lines)
 
 
 def markdown(results: Sequence[Measurement]) -> str:
     """The best float32 speed of each env against its target, as a Markdown table."""
-    lines = ["| env | best transitions/s | at batch | mode | vs published | target | met |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| env | best transitions/s | at batch | mode | vs published | target | met |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for env_id, m in best(results).items():
         target = env_class(env_id).speed_target
         met = "" if target is None or m.speedup is None else ("yes" if m.speedup >= target else "**no**")

@@ -59,7 +59,9 @@ def _load(path: Path, shapes: dict[str, tuple[int, ...]] | None) -> State | None
 
 
 def _problem(state, shapes: dict[str, tuple[int, ...]] | None) -> str | None:
-    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
+    if not isinstance(state, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
+    ):
         return "not a dict of tensors"
     for key, value in state.items():
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
@@ -80,7 +82,9 @@ def save(state: State, path: Path) -> None:
     replace_file(path, lambda tmp: torch.save({k: v.detach().cpu() for k, v in state.items()}, tmp))
 
 
-def cached(name: str, key: dict, compute: Callable[[], State], shapes: dict[str, tuple[int, ...]] | None = None) -> State:
+def cached(
+    name: str, key: dict, compute: Callable[[], State], shapes: dict[str, tuple[int, ...]] | None = None
+) -> State:
     """The state ``compute()`` returns, computed at most once per key and machine;
     ``shapes``: the shape of each of its tensors, which a stored file must have."""
     fname = file_name(name, key)

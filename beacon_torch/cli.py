@@ -129,7 +129,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     plot = out / "run.png"
     _plot_run(plot, args.env, rewards["uncontrolled"], rewards["random"])
-    write_text(out / "scores.json", json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2))
+    write_text(
+        out / "scores.json",
+        json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2),
+    )
     print(f"plot: {plot}\nscores: {out / 'scores.json'}")
 
     if args.gif:
@@ -203,7 +206,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     else:
         runs = []
         for run in seed_dirs(args.run):
-            r = evaluate_run(run, members=args.members, device=args.device, gif=None if args.no_gif else run / "controlled.gif")
+            r = evaluate_run(
+                run, members=args.members, device=args.device, gif=None if args.no_gif else run / "controlled.gif"
+            )
             runs.append((str(run), r, f"trained on {r['frames']} transitions"))
     for name, r, trained in runs:
         print(
@@ -226,7 +231,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     result = report(args.runs, args.out)
     print(result["table"])
-    print(f"\ntable: {Path(args.out) / 'report.md'}, numbers: {Path(args.out) / 'report.json'}\nfigure: {result['png']}")
+    print(
+        f"\ntable: {Path(args.out) / 'report.md'}, numbers: {Path(args.out) / 'report.json'}\nfigure: {result['png']}"
+    )
     return 0
 
 
@@ -249,7 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="transitions per second against the published code")
     bench.add_argument("--envs", nargs="+", metavar="ENV", help="env ids (default: the seven benchmark envs)")
-    bench.add_argument("--batch-sizes", nargs="+", type=int, metavar="B", help="default 1 16 64 256 1024 (1 16 32 64 for the cavities)")
+    bench.add_argument(
+        "--batch-sizes", nargs="+", type=int, metavar="B", help="default 1 16 64 256 1024 (1 16 32 64 for the cavities)"
+    )
     bench.add_argument("--dtype", nargs="+", default=["float32"], choices=["float32", "float64"])
     bench.add_argument("--mode", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
     bench.add_argument("--device", default="cpu")
@@ -260,7 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("eval", help="score a trained policy against the uncontrolled env")
     ev.add_argument("run", nargs="?", help="a run directory of a recipe (one seed, or seedK folders)")
-    ev.add_argument("--pretrained", metavar="ALGO/ENV", help="a shipped policy instead (beacon_torch.pretrained.available())")
+    ev.add_argument(
+        "--pretrained", metavar="ALGO/ENV", help="a shipped policy instead (beacon_torch.pretrained.available())"
+    )
     ev.add_argument("--out", help="where --pretrained writes its animation (default: here)")
     ev.add_argument("--members", type=int, default=8, help="evaluation episodes (one batch)")
     ev.add_argument("--device", default="cpu")
@@ -273,8 +284,12 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--scalar", default="episode_score", help="the logged value to draw")
     pl.set_defaults(func=cmd_plot)
 
-    rp = sub.add_parser("report", help="the benchmark protocol over trained runs: normalised scores, IQM and bootstrap intervals")
-    rp.add_argument("runs", nargs="+", help="run directories (seedK folders of one env and algorithm) or their summary.json files")
+    rp = sub.add_parser(
+        "report", help="the benchmark protocol over trained runs: normalised scores, IQM and bootstrap intervals"
+    )
+    rp.add_argument(
+        "runs", nargs="+", help="run directories (seedK folders of one env and algorithm) or their summary.json files"
+    )
     rp.add_argument("--out", default="runs/report", help="where report.md, report.json and report.png go")
     rp.set_defaults(func=cmd_report)
     return parser
@@ -285,7 +300,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, ValueError, TypeError, OSError) as err:  # OSError: a path that cannot be read or written, named in the message
+    except (
+        CliError,
+        ValueError,
+        TypeError,
+        OSError,
+    ) as err:  # OSError: a path that cannot be read or written, named in the message
         print(f"beacon-torch: error: {err}", file=sys.stderr)
         return 2
 

@@ -140,7 +140,9 @@ class _Loop:
             given = torch.utils._pytree.tree_leaves(carried)
             # a carried value handed on unchanged is copied: the loop's body may not
             # return its own input
-            out = torch.utils._pytree.tree_map(lambda t: t.clone() if any(t is g for g in given) else t, fn(i, carried, *inputs))
+            out = torch.utils._pytree.tree_map(
+                lambda t: t.clone() if any(t is g for g in given) else t, fn(i, carried, *inputs)
+            )
             return i + 1, out
 
         start = torch.zeros((), dtype=torch.int64, device=_device(carried))

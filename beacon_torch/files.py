@@ -35,7 +35,10 @@ def refuse_links(root: str | Path) -> None:
         for name in (*dirs, *names):
             path = Path(folder) / name
             if path.is_symlink():
-                raise UnsafeFile(f"{path}: a symbolic link inside {root} is refused (a command writing there would write where it points); remove it")
+                raise UnsafeFile(
+                    f"{path}: a symbolic link inside {root} is refused (a command writing there "
+                    f"would write where it points); remove it"
+                )
 
 
 def replace_file(path: str | Path, write: Callable[[Path], object]) -> Path:
@@ -95,7 +98,9 @@ class Lock:
     drops it when the process dies, so a killed run never leaves a stale lock."""
 
     NAME = ".lock"
-    _held: weakref.WeakValueDictionary[str, Lock] = weakref.WeakValueDictionary()  # per folder, the lock this process holds
+    _held: weakref.WeakValueDictionary[str, Lock] = (
+        weakref.WeakValueDictionary()
+    )  # per folder, the lock this process holds
 
     def __init__(self, folder: str | Path) -> None:
         self.path = Path(folder) / self.NAME
@@ -111,7 +116,10 @@ class Lock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
                 os.close(fd)
-                raise UnsafeFile(f"{folder}: another process is running in this directory (its lock {self.path} is held); wait for it or give a new directory") from None
+                raise UnsafeFile(
+                    f"{folder}: another process is running in this directory (its lock {self.path} "
+                    f"is held); wait for it or give a new directory"
+                ) from None
         self.fd = fd
         Lock._held[self.key] = self
 

@@ -58,7 +58,9 @@ def generic_start(env: FlowEnv, n: int, seed: int = 5) -> State:
     return {k: v.detach().clone() for k, v in env.state.items()}
 
 
-def check(make: Callable[..., FlowEnv], name: str, value: float, *, warmup: int, steps: int, h: float = 1e-6, seed: int = 7) -> dict[str, Derivative]:
+def check(
+    make: Callable[..., FlowEnv], name: str, value: float, *, warmup: int, steps: int, h: float = 1e-6, seed: int = 7
+) -> dict[str, Derivative]:
     """The derivatives of the reward summed over ``steps`` random actions, after
     ``warmup`` random actions, with respect to the actions (along a random direction)
     and to the parameter ``name`` at ``value``; ``make(**params)`` builds the env

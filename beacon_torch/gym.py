@@ -62,9 +62,7 @@ def batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
     a = np.asarray(action)
     if env.discrete:
         if a.dtype.kind not in "iu":
-            raise TypeError(
-                f"{env.env_id}: action must be an integer in [0, {env.n_actions - 1}], got {action!r}"
-            )
+            raise TypeError(f"{env.env_id}: action must be an integer in [0, {env.n_actions - 1}], got {action!r}")
         if a.size != batch:
             raise ValueError(f"{env.env_id}: expected {batch} discrete action(s), got shape {a.shape}")
         return torch.as_tensor(a.reshape(batch).astype(np.int64))
@@ -83,7 +81,15 @@ class BeaconGymEnv(gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": RENDER_FPS}
 
-    def __init__(self, env_id: str | None = None, render_mode: str | None = None, dtype: Any = "float32", *, registered_id: str | None = None, **params: Any):
+    def __init__(
+        self,
+        env_id: str | None = None,
+        render_mode: str | None = None,
+        dtype: Any = "float32",
+        *,
+        registered_id: str | None = None,
+        **params: Any,
+    ):
         env_id = _own_id(env_id, registered_id)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -164,8 +170,14 @@ class BeaconVectorEnv(VectorEnv):
             # the copies draw from one random stream, seeded once: a list can only be
             # the seeds gymnasium derives from one (s, s + 1, ...) or s for copy 0 alone
             first = seed[0] if len(seed) == self.num_envs else None
-            if not isinstance(first, int) or list(seed) not in ([first + i for i in range(self.num_envs)], [first] + [None] * (self.num_envs - 1)):
-                raise ValueError(f"{self.env.env_id}: the {self.num_envs} copies share one random stream, so they take one seed (or s, s + 1, ...), not {list(seed)}")
+            if not isinstance(first, int) or list(seed) not in (
+                [first + i for i in range(self.num_envs)],
+                [first] + [None] * (self.num_envs - 1),
+            ):
+                raise ValueError(
+                    f"{self.env.env_id}: the {self.num_envs} copies share one random stream, so "
+                    f"they take one seed (or s, s + 1, ...), not {list(seed)}"
+                )
             seed = first
         super().reset(seed=seed)
         if seed is not None:
@@ -209,7 +221,10 @@ def _own_id(env_id: str | None, registered_id: str | None) -> str:
             raise TypeError("an env id is needed (e.g. 'burgers-v0')")
         return env_id
     if env_id is not None and env_id != registered_id:
-        raise ValueError(f"{gym_id(registered_id)} is {registered_id}, so env_id={env_id!r} cannot change it; make {gym_id(env_id)!r} instead")
+        raise ValueError(
+            f"{gym_id(registered_id)} is {registered_id}, so env_id={env_id!r} cannot change it; "
+            f"make {gym_id(env_id)!r} instead"
+        )
     return registered_id
 
 

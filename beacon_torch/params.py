@@ -180,8 +180,7 @@ def _check_value(name: str, value: Any, m, n: int, device, dtype) -> Any:
         if np.ndim(values) != 1 or len(values) != n:
             shape = tuple(np.shape(values))
             raise ValueError(
-                f"parameter {name!r} must be a number or one value per batch member "
-                f"(shape ({n},)), got shape {shape}"
+                f"parameter {name!r} must be a number or one value per batch member (shape ({n},)), got shape {shape}"
             )
         checked = [_check_scalar(name, v, m, f"[{i}]") for i, v in enumerate(values)]
         return _member_tensor(name, checked, m, device, dtype)
@@ -212,7 +211,10 @@ def _still_admissible(name: str, tensor: torch.Tensor, given: list, m) -> torch.
     if bool(bad.any()):
         i = int(bad.reshape(-1).nonzero()[0, 0])
         cast = tensor.detach().reshape(-1)[i].item()
-        raise ValueError(f"parameter {name!r} = {given[i]!r} becomes {cast!r} in {tensor.dtype} (its range is {_range_text(m)}); use float64 or another value")
+        raise ValueError(
+            f"parameter {name!r} = {given[i]!r} becomes {cast!r} in {tensor.dtype} (its range is "
+            f"{_range_text(m)}); use float64 or another value"
+        )
     return tensor
 
 
@@ -230,9 +232,7 @@ def resolve_params(
     unknown = sorted(set(overrides) - set(fields))
     if unknown:
         label = f" of {env_id}" if env_id else ""
-        raise TypeError(
-            f"unknown parameter {unknown[0]!r}{label}; the parameters are: {', '.join(fields)}"
-        )
+        raise TypeError(f"unknown parameter {unknown[0]!r}{label}; the parameters are: {', '.join(fields)}")
     values = {}
     for name, f in fields.items():
         value = overrides.get(name, f.default)

@@ -62,11 +62,16 @@ def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[Flo
         raise ValueError(f"{env_id}: unknown default(s) {unknown}; {env_class.__name__} takes {sorted(known)}")
     if env_class.env_id != env_id:
         if ENVS.get(env_class.env_id) is not env_class:
-            raise ValueError(f"{env_class.__name__} is {env_class.env_id!r}, not {env_id!r}; a variant's base must be registered first")
+            raise ValueError(
+                f"{env_class.__name__} is {env_class.env_id!r}, not {env_id!r}; a variant's base "
+                f"must be registered first"
+            )
         variant = ENVS.get(env_id)
         if variant is not None and variant.__mro__[1] is env_class and DEFAULTS.get(env_id) == defaults:
             return variant
-        env_class = type(env_class.__name__ + "Variant", (env_class,), {"env_id": env_id, "__module__": env_class.__module__})
+        env_class = type(
+            env_class.__name__ + "Variant", (env_class,), {"env_id": env_id, "__module__": env_class.__module__}
+        )
     if env_id in ENVS:
         if ENVS[env_id] is env_class and DEFAULTS.get(env_id, {}) == defaults:
             return env_class
@@ -94,9 +99,7 @@ def env_class(env_id: str) -> type[FlowEnv]:
     try:
         return ENVS[env_id]
     except KeyError:
-        raise ValueError(
-            f"unknown env id {env_id!r}; available: {', '.join(list_envs())}"
-        ) from None
+        raise ValueError(f"unknown env id {env_id!r}; available: {', '.join(list_envs())}") from None
 
 
 def compiles_by_default() -> bool:
@@ -142,4 +145,6 @@ def make(
         False skips the check of action values (NaN, range), which synchronises with
         an accelerator on every step; default True.
     """
-    return env_class(env_id)(batch_size, device=device, dtype=dtype, seed=seed, **{**DEFAULTS.get(env_id, {}), **params})
+    return env_class(env_id)(
+        batch_size, device=device, dtype=dtype, seed=seed, **{**DEFAULTS.get(env_id, {}), **params}
+    )

@@ -117,7 +117,12 @@ def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20
     path.parent.mkdir(parents=True, exist_ok=True)
     duration = max(1, round(1000 / fps))
     # under a new name, then in place: a link at ``path`` is replaced, never followed
-    return replace_file(path, lambda tmp: images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0))
+    return replace_file(
+        path,
+        lambda tmp: images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0
+        ),
+    )
 
 
 def _profile_axes(fig, with_bars_width: float = 0.16):
@@ -220,7 +225,9 @@ def cavity_frame(
     fig = new_figure(size=(6.4, 4.6))
     ax = fig.add_axes((0.06, 0.1, 0.62, 0.8))
     nx, ny = scalar.shape
-    image = ax.imshow(scalar.T, origin="lower", extent=(0, L, 0, H), cmap="RdBu_r", vmin=vmin, vmax=vmax, interpolation="bilinear")
+    image = ax.imshow(
+        scalar.T, origin="lower", extent=(0, L, 0, H), cmap="RdBu_r", vmin=vmin, vmax=vmax, interpolation="bilinear"
+    )
     uc = 0.5 * (u[1:-2, 1:-1] + u[2:-1, 1:-1])
     vc = 0.5 * (v[1:-1, 1:-2] + v[1:-1, 2:-1])
     step = max(1, nx // 12)

@@ -58,11 +58,22 @@ class BeaconVecEnv(VecEnv):
     ``BEACON_TORCH_COMPILE=0``) and the env's parameters go to
     :func:`beacon_torch.make` (``BeaconVecEnv("rayleigh-v0", 16, compile=False)``)."""
 
-    def __init__(self, env_id: str, n_envs: int = 1, *, render_mode: str | None = None, dtype: Any = "float32", device: Any = "cpu", **options: Any) -> None:
+    def __init__(
+        self,
+        env_id: str,
+        n_envs: int = 1,
+        *,
+        render_mode: str | None = None,
+        dtype: Any = "float32",
+        device: Any = "cpu",
+        **options: Any,
+    ) -> None:
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         options.setdefault("compile", compiles_by_default())
-        self.env = make(env_id, batch_size=n_envs, dtype=dtype, device=device, record_history=render_mode is not None, **options)
+        self.env = make(
+            env_id, batch_size=n_envs, dtype=dtype, device=device, record_history=render_mode is not None, **options
+        )
         self.render_mode = render_mode
         self.env_id = env_id
         observation_space, action_space = _spaces(self.env)
@@ -118,7 +129,10 @@ class BeaconVecEnv(VecEnv):
     def _all(self, indices, what: str) -> list[int]:
         chosen = self._indices(indices)
         if sorted(set(chosen)) != list(range(self.num_envs)):
-            raise ValueError(f"{self.env_id}: the copies are one batched env, so {what} acts on all {self.num_envs} of them at once; got indices {chosen}")
+            raise ValueError(
+                f"{self.env_id}: the copies are one batched env, so {what} acts on all "
+                f"{self.num_envs} of them at once; got indices {chosen}"
+            )
         return chosen
 
     def get_attr(self, attr_name: str, indices: Iterable[int] | int | None = None) -> list[Any]:
@@ -140,14 +154,19 @@ class BeaconVecEnv(VecEnv):
         self._all(indices, f"set_attr({attr_name!r})")
         if attr_name not in SETTABLE:
             fixed = "a parameter of the env" if hasattr(self.env.params, attr_name) else "not settable"
-            raise AttributeError(f"{self.env_id}: {attr_name!r} is {fixed}; set_attr sets {', '.join(SETTABLE)} (make a new BeaconVecEnv for other settings)")
+            raise AttributeError(
+                f"{self.env_id}: {attr_name!r} is {fixed}; set_attr sets {', '.join(SETTABLE)} "
+                f"(make a new BeaconVecEnv for other settings)"
+            )
         setattr(self.env, attr_name, SETTABLE[attr_name](value))
 
     def seed(self, seed: int | None = None) -> Sequence[int | None]:
         # an integer of the generator's range (not 1.5, not "a"), or None for a random one
         return super().seed(None if seed is None else _as_seed(seed))
 
-    def env_method(self, method_name: str, *method_args, indices: Iterable[int] | int | None = None, **method_kwargs) -> list[Any]:
+    def env_method(
+        self, method_name: str, *method_args, indices: Iterable[int] | int | None = None, **method_kwargs
+    ) -> list[Any]:
         if method_name == "render":
             return [self._render_copy(i) for i in self._indices(indices)]
         chosen = self._all(indices, f"env_method({method_name!r})")

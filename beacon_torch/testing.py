@@ -85,7 +85,10 @@ def check_flow_env(env: str | type[FlowEnv], checks: list[str] | None = None) ->
     if not (isinstance(cls, type) and issubclass(cls, FlowEnv)):
         raise TypeError(f"check_flow_env needs an env id or a FlowEnv subclass, got {env!r}")
     if ENVS.get(cls.env_id) is not cls:
-        raise ValueError(f"{cls.__name__} is not registered under its env_id {cls.env_id!r}: beacon_torch.register it first (the adapters find envs by id)")
+        raise ValueError(
+            f"{cls.__name__} is not registered under its env_id {cls.env_id!r}: "
+            f"beacon_torch.register it first (the adapters find envs by id)"
+        )
     unknown = sorted(set(checks or ()) - set(CHECKS))
     if unknown:
         raise ValueError(f"unknown check(s) {unknown}; the checks are {list(CHECKS)}")
@@ -148,17 +151,29 @@ def check_specs(cls: type[FlowEnv]) -> None:
         for batch in (1, 4):
             check_env_specs(_make(cls, batch, dtype=dtype, seed=0), break_when_any_done="both")
     env = _make(cls, 4)
-    assert isinstance(env.full_observation_spec[env.observation_key], Unbounded), "the observation spec must be unbounded"
+    assert isinstance(env.full_observation_spec[env.observation_key], Unbounded), (
+        "the observation spec must be unbounded"
+    )
     reward = env.full_reward_spec[env.reward_key]
-    assert reward.shape[0] == 4 and reward.shape[-1] == 1 and reward.dtype == env.dtype, f"the reward spec must be [batch, ..., 1] of the env's dtype, got {tuple(reward.shape)} {reward.dtype}"
+    assert reward.shape[0] == 4 and reward.shape[-1] == 1 and reward.dtype == env.dtype, (
+        f"the reward spec must be [batch, ..., 1] of the env's dtype, got {tuple(reward.shape)} {reward.dtype}"
+    )
     action = env.full_action_spec[env.action_key]
-    assert action.shape == (4, *env.action_shape), f"action spec shape {tuple(action.shape)}, expected {(4, *env.action_shape)}"
+    assert action.shape == (4, *env.action_shape), (
+        f"action spec shape {tuple(action.shape)}, expected {(4, *env.action_shape)}"
+    )
     if env.discrete:
-        assert isinstance(action, Categorical) and action.space.n == env.n_actions, "a discrete action spec must be categorical over n_actions"
+        assert isinstance(action, Categorical) and action.space.n == env.n_actions, (
+            "a discrete action spec must be categorical over n_actions"
+        )
     else:
-        assert isinstance(action, Bounded) and action.space.low.min() == -1 and action.space.high.max() == 1, "a continuous action spec must be bounded in [-1, 1]"
+        assert isinstance(action, Bounded) and action.space.low.min() == -1 and action.space.high.max() == 1, (
+            "a continuous action spec must be bounded in [-1, 1]"
+        )
     for key in ("done", "terminated", "truncated"):
-        assert env.full_done_spec[key].shape == (4, 1) and env.full_done_spec[key].dtype == torch.bool, f"{key} must be [batch, 1] bool"
+        assert env.full_done_spec[key].shape == (4, 1) and env.full_done_spec[key].dtype == torch.bool, (
+            f"{key} must be [batch, 1] bool"
+        )
 
 
 @_check
@@ -169,7 +184,11 @@ def check_seeding(cls: type[FlowEnv]) -> None:
     _same("two envs of seed 123", first, _rollout(b, actions))
     a.set_seed(5)
     b.set_seed(5)
-    _equal("the generators after set_seed(5)", torch.rand(3, generator=a.rng, dtype=F64), torch.rand(3, generator=b.rng, dtype=F64))
+    _equal(
+        "the generators after set_seed(5)",
+        torch.rand(3, generator=a.rng, dtype=F64),
+        torch.rand(3, generator=b.rng, dtype=F64),
+    )
     a.set_seed(123)
     _same("an episode after set_seed(123) and the first one", _rollout(a, actions), first)
 
@@ -189,7 +208,9 @@ def check_batch_invariance(cls: type[FlowEnv]) -> str | None:
         try:
             torch.testing.assert_close(x, y, **ROUND_OFF)
         except AssertionError as err:
-            raise AssertionError(f"member 1 of 3 and the same member alone: {part} differ beyond round-off: {err}") from None
+            raise AssertionError(
+                f"member 1 of 3 and the same member alone: {part} differ beyond round-off: {err}"
+            ) from None
     return None
 
 
@@ -226,7 +247,9 @@ def check_blow_up(cls: type[FlowEnv]) -> None:
     env.set_state(state)
     obs, reward, terminated, truncated = env.step_members(actions[0])
     assert bool(terminated[1]), "member 1, pushed to 1e150, did not end its episode"
-    assert (reward[1] == env.blowup_reward).all(), f"member 1's reward {reward[1].tolist()} is not blowup_reward {env.blowup_reward}"
+    assert (reward[1] == env.blowup_reward).all(), (
+        f"member 1's reward {reward[1].tolist()} is not blowup_reward {env.blowup_reward}"
+    )
     assert torch.isfinite(obs).all() and torch.isfinite(reward).all(), "a blown-up member left non-finite values"
     keep = [0, 2]
     assert not terminated[keep].any(), "the other members ended too"
@@ -234,7 +257,9 @@ def check_blow_up(cls: type[FlowEnv]) -> None:
     _equal("the other members' rewards", reward[keep], ref_rew[0][keep])
     # the blown-up member starts again on a reset
     again = env.reset_members(torch.tensor([False, True, False]))
-    assert torch.isfinite(again).all() and not env.step_members(actions[0])[2][1], "the member did not start again after its reset"
+    assert torch.isfinite(again).all() and not env.step_members(actions[0])[2][1], (
+        "the member did not start again after its reset"
+    )
 
 
 @_check
@@ -243,7 +268,11 @@ def check_gradients(cls: type[FlowEnv]) -> str | None:
 
     if cls.discrete or cls.gradcheck is None:
         return "not applicable: discrete actions"
-    case = dataclasses.replace(cls.gradcheck, params={**cls.test_settings, **cls.gradcheck.params}, steps=1 if _cavity(cls) else cls.gradcheck.steps)
+    case = dataclasses.replace(
+        cls.gradcheck,
+        params={**cls.test_settings, **cls.gradcheck.params},
+        steps=1 if _cavity(cls) else cls.gradcheck.steps,
+    )
     derivatives = dict(check_env(cls.env_id, case))
     defaults = {f.name: f for f in dataclasses.fields(cls.Params)}
     for name, f in defaults.items():
@@ -259,11 +288,16 @@ def check_gradients(cls: type[FlowEnv]) -> str | None:
         except RuntimeError as err:
             if "not have been used in the graph" not in str(err):
                 raise
-            raise AssertionError(f"d(reward)/d({name}): the steps do not use the parameter (read only at set-up or at a reset?); declare it differentiable=False") from None
+            raise AssertionError(
+                f"d(reward)/d({name}): the steps do not use the parameter (read only at set-up or "
+                f"at a reset?); declare it differentiable=False"
+            ) from None
     for name, d in derivatives.items():
         assert np.isfinite(d.autograd), f"d(reward)/d({name}) is not finite"
         flat = abs(d.central) < 1e-10 and abs(d.autograd) < 1e-10
-        assert flat or d.relative_error < GRADIENT_REL, f"d(reward)/d({name}): autograd {d.autograd:.10g}, central differences {d.central:.10g}"
+        assert flat or d.relative_error < GRADIENT_REL, (
+            f"d(reward)/d({name}): autograd {d.autograd:.10g}, central differences {d.central:.10g}"
+        )
         if name in ("actions", case.param):
             assert not flat, f"d(reward)/d({name}) is zero: the check's direction is flat and checks nothing"
     return None
@@ -275,7 +309,9 @@ def check_compile(cls: type[FlowEnv]) -> None:
     compiled = _make(cls, 2, dtype=F64, seed=3, compile=True)
     # a whole episode, but for the cavities (an eager cavity episode takes minutes)
     actions = _actions(eager, 3 if _cavity(cls) else cls.episode_length, seed=1)
-    for what, c, e in zip(("observations", "rewards", "terminations"), _rollout(compiled, actions), _rollout(eager, actions), strict=True):
+    for what, c, e in zip(
+        ("observations", "rewards", "terminations"), _rollout(compiled, actions), _rollout(eager, actions), strict=True
+    ):
         try:
             torch.testing.assert_close(c, e, **ROUND_OFF)
         except AssertionError as err:
@@ -302,7 +338,9 @@ def check_adapters(cls: type[FlowEnv]) -> None:
         obs, reward, terminated, truncated, _ = single.step(action)
         o, r, t, u = ref.step_members(torch.as_tensor(np.asarray(action))[None])
         _equal("the gymnasium env's observation", torch.as_tensor(obs), o[0])
-        assert reward == float(team_reward(ref, r)[0]) and (terminated, truncated) == (bool(t[0]), bool(u[0])), "the gymnasium env's reward or flags differ"
+        assert reward == float(team_reward(ref, r)[0]) and (terminated, truncated) == (bool(t[0]), bool(u[0])), (
+            "the gymnasium env's reward or flags differ"
+        )
     # the vector envs: float64, so that their rewards compare with the batched env's
     gym_vector = BeaconVectorEnv(cls.env_id, 3, dtype="float64", compile=False, **settings)
     sb3_vector = BeaconVecEnv(cls.env_id, 3, dtype="float64", seed=4, compile=False, **settings)
@@ -315,7 +353,9 @@ def check_adapters(cls: type[FlowEnv]) -> None:
             o, r, _, _ = batched.step_members(a)
             team = team_reward(batched, r)
             _equal(f"{name}: observations", torch.as_tensor(out[0]), o)
-            assert np.allclose(out[1], team.astype(out[1].dtype), rtol=1e-6, atol=0), f"{name}: rewards {out[1]} against {team}"
+            assert np.allclose(out[1], team.astype(out[1].dtype), rtol=1e-6, atol=0), (
+                f"{name}: rewards {out[1]} against {team}"
+            )
         venv.close()
 
 
@@ -324,7 +364,9 @@ def check_render(cls: type[FlowEnv]) -> None:
     env = _make(cls, 2, record_history=True, seed=0)
     env.reset_members()
     first = env.render()
-    assert isinstance(first, np.ndarray) and first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3, "render() must give an RGB uint8 image"
+    assert isinstance(first, np.ndarray) and first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3, (
+        "render() must give an RGB uint8 image"
+    )
     for a in _actions(env, _steps(cls)):
         env.step_members(a)
     frame = env.render()

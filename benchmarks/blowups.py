@@ -56,13 +56,19 @@ def measure(env_id: str, batch: int, seed: int) -> list[str]:
     scores = evaluate.scores(rollout)
     done = rollout["next", "done"][..., 0]
     terminated = (rollout["next", "terminated"][..., 0] & (done.cumsum(-1) == done.to(torch.int64))).any(-1)
-    lines = [f"{env_id} (batch {batch}, seed {seed}, blow-up reward {env.blowup_reward}, {time.perf_counter() - start:.0f} s)"]
+    lines = [
+        f"{env_id} (batch {batch}, seed {seed}, blow-up reward {env.blowup_reward}, "
+        f"{time.perf_counter() - start:.0f} s)"
+    ]
     for k, name in enumerate(named):
         mine = groups == k
         completed, blown = scores[mine & ~terminated], scores[mine & terminated]
         worst = f"{completed.min().item():.3f}" if completed.numel() else "-"
         best = f"{blown.max().item():.3f}" if blown.numel() else "-"
-        lines.append(f"  {name:12s} completed {completed.numel():3d} (worst {worst:>9s}), blown up {blown.numel():3d} (best {best:>9s})")
+        lines.append(
+            f"  {name:12s} completed {completed.numel():3d} (worst {worst:>9s}), blown up "
+            f"{blown.numel():3d} (best {best:>9s})"
+        )
     completed = scores[~terminated]
     lines.append(f"  all          worst completed {completed.min().item():.3f}, blow-ups {int(terminated.sum())}")
     return lines

@@ -38,11 +38,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--dtype", default="float32")
-    parser.add_argument("--compile", action="store_true", help="the compiled path (make(..., compile=True)); compilation is timed apart")
+    parser.add_argument(
+        "--compile", action="store_true", help="the compiled path (make(..., compile=True)); compilation is timed apart"
+    )
     parser.add_argument("--envs", nargs="+", default=list(PUBLISHED))
     parser.add_argument("--out", help="write the results as JSON")
     args = parser.parse_args()
-    results = {"machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"}
+    results = {
+        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} "
+        f"threads, torch {torch.__version__}"
+    }
     for env_id in args.envs:
         substeps = ENVS[env_id].substeps
         env = beacon_torch.make(env_id, args.batch, dtype=args.dtype, compile=args.compile)
@@ -69,7 +74,8 @@ def main() -> None:
         }
         results[env_id] = row
         print(
-            f"{env_id} ({'compiled' if args.compile else 'eager'}): {rate:.1f} transitions/s ({row['vs_published']:.1f}x the published {PUBLISHED[env_id]}/s), "
+            f"{env_id} ({'compiled' if args.compile else 'eager'}): {rate:.1f} transitions/s "
+            f"({row['vs_published']:.1f}x the published {PUBLISHED[env_id]}/s), "
             f"{row['substep_ms']:.2f} ms per batched substep of which Poisson {row['poisson_ms']:.2f} ms"
         )
     if args.out:

@@ -48,7 +48,9 @@ print(json.dumps({"first": first, "second": second, **graphs}))
 def first_steps(env_id: str, batch: int, cache: str) -> dict:
     """The child's seconds of the first and second steps, and its graph counts."""
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache}
-    out = subprocess.run([sys.executable, "-c", _CHILD, env_id, str(batch)], env=env, capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", _CHILD, env_id, str(batch)], env=env, capture_output=True, text=True, check=True
+    )
     return json.loads(out.stdout.splitlines()[-1])
 
 
@@ -59,7 +61,10 @@ def main() -> None:
     parser.add_argument("--out", default="runs/compile_time")
     args = parser.parse_args()
     print(f"# {machine()}, batch {args.batch}, float32")
-    print("| env | first step, cold cache (s) | first step, warm cache (s) | second step (s) | warm: graphs from the cache / compiled / not cacheable |")
+    print(
+        "| env | first step, cold cache (s) | first step, warm cache (s) | second step (s) | warm: "
+        "graphs from the cache / compiled / not cacheable |"
+    )
     print("|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
@@ -67,8 +72,21 @@ def main() -> None:
             cold = first_steps(env_id, args.batch, cache)
             warm = first_steps(env_id, args.batch, cache)
         graphs = {f"warm_graphs_{k}": warm[k] for k in ("hit", "miss", "bypass")}
-        rows.append({"env": env_id, "batch": args.batch, "cold_s": cold["first"], "warm_s": warm["first"], "second_step_s": warm["second"], **graphs})
-        print(f"| {env_id} | {cold['first']:.1f} | {warm['first']:.1f} | {warm['second']:.3f} | {warm['hit']} / {warm['miss']} / {warm['bypass']} |", flush=True)
+        rows.append(
+            {
+                "env": env_id,
+                "batch": args.batch,
+                "cold_s": cold["first"],
+                "warm_s": warm["first"],
+                "second_step_s": warm["second"],
+                **graphs,
+            }
+        )
+        print(
+            f"| {env_id} | {cold['first']:.1f} | {warm['first']:.1f} | {warm['second']:.3f} | "
+            f"{warm['hit']} / {warm['miss']} / {warm['bypass']} |",
+            flush=True,
+        )
     print("results:", save_rows(rows, args.out, "compile_time"))
 
 

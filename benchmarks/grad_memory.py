@@ -33,7 +33,9 @@ ENVS = {
 }
 
 
-def measure(env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint: bool, **params) -> tuple[float, float, bool, float]:
+def measure(
+    env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint: bool, **params
+) -> tuple[float, float, bool, float]:
     """(saved bytes per member and action, seconds per action of forward + backward,
     whether the gradient with respect to every action is finite, its largest finite
     magnitude)."""
@@ -42,7 +44,7 @@ def measure(env_id: str, steps: int, batch: int, dtype: torch.dtype, checkpoint:
     )
     env.reset()
     g = torch.Generator().manual_seed(0)
-    actions = (torch.rand((steps, batch, *env.action_spec.shape[1:]), generator=g, dtype=dtype) - 0.5)
+    actions = torch.rand((steps, batch, *env.action_spec.shape[1:]), generator=g, dtype=dtype) - 0.5
     actions.requires_grad_()
     storages: dict[int, int] = {}
 
@@ -75,15 +77,24 @@ def main(argv=None) -> None:
     dtype = getattr(torch, args.dtype)
     if args.episode:
         print(f"one episode, batch {args.batch}, {args.dtype}, grad_checkpoint, {torch.get_num_threads()} threads")
-        print("| env | actions | saved for the backward pass, per member | forward + backward | gradient finite | largest derivative |")
+        print(
+            "| env | actions | saved for the backward pass, per member | forward + backward | "
+            "gradient finite | largest derivative |"
+        )
         print("|---|---|---|---|---|---|")
         for env_id in args.envs:
             n = beacon_torch.registry.ENVS[env_id].episode_length
             per_action, seconds, finite, largest = measure(env_id, n, args.batch, dtype, True, **ENVS[env_id])
-            print(f"| {env_id} | {n} | {_bytes(per_action * n)} | {seconds * n:,.1f} s | {finite} | {largest:.1e} |", flush=True)
+            print(
+                f"| {env_id} | {n} | {_bytes(per_action * n)} | {seconds * n:,.1f} s | {finite} | {largest:.1e} |",
+                flush=True,
+            )
         return
     print(f"{args.steps} actions, batch {args.batch}, {args.dtype}, {torch.get_num_threads()} threads")
-    print("| env | state per member | graph per member and action | with grad_checkpoint | time per action (batch) | with grad_checkpoint |")
+    print(
+        "| env | state per member | graph per member and action | with grad_checkpoint | time per "
+        "action (batch) | with grad_checkpoint |"
+    )
     print("|---|---|---|---|---|---|")
     for env_id in args.envs:
         params = ENVS[env_id]

@@ -42,7 +42,11 @@ def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ())
         algo, env_id = name.split("/")
         info = pretrained.info(algo, env_id)
         old = kept.get(name)
-        if old is not None and (old["trained_seed"], old["frames"], old["recorded"]) == (info.get("seed"), info["frames"], info.get("score")):
+        if old is not None and (old["trained_seed"], old["frames"], old["recorded"]) == (
+            info.get("seed"),
+            info["frames"],
+            info.get("score"),
+        ):
             rows.append(old)
             continue
         start = time.perf_counter()
@@ -65,7 +69,8 @@ def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ())
 
 def table(rows: list[dict], members: int, seed: int) -> str:
     lines = [
-        f"Every shipped policy, loaded with `beacon_torch.pretrained.load` and run deterministically on {members} episodes"
+        f"Every shipped policy, loaded with `beacon_torch.pretrained.load` and run "
+        f"deterministically on {members} episodes"
         f" of evaluation seed {seed} (float32), against no control on the same episodes (`benchmarks/pretrained.py`):",
         "",
         "| policy | trained on (seed) | score (std over episodes) | uncontrolled | normalised | recorded at shipping |",
@@ -73,7 +78,10 @@ def table(rows: list[dict], members: int, seed: int) -> str:
     ]
     for r in rows:
         recorded = "-" if r["recorded"] is None else f"{r['recorded']:.4g}"
-        lines.append(f"| {r['policy']} | {r['frames']:,} ({r['trained_seed']}) | {r['score']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {r['normalised']:.2f} | {recorded} |")
+        lines.append(
+            f"| {r['policy']} | {r['frames']:,} ({r['trained_seed']}) | {r['score']:.4g} "
+            f"({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {r['normalised']:.2f} | {recorded} |"
+        )
     return "\n".join(lines)
 
 
@@ -81,9 +89,15 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--members", type=int, default=8, help="evaluation episodes per policy")
     parser.add_argument("--seed", type=int, default=EVAL_SEED)
-    parser.add_argument("--page", default=str(ROOT / "docs" / "results.md"), help="the page whose marked part is rewritten")
+    parser.add_argument(
+        "--page", default=str(ROOT / "docs" / "results.md"), help="the page whose marked part is rewritten"
+    )
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "pretrained.json"))
-    parser.add_argument("--changed", action="store_true", help="evaluate only the policies shipped since --json was written, keep its other rows")
+    parser.add_argument(
+        "--changed",
+        action="store_true",
+        help="evaluate only the policies shipped since --json was written, keep its other rows",
+    )
     args = parser.parse_args(argv)
     if args.members < 1:
         parser.error(f"--members must be at least 1, got {args.members}")
@@ -93,10 +107,15 @@ def main(argv: list[str] | None = None) -> None:
         if (before["members"], before["seed"]) == (args.members, args.seed):
             keep = before["rows"]
         else:
-            print(f"{args.json} was taken with {before['members']} members and seed {before['seed']}: evaluating every policy")
+            print(
+                f"{args.json} was taken with {before['members']} members and seed {before['seed']}: "
+                f"evaluating every policy"
+            )
     rows = evaluate_all(args.members, args.seed, keep)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"members": args.members, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1))
+    Path(args.json).write_text(
+        json.dumps({"members": args.members, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1)
+    )
     text = table(rows, args.members, args.seed)
     write_block(args.page, BEGIN, END, text)
     print(text)

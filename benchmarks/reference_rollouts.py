@@ -29,7 +29,11 @@ def main() -> None:
     parser.add_argument("--out", help="write the markdown table here")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    rows = ["| env | solver | actions | return | published | running return, largest rel. difference | first obs. | last obs. | wall time |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| env | solver | actions | return | published | running return, largest rel. difference | "
+        "first obs. | last obs. | wall time |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for env_id in args.env_ids:
         for solver in ("direct", "jacobi") if env_class(env_id).family == "cavity" else (None,):
             start = time.perf_counter()

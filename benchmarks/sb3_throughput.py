@@ -60,7 +60,9 @@ def main() -> None:
         seconds = args.seconds * (4 if env_class(env_id).family == "cavity" else 1)
         for copies in args.copies:
             batched = rate(BeaconVecEnv(env_id, copies, seed=0), seconds)
-            dummy = rate(DummyVecEnv([lambda name=env_id: gymnasium.make(f"beacon/{name}") for _ in range(copies)]), seconds)
+            dummy = rate(
+                DummyVecEnv([lambda name=env_id: gymnasium.make(f"beacon/{name}") for _ in range(copies)]), seconds
+            )
             rows.append({"env": env_id, "copies": copies, "batched": batched, "dummy": dummy, "ratio": batched / dummy})
             print(f"| {env_id} | {copies} | {batched:,.1f} | {dummy:,.1f} | {batched / dummy:.1f}x |", flush=True)
     print("results:", save_rows(rows, args.out, "sb3_throughput"))

@@ -74,7 +74,10 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
             gym_env.reset()
 
     env = gym_env.env  # the batch-of-one FlowEnv behind it
-    batch = [TensorDict({env.action_key: torch.as_tensor(np.asarray(a))[None]}, batch_size=env.batch_size) for a in actions[:8]]
+    batch = [
+        TensorDict({env.action_key: torch.as_tensor(np.asarray(a))[None]}, batch_size=env.batch_size)
+        for a in actions[:8]
+    ]
 
     def torchrl_step():
         td = env.step(batch[index[0] % 8])
@@ -87,26 +90,41 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
 
     def physics():
         if not frozen:
-            frozen.update(state=env.state, obs=env.observation, action=env.check_action(batch[0][env.action_key]), count=env.step_count, noise=env.noise())
+            frozen.update(
+                state=env.state,
+                obs=env.observation,
+                action=env.check_action(batch[0][env.action_key]),
+                count=env.step_count,
+                noise=env.noise(),
+            )
         with torch.no_grad():
             env._whole_step(frozen["state"], frozen["obs"], frozen["action"], frozen["count"], frozen["noise"], None)
 
     measured = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
-    return {"env": env_id, "mode": "compiled" if compiled else "eager", "published": env_class(env_id).published_speed, **measured}
+    return {
+        "env": env_id,
+        "mode": "compiled" if compiled else "eager",
+        "published": env_class(env_id).published_speed,
+        **measured,
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", default=ENVS)
     parser.add_argument("--modes", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
-    parser.add_argument("--seconds", type=float, default=2.0, help="length of one timed run (cavities: at least 2 steps)")
+    parser.add_argument(
+        "--seconds", type=float, default=2.0, help="length of one timed run (cavities: at least 2 steps)"
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the published code runs on one core)")
     parser.add_argument("--out", default="runs/single_env")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"# {machine()}")
-    print("| env | mode | gymnasium (lean) /s | TorchRL step /s | step call alone /s | published /s | lean vs published |")
+    print(
+        "| env | mode | gymnasium (lean) /s | TorchRL step /s | step call alone /s | published /s | lean vs published |"
+    )
     print("|---|---|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
@@ -114,7 +132,11 @@ def main() -> None:
             seconds = args.seconds * (3 if env_class(env_id).family == "cavity" else 1)
             r = measure(env_id, mode == "compiled", seconds, args.repeats)
             rows.append(r)
-            print(f"| {env_id} | {mode} | {r['gymnasium']:,.1f} | {r['torchrl']:,.1f} | {r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x |", flush=True)
+            print(
+                f"| {env_id} | {mode} | {r['gymnasium']:,.1f} | {r['torchrl']:,.1f} | "
+                f"{r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x |",
+                flush=True,
+            )
     print("results:", save_rows(rows, args.out, "single_env"))
 
 

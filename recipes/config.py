@@ -101,14 +101,28 @@ class Config:
     gamma: float = setting(0.99, "discount", domain=(0.0, 1.0, True))
     # one compiled call per action: a 1-D env collects 2 to 8 times faster at 16 members,
     # for 15-35 s of compilation at the start (docs/performance.md)
-    compile: bool = setting(True, "the env's compiled physics (--no-compile: eager; BEACON_TORCH_COMPILE=0 turns this default off)")
-    norm_steps: int = setting(0, f"random steps whose observations set a normalisation (0: raw observations, as the paper's agents saw them; {NORM_STEPS} reach past every env's start-up)")
+    compile: bool = setting(
+        True, "the env's compiled physics (--no-compile: eager; BEACON_TORCH_COMPILE=0 turns this default off)"
+    )
+    norm_steps: int = setting(
+        0,
+        f"random steps whose observations set a normalisation (0: raw observations, as the paper's "
+        f"agents saw them; {NORM_STEPS} reach past every env's start-up)",
+    )
     device: str = setting("cpu", "torch device of the env and the networks")
     out: str = setting("", "run directory (default runs/ALGO-ENV/seedSEED)")
     resume: bool = setting(False, "continue the run in OUT from its checkpoint to FRAMES")
     collectors: int = setting(1, "collector processes (or Ray actors), each with a batched env of NUM_ENVS members")
-    ray: str = setting("", "collect with Ray actors on the cluster at this address ('auto', or 'local' for one here); needs beacon-torch[ray]")
-    logger: str = setting("auto", "'csv', 'tensorboard' (CSV and TensorBoard) or 'auto' (TensorBoard too when installed)", ("auto", "csv", "tensorboard"))
+    ray: str = setting(
+        "",
+        "collect with Ray actors on the cluster at this address ('auto', or 'local' for one here); "
+        "needs beacon-torch[ray]",
+    )
+    logger: str = setting(
+        "auto",
+        "'csv', 'tensorboard' (CSV and TensorBoard) or 'auto' (TensorBoard too when installed)",
+        ("auto", "csv", "tensorboard"),
+    )
     progress: bool = setting(True, "progress bar")
     checkpoint_every: int = setting(10, "rounds of updates between two checkpoints")
 
@@ -167,7 +181,9 @@ class TD3Config(OffPolicyConfig):
 
     hidden: int = setting(128, "width of the hidden layers")
     init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
-    lr: float = setting(1e-3, "learning rate of the critics, and of the actor unless ACTOR_LR is given (Adam)", domain=POSITIVE)
+    lr: float = setting(
+        1e-3, "learning rate of the critics, and of the actor unless ACTOR_LR is given (Adam)", domain=POSITIVE
+    )
     actor_lr: float = setting(0.0, "learning rate of the actor (0: LR, as in the paper's agent)", domain=NON_NEGATIVE)
     tau: float = setting(0.02, "soft update of the target networks", domain=(0.0, 1.0, True))
     policy_noise: float = setting(0.002, "target policy smoothing noise, in action units", domain=NON_NEGATIVE)
@@ -252,7 +268,9 @@ def _typed(name: str, kind: str, value):
             value = {"true": 1, "false": 0}.get(value.lower(), value)
         if value in (0, 1):
             return bool(value)
-    elif kind == "int" and isinstance(value, (int, float)) and not isinstance(value, bool) and float(value).is_integer():
+    elif (
+        kind == "int" and isinstance(value, (int, float)) and not isinstance(value, bool) and float(value).is_integer()
+    ):
         return int(value)
     elif kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
@@ -263,24 +281,40 @@ def _typed(name: str, kind: str, value):
 
 def _check(cfg: Config) -> Config:
     if cfg.norm_steps < 0:
-        raise ValueError(f"setting 'norm_steps' must be 0 (raw observations) or a positive integer, got {cfg.norm_steps}")
+        raise ValueError(
+            f"setting 'norm_steps' must be 0 (raw observations) or a positive integer, got {cfg.norm_steps}"
+        )
     for name in ("frames", "num_envs", "hidden", "collectors", "checkpoint_every", *cfg.positive):
         if getattr(cfg, name) < 1:
             raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
     members = cfg.num_envs * cfg.collectors
     if cfg.frames < getattr(cfg, cfg.batch):
-        raise ValueError(f"frames ({cfg.frames}) must be at least one collected batch, {cfg.batch} ({getattr(cfg, cfg.batch)})")
+        raise ValueError(
+            f"frames ({cfg.frames}) must be at least one collected batch, {cfg.batch} ({getattr(cfg, cfg.batch)})"
+        )
     if getattr(cfg, cfg.batch) % members:
-        raise ValueError(f"{cfg.batch} ({getattr(cfg, cfg.batch)}) must be a multiple of num_envs x collectors ({members})")
+        raise ValueError(
+            f"{cfg.batch} ({getattr(cfg, cfg.batch)}) must be a multiple of num_envs x collectors ({members})"
+        )
     for f in fields(cfg):
         value = getattr(cfg, f.name)
         if f.metadata["domain"] is not None:
             low, high, open_low = f.metadata["domain"]
             if not (math.isfinite(value) and (value > low if open_low else value >= low) and value <= high):
-                where = f"{'(' if open_low else '['}{low:g}, {high:g}]" if math.isfinite(high) else (f"> {low:g}" if open_low else f">= {low:g}")
-                raise ValueError(f"setting '{f.name}' must be finite and {'in ' if math.isfinite(high) else ''}{where}, got {value!r}")
+                where = (
+                    f"{'(' if open_low else '['}{low:g}, {high:g}]"
+                    if math.isfinite(high)
+                    else (f"> {low:g}" if open_low else f">= {low:g}")
+                )
+                raise ValueError(
+                    f"setting '{f.name}' must be finite and "
+                    f"{'in ' if math.isfinite(high) else ''}{where}, got {value!r}"
+                )
         if f.metadata["choices"] and getattr(cfg, f.name) not in f.metadata["choices"]:
-            raise ValueError(f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, got {getattr(cfg, f.name)!r}")
+            raise ValueError(
+                f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, "
+                f"got {getattr(cfg, f.name)!r}"
+            )
     env = beacon_torch.registry.env_class(cfg.env)
     _as_device(cfg.device)
     if cfg.actions == "continuous" and env.discrete:
@@ -288,7 +322,10 @@ def _check(cfg: Config) -> Config:
     if cfg.actions == "discrete" and not env.discrete:
         raise ValueError(f"{cfg.algo} needs discrete actions; {cfg.env} has continuous ones (use ppo or td3)")
     if isinstance(env.observation_key, tuple) and not cfg.multi_agent:
-        raise ValueError(f"{cfg.algo} trains single-agent layouts; {cfg.env} has one agent per jet (use ppo, or {cfg.env.replace('-separable', '')} for {cfg.algo})")
+        raise ValueError(
+            f"{cfg.algo} trains single-agent layouts; {cfg.env} has one agent per jet (use ppo, or "
+            f"{cfg.env.replace('-separable', '')} for {cfg.algo})"
+        )
     if cfg.in_process and (cfg.collectors != 1 or cfg.ray):
         raise ValueError(f"{cfg.algo} differentiates through the env in this process: collectors and ray do not apply")
     return cfg
@@ -335,7 +372,10 @@ def resumed(cfg: Config, given: dict) -> Config:
         raise ValueError(f"resuming {Path(cfg.out) / CHECKPOINT}: {err}") from None
     for name, value in given.items():
         if name in names and name in saved and saved[name] != value:
-            raise ValueError(f"setting '{name}' = {value!r} differs from the resumed run's {saved[name]!r}; a resumed run keeps the settings it was started with")
+            raise ValueError(
+                f"setting '{name}' = {value!r} differs from the resumed run's {saved[name]!r}; a "
+                f"resumed run keeps the settings it was started with"
+            )
     frames = given.get("frames", saved.get("frames", cfg.frames))
     if frames != saved.get("frames", frames):
         print(f"resuming {cfg.out}: {saved['frames']:,} -> {frames:,} transitions")
@@ -358,17 +398,29 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
         if f.name == "env":
             parser.add_argument(flag, required=True, help=helptext)
         elif f.type == "bool":
-            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=f"{helptext} (default: {default})")
+            parser.add_argument(
+                flag,
+                dest=f.name,
+                action=argparse.BooleanOptionalAction,
+                default=None,
+                help=f"{helptext} (default: {default})",
+            )
         else:
             kind = {"int": int, "float": float, "str": str}[f.type]
-            parser.add_argument(flag, dest=f.name, type=kind, default=None, metavar=f.name.upper(), help=f"{helptext} (default: {default})")
+            parser.add_argument(
+                flag,
+                dest=f.name,
+                type=kind,
+                default=None,
+                metavar=f.name.upper(),
+                help=f"{helptext} (default: {default})",
+            )
     args = vars(parser.parse_args(argv))
     env_id = args.pop("env")
     try:
         return configure(cls, env_id, **{k: v for k, v in args.items() if v is not None})
     except (ValueError, KeyError) as err:
         parser.error(str(err))
-
 
 
 def script(main, cls: type[Config], argv: list[str] | None = None) -> None:

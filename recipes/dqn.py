@@ -28,7 +28,15 @@ def main(cfg: DQNConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+    env = make_env(
+        cfg.env,
+        cfg.num_envs,
+        device=cfg.device,
+        seed=cfg.seed,
+        norm=run.obs_norm,
+        norm_steps=cfg.norm_steps,
+        compile=cfg.compile,
+    )
 
     # the action values (the greedy policy), the DQN loss with its target network
     qvalue = networks.qvalue_actor(env, cfg.hidden).to(cfg.device)
@@ -39,9 +47,13 @@ def main(cfg: DQNConfig) -> dict:
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
 
     # epsilon-greedy exploration, annealed over the transitions; the replay buffer
-    explore = EGreedyModule(spec=env.action_spec, eps_init=cfg.eps_init, eps_end=cfg.eps_end, annealing_num_steps=cfg.eps_frames)
+    explore = EGreedyModule(
+        spec=env.action_spec, eps_init=cfg.eps_init, eps_end=cfg.eps_end, annealing_num_steps=cfg.eps_frames
+    )
     explore.step(run.frames)
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size)
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size
+    )
     run.restore(buffer, actor=qvalue, loss=loss, optim=optim)
     if run.remaining <= 0:
         return run.last
@@ -53,8 +65,16 @@ def main(cfg: DQNConfig) -> dict:
     random_frames = max(0, cfg.init_random_frames - run.frames)
     policy = TensorDictSequential(qvalue, explore)
     collector = make_collector(
-        cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames,
-        collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device,
+        cfg.env,
+        env,
+        policy,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=run.remaining,
+        init_random_frames=random_frames,
+        collectors=cfg.collectors,
+        ray=cfg.ray or None,
+        seed=cfg.seed,
+        device=cfg.device,
     )
 
     for data in collector:

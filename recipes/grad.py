@@ -33,7 +33,17 @@ def main(cfg: GradConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the differentiable env, with the saved normalisation when resuming
-    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile, differentiable=True, grad_checkpoint=cfg.grad_checkpoint)
+    env = make_env(
+        cfg.env,
+        cfg.num_envs,
+        device=cfg.device,
+        seed=cfg.seed,
+        norm=run.obs_norm,
+        norm_steps=cfg.norm_steps,
+        compile=cfg.compile,
+        differentiable=True,
+        grad_checkpoint=cfg.grad_checkpoint,
+    )
     base = env.base_env
 
     # the policy and its optimiser; the count of updates dropped for a non-finite gradient

@@ -33,7 +33,15 @@ def main(cfg: PPOConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+    env = make_env(
+        cfg.env,
+        cfg.num_envs,
+        device=cfg.device,
+        seed=cfg.seed,
+        norm=run.obs_norm,
+        norm_steps=cfg.norm_steps,
+        compile=cfg.compile,
+    )
     keys = networks.Keys.of(env)
 
     # the paper's networks
@@ -43,23 +51,54 @@ def main(cfg: PPOConfig) -> dict:
     # the loss (clipped surrogate, analytic entropy, squared value error), GAE, and one
     # optimiser per network: each network's gradient is clipped on its own, as the
     # critic's is far larger at the start and a common clip would starve the actor
-    loss = ClipPPOLoss(actor, critic, clip_epsilon=cfg.clip, entropy_coeff=cfg.entropy, critic_coeff=1.0, loss_critic_type="l2")
+    loss = ClipPPOLoss(
+        actor, critic, clip_epsilon=cfg.clip, entropy_coeff=cfg.entropy, critic_coeff=1.0, loss_critic_type="l2"
+    )
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False)
-    fields = dict(reward=keys.reward, done=keys.done, terminated=keys.terminated, value=keys.value, advantage=keys.advantage, value_target=keys.value_target)
+    fields = dict(
+        reward=keys.reward,
+        done=keys.done,
+        terminated=keys.terminated,
+        value=keys.value,
+        advantage=keys.advantage,
+        value_target=keys.value_target,
+    )
     loss.set_keys(action=keys.action, sample_log_prob=keys.log_prob, **fields)
     advantage.set_keys(**fields)
     actor_optim = torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr)
-    critic_optim = {"adam": torch.optim.Adam, "nadam": torch.optim.NAdam}[cfg.critic_optim](critic.parameters(), lr=cfg.critic_lr)
+    critic_optim = {"adam": torch.optim.Adam, "nadam": torch.optim.NAdam}[cfg.critic_optim](
+        critic.parameters(), lr=cfg.critic_lr
+    )
     run.restore(actor=actor, critic=critic, actor_optim=actor_optim, critic_optim=critic_optim)
     if run.remaining <= 0:
         return run.last
 
     def save() -> None:
-        run.save(env, policy=("stochastic_actor", cfg.hidden, actor), critic=critic, actor_optim=actor_optim, critic_optim=critic_optim)
+        run.save(
+            env,
+            policy=("stochastic_actor", cfg.hidden, actor),
+            critic=critic,
+            actor_optim=actor_optim,
+            critic_optim=critic_optim,
+        )
 
     # the collector and the buffer the minibatches are drawn from
-    collector = make_collector(cfg.env, env, actor, frames_per_batch=cfg.n_rollout, total_frames=run.remaining, collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device)
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_rollout, device=cfg.device), sampler=SamplerWithoutReplacement(), batch_size=cfg.n_rollout // cfg.minibatches)
+    collector = make_collector(
+        cfg.env,
+        env,
+        actor,
+        frames_per_batch=cfg.n_rollout,
+        total_frames=run.remaining,
+        collectors=cfg.collectors,
+        ray=cfg.ray or None,
+        seed=cfg.seed,
+        device=cfg.device,
+    )
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(cfg.n_rollout, device=cfg.device),
+        sampler=SamplerWithoutReplacement(),
+        batch_size=cfg.n_rollout // cfg.minibatches,
+    )
 
     for data in collector:
         if keys.agents:  # the shared end of an episode, as each agent's

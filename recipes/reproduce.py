@@ -114,10 +114,16 @@ def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> Pat
     seeds = {run.name: run for run in seed_dirs(root)}
     for s in summary["seeds"]:
         if s["seed"] not in seeds or load_checkpoint(seeds[s["seed"]])["frames"] != s["frames"]:
-            raise ValueError(f"{root / 'summary.json'}: its seed {s['seed']!r} is not a run of {root} with {s['frames']} transitions; summarise it again")
+            raise ValueError(
+                f"{root / 'summary.json'}: its seed {s['seed']!r} is not a run of {root} with "
+                f"{s['frames']} transitions; summarise it again"
+            )
     budget = recorded_budget(algo, env_id, recorded)
     if summary["frames"] < budget:
-        raise ValueError(f"{root}: trained on {summary['frames']:,} transitions, below the recorded budget of {algo} on {env_id} ({budget:,}); not published")
+        raise ValueError(
+            f"{root}: trained on {summary['frames']:,} transitions, below the recorded budget of "
+            f"{algo} on {env_id} ({budget:,}); not published"
+        )
     curve = root / f"{root.name}.png"
     if not curve.is_file():
         raise ValueError(f"{curve}: the pair's curve is missing; summarise it again")
@@ -125,9 +131,17 @@ def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> Pat
     images.mkdir(parents=True, exist_ok=True)
     copy = images / f"{algo}-{env_id}.png"
     files.replace_file(copy, lambda tmp: shutil.copyfile(curve, tmp))
-    summary["png"] = os.path.relpath(copy.resolve(), ROOT) if copy.resolve().is_relative_to(ROOT) else str(copy.resolve())
+    summary["png"] = (
+        os.path.relpath(copy.resolve(), ROOT) if copy.resolve().is_relative_to(ROOT) else str(copy.resolve())
+    )
     best = max(summary["seeds"], key=lambda s: s["eval"])
-    pretrained.export(seeds[best["seed"]], pretrained.path_of(algo, env_id), seed=best["seed"], score=best["eval"], uncontrolled=best["uncontrolled"])
+    pretrained.export(
+        seeds[best["seed"]],
+        pretrained.path_of(algo, env_id),
+        seed=best["seed"],
+        score=best["eval"],
+        uncontrolled=best["uncontrolled"],
+    )
     return files.write_text(recorded / f"{algo}-{env_id}.json", json.dumps(summary, indent=1))
 
 
@@ -137,14 +151,25 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     summaries = [read_summary(f) for f in sorted(recorded.glob("*.json"))]
     rows = report.report(sorted(recorded.glob("*.json")), images)
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
-    floors = ["| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's deterministic policy | transitions (of the paper's budget) | floor met |", "|---|---|---|---|---|---|"]
+    floors = [
+        "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "
+        "deterministic policy | transitions (of the paper's budget) | floor met |",
+        "|---|---|---|---|---|---|",
+    ]
     for s in summaries:
         if s["algo"] == "ppo" and env_class(s["env"]).base_id() == s["env"]:
             floor, best = env_class(s["env"]).paper_ppo, max(seed["eval"] for seed in s["seeds"])
             met = "met" if s["train_mean"] >= floor and best >= floor else "**missed**"
-            floors.append(f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} of {paper_frames(s['env']):,} | {met} |")
-    curves = ", ".join(f"[{s['algo']} {s['env']}]({rel(images / (s['algo'] + '-' + s['env'] + '.png'))})" for s in summaries)
-    return "\n\n".join([f"![normalised scores]({rel(rows['png'])})", rows["table"], "\n".join(floors), f"Curves: {curves}."])
+            floors.append(
+                f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} "
+                f"of {paper_frames(s['env']):,} | {met} |"
+            )
+    curves = ", ".join(
+        f"[{s['algo']} {s['env']}]({rel(images / (s['algo'] + '-' + s['env'] + '.png'))})" for s in summaries
+    )
+    return "\n\n".join(
+        [f"![normalised scores]({rel(rows['png'])})", rows["table"], "\n".join(floors), f"Curves: {curves}."]
+    )
 
 
 def write_results_page(recorded: Path, page: Path, images: Path) -> Path:
@@ -160,7 +185,14 @@ def main(argv: list[str] | None = None) -> None:
     tr.add_argument("--algo", default="ppo", choices=sorted(CONFIGS))
     tr.add_argument("--envs", nargs="+", required=True, choices=sorted(ENVS), metavar="ENV")
     tr.add_argument("--seeds", type=positive, default=3)
-    tr.add_argument("--set", type=setting, action="append", default=[], metavar="NAME=VALUE", help="a recipe setting for every env (e.g. frames=100000)")
+    tr.add_argument(
+        "--set",
+        type=setting,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a recipe setting for every env (e.g. frames=100000)",
+    )
     tr.add_argument("--members", type=positive, default=8, help="evaluation episodes per seed")
     tr.add_argument("--threads", type=positive, help="torch threads (default: torch's)")
     tr.add_argument("--no-progress", action="store_true")
@@ -168,7 +200,9 @@ def main(argv: list[str] | None = None) -> None:
     su = sub.add_parser("summarise", help="evaluate and plot trained pairs again (e.g. after a stopped campaign)")
     su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo-burgers-v0")
     su.add_argument("--members", type=positive, default=8)
-    pu = sub.add_parser("publish", help="record summarised pairs in docs/results/, ship their best policies and write docs/results.md")
+    pu = sub.add_parser(
+        "publish", help="record summarised pairs in docs/results/, ship their best policies and write docs/results.md"
+    )
     pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo-burgers-v0")
     pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
     rep = sub.add_parser("report", help="write docs/results.md from the recorded summaries (docs/results/)")
@@ -184,7 +218,15 @@ def main(argv: list[str] | None = None) -> None:
                 torch.set_num_threads(args.threads)
             overrides = {name: text_value(value) for name, value in args.set}
             for env_id in args.envs:
-                train_pair(args.algo, env_id, args.seeds, overrides, out=Path(args.out), members=args.members, progress=not args.no_progress)
+                train_pair(
+                    args.algo,
+                    env_id,
+                    args.seeds,
+                    overrides,
+                    out=Path(args.out),
+                    members=args.members,
+                    progress=not args.no_progress,
+                )
             return
         if args.command == "publish":
             for root in args.pairs:

@@ -50,20 +50,45 @@ def main(cfg: TD3Config) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(cfg.env, cfg.num_envs, device=cfg.device, seed=cfg.seed, norm=run.obs_norm, norm_steps=cfg.norm_steps, compile=cfg.compile)
+    env = make_env(
+        cfg.env,
+        cfg.num_envs,
+        device=cfg.device,
+        seed=cfg.seed,
+        norm=run.obs_norm,
+        norm_steps=cfg.norm_steps,
+        compile=cfg.compile,
+    )
 
     # a deterministic actor, twin critics (inside the loss) and their optimisers
     actor = networks.deterministic_actor(env, cfg.hidden).to(cfg.device)
     qvalue = networks.action_value(env, cfg.hidden).to(cfg.device)
-    loss = TD3Loss(actor, qvalue, bounds=networks.action_bounds(env), policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip, loss_function="l2")
+    loss = TD3Loss(
+        actor,
+        qvalue,
+        bounds=networks.action_bounds(env),
+        policy_noise=cfg.policy_noise,
+        noise_clip=cfg.noise_clip,
+        loss_function="l2",
+    )
     loss.make_value_estimator(gamma=cfg.gamma)
     target = SoftUpdate(loss, tau=cfg.tau)
     actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_lr or cfg.lr)
     critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr)
 
     # exploration, the replay buffer and the collector
-    policy = TensorDictSequential(actor, AdditiveGaussianModule(spec=env.action_spec, sigma_init=cfg.exploration_sigma, sigma_end=cfg.exploration_sigma, annealing_num_steps=1))
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size)
+    policy = TensorDictSequential(
+        actor,
+        AdditiveGaussianModule(
+            spec=env.action_spec,
+            sigma_init=cfg.exploration_sigma,
+            sigma_end=cfg.exploration_sigma,
+            annealing_num_steps=1,
+        ),
+    )
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size
+    )
     # the window's tail waits for the next batch; after a resume windows start afresh
     multi_step = MultiStepTransform(cfg.n_steps, cfg.gamma) if cfg.n_steps > 1 else None
     run.restore(buffer, actor=actor, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
@@ -75,12 +100,27 @@ def main(cfg: TD3Config) -> dict:
 
     def save() -> None:
         run.counters["updates"] = updates
-        run.save(env, policy=("deterministic_actor", cfg.hidden, actor), buffer=buffer, loss=loss, actor_optim=actor_optim, critic_optim=critic_optim)
+        run.save(
+            env,
+            policy=("deterministic_actor", cfg.hidden, actor),
+            buffer=buffer,
+            loss=loss,
+            actor_optim=actor_optim,
+            critic_optim=critic_optim,
+        )
 
     random_frames = max(0, cfg.init_random_frames - run.frames)
     collector = make_collector(
-        cfg.env, env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=run.remaining, init_random_frames=random_frames,
-        collectors=cfg.collectors, ray=cfg.ray or None, seed=cfg.seed, device=cfg.device,
+        cfg.env,
+        env,
+        policy,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=run.remaining,
+        init_random_frames=random_frames,
+        collectors=cfg.collectors,
+        ray=cfg.ray or None,
+        seed=cfg.seed,
+        device=cfg.device,
     )
 
     for data in collector:

@@ -27,7 +27,25 @@ def test_measure_rejects_bad_arguments():
 
 
 def test_bench_command_writes_table_csv_json_and_plot(tmp_path, capsys):
-    rc = main(["bench", "--envs", "lorenz-v0", "vortex-v0", "--batch-sizes", "1", "8", "--mode", "eager", "--steps", "2", "--repeats", "2", "--out", str(tmp_path)])
+    rc = main(
+        [
+            "bench",
+            "--envs",
+            "lorenz-v0",
+            "vortex-v0",
+            "--batch-sizes",
+            "1",
+            "8",
+            "--mode",
+            "eager",
+            "--steps",
+            "2",
+            "--repeats",
+            "2",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert rc == 0
     out = capsys.readouterr().out
     assert "transitions/s" in out and "| lorenz-v0 |" in out

@@ -14,8 +14,16 @@ L = 0.5  # a small tank: its excited state is computed in a moment
 def damaged_files(path):
     yield "garbage", lambda: path.write_bytes(b"not a torch file")
     yield "truncated", lambda: path.write_bytes(path.read_bytes()[:100])
-    yield "non-finite", lambda: torch.save({k: torch.full_like(v, float("nan")) for k, v in torch.load(path, weights_only=True).items()}, path)
-    yield "wrong shape", lambda: torch.save({k: v[..., :3] for k, v in torch.load(path, weights_only=True).items()}, path)
+    yield (
+        "non-finite",
+        lambda: torch.save(
+            {k: torch.full_like(v, float("nan")) for k, v in torch.load(path, weights_only=True).items()}, path
+        ),
+    )
+    yield (
+        "wrong shape",
+        lambda: torch.save({k: v[..., :3] for k, v in torch.load(path, weights_only=True).items()}, path),
+    )
     yield "a pickle that runs code", lambda: torch.save({"h": _Payload()}, path)
 
 
@@ -37,7 +45,9 @@ def test_a_damaged_cache_file_is_reported_and_computed_again(damage, tmp_path, m
     with pytest.warns(UserWarning, match="computing it again"):
         env = beacon_torch.make("sloshing-v0", 2, L=L)
         td = env.reset()
-    assert td["observation"].shape == env.observation_spec["observation"].shape and torch.isfinite(td["observation"]).all()
+    assert (
+        td["observation"].shape == env.observation_spec["observation"].shape and torch.isfinite(td["observation"]).all()
+    )
     healed = torch.load(path, weights_only=True)
     assert all(torch.equal(healed[k], good[k]) for k in good)  # the file is whole again
     assert "this must never run" not in capsys.readouterr().out

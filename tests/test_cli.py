@@ -22,7 +22,20 @@ def test_run_reports_scores_and_writes_a_plot(tmp_path, capsys):
 
 def test_run_with_parameters_and_gif(tmp_path):
     gif = tmp_path / "v.gif"
-    args = ["run", "vortex-v0", "--batch-size", "2", "--out", str(tmp_path), "--param", "w=10", "--gif", str(gif), "--gif-every", "200"]
+    args = [
+        "run",
+        "vortex-v0",
+        "--batch-size",
+        "2",
+        "--out",
+        str(tmp_path),
+        "--param",
+        "w=10",
+        "--gif",
+        str(gif),
+        "--gif-every",
+        "200",
+    ]
     assert main(args) == 0
     with Image.open(gif) as im:
         assert im.n_frames == 1 + 800 // 200
@@ -42,5 +55,7 @@ def test_bad_arguments_get_one_line(tmp_path, capsys):
 
 
 def test_list_and_console_script():
-    proc = subprocess.run([sys.executable, "-m", "beacon_torch.cli", "list"], capture_output=True, text=True, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "beacon_torch.cli", "list"], capture_output=True, text=True, check=True
+    )
     assert "lorenz-v0: 3 discrete actions" in proc.stdout and "rho = 28.0" in proc.stdout

@@ -64,7 +64,11 @@ def test_adapters_compile_unless_told_not_to(monkeypatch):
     from beacon_torch.sb3 import BeaconVecEnv
 
     monkeypatch.delenv("BEACON_TORCH_COMPILE", raising=False)
-    made = [gymnasium.make("beacon/lorenz-v0").unwrapped.env, gymnasium.make_vec("beacon/lorenz-v0", num_envs=2).env, BeaconVecEnv("lorenz-v0", 2).env]
+    made = [
+        gymnasium.make("beacon/lorenz-v0").unwrapped.env,
+        gymnasium.make_vec("beacon/lorenz-v0", num_envs=2).env,
+        BeaconVecEnv("lorenz-v0", 2).env,
+    ]
     assert all(env.kernels.options is not None for env in made)
     assert gymnasium.make("beacon/lorenz-v0", compile=False).unwrapped.env.kernels.options is None
     monkeypatch.setenv("BEACON_TORCH_COMPILE", "0")
@@ -108,7 +112,9 @@ def test_compiled_envs_leave_dynamo_settings_as_they_found_them():
     env = make("lorenz-v0", 3, compile=True)
     seen = []
     env.kernels._cache.clear()
-    kernel = env.kernels(lambda x: seen.append((torch._dynamo.config.recompile_limit, while_loop_op._cacheable)) or x * 2)
+    kernel = env.kernels(
+        lambda x: seen.append((torch._dynamo.config.recompile_limit, while_loop_op._cacheable)) or x * 2
+    )
     assert torch.equal(kernel(torch.ones(2)), 2 * torch.ones(2))
     run_actions(env, [env.null_action()])
     assert seen and seen[0][0] >= 64 and seen[0][1]  # traced while the settings held
@@ -146,10 +152,21 @@ def test_a_new_process_finds_the_compiled_step_in_the_cache_and_the_same_traject
     import sys
 
     environ = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
-    runs = [json.loads(subprocess.run([sys.executable, "-c", CACHED], env=environ, capture_output=True, text=True, check=True).stdout) for _ in range(2)]
+    runs = [
+        json.loads(
+            subprocess.run(
+                [sys.executable, "-c", CACHED], env=environ, capture_output=True, text=True, check=True
+            ).stdout
+        )
+        for _ in range(2)
+    ]
     cold, warm = (r["counters"] for r in runs)
     assert cold.get("fxgraph_cache_miss", 0) >= 3 and not cold.get("fxgraph_cache_bypass")
-    assert warm.get("fxgraph_cache_hit", 0) >= 3 and not warm.get("fxgraph_cache_miss") and not warm.get("fxgraph_cache_bypass")
+    assert (
+        warm.get("fxgraph_cache_hit", 0) >= 3
+        and not warm.get("fxgraph_cache_miss")
+        and not warm.get("fxgraph_cache_bypass")
+    )
     for run in runs:
         assert run["toy"] == [[63.0] * 3, [122.0] * 3]  # 1 -> 3, 7, 15, 31, 63 and 1 -> 2, 5, 14, 41, 122
     eager = make("burgers-v0", 2, dtype=torch.float64, seed=3)

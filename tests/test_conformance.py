@@ -59,7 +59,12 @@ def example():
 def test_the_worked_example_passes_every_check(example):
     assert beacon_torch.registry.env_class("heat-v0") is example.HeatEnv
     found = check_flow_env("heat-v0")
-    assert found == {check: "not applicable: the physics draws from the env's generator, per batch" if check == "batch_invariance" else "passed" for check in CHECKS}
+    assert found == {
+        check: "not applicable: the physics draws from the env's generator, per batch"
+        if check == "batch_invariance"
+        else "passed"
+        for check in CHECKS
+    }
     env = gymnasium.make("beacon/heat-v0", compile=False)
     assert env.reset(seed=0)[0].shape == (4,)
 

@@ -249,7 +249,15 @@ def test_every_env_declares_its_card():
     from beacon_torch.base import GradCheck
 
     envs = beacon_torch.registry.ENVS
-    assert beacon_torch.registry.base_envs() == ["lorenz-v0", "vortex-v0", "burgers-v0", "sloshing-v0", "shkadov-v0", "rayleigh-v0", "mixing-v0"]
+    assert beacon_torch.registry.base_envs() == [
+        "lorenz-v0",
+        "vortex-v0",
+        "burgers-v0",
+        "sloshing-v0",
+        "shkadov-v0",
+        "rayleigh-v0",
+        "mixing-v0",
+    ]
     assert {e: envs[e].base_id() for e in envs if envs[e].base_id() != e} == {
         "lorenz-continuous-v0": "lorenz-v0",
         "shkadov-separable-v0": "shkadov-v0",
@@ -260,7 +268,11 @@ def test_every_env_declares_its_card():
         assert cls.family in ("ode", "1-D", "cavity"), env_id
         assert cls.published_speed > 0 and cls.speed_target > 0 and math.isfinite(cls.paper_ppo), env_id
         base = envs[cls.base_id()]
-        assert (cls.published_speed, cls.paper_ppo, cls.family) == (base.published_speed, base.paper_ppo, base.family), env_id
+        assert (cls.published_speed, cls.paper_ppo, cls.family) == (
+            base.published_speed,
+            base.paper_ppo,
+            base.family,
+        ), env_id
         assert (cls.gradcheck is None) == cls.discrete, env_id
         if cls.gradcheck is not None:
             assert isinstance(cls.gradcheck, GradCheck)

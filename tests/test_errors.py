@@ -18,7 +18,9 @@ def test_on_off_options_take_booleans_only(option, value):
     assert beacon_torch.make("lorenz-v0", **{option: np.bool_(False)}).history is not None
 
 
-@pytest.mark.parametrize("seed, exc", [(-1, ValueError), (2**64, ValueError), (1.5, TypeError), ("7", TypeError), (True, TypeError)])
+@pytest.mark.parametrize(
+    "seed, exc", [(-1, ValueError), (2**64, ValueError), (1.5, TypeError), ("7", TypeError), (True, TypeError)]
+)
 def test_seeds_are_integers_of_64_bits(seed, exc):
     with pytest.raises(exc, match="seed must be an integer"):
         beacon_torch.make("lorenz-v0", seed=seed)

@@ -21,6 +21,7 @@ from conftest import ENVS
 F64 = torch.float64
 REL = 1e-5
 
+
 def relative(a, b):
     return float(abs(a - b) / abs(b))
 
@@ -41,7 +42,9 @@ def test_gradient_with_respect_to_the_initial_state():
 
 
 def rollout_gradient(checkpoint, steps=12):
-    env = beacon_torch.make("burgers-v0", batch_size=3, dtype=F64, seed=2, differentiable=True, grad_checkpoint=checkpoint)
+    env = beacon_torch.make(
+        "burgers-v0", batch_size=3, dtype=F64, seed=2, differentiable=True, grad_checkpoint=checkpoint
+    )
     env.reset()
     actions = (0.5 * torch.rand((steps, 3, 1), generator=torch.Generator().manual_seed(0), dtype=F64)).requires_grad_()
     saved = {}

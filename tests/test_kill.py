@@ -55,11 +55,14 @@ DRIVER = textwrap.dedent(
         wrap(os, "replace", when=lambda src, dst: str(src).endswith(".pt.partial"))
     settings = dict({settings})
     cls, recipe = (config.PPOConfig, ppo) if algo == "ppo" else (config.TD3Config, td3)
-    recipe.main(config.configure(cls, "vortex-v0", out=out, progress=False, logger="csv", checkpoint_every=1, **settings))
+    cfg = config.configure(cls, "vortex-v0", out=out, progress=False, logger="csv", checkpoint_every=1, **settings)
+    recipe.main(cfg)
     """
 )
 PPO = dict(frames=800, n_rollout=200, num_envs=4, epochs=1, minibatches=2)
-TD3 = dict(frames=384, frames_per_batch=64, num_envs=4, updates_per_batch=4, init_random_frames=64, batch_size=32, hidden=32)
+TD3 = dict(
+    frames=384, frames_per_batch=64, num_envs=4, updates_per_batch=4, init_random_frames=64, batch_size=32, hidden=32
+)
 
 
 def steps(run: Path, algo: str) -> list[float]:
@@ -83,7 +86,9 @@ def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
     driver = tmp_path / "driver.py"
     driver.write_text(DRIVER.format(recipes=str(ROOT / "recipes"), settings=settings))
     run = tmp_path / "run"
-    proc = subprocess.run([sys.executable, str(driver), algo, point, str(nth), str(run)], cwd=ROOT, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, str(driver), algo, point, str(nth), str(run)], cwd=ROOT, capture_output=True, text=True
+    )
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
     saved = load_checkpoint(run)
     assert 0 < saved["frames"] < settings["frames"]
@@ -92,7 +97,11 @@ def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
     import td3
 
     cls, recipe = (PPOConfig, ppo) if algo == "ppo" else (TD3Config, td3)
-    last = recipe.main(configure(cls, "vortex-v0", out=str(run), resume=True, progress=False, logger="csv", checkpoint_every=1, **settings))
+    last = recipe.main(
+        configure(
+            cls, "vortex-v0", out=str(run), resume=True, progress=False, logger="csv", checkpoint_every=1, **settings
+        )
+    )
     assert last["frames"] == settings["frames"] == load_checkpoint(run)["frames"]
     logged = steps(run, algo)
     assert logged == sorted(set(logged)) and logged[-1] == settings["frames"], logged
@@ -104,7 +113,9 @@ def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
         assert len(buffer) == settings["frames"] == load_checkpoint(run)["counters"]["buffer_len"]
         obs = buffer[: len(buffer)]["observation"]
         assert torch.isfinite(obs).all() and (obs.abs().sum(-1) > 0).all(), "zeroed transitions in the buffer"
-        assert not (run / "buffer.old").exists() and not list(run.glob("*partial*")), "a stop left a partial write behind"
+        assert not (run / "buffer.old").exists() and not list(run.glob("*partial*")), (
+            "a stop left a partial write behind"
+        )
 
 
 def test_a_truncated_replay_buffer_is_reported_not_trained_on(tmp_path):
@@ -115,4 +126,14 @@ def test_a_truncated_replay_buffer_is_reported_not_trained_on(tmp_path):
     memmap = tmp_path / "buffer" / "storage" / "observation.memmap"
     memmap.write_bytes(memmap.read_bytes()[: memmap.stat().st_size // 2])
     with pytest.raises(ValueError, match="replay buffer is damaged \\(storage/observation.memmap"):
-        td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), resume=True, progress=False, logger="csv", **{**cfg, "frames": 192}))
+        td3.main(
+            configure(
+                TD3Config,
+                "vortex-v0",
+                out=str(tmp_path),
+                resume=True,
+                progress=False,
+                logger="csv",
+                **{**cfg, "frames": 192},
+            )
+        )

@@ -98,7 +98,9 @@ from beacon_torch.numerics import (  # noqa: E402
 
 def test_limiter_values():
     r = torch.tensor([-2.0, -1.0, 0.0, 0.5, 1.0, 3.0, 1e6], dtype=torch.float64)
-    torch.testing.assert_close(van_leer(r), torch.tensor([0, 0, 0, 2 / 3, 1, 1.5, 2 * 1e6 / (1 + 1e6)], dtype=torch.float64))
+    torch.testing.assert_close(
+        van_leer(r), torch.tensor([0, 0, 0, 2 / 3, 1, 1.5, 2 * 1e6 / (1 + 1e6)], dtype=torch.float64)
+    )
     torch.testing.assert_close(minmod(r), torch.tensor([0, 0, 0, 0.5, 1, 1, 1], dtype=torch.float64))
 
 

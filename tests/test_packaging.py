@@ -19,8 +19,9 @@ def test_readme_gives_exactly_two_commands():
     assert all(c.startswith("bash scripts/setup.sh && ") for c in commands)
     assert "recipes/ppo.py" in commands[0]  # the main job: a training
     assert "pytest" in commands[1]
-    # the linter runs before the tests, on the tree as configured in pyproject.toml
-    assert commands[1].index("ruff check .") < commands[1].index("pytest")
+    # the linter and the formatter's check run before the tests, on the tree as
+    # configured in pyproject.toml
+    assert commands[1].index("ruff check .") < commands[1].index("ruff format --check .") < commands[1].index("pytest")
 
 
 def test_ci_runs_the_readme_test_command():
@@ -36,6 +37,8 @@ def test_setup_installs_exactly_torch_2_13_0_first():
 
 def test_readme_links_the_docs():
     text = (ROOT / "README.md").read_text()
-    pages = ["docs/quickstart.md"] + [f"docs/envs/{name}.md" for name in ("lorenz", "vortex", "burgers", "sloshing", "shkadov", "rayleigh", "mixing")]
+    pages = ["docs/quickstart.md"] + [
+        f"docs/envs/{name}.md" for name in ("lorenz", "vortex", "burgers", "sloshing", "shkadov", "rayleigh", "mixing")
+    ]
     for page in pages:
         assert page in text and (ROOT / page).is_file()

@@ -136,7 +136,12 @@ def test_dtype_spellings(dtype):
 
 
 # ---------------------------------------------------------------- start states
-STARTS = {"sloshing-v0": {"L": 3.0}, "shkadov-v0": {"L0": 140.0}, "shkadov-separable-v0": {"n_jets": 4}, "rayleigh-v0": {"H": 1.2}}
+STARTS = {
+    "sloshing-v0": {"L": 3.0},
+    "shkadov-v0": {"L0": 140.0},
+    "shkadov-separable-v0": {"n_jets": 4},
+    "rayleigh-v0": {"H": 1.2},
+}
 
 
 @pytest.mark.parametrize("env_id", sorted(STARTS))

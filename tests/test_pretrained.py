@@ -34,7 +34,19 @@ def shipped(tmp_path, monkeypatch):
     """A policy trained here with normalisation statistics, exported into a private
     shipping folder."""
     run = tmp_path / "run"
-    ppo.main(config.configure(config.PPOConfig, "vortex-v0", frames=400, n_rollout=200, num_envs=4, epochs=2, norm_steps=16, out=str(run), progress=False))
+    ppo.main(
+        config.configure(
+            config.PPOConfig,
+            "vortex-v0",
+            frames=400,
+            n_rollout=200,
+            num_envs=4,
+            epochs=2,
+            norm_steps=16,
+            out=str(run),
+            progress=False,
+        )
+    )
     folder = tmp_path / "shipped"
     folder.mkdir()
     monkeypatch.setattr(pretrained, "HERE", folder)
@@ -115,4 +127,7 @@ def test_a_generated_part_without_its_end_marker_is_refused(tmp_path):
     with pytest.raises(ValueError, match="no end marker"):
         write_block(page, "<!-- begin -->", "<!-- end -->", "new")
     page.write_text("# Page\n")
-    assert write_block(page, "<!-- begin -->", "<!-- end -->", "new").read_text() == "# Page\n\n<!-- begin -->\nnew\n<!-- end -->\n"
+    assert (
+        write_block(page, "<!-- begin -->", "<!-- end -->", "new").read_text()
+        == "# Page\n\n<!-- begin -->\nnew\n<!-- end -->\n"
+    )

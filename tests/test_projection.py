@@ -42,7 +42,6 @@ def native_path(request, monkeypatch):
     return request.param
 
 
-
 @pytest.mark.parametrize("bc", BCS)
 @pytest.mark.parametrize("nx", [30, 31])  # even: the folded x products; odd: the dense ones
 @pytest.mark.parametrize("members", [4, 40])  # y products as one matrix product, or batched over x
@@ -79,7 +78,9 @@ def test_poisson_manufactured_solution_converges_at_second_order():
 def test_solver_matches_a_dense_reference_solve(bc, native_path):
     nx, ny = 6, 5
     solver = PoissonSolver(nx, ny, 0.2, 0.3, bc)
-    dense = torch.kron(solver.lx, torch.eye(ny, dtype=torch.float64)) + torch.kron(torch.eye(nx, dtype=torch.float64), solver.ly)
+    dense = torch.kron(solver.lx, torch.eye(ny, dtype=torch.float64)) + torch.kron(
+        torch.eye(nx, dtype=torch.float64), solver.ly
+    )
     rhs = random(nx * ny, 1)
     if ZERO_GHOST not in bc:
         rhs = rhs - rhs.mean()
@@ -193,7 +194,11 @@ def test_fields_and_stored_round_trip_the_batch_first_state():
 def test_fluid_at_rest_stays_at_rest_and_hydrostatic_balance_holds():
     n, h = 10, 0.1
     cavity = Cavity(n, n, h, h, **F64)
-    fields = {"u": torch.zeros(n + 1, n, 1, dtype=torch.float64), "v": torch.zeros(n, n + 1, 1, dtype=torch.float64), "p": torch.zeros(n, n, 1, dtype=torch.float64)}
+    fields = {
+        "u": torch.zeros(n + 1, n, 1, dtype=torch.float64),
+        "v": torch.zeros(n, n + 1, 1, dtype=torch.float64),
+        "p": torch.zeros(n, n, 1, dtype=torch.float64),
+    }
     # a uniform upward force is balanced by the pressure after one projection
     source = torch.ones(n, n - 1, 1, dtype=torch.float64)
     us, vs = cavity.predict(fields, None, 0.01, 0.01, source)
@@ -213,7 +218,9 @@ def published_sweep(s, u, v, kappa, dt, dx, dy):
             te, tw = 0.5 * (t[i + 1, j] + t[i, j]), 0.5 * (t[i - 1, j] + t[i, j])
             tn, ts = 0.5 * (t[i, j + 1] + t[i, j]), 0.5 * (t[i, j - 1] + t[i, j])
             conv = (ue * te - uw * tw) / dx + (vn * tn - vs * ts) / dy
-            diff = kappa * ((t[i + 1, j] - 2 * t[i, j] + t[i - 1, j]) / dx**2 + (t[i, j + 1] - 2 * t[i, j] + t[i, j - 1]) / dy**2)
+            diff = kappa * (
+                (t[i + 1, j] - 2 * t[i, j] + t[i - 1, j]) / dx**2 + (t[i, j + 1] - 2 * t[i, j] + t[i, j - 1]) / dy**2
+            )
             t[i, j] = t[i, j] + dt * (diff - conv)
     return t[1:-1, 1:-1]
 
@@ -281,7 +288,9 @@ def test_sweep_without_a_compiler_warns_once_and_keeps_the_tensor_path(monkeypat
         warnings.simplefilter("error")
         out = cavity.sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
         again = Cavity(nx, ny, 1 / nx, 1 / ny, **F64).sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
-    expected = torch.stack([published_sweep(s[..., m], u[..., m], v[..., m], 0.01, 1e-3, cavity.dx, cavity.dy) for m in range(B)], -1)
+    expected = torch.stack(
+        [published_sweep(s[..., m], u[..., m], v[..., m], 0.01, 1e-3, cavity.dx, cavity.dy) for m in range(B)], -1
+    )
     torch.testing.assert_close(out, expected, rtol=1e-13, atol=1e-13)
     assert torch.equal(out, again)
 
@@ -292,7 +301,9 @@ def test_sweep_keeps_constants_in_a_divergence_free_flow():
     u, v = filled(cavity, B, 8)
     u, v, _ = project(u, v, torch.zeros(nx, ny, B, dtype=torch.float64), cavity.solver, 1.0, cavity.dx, cavity.dy)
     const = torch.full((nx + 2, ny + 2, B), 0.7, dtype=torch.float64)
-    torch.testing.assert_close(cavity.sweep(const, u, v, 0.01, 1e-3, cavity.dx, cavity.dy), const[1:-1, 1:-1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        cavity.sweep(const, u, v, 0.01, 1e-3, cavity.dx, cavity.dy), const[1:-1, 1:-1], rtol=0, atol=1e-12
+    )
 
 
 def test_sweep_is_stable_at_rayleighs_diffusion_number():

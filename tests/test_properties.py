@@ -41,7 +41,9 @@ def in_range(m) -> st.SearchStrategy:
     else:
         real = st.floats(low, high)
     if m["kind"] == "complex":
-        return st.tuples(real, st.floats(0.0, 2 * math.pi)).map(lambda rp: complex(rp[0] * math.cos(rp[1]), rp[0] * math.sin(rp[1])))
+        return st.tuples(real, st.floats(0.0, 2 * math.pi)).map(
+            lambda rp: complex(rp[0] * math.cos(rp[1]), rp[0] * math.sin(rp[1]))
+        )
     return real
 
 
@@ -51,7 +53,9 @@ def actions(env) -> st.SearchStrategy:
     edge = st.sampled_from([-1.0, 1.0, 0.0, -1e6, 1e6])  # beyond the box: clipped
     value = st.one_of(edge, st.floats(-1.0, 1.0))
     size = MEMBERS * math.prod(env.action_shape)
-    return st.lists(value, min_size=size, max_size=size).map(lambda v: torch.tensor(v).reshape(MEMBERS, *env.action_shape))
+    return st.lists(value, min_size=size, max_size=size).map(
+        lambda v: torch.tensor(v).reshape(MEMBERS, *env.action_shape)
+    )
 
 
 @pytest.mark.slow(seconds=20)
@@ -61,7 +65,9 @@ def test_valid_parameters_and_any_actions_stay_finite_or_end_cleanly(env_id):
     probe = beacon_torch.make(env_id, MEMBERS, **FAST.get(env_id, {}))
     steps = 2 if env_id in EXPENSIVE_ENVS else STEPS
     strategy = st.tuples(
-        st.fixed_dictionaries({f.name: st.lists(in_range(f.metadata), min_size=MEMBERS, max_size=MEMBERS) for f in fields}),
+        st.fixed_dictionaries(
+            {f.name: st.lists(in_range(f.metadata), min_size=MEMBERS, max_size=MEMBERS) for f in fields}
+        ),
         st.lists(actions(probe), min_size=steps, max_size=steps),
     )
 
@@ -98,7 +104,13 @@ def test_values_outside_their_range_are_refused_with_the_documented_error(env_id
         m = field.metadata
         if how == "below" and m["low"] is None or how == "above" and m["high"] is None:
             return
-        value = {"below": (m["low"] or 0.0) - 1.0 - abs(m["low"] or 0.0), "above": (m["high"] or 0.0) * 2 + 1.0, "nan": math.nan, "inf": math.inf, "text": "1"}[how]
+        value = {
+            "below": (m["low"] or 0.0) - 1.0 - abs(m["low"] or 0.0),
+            "above": (m["high"] or 0.0) * 2 + 1.0,
+            "nan": math.nan,
+            "inf": math.inf,
+            "text": "1",
+        }[how]
         if m["kind"] == "complex" and how == "below":
             return  # a modulus has no value below 0
         exc = TypeError if how == "text" else ValueError

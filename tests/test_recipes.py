@@ -38,20 +38,39 @@ def test_config_holds_the_papers_table_and_checks_overrides():
     # sloshing's rollouts hold whole episodes of each member (the measured difference)
     sloshing = configure(PPOConfig, "sloshing-v0")
     assert sloshing.n_rollout // sloshing.num_envs > beacon_torch.make("sloshing-v0").episode_length
-    assert configure(PPOConfig, "mixing-continuous-v0") == replace(configure(PPOConfig, "mixing-v0"), env="mixing-continuous-v0", out="runs/ppo-mixing-continuous-v0/seed0")
+    assert configure(PPOConfig, "mixing-continuous-v0") == replace(
+        configure(PPOConfig, "mixing-v0"), env="mixing-continuous-v0", out="runs/ppo-mixing-continuous-v0/seed0"
+    )
     assert configure(PPOConfig, "lorenz-v0", epochs=4).epochs == 4
     with pytest.raises(ValueError, match="unknown ppo setting"):
         configure(PPOConfig, "lorenz-v0", epoch=4)
     with pytest.raises(ValueError, match="frames"):
         configure(PPOConfig, "lorenz-v0", frames=-5)
     # values given as text or numbers take the field's type, or are refused
-    assert configure(PPOConfig, "mixing-v0", compile="false").compile is False and configure(PPOConfig, "mixing-v0", epochs=8.0).epochs == 8
+    assert (
+        configure(PPOConfig, "mixing-v0", compile="false").compile is False
+        and configure(PPOConfig, "mixing-v0", epochs=8.0).epochs == 8
+    )
     with pytest.raises(ValueError, match="'epochs' must be of type int"):
         configure(PPOConfig, "lorenz-v0", epochs=2.5)
     with pytest.raises(ValueError, match="'compile' must be of type bool"):
         configure(PPOConfig, "lorenz-v0", compile=2)
     # the shared fields are declared once; every algorithm's budget defaults to the paper's
-    assert {f for f in ("frames", "num_envs", "compile", "norm_steps", "hidden", "resume", "collectors", "ray", "logger", "progress")} <= set(PPOConfig.__dataclass_fields__)
+    assert {
+        f
+        for f in (
+            "frames",
+            "num_envs",
+            "compile",
+            "norm_steps",
+            "hidden",
+            "resume",
+            "collectors",
+            "ray",
+            "logger",
+            "progress",
+        )
+    } <= set(PPOConfig.__dataclass_fields__)
     assert configure(TD3Config, "vortex-v0").frames == configure(PPOConfig, "vortex-v0").frames == 1_000_000
     assert configure(GradConfig, "burgers-v0").horizon == 40 and configure(DQNConfig, "mixing-v0").frames == 100_000
     # the members decide the collected batch: rounded when not given, refused when given
@@ -71,7 +90,12 @@ def test_recipes_compile_by_default(monkeypatch):
     """Every env collects through its compiled step unless told otherwise (the flag, or
     BEACON_TORCH_COMPILE=0 as this suite sets); gradient-based control stays eager."""
     monkeypatch.delenv("BEACON_TORCH_COMPILE", raising=False)
-    for algo, env_id in (("ppo", "burgers-v0"), ("ppo", "mixing-v0"), ("td3", "mixing-continuous-v0"), ("dqn", "lorenz-v0")):
+    for algo, env_id in (
+        ("ppo", "burgers-v0"),
+        ("ppo", "mixing-v0"),
+        ("td3", "mixing-continuous-v0"),
+        ("dqn", "lorenz-v0"),
+    ):
         assert configure(CONFIGS[algo], env_id).compile is True
     assert configure(PPOConfig, "burgers-v0", compile=False).compile is False
     assert parse(PPOConfig, ["--env", "shkadov-v0", "--no-compile"]).compile is False
@@ -83,7 +107,9 @@ def test_recipes_compile_by_default(monkeypatch):
 
 @pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0"])  # discrete and continuous
 def test_ppo_runs_updates_its_networks_and_resumes(env_id, tmp_path):
-    cfg = configure(PPOConfig, env_id, frames=400, n_rollout=200, num_envs=4, epochs=2, out=str(tmp_path), progress=False)
+    cfg = configure(
+        PPOConfig, env_id, frames=400, n_rollout=200, num_envs=4, epochs=2, out=str(tmp_path), progress=False
+    )
     torch.manual_seed(0)
     before = networks.stochastic_actor(make_env(env_id, cfg.num_envs), cfg.hidden).state_dict()
     last = ppo.main(cfg)
@@ -94,13 +120,37 @@ def test_ppo_runs_updates_its_networks_and_resumes(env_id, tmp_path):
     assert any(not torch.equal(before[k], state["modules"]["actor"][k]) for k in before), "PPO did not change the actor"
     assert list((tmp_path / "ppo").rglob("*.csv")), "no CSV log"
     # resuming continues from the checkpoint to the new total
-    more = configure(PPOConfig, env_id, frames=600, n_rollout=200, num_envs=4, epochs=2, out=str(tmp_path), progress=False, resume=True)
+    more = configure(
+        PPOConfig,
+        env_id,
+        frames=600,
+        n_rollout=200,
+        num_envs=4,
+        epochs=2,
+        out=str(tmp_path),
+        progress=False,
+        resume=True,
+    )
     assert ppo.main(more)["frames"] == 600
 
 
 def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
     out = tmp_path / "run"
-    args = ["--env", "lorenz-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1", "--out", str(out), "--no-progress"]
+    args = [
+        "--env",
+        "lorenz-v0",
+        "--frames",
+        "200",
+        "--num-envs",
+        "4",
+        "--n-rollout",
+        "200",
+        "--epochs",
+        "1",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     ppo.main(parse(PPOConfig, args))
     assert (out / "checkpoint.pt").is_file()
     ppo.main(parse(PPOConfig, [*args, "--frames", "400", "--resume"]))
@@ -125,13 +175,36 @@ def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
 def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
     """``python recipes/ppo.py ...`` with the project's venv, no path set up: the
     scripts find their config and the library by themselves."""
-    for script, setting in (("ppo", "--n-rollout"), ("td3", "--policy-noise"), ("dqn", "--eps-frames"), ("grad", "--horizon")):
-        proc = subprocess.run([sys.executable, f"recipes/{script}.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True)
+    for script, setting in (
+        ("ppo", "--n-rollout"),
+        ("td3", "--policy-noise"),
+        ("dqn", "--eps-frames"),
+        ("grad", "--horizon"),
+    ):
+        proc = subprocess.run(
+            [sys.executable, f"recipes/{script}.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True
+        )
         assert setting in proc.stdout and "--num-envs" in proc.stdout and "--resume" in proc.stdout
     proc = subprocess.run(
-        [sys.executable, "recipes/ppo.py", "--env", "vortex-v0", "--frames", "200", "--num-envs", "4", "--n-rollout", "200", "--epochs", "1"]
+        [
+            sys.executable,
+            "recipes/ppo.py",
+            "--env",
+            "vortex-v0",
+            "--frames",
+            "200",
+            "--num-envs",
+            "4",
+            "--n-rollout",
+            "200",
+            "--epochs",
+            "1",
+        ]
         + ["--out", str(tmp_path), "--logger", "csv"],
-        cwd=ROOT, capture_output=True, text=True, check=True,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
     )
     assert "ppo vortex-v0 seed 0" in proc.stdout and "no learning curve" in proc.stdout
     assert checkpoint(tmp_path)["frames"] == 200
@@ -140,7 +213,19 @@ def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
 def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
     out = tmp_path / "run"
     for seed in (0, 1):
-        ppo.main(configure(PPOConfig, "vortex-v0", frames=400, num_envs=4, n_rollout=200, epochs=1, seed=seed, out=str(out / f"seed{seed}"), progress=False))
+        ppo.main(
+            configure(
+                PPOConfig,
+                "vortex-v0",
+                frames=400,
+                num_envs=4,
+                n_rollout=200,
+                epochs=1,
+                seed=seed,
+                out=str(out / f"seed{seed}"),
+                progress=False,
+            )
+        )
     capsys.readouterr()
     assert cli(["eval", str(out / "seed0"), "--members", "2"]) == 0
     text = capsys.readouterr().out
@@ -155,7 +240,16 @@ def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
     assert "not a run directory" in capsys.readouterr().err
 
 
-TINY = dict(frames=256, num_envs=4, frames_per_batch=64, init_random_frames=64, batch_size=32, updates_per_batch=4, hidden=32, progress=False)
+TINY = dict(
+    frames=256,
+    num_envs=4,
+    frames_per_batch=64,
+    init_random_frames=64,
+    batch_size=32,
+    updates_per_batch=4,
+    hidden=32,
+    progress=False,
+)
 
 
 @pytest.mark.parametrize("recipe, env_id", [(td3, "vortex-v0"), (dqn, "lorenz-v0")])
@@ -173,7 +267,9 @@ def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(recipe, 
     recipe.main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
     state = checkpoint(tmp_path)
     assert state["frames"] == 384 and state["counters"][counter] == 20
-    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), "training did not change the policy"
+    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), (
+        "training did not change the policy"
+    )
     capsys.readouterr()
     assert cli(["eval", str(tmp_path), "--members", "2", "--no-gif"]) == 0
     assert "uncontrolled" in capsys.readouterr().out
@@ -201,7 +297,17 @@ def test_td3_n_step_targets_sum_their_window_and_stop_at_a_termination(tmp_path)
     ends = torch.zeros(1, 9, 1, dtype=torch.bool)
     ends[0, 3] = True
     data = TensorDict(
-        {"observation": steps, "action": steps, "next": {"observation": steps + 1, "reward": steps + 1, "done": ends, "terminated": ends, "truncated": torch.zeros_like(ends)}},
+        {
+            "observation": steps,
+            "action": steps,
+            "next": {
+                "observation": steps + 1,
+                "reward": steps + 1,
+                "done": ends,
+                "terminated": ends,
+                "truncated": torch.zeros_like(ends),
+            },
+        },
         batch_size=[1, 9],
     )
     transform = MultiStepTransform(3, 0.5)
@@ -212,7 +318,14 @@ def test_td3_n_step_targets_sum_their_window_and_stop_at_a_termination(tmp_path)
     assert out["observation"].flatten().tolist() == [0, 1, 2, 3, 4, 5]
     assert out["steps_to_next_obs"].flatten().tolist() == [3, 3, 2, 1, 3, 3]
     assert out["next", "observation"].flatten().tolist() == [3, 4, 4, 4, 7, 8]
-    assert out["next", "reward"].flatten().tolist() == [1 + 2 / 2 + 3 / 4, 2 + 3 / 2 + 4 / 4, 3 + 4 / 2, 4, 5 + 6 / 2 + 7 / 4, 6 + 7 / 2 + 8 / 4]
+    assert out["next", "reward"].flatten().tolist() == [
+        1 + 2 / 2 + 3 / 4,
+        2 + 3 / 2 + 4 / 4,
+        3 + 4 / 2,
+        4,
+        5 + 6 / 2 + 7 / 4,
+        6 + 7 / 2 + 8 / 4,
+    ]
     # a window holding the termination must not bootstrap from the state after it
     assert out["next", "terminated"].flatten().tolist() == [False, True, True, True, False, False]
 
@@ -226,15 +339,33 @@ def test_td3_n_step_targets_sum_their_window_and_stop_at_a_termination(tmp_path)
     assert (stored["steps_to_next_obs"] == 4).all()  # no episode ends in 64 of vortex's 800 steps
     assert not torch.equal(stored["next", "reward"], stored["next", "original_reward"])
     # updates wait until a window has filled, however short the warm-up
-    last = td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path / "no-warm-up"), **{**TINY, "init_random_frames": 0}, n_steps=20))
-    assert checkpoint(tmp_path / "no-warm-up")["counters"]["updates"] == 12 and torch.isfinite(torch.tensor(last["loss"]))
+    last = td3.main(
+        configure(
+            TD3Config, "vortex-v0", out=str(tmp_path / "no-warm-up"), **{**TINY, "init_random_frames": 0}, n_steps=20
+        )
+    )
+    assert checkpoint(tmp_path / "no-warm-up")["counters"]["updates"] == 12 and torch.isfinite(
+        torch.tensor(last["loss"])
+    )
     with pytest.raises(ValueError, match="n_steps"):
         configure(TD3Config, "vortex-v0", n_steps=0)
 
 
 @pytest.mark.slow(seconds=30)
 def test_multi_agent_ppo_shares_one_policy_and_scores_the_team(tmp_path):
-    ppo.main(configure(PPOConfig, "shkadov-separable-v0", frames=200, n_rollout=200, num_envs=4, epochs=1, hidden=16, out=str(tmp_path), progress=False))
+    ppo.main(
+        configure(
+            PPOConfig,
+            "shkadov-separable-v0",
+            frames=200,
+            n_rollout=200,
+            num_envs=4,
+            epochs=1,
+            hidden=16,
+            out=str(tmp_path),
+            progress=False,
+        )
+    )
     state = checkpoint(tmp_path)
     assert state["modules"]["actor"]["module.0.module.trunk.0.weight"].shape == (16, 10)  # one agent's observation
     assert state["obs_norm"]["loc"].shape[-1] == 10  # statistics shared by the agents
@@ -251,15 +382,30 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
     if env_id.startswith("mixing"):
         # the small cavity (the observation is the same probe grid): a default-size
         # eager step costs about a second here, this one a tenth
-        monkeypatch.setattr(recipe, "make_env", functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].test_settings))
+        monkeypatch.setattr(
+            recipe,
+            "make_env",
+            functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].test_settings),
+        )
 
     assert set(ALGORITHMS) == set(beacon_torch.registry.ENVS)
-    tiny = dict(frames=2, num_envs=2, hidden=8, norm_steps=1, compile=False, collectors=1, out=str(tmp_path), progress=False)
+    tiny = dict(
+        frames=2, num_envs=2, hidden=8, norm_steps=1, compile=False, collectors=1, out=str(tmp_path), progress=False
+    )
     if algo == "ppo":
         cfg = configure(PPOConfig, env_id, n_rollout=2, minibatches=1, epochs=1, **tiny)
     else:
         # one step a member: one-step targets, as no longer window fills in it
-        cfg = configure(CONFIGS[algo], env_id, frames_per_batch=2, init_random_frames=0, batch_size=2, updates_per_batch=1, **tiny, **({"n_steps": 1} if algo == "td3" else {}))
+        cfg = configure(
+            CONFIGS[algo],
+            env_id,
+            frames_per_batch=2,
+            init_random_frames=0,
+            batch_size=2,
+            updates_per_batch=1,
+            **tiny,
+            **({"n_steps": 1} if algo == "td3" else {}),
+        )
     last = recipe.main(cfg)
     assert last["frames"] == 2 and torch.isfinite(torch.tensor(last["loss"]))
 
@@ -279,7 +425,19 @@ def test_algorithms_must_fit_the_action_space():
 
 def test_multi_process_collectors_feed_the_recipes(tmp_path):
     """``--collectors 2``: two processes with a batched env each (MultiSyncCollector)."""
-    ppo.main(configure(PPOConfig, "vortex-v0", frames=800, n_rollout=400, epochs=1, num_envs=4, collectors=2, out=str(tmp_path), progress=False))
+    ppo.main(
+        configure(
+            PPOConfig,
+            "vortex-v0",
+            frames=800,
+            n_rollout=400,
+            epochs=1,
+            num_envs=4,
+            collectors=2,
+            out=str(tmp_path),
+            progress=False,
+        )
+    )
     assert checkpoint(tmp_path)["frames"] == 800
     with pytest.raises(ValueError, match="collectors"):
         configure(PPOConfig, "vortex-v0", collectors=0)
@@ -290,7 +448,18 @@ def test_multi_process_collectors_feed_the_recipes(tmp_path):
 
 @pytest.mark.skipif(find_spec("ray") is None, reason="ray is not installed (pip install 'beacon-torch[ray]')")
 def test_ray_collectors_train_on_a_local_ray_instance(tmp_path):
-    cfg = configure(PPOConfig, "vortex-v0", frames=800, n_rollout=400, num_envs=4, epochs=1, collectors=2, ray="local", out=str(tmp_path), progress=False)
+    cfg = configure(
+        PPOConfig,
+        "vortex-v0",
+        frames=800,
+        n_rollout=400,
+        num_envs=4,
+        epochs=1,
+        collectors=2,
+        ray="local",
+        out=str(tmp_path),
+        progress=False,
+    )
     assert ppo.main(cfg)["frames"] == 800
 
 
@@ -320,13 +489,19 @@ def test_short_training_beats_the_random_policy(tmp_path):
     from beacon_torch import evaluate
 
     env_id, seed, members = "sloshing-v0", 2, 8
-    cfg = configure(PPOConfig, env_id, frames=16384, n_rollout=2048, num_envs=16, seed=seed, out=str(tmp_path), progress=False)
+    cfg = configure(
+        PPOConfig, env_id, frames=16384, n_rollout=2048, num_envs=16, seed=seed, out=str(tmp_path), progress=False
+    )
     torch.manual_seed(seed)  # as the recipe starts: its env's normalisation, then its actor
     normalised = make_env(env_id, cfg.num_envs, seed=seed, norm_steps=cfg.norm_steps)
     untrained = networks.stochastic_actor(normalised, cfg.hidden)
     env = make_env(env_id, members, seed=12345, norm=normalised.transform[0].state_dict())  # evaluate_run's episodes
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        before = evaluate.scores(env.rollout(env.base_env.episode_length, policy=untrained, break_when_any_done=False)).mean().item()
+        before = (
+            evaluate.scores(env.rollout(env.base_env.episode_length, policy=untrained, break_when_any_done=False))
+            .mean()
+            .item()
+        )
     base = beacon_torch.make(env_id, members, seed=12345)
     rand = evaluate.scores(evaluate.episode(base, evaluate.random_policy(base)))
     ppo.main(cfg)
@@ -423,10 +598,14 @@ def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
     result = evaluate_run(tmp_path, members=4)
     assert result["score_mean"] < 0 and result["score_mean"] > result["uncontrolled"] + 0.5, result
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
-    grad.main(configure(GradConfig, "burgers-v0", num_envs=4, frames=960, out=str(tmp_path), progress=False, resume=True))
+    grad.main(
+        configure(GradConfig, "burgers-v0", num_envs=4, frames=960, out=str(tmp_path), progress=False, resume=True)
+    )
     state = checkpoint(tmp_path)
     assert state["frames"] == 960
-    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), "the resumed run did not update the policy"
+    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), (
+        "the resumed run did not update the policy"
+    )
 
 
 def test_config_module_is_the_one_place_of_the_algorithms():
@@ -449,7 +628,9 @@ def test_new_networks_start_as_the_papers_agents():
     out = networks.stochastic_actor(env, 64)(td)
     assert torch.equal(out["loc"], torch.zeros(3, 2)) and torch.allclose(out["scale"], torch.full((3, 2), 0.5))
     assert torch.equal(networks.state_value(env, 64)(td)["state_value"], torch.zeros(3, 1))
-    assert torch.equal(networks.action_value(env, 128)(td.set("action", torch.rand(3, 2)))["state_value"], torch.zeros(3, 1))
+    assert torch.equal(
+        networks.action_value(env, 128)(td.set("action", torch.rand(3, 2)))["state_value"], torch.zeros(3, 1)
+    )
     discrete = make_env("lorenz-v0", 3, norm_steps=0)
     dist = networks.stochastic_actor(discrete, 64).get_dist(discrete.reset())
     assert torch.allclose(dist.probs, torch.full((3, 3), 1 / 3))
@@ -458,22 +639,49 @@ def test_new_networks_start_as_the_papers_agents():
 
 def test_settings_follow_the_papers_runs_where_its_table_is_silent():
     assert configure(PPOConfig, "mixing-v0").gae_lambda == 0.90 and configure(PPOConfig, "burgers-v0").critic_lr == 1e-3
-    assert configure(PPOConfig, "shkadov-v0").critic_optim == "nadam" and configure(PPOConfig, "rayleigh-v0").hidden == 128
+    assert (
+        configure(PPOConfig, "shkadov-v0").critic_optim == "nadam" and configure(PPOConfig, "rayleigh-v0").hidden == 128
+    )
     assert configure(PPOConfig, "lorenz-v0").norm_steps == 0  # raw observations
     dqn_ = configure(DQNConfig, "lorenz-v0")
-    assert (dqn_.eps_init, dqn_.eps_end, dqn_.eps_frames, dqn_.target_every, dqn_.lr, dqn_.batch_size, dqn_.hidden) == (0.5, 0.05, 2_000_000, 50, 5e-4, 64, 64)
+    assert (dqn_.eps_init, dqn_.eps_end, dqn_.eps_frames, dqn_.target_every, dqn_.lr, dqn_.batch_size, dqn_.hidden) == (
+        0.5,
+        0.05,
+        2_000_000,
+        50,
+        5e-4,
+        64,
+        64,
+    )
     td3_ = configure(TD3Config, "vortex-v0")
-    assert (td3_.hidden, td3_.lr, td3_.tau, td3_.exploration_sigma, td3_.policy_noise, td3_.noise_clip, td3_.init_random_frames, td3_.norm_steps) == (128, 1e-3, 0.02, 0.001, 0.002, 0.005, 1000, 0)
+    assert (
+        td3_.hidden,
+        td3_.lr,
+        td3_.tau,
+        td3_.exploration_sigma,
+        td3_.policy_noise,
+        td3_.noise_clip,
+        td3_.init_random_frames,
+        td3_.norm_steps,
+    ) == (128, 1e-3, 0.02, 0.001, 0.002, 0.005, 1000, 0)
     assert td3_.actor_lr == 0.0  # the actor at the critics' rate
     assert td3_.updates_per_batch == td3_.frames_per_batch  # one update per transition
     # burgers' TD3 alone normalises its observations and explores with the DDPG noise
     burgers = configure(TD3Config, "burgers-v0")
     assert (burgers.norm_steps, burgers.exploration_sigma, burgers.frames) == (64, 0.01, 500_000)
-    assert replace(burgers, norm_steps=0, exploration_sigma=0.001, env="vortex-v0", out=td3_.out, frames=td3_.frames) == td3_
-    assert configure(TD3Config, "burgers-v0", exploration_sigma=0.001, norm_steps=0) == replace(burgers, exploration_sigma=0.001, norm_steps=0)
+    assert (
+        replace(burgers, norm_steps=0, exploration_sigma=0.001, env="vortex-v0", out=td3_.out, frames=td3_.frames)
+        == td3_
+    )
+    assert configure(TD3Config, "burgers-v0", exploration_sigma=0.001, norm_steps=0) == replace(
+        burgers, exploration_sigma=0.001, norm_steps=0
+    )
     # shkadov's TD3 alone learns from targets over 20 transitions
     assert td3_.n_steps == 1 and configure(TD3Config, "shkadov-v0").n_steps == 20
-    assert replace(configure(TD3Config, "shkadov-v0"), n_steps=1, env="vortex-v0", out=td3_.out, frames=td3_.frames) == td3_
+    assert (
+        replace(configure(TD3Config, "shkadov-v0"), n_steps=1, env="vortex-v0", out=td3_.out, frames=td3_.frames)
+        == td3_
+    )
     with pytest.raises(ValueError, match="'critic_optim' must be one of"):
         configure(PPOConfig, "lorenz-v0", critic_optim="sgd")
 
@@ -482,16 +690,28 @@ def test_report_normalises_scores_and_bounds_their_interquartile_mean(tmp_path, 
     from beacon_torch.training import report
 
     assert report.iqm([1.0, 2.0, 3.0, 4.0]) == 2.5 and report.iqm([0.0, 1.0, 2.0, 3.0, 100.0]) == 2.0
-    assert report.normalised(-1.75, -3.25, "burgers-v0") == 1.0 and report.normalised(238.0, 238.0, "lorenz-continuous-v0") == 0.0
+    assert (
+        report.normalised(-1.75, -3.25, "burgers-v0") == 1.0
+        and report.normalised(238.0, 238.0, "lorenz-continuous-v0") == 0.0
+    )
     low, high = report.bootstrap_interval([0.2, 0.4, 0.5, 0.6, 0.9])
     assert 0.2 <= low < report.iqm([0.2, 0.4, 0.5, 0.6, 0.9]) < high <= 0.9
     assert report.bootstrap_interval([0.2, 0.4, 0.5, 0.6, 0.9]) == (low, high)  # a fixed generator
-    summary = {"env": "sloshing-v0", "algo": "ppo", "uncontrolled": -2.1, "frames": 200_000, "wall_s_per_seed": 120.0, "seeds": [{"eval": e} for e in (-1.1, -1.6, -2.1)]}
+    summary = {
+        "env": "sloshing-v0",
+        "algo": "ppo",
+        "uncontrolled": -2.1,
+        "frames": 200_000,
+        "wall_s_per_seed": 120.0,
+        "seeds": [{"eval": e} for e in (-1.1, -1.6, -2.1)],
+    }
     file = tmp_path / "ppo-sloshing-v0.json"
     file.write_text(__import__("json").dumps(summary))
     assert cli(["report", str(file), "--out", str(tmp_path / "report")]) == 0
     text = capsys.readouterr().out
-    assert "| sloshing-v0 | ppo | 3 | **0.50** [" in text and (tmp_path / "report" / "report.png").stat().st_size > 5_000
+    assert (
+        "| sloshing-v0 | ppo | 3 | **0.50** [" in text and (tmp_path / "report" / "report.png").stat().st_size > 5_000
+    )
 
 
 def test_a_checkpoint_whose_pickle_runs_code_is_refused_unrun(tmp_path, capsys):
@@ -511,7 +731,10 @@ def test_a_checkpoint_whose_pickle_runs_code_is_refused_unrun(tmp_path, capsys):
     with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
         load_checkpoint(run)
     assert cli(["eval", str(run), "--no-gif"]) == 2 and "unreadable checkpoint" in capsys.readouterr().err
-    assert cli(["plot", str(run), "--out", str(tmp_path / "p.png")]) == 2 and "unreadable checkpoint" in capsys.readouterr().err
+    assert (
+        cli(["plot", str(run), "--out", str(tmp_path / "p.png")]) == 2
+        and "unreadable checkpoint" in capsys.readouterr().err
+    )
     with pytest.raises(FileNotFoundError, match="unreadable checkpoint"):
         ppo.main(configure(PPOConfig, "lorenz-v0", out=str(run), resume=True, progress=False))
     assert not (tmp_path / "pwned").exists()

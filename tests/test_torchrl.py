@@ -11,7 +11,9 @@ import beacon_torch
 
 
 def test_transformed_env_with_observation_norm_and_step_counter():
-    env = TransformedEnv(beacon_torch.make("vortex-v0", 4), ObservationNorm(in_keys=["observation"], standard_normal=True))
+    env = TransformedEnv(
+        beacon_torch.make("vortex-v0", 4), ObservationNorm(in_keys=["observation"], standard_normal=True)
+    )
     env.append_transform(StepCounter())
     env.transform[0].init_stats(num_iter=50, reduce_dim=(0, 1), cat_dim=1)
     check_env_specs(env)
@@ -31,6 +33,8 @@ def test_collector_over_the_batched_env():
 def test_q_value_actor_on_the_discrete_env():
     env = beacon_torch.make("lorenz-v0", 4)
     net = MLP(in_features=6, out_features=3, num_cells=[16])
-    actor = QValueActor(TensorDictModule(net, in_keys=["observation"], out_keys=["action_value"]), spec=env.action_spec_unbatched)
+    actor = QValueActor(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["action_value"]), spec=env.action_spec_unbatched
+    )
     r = env.rollout(10, policy=actor)
     assert r["action"].shape == (4, 10) and r["action"].dtype == torch.int64

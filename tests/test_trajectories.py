@@ -56,7 +56,9 @@ def test_trajectories_are_the_recorded_ones(env_id):
         if data["machine"] == machine():
             assert torch.equal(x, y), f"{env_id} {part} changed (largest difference {(x - y).abs().max().item():.3g})"
         else:
-            torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=lambda m, part=part: f"{env_id} {part} changed beyond round-off: {m}")
+            torch.testing.assert_close(
+                x, y, rtol=1e-10, atol=1e-12, msg=lambda m, part=part: f"{env_id} {part} changed beyond round-off: {m}"
+            )
 
 
 def test_every_env_is_recorded():
@@ -66,6 +68,10 @@ def test_every_env_is_recorded():
 if __name__ == "__main__":
     torch.set_num_threads(1)  # as each worker of the test suite runs
     RECORDED.parent.mkdir(exist_ok=True)
-    data = {"note": "written by tests/test_trajectories.py; float64", "machine": machine(), "envs": {env_id: rollout(env_id) for env_id in sorted(ENVS)}}
+    data = {
+        "note": "written by tests/test_trajectories.py; float64",
+        "machine": machine(),
+        "envs": {env_id: rollout(env_id) for env_id in sorted(ENVS)},
+    }
     RECORDED.write_text(json.dumps(data) + "\n")
     print(f"recorded {len(data['envs'])} envs in {RECORDED}", file=sys.stderr)

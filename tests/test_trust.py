@@ -33,12 +33,26 @@ from config import DQNConfig, PPOConfig, TD3Config, configure
 
 ROOT = Path(__file__).resolve().parents[1]
 PPO = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger="csv")
-TD3 = dict(frames=256, frames_per_batch=64, num_envs=4, updates_per_batch=4, init_random_frames=64, batch_size=32, hidden=32, progress=False, logger="csv")
+TD3 = dict(
+    frames=256,
+    frames_per_batch=64,
+    num_envs=4,
+    updates_per_batch=4,
+    init_random_frames=64,
+    batch_size=32,
+    hidden=32,
+    progress=False,
+    logger="csv",
+)
 
 
 def snapshot(folder: Path) -> dict:
     """Every file under ``folder`` with its bytes: what must not change."""
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file() and not p.is_symlink()}
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and not p.is_symlink()
+    }
 
 
 @pytest.fixture
@@ -109,8 +123,15 @@ def test_eval_refuses_a_run_with_a_planted_animation_link(ppo_run, tmp_path, out
 def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outside):
     pair = tmp_path / "runs" / "ppo-vortex-v0"
     copy_run(ppo_run, pair / "seed0")
-    summary = {"algo": "../../../../outside/owned", "env": "vortex-v0", "seeds": [{"seed": "seed0", "eval": 1.0, "frames": 400, "uncontrolled": 0.0}],
-               "uncontrolled": 0.0, "frames": 400, "wall_s_per_seed": 1.0, "png": str(outside / "precious.txt")}
+    summary = {
+        "algo": "../../../../outside/owned",
+        "env": "vortex-v0",
+        "seeds": [{"seed": "seed0", "eval": 1.0, "frames": 400, "uncontrolled": 0.0}],
+        "uncontrolled": 0.0,
+        "frames": 400,
+        "wall_s_per_seed": 1.0,
+        "png": str(outside / "precious.txt"),
+    }
     (pair / "summary.json").write_text(json.dumps(summary))
     recorded, images = tmp_path / "repo" / "recorded", tmp_path / "repo" / "img"
     before = snapshot(outside)
@@ -151,9 +172,29 @@ def test_a_fresh_run_refuses_a_directory_holding_a_run(ppo_run, tmp_path, capsys
         ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
     assert snapshot(run) == before
     # from the command line: one line and status 2
-    done = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), "--env", "vortex-v0", "--out", str(run), "--frames", "400", "--n-rollout", "200", "--num-envs", "4", "--no-progress"],
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 2 and "holds a run" in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "ppo.py"),
+            "--env",
+            "vortex-v0",
+            "--out",
+            str(run),
+            "--frames",
+            "400",
+            "--n-rollout",
+            "200",
+            "--num-envs",
+            "4",
+            "--no-progress",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 2 and "holds a run" in done.stderr and len(done.stderr.strip().splitlines()) == 1, (
+        done.stderr
+    )
     assert snapshot(run) == before
     # an empty directory, or one with files of the user's own, is fine for a new run
     (tmp_path / "mine").mkdir()
@@ -165,8 +206,16 @@ def test_a_fresh_run_refuses_a_directory_holding_a_run(ppo_run, tmp_path, capsys
 def test_a_second_process_on_a_running_directory_is_refused(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
-    holder = subprocess.Popen([sys.executable, "-c", f"from beacon_torch.files import Lock; import time; lock = Lock({str(run)!r}); print('held', flush=True); time.sleep(60)"],
-                              stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"from beacon_torch.files import Lock; import time; lock = Lock({str(run)!r}); "
+            f"print('held', flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         with pytest.raises(files.UnsafeFile, match="another process"):
@@ -226,7 +275,12 @@ def test_a_resume_and_an_eval_refuse_forged_checkpoint_records(ppo_run, tmp_path
 
 
 @pytest.mark.parametrize(
-    "setting, value, words", [("hidden", "wide", "'hidden' must be of type int"), ("epochs", 2.5, "'epochs' must be of type int"), ("entropy", -1.0, "'entropy' must be finite and >= 0")]
+    "setting, value, words",
+    [
+        ("hidden", "wide", "'hidden' must be of type int"),
+        ("epochs", 2.5, "'epochs' must be of type int"),
+        ("entropy", -1.0, "'entropy' must be finite and >= 0"),
+    ],
 )
 def test_a_resume_refuses_recorded_settings_of_the_wrong_type_or_range(ppo_run, tmp_path, setting, value, words):
     run = copy_run(ppo_run, tmp_path / "run")
@@ -236,7 +290,9 @@ def test_a_resume_refuses_recorded_settings_of_the_wrong_type_or_range(ppo_run, 
     assert "checkpoint.pt" in str(err.value)
 
 
-@pytest.mark.parametrize("line", [b"1,2,3\n", b"step,value\n", b"\xff\xfe\x00binary\n", b"-5,1.0\n", b"1.5,1.0\n", b"nan,1.0\n"])
+@pytest.mark.parametrize(
+    "line", [b"1,2,3\n", b"step,value\n", b"\xff\xfe\x00binary\n", b"-5,1.0\n", b"1.5,1.0\n", b"nan,1.0\n"]
+)
 def test_a_resume_refuses_a_log_it_did_not_write_and_mends_nothing(ppo_run, tmp_path, line):
     run = copy_run(ppo_run, tmp_path / "run")
     log = run / "ppo" / "scalars" / "reward.csv"
@@ -250,7 +306,16 @@ def test_a_resume_refuses_a_log_it_did_not_write_and_mends_nothing(ppo_run, tmp_
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.lists(st.lists(st.one_of(st.text(max_size=6), st.integers(-10, 10**6).map(str), st.floats(allow_nan=True).map(str)), min_size=0, max_size=4), max_size=5))
+@given(
+    st.lists(
+        st.lists(
+            st.one_of(st.text(max_size=6), st.integers(-10, 10**6).map(str), st.floats(allow_nan=True).map(str)),
+            min_size=0,
+            max_size=4,
+        ),
+        max_size=5,
+    )
+)
 def test_log_lines_are_two_numbers_or_a_clear_error(tmp_path, rows):
     import csv
 
@@ -270,16 +335,52 @@ def valid_state():
     from beacon_torch.training.networks import stochastic_actor
 
     env = make_env("vortex-v0", 1, norm_steps=0)
-    return {"env": "vortex-v0", "algo": "ppo", "frames": 400, "elapsed": 1.0, "seed": 0, "config": {"frames": 400, "n_rollout": 200}, "policy": {"network": "stochastic_actor", "hidden": 8},
-            "counters": {}, "obs_norm": env.transform[0].state_dict(), "modules": {"actor": stochastic_actor(env, 8).state_dict()}}
+    return {
+        "env": "vortex-v0",
+        "algo": "ppo",
+        "frames": 400,
+        "elapsed": 1.0,
+        "seed": 0,
+        "config": {"frames": 400, "n_rollout": 200},
+        "policy": {"network": "stochastic_actor", "hidden": 8},
+        "counters": {},
+        "obs_norm": env.transform[0].state_dict(),
+        "modules": {"actor": stochastic_actor(env, 8).state_dict()},
+    }
 
 
-JUNK = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=8), st.lists(st.integers(), max_size=3),
-                 st.dictionaries(st.text(max_size=4), st.integers(), max_size=2))
+JUNK = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**70), 2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=8),
+    st.lists(st.integers(), max_size=3),
+    st.dictionaries(st.text(max_size=4), st.integers(), max_size=2),
+)
 
 
 @settings(max_examples=150, deadline=None)
-@given(key=st.sampled_from(["env", "algo", "frames", "elapsed", "seed", "config", "policy", "counters", "obs_norm", "modules", "policy.hidden", "policy.network", "config.frames"]), value=JUNK)
+@given(
+    key=st.sampled_from(
+        [
+            "env",
+            "algo",
+            "frames",
+            "elapsed",
+            "seed",
+            "config",
+            "policy",
+            "counters",
+            "obs_norm",
+            "modules",
+            "policy.hidden",
+            "policy.network",
+            "config.frames",
+        ]
+    ),
+    value=JUNK,
+)
 def test_any_forged_checkpoint_field_is_one_clear_error(key, value):
     state = valid_state()
     check_checkpoint(state, "ok.pt")
@@ -307,7 +408,10 @@ SUMMARY_KEYS = ["env", "algo", "seeds", "uncontrolled", "frames", "wall_s_per_se
 
 
 @settings(max_examples=150, deadline=None)
-@given(key=st.sampled_from(SUMMARY_KEYS), value=st.one_of(JUNK, st.lists(st.fixed_dictionaries({"eval": JUNK}), max_size=2)))
+@given(
+    key=st.sampled_from(SUMMARY_KEYS),
+    value=st.one_of(JUNK, st.lists(st.fixed_dictionaries({"eval": JUNK}), max_size=2)),
+)
 def test_any_forged_summary_field_is_one_clear_error(key, value):
     summary = {**summary_of(train_mean=-1.5), key: value}
     try:
@@ -321,7 +425,17 @@ def test_any_forged_summary_field_is_one_clear_error(key, value):
 
 # ---------------------------------------------------------------- no NaN as a result
 def test_a_diverging_training_stops_and_keeps_its_last_good_checkpoint(tmp_path):
-    settings_ = dict(frames=640, frames_per_batch=64, num_envs=4, updates_per_batch=16, batch_size=32, hidden=16, progress=False, logger="csv", checkpoint_every=1)
+    settings_ = dict(
+        frames=640,
+        frames_per_batch=64,
+        num_envs=4,
+        updates_per_batch=16,
+        batch_size=32,
+        hidden=16,
+        progress=False,
+        logger="csv",
+        checkpoint_every=1,
+    )
     run = tmp_path / "run"
     dqn.main(configure(DQNConfig, "lorenz-v0", out=str(run), **{**settings_, "frames": 128}))
     # the run's optimiser at a rate that diverges from here on
@@ -333,15 +447,51 @@ def test_a_diverging_training_stops_and_keeps_its_last_good_checkpoint(tmp_path)
         dqn.main(configure(DQNConfig, "lorenz-v0", out=str(run), resume=True, **settings_))
     assert (run / "checkpoint.pt").read_bytes() == good, "a diverged update reached the checkpoint"
     # from the command line: one line, status 2, and no checkpoint of NaN weights
-    done = subprocess.run([sys.executable, str(ROOT / "recipes" / "dqn.py"), "--env", "lorenz-v0", "--out", str(tmp_path / "cli"), "--lr", "1e30", "--frames", "640", "--num-envs", "4",
-                           "--frames-per-batch", "64", "--updates-per-batch", "16", "--batch-size", "32", "--hidden", "16", "--checkpoint-every", "1", "--no-progress", "--logger", "csv"],
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "dqn.py"),
+            "--env",
+            "lorenz-v0",
+            "--out",
+            str(tmp_path / "cli"),
+            "--lr",
+            "1e30",
+            "--frames",
+            "640",
+            "--num-envs",
+            "4",
+            "--frames-per-batch",
+            "64",
+            "--updates-per-batch",
+            "16",
+            "--batch-size",
+            "32",
+            "--hidden",
+            "16",
+            "--checkpoint-every",
+            "1",
+            "--no-progress",
+            "--logger",
+            "csv",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 2 and "diverged" in done.stderr and "Traceback" not in done.stderr, done.stderr
     assert not (tmp_path / "cli" / "checkpoint.pt").exists() or load_checkpoint(tmp_path / "cli")["frames"] < 640
 
 
 def summary_of(**changes):
-    summary = {"env": "sloshing-v0", "algo": "ppo", "uncontrolled": -2.1, "frames": 200_000, "wall_s_per_seed": 120.0, "seeds": [{"eval": e} for e in (-1.1, -1.6, -2.1)]}
+    summary = {
+        "env": "sloshing-v0",
+        "algo": "ppo",
+        "uncontrolled": -2.1,
+        "frames": 200_000,
+        "wall_s_per_seed": 120.0,
+        "seeds": [{"eval": e} for e in (-1.1, -1.6, -2.1)],
+    }
     return {**summary, **changes}
 
 
@@ -458,14 +608,22 @@ def test_a_replay_buffer_that_cannot_fit_on_the_disk_is_one_clear_error(tmp_path
 
 @pytest.mark.parametrize(
     "record, words",
-    [({"weights": "nan"}, "non-finite"), ({"env": "vortex-v0"}, "a policy of vortex-v0, not of lorenz-v0"), ({"hidden": 10**5}, "width"), ({"network": "builtins.eval"}, "unknown")],
+    [
+        ({"weights": "nan"}, "non-finite"),
+        ({"env": "vortex-v0"}, "a policy of vortex-v0, not of lorenz-v0"),
+        ({"hidden": 10**5}, "width"),
+        ({"network": "builtins.eval"}, "unknown"),
+    ],
 )
 def test_policy_files_are_checked_before_use(tmp_path, record, words):
     shipped = pretrained._read(pretrained.shipped("ppo", "lorenz-v0"))
     forged = dict(shipped)
     for key, value in record.items():
         if value == "nan":
-            forged["weights"] = {k: torch.full_like(v, float("nan")) if v.is_floating_point() else v for k, v in shipped["weights"].items()}
+            forged["weights"] = {
+                k: torch.full_like(v, float("nan")) if v.is_floating_point() else v
+                for k, v in shipped["weights"].items()
+            }
         else:
             forged[key] = value
     file = tmp_path / "policy.pt"
@@ -542,7 +700,9 @@ def test_a_parameter_the_precision_takes_out_of_range_is_refused(value):
     try:
         env = beacon_torch.make("vortex-v0", 1, re=value)
     except ValueError as err:
-        assert "becomes" in str(err) and "float32" in str(err) and torch.tensor(value, dtype=torch.float32).item() == 0.0
+        assert (
+            "becomes" in str(err) and "float32" in str(err) and torch.tensor(value, dtype=torch.float32).item() == 0.0
+        )
     else:
         assert env.params.re.item() > 0
 

@@ -43,7 +43,9 @@ class BurgersParams:
             )
 
 
-def burgers_substep(i, fields: tuple[torch.Tensor, torch.Tensor], inlet: torch.Tensor, forcing: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def burgers_substep(
+    i, fields: tuple[torch.Tensor, torch.Tensor], inlet: torch.Tensor, forcing: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Substep ``i`` of an action: one explicit BDF2 step of ``(u, u_prev)`` (``[B, n]``)
     with the inlet value ``inlet`` ``[B, 1]`` and the point forcing ``forcing``
     ``[B, n - 2]``, both held over the action."""

@@ -62,7 +62,9 @@ class Probes:
         return torch.cat((history[:, 1:], self.sample(state)[:, None]), 1)
 
 
-def transport(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, ghosts: Ghosts, offset, cavity: Cavity, kappa, dt: float) -> torch.Tensor:
+def transport(
+    s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, ghosts: Ghosts, offset, cavity: Cavity, kappa, dt: float
+) -> torch.Tensor:
     """The ghosted scalar ``s`` (``[nx + 2, ny + 2, B]``) after one substep's transport
     by the face velocities ``u``, ``v``, as the published step leaves it: the ghosts are
     set from the interior (and the wall values of ``offset``) before the sweep and kept
@@ -104,7 +106,9 @@ class CavityEnv(FlowEnv):
         p = self.params
         self.nx, self.ny, self.dx, self.dy = grid(p.L, p.H, self.cells_per_unit)
         tol = self.jacobi_tol if p.solver == "jacobi" else None
-        self.cavity = Cavity(self.nx, self.ny, self.dx, self.dy, self.poisson_bc, jacobi_tol=tol, dtype=self.dtype, device=self.device)
+        self.cavity = Cavity(
+            self.nx, self.ny, self.dx, self.dy, self.poisson_bc, jacobi_tol=tol, dtype=self.dtype, device=self.device
+        )
         self.solver = self.cavity.solver
         self.ghosts = self.scalar_ghosts()
         self._substeps = self.kernels.loop(functools.partial(_any_substep, self.substep))

@@ -36,7 +36,9 @@ class LorenzParams:
     sigma: float = param(10.0, low=0.0, high=1e3, low_open=True, doc="Prandtl-like ratio")
     rho: float = param(28.0, low=0.0, high=1e6, low_open=True, doc="Rayleigh-number ratio")
     beta: float = param(8.0 / 3.0, low=0.0, high=1e3, low_open=True, doc="geometric factor")
-    reward_width: float = param(0.0, low=0.0, high=1e3, doc="width of a smooth step replacing the reward's indicator x < 0 (0: the indicator)")
+    reward_width: float = param(
+        0.0, low=0.0, high=1e3, doc="width of a smooth step replacing the reward's indicator x < 0 (0: the indicator)"
+    )
 
 
 def lorenz_rhs(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> torch.Tensor:
@@ -122,4 +124,3 @@ class LorenzContinuousEnv(LorenzEnv):
 
     # zero forcing (the discrete env's "no control" is its action 1)
     null_action = FlowEnv.null_action
-

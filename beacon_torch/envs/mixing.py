@@ -40,7 +40,12 @@ class MixingParams:
     pe: float = param(1e4, low=1.0, high=1e8, doc="Peclet number (diffusivity 1 / pe)")
     side: float = param(0.5, low=0.02, high=4.0, per_member=False, doc="side of the initial square patch")
     c0: float = param(1.0, low=0.0, high=1e3, low_open=True, doc="initial concentration in the patch")
-    solver: str = param("direct", kind="choice", choices=("direct", "jacobi"), doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)")
+    solver: str = param(
+        "direct",
+        kind="choice",
+        choices=("direct", "jacobi"),
+        doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)",
+    )
 
     def __post_init__(self):
         if self.side > min(self.L, self.H):

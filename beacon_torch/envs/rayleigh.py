@@ -49,7 +49,12 @@ class RayleighParams:
     n_sgts: int = param(10, low=1, high=200, kind="int", per_member=False, doc="number of bottom segments (actions)")
     ra: float = param(1e4, low=1.0, high=1e6, per_member=False, differentiable=True, doc="Rayleigh number")
     start: str = start_param("the published stored roll, or the one of developed_convection()")
-    solver: str = param("direct", kind="choice", choices=("direct", "jacobi"), doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)")
+    solver: str = param(
+        "direct",
+        kind="choice",
+        choices=("direct", "jacobi"),
+        doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)",
+    )
 
     def __post_init__(self):
         choose_start(self, ("L", "H", "ra"))
@@ -87,7 +92,9 @@ def rest_state(n_envs: int, nx: int, ny: int, dtype, device) -> State:
     return {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "theta": zeros(nx + 2, ny + 2)}
 
 
-def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = DEVELOP_TIME, seed: int = DEVELOP_SEED) -> State:
+def developed_convection(
+    p: RayleighParams = RayleighParams(), *, time: float = DEVELOP_TIME, seed: int = DEVELOP_SEED
+) -> State:
     """The published initial state: from rest (theta = 0) ``time`` time units without
     control, in float64, after a perturbation of the temperature of amplitude 1e-6 drawn
     from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
@@ -99,7 +106,9 @@ def developed_convection(p: RayleighParams = RayleighParams(), *, time: float = 
     state = rest_state(1, env.nx, env.ny, torch.float64, "cpu")
     state["theta"] = PERTURBATION * (2.0 * torch.rand(state["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
     bottom = torch.full((1, env.nx), T_HOT, dtype=torch.float64)
-    state = env.run(state, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny))
+    state = env.run(
+        state, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny)
+    )
     return {k: v[0] for k, v in state.items()}
 
 

@@ -34,7 +34,14 @@ from torchrl.data import Composite, Unbounded
 from beacon_torch.base import FlowEnv, GradCheck, State, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
-from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, minmod, third_derivative, tvd_derivative
+from beacon_torch.numerics import (
+    ab2_step,
+    interpolated_action,
+    interpolation_weights,
+    minmod,
+    third_derivative,
+    tvd_derivative,
+)
 from beacon_torch.params import number, param
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 
@@ -58,13 +65,21 @@ DEVELOP_SEED = 0
 
 @dataclass(frozen=True)
 class ShkadovParams:
-    L0: float = param(150.0, low=20.0, high=DEVELOP_LENGTH, per_member=False, doc="domain length before the jets' extension")
+    L0: float = param(
+        150.0, low=20.0, high=DEVELOP_LENGTH, per_member=False, doc="domain length before the jets' extension"
+    )
     n_jets: int = param(5, low=1, high=100, kind="int", per_member=False, doc="number of jets")
-    jet_pos: float = param(150.0, low=OBS_LENGTH + 1.0, high=DEVELOP_LENGTH, per_member=False, doc="position of the first jet")
+    jet_pos: float = param(
+        150.0, low=OBS_LENGTH + 1.0, high=DEVELOP_LENGTH, per_member=False, doc="position of the first jet"
+    )
     jet_space: float = param(10.0, low=2 * JET_HALF_WIDTH, high=100.0, per_member=False, doc="spacing of the jets")
-    delta: float = param(0.1, low=0.01, high=10.0, per_member=False, differentiable=True, doc="the film parameter (Re^2 / We)^(1/3) / 15")
+    delta: float = param(
+        0.1, low=0.01, high=10.0, per_member=False, differentiable=True, doc="the film parameter (Re^2 / We)^(1/3) / 15"
+    )
     amp: float = param(5.0, low=0.0, high=1e8, doc="jet amplitude A (action scaling)")
-    random_start: int = param(400, low=0, high=10_000, kind="int", per_member=False, doc="most uncontrolled actions run at each reset")
+    random_start: int = param(
+        400, low=0, high=10_000, kind="int", per_member=False, doc="most uncontrolled actions run at each reset"
+    )
     start: str = start_param("the published stored film, or the one of developed_film()")
 
     @property
@@ -82,7 +97,8 @@ class ShkadovParams:
         if last + REWARD_LENGTH > self.length - DX:
             raise ValueError(
                 f"parameter 'jet_pos' = {self.jet_pos:g} puts the last jet's reward region past the "
-                f"domain end ({self.length:g}); it must be at most {self.length - DX - REWARD_LENGTH - self.jet_space * (self.n_jets - 1):g}"
+                f"domain end ({self.length:g}); it must be at most "
+                f"{self.length - DX - REWARD_LENGTH - self.jet_space * (self.n_jets - 1):g}"
             )
 
 
@@ -111,7 +127,9 @@ def shkadov_rhs(h: torch.Tensor, q: torch.Tensor, forcing: torch.Tensor, delta, 
     return dh, dq
 
 
-def shkadov_substep(fields: tuple[torch.Tensor, ...], forcing: torch.Tensor, inlet: torch.Tensor, delta, dx: float) -> tuple[torch.Tensor, ...]:
+def shkadov_substep(
+    fields: tuple[torch.Tensor, ...], forcing: torch.Tensor, inlet: torch.Tensor, delta, dx: float
+) -> tuple[torch.Tensor, ...]:
     """One AB2 step of ``(h, q, dh_prev, dq_prev)`` with the jets' forcing ``[B, n - 2]``
     and the inlet film thickness ``inlet`` ``[B, 1]`` (the inlet flow rate is 1)."""
     h, q, dh_prev, dq_prev = fields
@@ -122,11 +140,22 @@ def shkadov_substep(fields: tuple[torch.Tensor, ...], forcing: torch.Tensor, inl
     return h, q, dh, dq
 
 
-def action_substep(i, fields: tuple[torch.Tensor, ...], forcing_prev: torch.Tensor, forcing_new: torch.Tensor, alpha: torch.Tensor, inlet: torch.Tensor, delta, dx: float) -> tuple[torch.Tensor, ...]:
+def action_substep(
+    i,
+    fields: tuple[torch.Tensor, ...],
+    forcing_prev: torch.Tensor,
+    forcing_new: torch.Tensor,
+    alpha: torch.Tensor,
+    inlet: torch.Tensor,
+    delta,
+    dx: float,
+) -> tuple[torch.Tensor, ...]:
     """Substep ``i`` of an action: :func:`shkadov_substep` with the forcing
     interpolated by ``alpha[i]`` (:func:`interpolation_weights`) and the inlet
     ``inlet[i]`` (``inlet``: ``[SUBSTEPS, B, 1]``)."""
-    return shkadov_substep(fields, interpolated_action(forcing_prev, forcing_new, at(alpha, i)), at(inlet, i), delta, dx)
+    return shkadov_substep(
+        fields, interpolated_action(forcing_prev, forcing_new, at(alpha, i)), at(inlet, i), delta, dx
+    )
 
 
 def inlet_noise(generator: torch.Generator | None, members: int, dtype: torch.dtype, device=None) -> torch.Tensor:
@@ -163,7 +192,13 @@ def run_action(
 def flat_state(n_envs: int, n_cells: int, n_jets: int, dtype, device) -> State:
     one = torch.ones((n_envs, n_cells), dtype=dtype, device=device)
     zero = torch.zeros((n_envs, n_cells - 2), dtype=dtype, device=device)
-    return {"h": one, "q": one.clone(), "dh_prev": zero, "dq_prev": zero.clone(), "u_prev": torch.zeros((n_envs, n_jets), dtype=dtype, device=device)}
+    return {
+        "h": one,
+        "q": one.clone(),
+        "dh_prev": zero,
+        "dq_prev": zero.clone(),
+        "u_prev": torch.zeros((n_envs, n_jets), dtype=dtype, device=device),
+    }
 
 
 def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float = DEVELOP_TIME, device="cpu") -> State:
@@ -221,7 +256,11 @@ class ShkadovEnv(FlowEnv):
         profiles = jet_profiles(self.jet_centres, self.n_cells, self.dtype, self.device)
         self._profiles = profiles[:, 1:-1].contiguous()
         self._substeps = self.kernels.loop(action_substep)
-        obs = [c - int(round(OBS_LENGTH / DX)) + CELLS_PER_UNIT * m for c in self.jet_centres for m in range(int(round(OBS_LENGTH)))]
+        obs = [
+            c - int(round(OBS_LENGTH / DX)) + CELLS_PER_UNIT * m
+            for c in self.jet_centres
+            for m in range(int(round(OBS_LENGTH)))
+        ]
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))
         self._reward_index = torch.tensor([[c + m for m in range(width)] for c in self.jet_centres], device=self.device)
@@ -235,14 +274,25 @@ class ShkadovEnv(FlowEnv):
         else:
             delta = number(self.params.delta)
             n = int(round(DEVELOP_LENGTH / DX))
-            film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), {"h": (n,), "q": (n,)})
+            film = cached(
+                "shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), {"h": (n,), "q": (n,)}
+            )
         return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
 
     def noise(self) -> State:
         return {"inlet": inlet_noise(self.rng, self.n_envs, self.dtype, self.device)}
 
     def _advance_state(self, state: State, action: torch.Tensor, noise: State) -> State:
-        return run_action(state, action, self._profiles, self.params.delta, DX, noise["inlet"], self.member(self.params.amp), self._substeps)
+        return run_action(
+            state,
+            action,
+            self._profiles,
+            self.params.delta,
+            DX,
+            noise["inlet"],
+            self.member(self.params.amp),
+            self._substeps,
+        )
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         state = flat_state(self.n_envs, self.n_cells, self.n_jets, self.dtype, self.device)
@@ -302,7 +352,6 @@ class ShkadovEnv(FlowEnv):
         actions = history[-1]["u_prev"].double().numpy().ravel()
         jets_x = [DX * c for c in self.jet_centres]
         return shkadov_frame(x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS)
-
 
 
 class ShkadovSeparableEnv(ShkadovEnv):

@@ -82,7 +82,9 @@ def with_walls(h_in: torch.Tensor, q_in: torch.Tensor):
     return h, q
 
 
-def sloshing_substep(i, fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g, dx: float) -> tuple[torch.Tensor, ...]:
+def sloshing_substep(
+    i, fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g, dx: float
+) -> tuple[torch.Tensor, ...]:
     """Substep ``i`` of an action: one AB2 step of ``(h, q, fh_prev, fq_prev)`` with
     the tank acceleration ``accel[i]`` (``accel``: ``[SUBSTEPS, B]``)."""
     h, q, fh_prev, fq_prev = fields
@@ -116,7 +118,9 @@ def excited_state(L: float, g, n_envs: int, dtype: torch.dtype, device) -> State
     h = torch.ones((n_envs, n), dtype=dtype, device=device)
     zero = torch.zeros_like(h)
     state = {"h": h, "q": zero, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
-    actions = [torch.full((n_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)]
+    actions = [
+        torch.full((n_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)
+    ]
     return run_actions(state, actions, EXCITATION_AMP, g, dx)
 
 
@@ -165,7 +169,9 @@ class SloshingEnv(FlowEnv):
             # a member at the published g starts as it would alone
             chosen = published_members(p, ("L", "g"))
             if chosen is not None:
-                start = where_members(chosen.to(self.device), {k: v.to(self.device) for k, v in published.items()}, start)
+                start = where_members(
+                    chosen.to(self.device), {k: v.to(self.device) for k, v in published.items()}, start
+                )
         else:  # one start for all, cached
             g = float(p.g[0])
             key = dict(version=2, L=p.L, g=g)

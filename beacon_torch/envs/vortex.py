@@ -78,7 +78,9 @@ def displacement(s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return 2.0 * (s[:, 2] * c - s[:, 3] * sn)
 
 
-def vortex_substep(i, carry: tuple[torch.Tensor, torch.Tensor], k: torch.Tensor, phi: torch.Tensor, re) -> tuple[torch.Tensor, torch.Tensor]:
+def vortex_substep(
+    i, carry: tuple[torch.Tensor, torch.Tensor], k: torch.Tensor, phi: torch.Tensor, re
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Substep ``i`` of an action: one LSRK4 step of dt = 0.1 with the feedback gain ``k`` and phase ``phi`` ``[B]``
     on ``(state, rate)``; the rate carried in is replaced by the right-hand side of the
     step's last stage (what the published env observes)."""

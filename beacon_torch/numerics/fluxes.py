@@ -78,9 +78,9 @@ def third_derivative(h: torch.Tensor, dx: float) -> torch.Tensor:
     reaching the outlet cell there lets the large pulses of a developed film blow up at
     the outlet; the backward one keeps the outflow stable.)
     """
-    one_sided = (
-        -h[..., 4:] + 6.0 * h[..., 3:-1] - 12.0 * h[..., 2:-2] + 10.0 * h[..., 1:-3] - 3.0 * h[..., :-4]
-    ) / (2.0 * dx**3)
+    one_sided = (-h[..., 4:] + 6.0 * h[..., 3:-1] - 12.0 * h[..., 2:-2] + 10.0 * h[..., 1:-3] - 3.0 * h[..., :-4]) / (
+        2.0 * dx**3
+    )
     # j = n-3, n-2:  h_j, h_{j-1}, h_{j-2}, h_{j-3}
     backward = (h[..., -3:-1] - 3.0 * h[..., -4:-2] + 3.0 * h[..., -5:-3] - h[..., -6:-4]) / dx**3
     return torch.cat((one_sided, backward), -1)

@@ -113,7 +113,11 @@ def _build() -> ctypes.CDLL | None:
         subprocess.run([compiler, *_FLAGS, source, "-o", library], check=True, capture_output=True, timeout=120)
         lib = ctypes.CDLL(library)
     except (OSError, subprocess.SubprocessError) as err:
-        warnings.warn(f"beacon_torch: the C kernels could not be built ({err}); using the slower tensor paths", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"beacon_torch: the C kernels could not be built ({err}); using the slower tensor paths",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         return None
     finally:
         # the loaded library stays mapped after its file is gone
@@ -160,7 +164,12 @@ def takes(*tensors: torch.Tensor) -> bool:
     """Whether the kernels run on these tensors now: CPU tensors of one kernel dtype
     that autograd does not record (the caller has asked :func:`applies` once)."""
     first = tensors[0]
-    return first.device.type == "cpu" and first.dtype in _KERNELS and all(t.dtype == first.dtype for t in tensors) and not recording(*tensors)
+    return (
+        first.device.type == "cpu"
+        and first.dtype in _KERNELS
+        and all(t.dtype == first.dtype for t in tensors)
+        and not recording(*tensors)
+    )
 
 
 def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int, ...]) -> torch.Tensor:
@@ -191,7 +200,9 @@ def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     Only where :func:`applies`; never differentiated."""
     nx, ny, members = a.shape
     if s.shape != (nx + 2, ny + 2, members) or b.shape != a.shape or not (s.dtype == a.dtype == b.dtype):
-        raise ValueError(f"sweep: the field {tuple(s.shape)} and coefficients {tuple(a.shape)}, {tuple(b.shape)} do not fit")
+        raise ValueError(
+            f"sweep: the field {tuple(s.shape)} and coefficients {tuple(a.shape)}, {tuple(b.shape)} do not fit"
+        )
     return _call("sweep", s, a, b, sizes=(nx, ny, members))
 
 
@@ -209,8 +220,16 @@ def lines(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.
     last pivot (a singular mode) gives the solution whose last value is 0. Only where
     :func:`applies`; never differentiated."""
     modes, n, members = f.shape
-    if lower.shape != (modes, n) or inv.shape != (modes, n) or upper.shape != (n,) or not (f.dtype == lower.dtype == inv.dtype == upper.dtype):
-        raise ValueError(f"lines: the field {tuple(f.shape)} and elimination {tuple(lower.shape)}, {tuple(inv.shape)}, {tuple(upper.shape)} do not fit")
+    if (
+        lower.shape != (modes, n)
+        or inv.shape != (modes, n)
+        or upper.shape != (n,)
+        or not (f.dtype == lower.dtype == inv.dtype == upper.dtype)
+    ):
+        raise ValueError(
+            f"lines: the field {tuple(f.shape)} and elimination {tuple(lower.shape)}, "
+            f"{tuple(inv.shape)}, {tuple(upper.shape)} do not fit"
+        )
     return _call("lines", f, lower, inv, upper, sizes=(modes, n, members))
 
 

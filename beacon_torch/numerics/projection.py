@@ -245,7 +245,9 @@ class Ghosts:
         return [0, *range(n), n - 1], [low, *[1.0] * n, high]
 
     @classmethod
-    def cells(cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw) -> Ghosts:
+    def cells(
+        cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw
+    ) -> Ghosts:
         """Cell-centred ``[nx, ny, B]`` to ``[nx + 2, ny + 2, B]``; each wall's factor is
         GRADIENT, VALUE or ZERO. No stencil reads the four corner ghosts; ``corners``
         False leaves them at zero (where a reward averages over the ghosted array, as
@@ -315,8 +317,9 @@ class Cavity:
         self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
         self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
 
-
-    def walls(self, u_bottom=0.0, u_top=0.0, v_left=0.0, v_right=0.0, *, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def walls(
+        self, u_bottom=0.0, u_top=0.0, v_left=0.0, v_right=0.0, *, like: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The ghost offsets of the tangential wall velocities (numbers or ``[B]``):
         ``(u offset [1, ny + 2, B'], v offset [nx + 2, 1, B'])``."""
         return (
@@ -324,7 +327,9 @@ class Cavity:
             edge_offset(self.nx + 2, 0, v_left, v_right, like),
         )
 
-    def predict(self, fields: dict[str, torch.Tensor], walls, nu, dt: float, v_source: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def predict(
+        self, fields: dict[str, torch.Tensor], walls, nu, dt: float, v_source: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """:func:`predict` on the solver's fields, with the wall ghost offsets ``walls``
         (:meth:`walls`; None for walls at rest)."""
         off_u, off_v = walls if walls is not None else (None, None)
@@ -415,7 +420,9 @@ def divergence(u: torch.Tensor, v: torch.Tensor, dx: float, dy: float) -> torch.
     return (u[1:] - u[:-1]) / dx + (v[:, 1:] - v[:, :-1]) / dy
 
 
-def project(u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver, dt: float, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def project(
+    u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver, dt: float, dx: float, dy: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Incremental projection: L phi = div(u*) / dt, u = u* - dt grad phi on the interior
     faces, p += phi (``solver``: :class:`PoissonSolver` or :class:`JacobiSolver`).
 
@@ -474,7 +481,9 @@ class Sweep:
         flat = torch.cat((flat, flat.new_zeros((1, flat.shape[1]))))
         return flat[self.skew]
 
-    def __call__(self, s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float) -> torch.Tensor:
+    def __call__(
+        self, s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float
+    ) -> torch.Tensor:
         """New cell values ``[nx, ny, B]`` of the scalar ``s`` given with its ghosts
         (``[nx + 2, ny + 2, B]``), transported by the face velocities ``u``
         ``[nx + 1, ny, B]`` and ``v`` ``[nx, ny + 1, B]`` over ``dt``."""
@@ -483,7 +492,8 @@ class Sweep:
         kx, ky = kappa / dx**2, kappa / dy**2
         # everything but the new west and south values
         c = sc + dt * (
-            kx * (se - 2.0 * sc) + ky * (sn - 2.0 * sc)
+            kx * (se - 2.0 * sc)
+            + ky * (sn - 2.0 * sc)
             - (ue * 0.5 * (se + sc) - uw * 0.5 * sc) / dx
             - (vn * 0.5 * (sn + sc) - vs * 0.5 * sc) / dy
         )
@@ -556,12 +566,18 @@ class JacobiSolver:
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         if torch.compiler.is_compiling():
-            raise RuntimeError("solver='jacobi' stops on each member's own tolerance and runs eagerly only; use compile=False")
+            raise RuntimeError(
+                "solver='jacobi' stops on each member's own tolerance and runs eagerly only; use compile=False"
+            )
         dx2, dy2 = self.dx**2, self.dy**2
         phi = rhs.new_zeros((self.nx + 2, self.ny + 2, rhs.shape[-1]))
         active = torch.ones(rhs.shape[-1], dtype=torch.bool, device=rhs.device)
         while True:
-            inner = 0.5 * ((phi[2:, 1:-1] + phi[:-2, 1:-1]) * dy2 + (phi[1:-1, 2:] + phi[1:-1, :-2]) * dx2 - rhs * dx2 * dy2) / (dx2 + dy2)
+            inner = (
+                0.5
+                * ((phi[2:, 1:-1] + phi[:-2, 1:-1]) * dy2 + (phi[1:-1, 2:] + phi[1:-1, :-2]) * dx2 - rhs * dx2 * dy2)
+                / (dx2 + dy2)
+            )
             new = self._ghosted(inner)
             err = ((new - phi) ** 2).sum((0, 1))
             phi = torch.where(active, new, phi)

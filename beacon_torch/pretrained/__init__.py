@@ -97,13 +97,25 @@ def _read(path: Path, env_id: str | None = None) -> dict:
     try:
         record = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as err:  # a missing, truncated or foreign file
-        raise ValueError(f"{path}: unreadable policy file ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        raise ValueError(
+            f"{path}: unreadable policy file ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
     if not isinstance(record, dict) or not all(k in record for k in ("env", "network", "hidden", "weights")):
         raise ValueError(f"{path}: not a policy file (it needs 'env', 'network', 'hidden' and 'weights')")
-    if not all(isinstance(record[k], str) for k in ("env", "network")) or record["env"] not in ENVS or record["network"] not in networks.NETWORKS:
+    if (
+        not all(isinstance(record[k], str) for k in ("env", "network"))
+        or record["env"] not in ENVS
+        or record["network"] not in networks.NETWORKS
+    ):
         raise ValueError(f"{path}: unknown env {record['env']!r} or network {record['network']!r}")
-    if not isinstance(record["hidden"], int) or isinstance(record["hidden"], bool) or not 1 <= record["hidden"] <= MAX_HIDDEN:
-        raise ValueError(f"{path}: the network's width must be an integer in [1, {MAX_HIDDEN}], got {record['hidden']!r}")
+    if (
+        not isinstance(record["hidden"], int)
+        or isinstance(record["hidden"], bool)
+        or not 1 <= record["hidden"] <= MAX_HIDDEN
+    ):
+        raise ValueError(
+            f"{path}: the network's width must be an integer in [1, {MAX_HIDDEN}], got {record['hidden']!r}"
+        )
     weights = record["weights"]
     if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
         raise ValueError(f"{path}: 'weights' must be a dict of tensors")
@@ -131,14 +143,19 @@ def load_file(path: str | Path, env_id: str | None = None, *, device="cpu") -> T
     try:
         policy.load_state_dict(record["weights"])
     except RuntimeError as err:
-        raise ValueError(f"{path}: the weights do not fit a {record['network']} of width {record['hidden']} on {env_id} ({str(err).splitlines()[0]})") from None
+        raise ValueError(
+            f"{path}: the weights do not fit a {record['network']} of width {record['hidden']} on "
+            f"{env_id} ({str(err).splitlines()[0]})"
+        ) from None
     n_obs = networks.n_observations(env)
     first = _first_layer(policy, n_obs)
 
     def check(module, args):
         # a policy given another env's observations: say so, not a matrix shape error
         if args and isinstance(args[0], torch.Tensor) and args[0].shape[-1] != n_obs:
-            raise ValueError(f"this policy was trained on {env_id} ({n_obs} observations); it was given {args[0].shape[-1]}")
+            raise ValueError(
+                f"this policy was trained on {env_id} ({n_obs} observations); it was given {args[0].shape[-1]}"
+            )
 
     first.register_forward_pre_hook(check)
     return policy.to(device).eval()

@@ -22,7 +22,16 @@ def sibling(key: str | tuple[str, ...], name: str) -> str | tuple[str, ...]:
     return (*key[:-1], name) if isinstance(key, tuple) else name
 
 
-def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: dict | None = None, norm_steps: int = NORM_STEPS, **env_kwargs) -> TransformedEnv:
+def make_env(
+    env_id: str,
+    num_envs: int,
+    *,
+    device="cpu",
+    seed: int = 0,
+    norm: dict | None = None,
+    norm_steps: int = NORM_STEPS,
+    **env_kwargs,
+) -> TransformedEnv:
     """The batched env with observation normalisation and episode returns; the
     statistics come from ``norm`` (a saved ``ObservationNorm`` state) or else from a
     rollout of ``norm_steps`` random actions (0: none, the identity, the raw
@@ -34,12 +43,21 @@ def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: d
     obs, reward = base.observation_key, base.reward_key
     if norm is None and norm_steps == 0:
         n_obs = base.observation_spec[obs].shape[-1]
-        norm = {"loc": torch.zeros(n_obs, dtype=base.dtype, device=device), "scale": torch.ones(n_obs, dtype=base.dtype, device=device)}
+        norm = {
+            "loc": torch.zeros(n_obs, dtype=base.dtype, device=device),
+            "scale": torch.ones(n_obs, dtype=base.dtype, device=device),
+        }
     loc, scale = (norm["loc"], norm["scale"]) if norm is not None else (None, None)
-    transforms = [ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True), RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")])]
+    transforms = [
+        ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True),
+        RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")]),
+    ]
     if not base.discrete:
         # a policy's sample may leave the box: the env gets it clipped, the data keeps it
-        low, high = base.full_action_spec[base.action_key].space.low.unique(), base.full_action_spec[base.action_key].space.high.unique()
+        low, high = (
+            base.full_action_spec[base.action_key].space.low.unique(),
+            base.full_action_spec[base.action_key].space.high.unique(),
+        )
         transforms.append(ClipTransform(in_keys_inv=[base.action_key], low=low.item(), high=high.item()))
     env = TransformedEnv(base, Compose(*transforms))
     if norm is None:
@@ -49,7 +67,17 @@ def make_env(env_id: str, num_envs: int, *, device="cpu", seed: int = 0, norm: d
 
 
 def make_collector(
-    env_id: str, env: TransformedEnv, policy, *, frames_per_batch: int, total_frames: int, collectors: int = 1, ray: str | None = None, seed: int = 0, device="cpu", init_random_frames: int = 0
+    env_id: str,
+    env: TransformedEnv,
+    policy,
+    *,
+    frames_per_batch: int,
+    total_frames: int,
+    collectors: int = 1,
+    ray: str | None = None,
+    seed: int = 0,
+    device="cpu",
+    init_random_frames: int = 0,
 ):
     """A TorchRL collector over the batched ``env``: a ``Collector`` in this process;
     with ``collectors`` > 1 a ``MultiSyncCollector`` of that many processes; with
@@ -68,10 +96,22 @@ def make_collector(
         return Collector(env, policy, **kwargs, **local)
     members = env.batch_size.numel()
     if frames_per_batch % (collectors * members):
-        raise ValueError(f"the collected batch ({frames_per_batch}) must be a multiple of collectors x members ({collectors} x {members})")
+        raise ValueError(
+            f"the collected batch ({frames_per_batch}) must be a multiple of collectors x members "
+            f"({collectors} x {members})"
+        )
     base = env.base_env
     makers = [
-        partial(make_env, env_id, members, device=device, seed=seed + 7919 * (k + 1), norm=env.transform[0].state_dict(), dtype=base.dtype, compile=base.kernels.options or False)
+        partial(
+            make_env,
+            env_id,
+            members,
+            device=device,
+            seed=seed + 7919 * (k + 1),
+            norm=env.transform[0].state_dict(),
+            dtype=base.dtype,
+            compile=base.kernels.options or False,
+        )
         for k in range(collectors)
     ]
     if ray is None:

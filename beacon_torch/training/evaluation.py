@@ -25,7 +25,16 @@ from beacon_torch.training.run import load_checkpoint, read_log, seed_dirs
 EVAL_SEED = 12345
 
 
-def evaluate_policy(env_id: str, policy, *, norm: dict | None = None, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED) -> dict:
+def evaluate_policy(
+    env_id: str,
+    policy,
+    *,
+    norm: dict | None = None,
+    members: int = 8,
+    device="cpu",
+    gif: str | Path | None = None,
+    seed: int = EVAL_SEED,
+) -> dict:
     """``policy``, deterministic, on ``members`` episodes of ``env_id`` (seeded by
     ``seed``) whose observations are normalised by ``norm`` (an ``ObservationNorm``
     state; None: raw), next to the uncontrolled score of the same episodes; ``gif``: an
@@ -41,7 +50,9 @@ def evaluate_policy(env_id: str, policy, *, norm: dict | None = None, members: i
             frames.append(base.render())
 
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        rollout = env.rollout(base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab)
+        rollout = env.rollout(
+            base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab
+        )
     controlled = evaluate.scores(rollout)
     ref = beacon_torch.make(env_id, members, device=device, seed=seed)  # the same episodes
     uncontrolled = evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref)))
@@ -59,14 +70,18 @@ def evaluate_policy(env_id: str, policy, *, norm: dict | None = None, members: i
     return out
 
 
-def evaluate_run(run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED) -> dict:
+def evaluate_run(
+    run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED
+) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
     device = _as_device(device)  # before the policy is moved there
     state = load_checkpoint(run)
     env = make_env(state["env"], 1, norm=state["obs_norm"])
     actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
     actor.load_state_dict(state["modules"]["actor"])
-    result = evaluate_policy(state["env"], actor, norm=state["obs_norm"], members=members, device=device, gif=gif, seed=seed)
+    result = evaluate_policy(
+        state["env"], actor, norm=state["obs_norm"], members=members, device=device, gif=gif, seed=seed
+    )
     return {**result, "frames": state["frames"]}
 
 
@@ -109,7 +124,13 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
         # one episode where the physics is deterministic, else the mean of 16
         members = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
         ref = beacon_torch.make(env_id, members, seed=0)
-        ax.axhline(evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref))).mean().item(), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled (float32)")
+        ax.axhline(
+            evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref))).mean().item(),
+            color="k",
+            ls="--",
+            lw=1,
+            label=f"{env_id} uncontrolled (float32)",
+        )
     ax.set_xlabel("transitions")
     ax.set_ylabel(name.replace("_", " "))
     ax.set_title(", ".join(sorted(envs)))
@@ -166,7 +187,8 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
     }
     write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
-        f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail {summary['train_mean']:.4g} "
+        f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail "
+        f"{summary['train_mean']:.4g} "
         f"over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed"
     )
     return summary

@@ -100,11 +100,19 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
         net = nn.Sequential(*trunk, nn.Linear(hidden, env.base_env.n_actions))
         net = initialised(net, last_linear(net))
         module = TensorDictModule(net, in_keys=[keys.obs], out_keys=["logits"])
-        return ProbabilisticActor(module, in_keys=["logits"], distribution_class=torch.distributions.Categorical, return_log_prob=True, spec=env.action_spec)
+        return ProbabilisticActor(
+            module,
+            in_keys=["logits"],
+            distribution_class=torch.distributions.Categorical,
+            return_log_prob=True,
+            spec=env.action_spec,
+        )
     params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
     n_act = env.full_action_spec[keys.action].shape[-1]
     heads = Heads(n_obs, hidden, n_act)
-    module = TensorDictModule(initialised(heads, last_linear(heads.mean), last_linear(heads.spread)), in_keys=[keys.obs], out_keys=params)
+    module = TensorDictModule(
+        initialised(heads, last_linear(heads.mean), last_linear(heads.spread)), in_keys=[keys.obs], out_keys=params
+    )
     # as the paper's agent: a normal sample, clipped to the box by the env's transform
     # (env.make_env) while the loss sees the sample itself; not a tanh-squashed
     # distribution, whose vanishing gradient at the bounds traps "no control" policies
@@ -122,7 +130,9 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
 def state_value(env: TransformedEnv, hidden: int) -> ValueOperator:
     """The paper's PPO critic: two ReLU layers."""
     keys = Keys.of(env)
-    net = nn.Sequential(nn.Linear(n_observations(env), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+    net = nn.Sequential(
+        nn.Linear(n_observations(env), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)
+    )
     return ValueOperator(initialised(net, last_linear(net)), in_keys=[keys.obs], out_keys=[keys.value])
 
 
@@ -137,7 +147,12 @@ def deterministic_actor(env: TransformedEnv, hidden: int, paper_init: bool = Tru
     action box. ``paper_init`` False keeps torch's default initialisation (gradient-based
     control, whose first updates need a gradient through every layer)."""
     low, high = action_bounds(env)
-    net = MLP(in_features=n_observations(env), out_features=env.action_spec.shape[-1], num_cells=[hidden, hidden], activation_class=nn.ReLU)
+    net = MLP(
+        in_features=n_observations(env),
+        out_features=env.action_spec.shape[-1],
+        num_cells=[hidden, hidden],
+        activation_class=nn.ReLU,
+    )
     if paper_init:
         initialised(net, last_linear(net))
     return TensorDictSequential(
@@ -155,12 +170,21 @@ def action_value(env: TransformedEnv, hidden: int) -> ValueOperator:
 
 def qvalue_actor(env: TransformedEnv, hidden: int) -> QValueActor:
     """DQN's policy: the values of every discrete action; the greedy one is played."""
-    net = MLP(in_features=n_observations(env), out_features=env.base_env.n_actions, num_cells=[hidden, hidden], activation_class=nn.ReLU)
+    net = MLP(
+        in_features=n_observations(env),
+        out_features=env.base_env.n_actions,
+        num_cells=[hidden, hidden],
+        activation_class=nn.ReLU,
+    )
     return QValueActor(initialised(net, last_linear(net)), in_keys=["observation"], action_space="categorical")
 
 
 # the policies a checkpoint can hold, by the name it records
-NETWORKS = {"stochastic_actor": stochastic_actor, "deterministic_actor": deterministic_actor, "qvalue_actor": qvalue_actor}
+NETWORKS = {
+    "stochastic_actor": stochastic_actor,
+    "deterministic_actor": deterministic_actor,
+    "qvalue_actor": qvalue_actor,
+}
 
 
 def policy(env: TransformedEnv, network: str, hidden: int) -> TensorDictModule:

@@ -95,7 +95,11 @@ def check_summary(summary, file: str | Path) -> dict:
     if not isinstance(summary.get("algo"), str):
         raise bad("no algorithm")
     seeds = summary.get("seeds")
-    if not isinstance(seeds, list) or not seeds or not all(isinstance(s, dict) and finite(s.get("eval")) for s in seeds):
+    if (
+        not isinstance(seeds, list)
+        or not seeds
+        or not all(isinstance(s, dict) and finite(s.get("eval")) for s in seeds)
+    ):
         raise bad("'seeds' must list at least one seed, each with a finite 'eval' score")
     for key in ("uncontrolled", "frames", "wall_s_per_seed"):
         if not finite(summary.get(key)) or summary[key] < 0 and key != "uncontrolled":
@@ -134,13 +138,15 @@ def summaries(run_dirs) -> list[dict]:
 
 def table(rows: list[dict]) -> str:
     lines = [
-        "| env | algorithm | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | uncontrolled | paper's PPO (= 1) | transitions | wall time per seed |",
+        "| env | algorithm | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | "
+        "uncontrolled | paper's PPO (= 1) | transitions | wall time per seed |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: (r["algo"], r["env"])):
         per_seed = ", ".join(f"{s:.4g}" for s in r["scores"])
         lines.append(
-            f"| {r['env']} | {r['algo']} | {r['seeds']} | **{r['iqm']:.2f}** [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}] | {r['score_iqm']:.4g} ({per_seed}) "
+            f"| {r['env']} | {r['algo']} | {r['seeds']} | **{r['iqm']:.2f}** [{r['ci'][0]:.2f}, "
+            f"{r['ci'][1]:.2f}] | {r['score_iqm']:.4g} ({per_seed}) "
             f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
         )
     return "\n".join(lines)
@@ -158,7 +164,9 @@ def figure(rows: list[dict], path: str | Path) -> Path:
     algos = sorted({r["algo"] for r in rows})
     for k, r in enumerate(rows):
         color = f"C{algos.index(r['algo'])}"
-        ax.errorbar(r["iqm"], k, xerr=[[r["iqm"] - r["ci"][0]], [r["ci"][1] - r["iqm"]]], fmt="o", color=color, capsize=3)
+        ax.errorbar(
+            r["iqm"], k, xerr=[[r["iqm"] - r["ci"][0]], [r["ci"][1] - r["iqm"]]], fmt="o", color=color, capsize=3
+        )
         ax.scatter(r["normalised"], [k] * len(r["normalised"]), s=8, color=color, alpha=0.4)
     ax.axvline(0.0, color="k", ls="--", lw=1, label="uncontrolled")
     ax.axvline(1.0, color="k", ls=":", lw=1, label="the paper's PPO")

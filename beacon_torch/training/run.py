@@ -92,6 +92,7 @@ def check_checkpoint(state, path: str | Path) -> None:
     """Refuse a checkpoint that is not what :meth:`Run.save` writes: known env,
     algorithm and policy network, counts and sizes of the right type and range, the
     observation statistics and module states as tensors, every weight finite."""
+
     def bad(what: str):
         return BadRun(f"{path}: not a checkpoint of a run ({what})")
 
@@ -111,15 +112,26 @@ def check_checkpoint(state, path: str | Path) -> None:
     if not isinstance(state["config"], dict) or not all(isinstance(k, str) for k in state["config"]):
         raise bad("'config' must be a dict of settings")
     policy = state["policy"]
-    if not isinstance(policy, dict) or not isinstance(policy.get("network"), str) or policy["network"] not in NETWORKS or not _number(policy.get("hidden"), 1, MAX_HIDDEN):
-        raise bad(f"'policy' must name a network of {sorted(NETWORKS)} and a width in [1, {MAX_HIDDEN}], got {policy!r}")
+    if (
+        not isinstance(policy, dict)
+        or not isinstance(policy.get("network"), str)
+        or policy["network"] not in NETWORKS
+        or not _number(policy.get("hidden"), 1, MAX_HIDDEN)
+    ):
+        raise bad(
+            f"'policy' must name a network of {sorted(NETWORKS)} and a width in [1, {MAX_HIDDEN}], got {policy!r}"
+        )
     norm = state["obs_norm"]
     if not isinstance(norm, dict) or not all(isinstance(norm.get(k), torch.Tensor) for k in ("loc", "scale")):
         raise bad("'obs_norm' must hold the tensors 'loc' and 'scale'")
     if not _finite_tensors(norm) or not bool((norm["scale"] > 0).all()):
         raise bad("the observation statistics must be finite with a positive scale")
     modules = state["modules"]
-    if not isinstance(modules, dict) or not isinstance(modules.get("actor"), dict) or not all(isinstance(m, dict) for m in modules.values()):
+    if (
+        not isinstance(modules, dict)
+        or not isinstance(modules.get("actor"), dict)
+        or not all(isinstance(m, dict) for m in modules.values())
+    ):
         raise bad("'modules' must hold the state of each module, 'actor' among them")
     if not _finite_tensors(modules):
         raise bad("non-finite weights")
@@ -127,7 +139,11 @@ def check_checkpoint(state, path: str | Path) -> None:
     total = config.get("frames")
     if _number(total):
         # a run stops at its total, past it by less than one collected batch
-        horizon = config.get("horizon", 0) * config.get("num_envs", 0) if _number(config.get("horizon")) and _number(config.get("num_envs")) else 0
+        horizon = (
+            config.get("horizon", 0) * config.get("num_envs", 0)
+            if _number(config.get("horizon")) and _number(config.get("num_envs"))
+            else 0
+        )
         sizes = [config.get("n_rollout"), config.get("frames_per_batch"), horizon]
         slack = max(v for v in sizes if _number(v)) if any(_number(v) for v in sizes) else 0
         if state["frames"] > total + slack:
@@ -142,7 +158,10 @@ def check_checkpoint(state, path: str | Path) -> None:
         files_ = counters.get("buffer_files")
         if not _number(counters.get("buffer_capacity"), 1) or counters["buffer_len"] > counters["buffer_capacity"]:
             raise bad("the replay buffer's capacity must be a positive integer of at least its length")
-        if not isinstance(files_, dict) or not all(isinstance(k, str) and ".." not in Path(k).parts and not Path(k).is_absolute() and _number(v) for k, v in files_.items()):
+        if not isinstance(files_, dict) or not all(
+            isinstance(k, str) and ".." not in Path(k).parts and not Path(k).is_absolute() and _number(v)
+            for k, v in files_.items()
+        ):
             raise bad("'buffer_files' must map file names inside the buffer to their sizes")
 
 
@@ -162,7 +181,11 @@ def holds_run(folder: str | Path, algo: str) -> str:
     """What in ``folder`` belongs to a run ("" when nothing does): its checkpoint,
     its logs, its replay buffer or its curve."""
     folder = Path(folder)
-    found = [name for name in (CHECKPOINT, algo, "buffer", "buffer.old", "learning_curve.png") if (folder / name).exists() or (folder / name).is_symlink()]
+    found = [
+        name
+        for name in (CHECKPOINT, algo, "buffer", "buffer.old", "learning_curve.png")
+        if (folder / name).exists() or (folder / name).is_symlink()
+    ]
     return ", ".join(found)
 
 
@@ -178,7 +201,10 @@ def read_log(file: str | Path) -> list[tuple[float, float]]:
                 except ValueError:
                     step = None
                 if step is None or not (math.isfinite(step) and step >= 0 and step.is_integer()):
-                    raise BadRun(f"{file}, line {number}: not a log line of a run (a step and a value), got {','.join(row)[:60]!r}")
+                    raise BadRun(
+                        f"{file}, line {number}: not a log line of a run (a step and a value), got "
+                        f"{','.join(row)[:60]!r}"
+                    )
                 rows.append((step, value))
     except (UnicodeDecodeError, csv.Error) as err:
         raise BadRun(f"{file}: not a log of a run ({type(err).__name__})") from None
@@ -198,7 +224,11 @@ def _transition_bytes(buffer) -> float:
     """Bytes a transition of ``buffer`` takes on disk (0 while it is empty)."""
     if len(buffer) == 0:
         return 0.0
-    return sum(t.element_size() * t[0].numel() for t in buffer.storage._storage.values(True, True) if isinstance(t, torch.Tensor))
+    return sum(
+        t.element_size() * t[0].numel()
+        for t in buffer.storage._storage.values(True, True)
+        if isinstance(t, torch.Tensor)
+    )
 
 
 def tensorboard_installed() -> bool:
@@ -282,7 +312,9 @@ class Run:
         found = holds_run(self.out, self.algo)
         if not resume:
             if found:
-                raise FileExistsError(f"{self.out} holds a run ({found}); continue it with --resume, or give a new --out")
+                raise FileExistsError(
+                    f"{self.out} holds a run ({found}); continue it with --resume, or give a new --out"
+                )
             return
         if not self.path.is_file():
             if not found:
@@ -292,7 +324,9 @@ class Run:
             return
         self.state = load_checkpoint(self.out)
         if self.state["env"] != self.env_id or self.state["algo"] != self.algo:
-            raise BadRun(f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {self.algo} on {self.env_id}")
+            raise BadRun(
+                f"{self.out} holds a {self.state['algo']} run on {self.state['env']}, not {self.algo} on {self.env_id}"
+            )
         files.remove_partials(self.out)
         self._trim_logs(self.state["frames"])
 
@@ -312,7 +346,16 @@ class Run:
         ``checkpoint_every``, recorded whole with the checkpoints."""
         s = settings
         return cls(
-            s.out, s.env, s.algo, s.frames, seed=s.seed, settings=dataclasses.asdict(s), resume=s.resume, progress=s.progress, tensorboard=s.tensorboard, checkpoint_every=s.checkpoint_every
+            s.out,
+            s.env,
+            s.algo,
+            s.frames,
+            seed=s.seed,
+            settings=dataclasses.asdict(s),
+            resume=s.resume,
+            progress=s.progress,
+            tensorboard=s.tensorboard,
+            checkpoint_every=s.checkpoint_every,
         )
 
     @property
@@ -337,25 +380,41 @@ class Run:
         if not folder.exists() and (self.out / "buffer.old").exists():
             folder = self.out / "buffer.old"  # a stop between the two renames of a swap
         if not folder.exists():
-            raise FileNotFoundError(f"{self.out}: the checkpoint refers to a replay buffer of {self.counters['buffer_len']} transitions, and there is none")
+            raise FileNotFoundError(
+                f"{self.out}: the checkpoint refers to a replay buffer of "
+                f"{self.counters['buffer_len']} transitions, and there is none"
+            )
         for name, size in self.counters.get("buffer_files", {}).items():
             file = folder / name
             if not file.is_file() or file.stat().st_size != size:
                 found = file.stat().st_size if file.is_file() else "no"
-                raise ValueError(f"{folder}: the replay buffer is damaged ({name}: {found} bytes, {size} when saved); resume from a copy of the run or start it again")
+                raise ValueError(
+                    f"{folder}: the replay buffer is damaged ({name}: {found} bytes, {size} when "
+                    f"saved); resume from a copy of the run or start it again"
+                )
         if any(folder.rglob("*.pkl")):
             # TorchRL unpickles these when it loads a buffer: code could run
-            raise ValueError(f"{folder}: a replay buffer folder with pickle files is refused (loading it could run code); ours hold tensors and JSON only")
+            raise ValueError(
+                f"{folder}: a replay buffer folder with pickle files is refused (loading it could "
+                f"run code); ours hold tensors and JSON only"
+            )
         # the transitions the checkpoint counted, oldest first (the buffer may hold more:
         # a stop between its save and the checkpoint's), into a buffer of the resumed size
-        saved = type(buffer)(storage=type(buffer.storage)(self.counters["buffer_capacity"], device=buffer.storage.device))
+        saved = type(buffer)(
+            storage=type(buffer.storage)(self.counters["buffer_capacity"], device=buffer.storage.device)
+        )
         try:
             saved.loads(folder)
         except Exception as err:  # a tampered or foreign buffer: TorchRL's own errors name no file
-            raise BadRun(f"{folder}: unreadable replay buffer ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); resume from a copy of the run or start it again") from None
+            raise BadRun(
+                f"{folder}: unreadable replay buffer ({type(err).__name__}: "
+                f"{str(err).splitlines()[0] if str(err) else ''}); resume from a copy of the run or start it again"
+            ) from None
         n = self.counters["buffer_len"]
         if len(saved) < n:
-            raise ValueError(f"{folder}: the replay buffer holds {len(saved)} transitions, the checkpoint counted {n}: it is damaged")
+            raise ValueError(
+                f"{folder}: the replay buffer holds {len(saved)} transitions, the checkpoint counted {n}: it is damaged"
+            )
         if n:
             buffer.extend(saved[max(0, n - buffer.storage.max_size) : n])
 
@@ -369,7 +428,10 @@ class Run:
         if bad:
             # the networks are no longer usable: stop before the next checkpoint
             what = ", ".join(f"{k} = {v}" for k, v in bad.items())
-            raise Diverged(f"{self.out}: training diverged after {self.frames:,} transitions ({what}); its last checkpoint is kept. Lower the learning rate")
+            raise Diverged(
+                f"{self.out}: training diverged after {self.frames:,} transitions ({what}); its "
+                f"last checkpoint is kept. Lower the learning rate"
+            )
         self.frames += collected
         self.rounds += 1
         self.last = {"frames": self.frames, **values}
@@ -403,7 +465,10 @@ class Run:
             "modules": {"actor": actor.state_dict(), **{name: m.state_dict() for name, m in modules.items()}},
         }
         if not _finite_tensors(state["modules"]):
-            raise Diverged(f"{self.out}: training diverged after {self.frames:,} transitions (non-finite weights); its last checkpoint is kept. Lower the learning rate")
+            raise Diverged(
+                f"{self.out}: training diverged after {self.frames:,} transitions (non-finite "
+                f"weights); its last checkpoint is kept. Lower the learning rate"
+            )
         files.replace_file(self.path, lambda tmp: torch.save(state, tmp))
         shutil.rmtree(self.out / "buffer.old", ignore_errors=True)
 
@@ -415,7 +480,10 @@ class Run:
         # process with SIGBUS, so the space is checked first (with room for the swap)
         need, free = int(buffer.storage.max_size * _transition_bytes(buffer)), files.free_bytes(self.out)
         if need > free:
-            raise OSError(f"{self.out}: no room to save the replay buffer ({need / 2**20:,.0f} MiB needed, {free / 2**20:,.0f} MiB free); free some space and resume")
+            raise OSError(
+                f"{self.out}: no room to save the replay buffer ({need / 2**20:,.0f} MiB needed, "
+                f"{free / 2**20:,.0f} MiB free); free some space and resume"
+            )
         new = files.new_folder(self.out, "buffer.partial")
         buffer.dumps(new)
         # the state of TorchRL's prefetching, unused here, is its one pickle: not kept, so
@@ -424,7 +492,9 @@ class Run:
             file.unlink()
         # the size of every file, which a resume checks (a truncated file is never read
         # as zeros); a buffer's files have the size of its capacity, however full
-        self.counters["buffer_files"] = {str(f.relative_to(new)): f.stat().st_size for f in sorted(new.rglob("*")) if f.is_file()}
+        self.counters["buffer_files"] = {
+            str(f.relative_to(new)): f.stat().st_size for f in sorted(new.rglob("*")) if f.is_file()
+        }
         if current.exists():
             shutil.rmtree(old, ignore_errors=True)
             os.replace(current, old)
