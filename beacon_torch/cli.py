@@ -31,7 +31,7 @@ import torch
 from beacon_torch import evaluate
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
-from beacon_torch.params import describe
+from beacon_torch.params import describe, parse_assignments
 from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make
 
 
@@ -39,25 +39,11 @@ class CliError(Exception):
     """An error of the user's arguments: reported as one line, no traceback."""
 
 
-def _parse_value(text: str) -> Any:
-    for cast in (int, float, complex):
-        try:
-            return cast(text.replace(" ", ""))
-        except ValueError:
-            pass
-    if "," in text:
-        return [_parse_value(t) for t in text.split(",")]
-    return text
-
-
 def _parse_params(items: Sequence[str]) -> dict[str, Any]:
-    params = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise CliError(f"--param expects NAME=VALUE, got {item!r}")
-        params[name.strip()] = _parse_value(value.strip())
-    return params
+    try:
+        return parse_assignments(items)
+    except ValueError as err:
+        raise CliError(str(err)) from None
 
 
 def cmd_list(args: argparse.Namespace) -> int:
@@ -200,8 +186,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
             raise CliError(f"--pretrained expects ALGO/ENV (e.g. ppo/burgers-v0), got {args.pretrained!r}")
         policy = pretrained.load(algo, env_id, device=args.device)
         gif = None if args.no_gif else Path(args.out or ".") / f"{algo}-{env_id}.gif"
-        r = evaluate_policy(env_id, policy, members=args.members, device=args.device, gif=gif)
-        trained = f"trained on {pretrained.info(algo, env_id)['frames']} transitions"
+        record = pretrained.info(algo, env_id)
+        params = record.get("params", {})  # the physics it was trained on
+        r = evaluate_policy(env_id, policy, members=args.members, device=args.device, gif=gif, params=params)
+        trained = f"trained on {record['frames']} transitions"
         runs = [(f"pretrained {algo}", r, trained)]
     else:
         runs = []

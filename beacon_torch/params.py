@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -238,3 +239,41 @@ def resolve_params(
         value = overrides.get(name, f.default)
         values[name] = _check_value(name, value, f.metadata, batch_size, device, dtype)
     return params_cls(**values)
+
+
+def parse_value(text: str) -> Any:
+    """A parameter's value as written on a command line: an integer, a real or a complex
+    number, a comma-separated list of them (one per member), or else a string."""
+    for cast in (int, float, complex):
+        try:
+            return cast(text.replace(" ", ""))
+        except ValueError:
+            pass
+    if "," in text:
+        return [parse_value(t) for t in text.split(",")]
+    return text
+
+
+def parse_assignments(items: Sequence[str]) -> dict[str, Any]:
+    """``["re=80", "amp=5"]`` (the ``--param NAME=VALUE`` options of the command line and
+    the recipes) as ``{"re": 80, "amp": 5}``."""
+    params = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ValueError(f"--param expects NAME=VALUE, got {item!r}")
+        params[name.strip()] = parse_value(value.strip())
+    return params
+
+
+def check_params(env_class: type, params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` if they are parameters of ``env_class`` with admissible values (a
+    clear error naming the parameter otherwise), for settings that build the env later."""
+    if not isinstance(params, dict) or not all(isinstance(k, str) for k in params):
+        raise TypeError(f"env parameters must be a dict of names to values, got {params!r}")
+    members = max([len(v) for v in params.values() if isinstance(v, (list, tuple))], default=1)
+    cpu = torch.device("cpu")
+    resolve_params(
+        env_class.Params, params, batch_size=members, device=cpu, dtype=torch.float64, env_id=env_class.env_id
+    )
+    return params

@@ -19,6 +19,7 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.base import _as_device
+from beacon_torch.params import check_params, parse_assignments
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
@@ -94,6 +95,12 @@ class Config:
     in_process: ClassVar[bool] = False
 
     env: str = setting("", "environment id (beacon-torch list)")
+    # the env's physical parameters (beacon-torch list), recorded with the checkpoints,
+    # so that evaluations and exported policies rebuild the env that was trained
+    params: dict = field(
+        default_factory=dict,
+        metadata={"help": "an env parameter as NAME=VALUE (repeatable)", "choices": (), "domain": None},
+    )
     seed: int = setting(0, "seed of the networks, the env and the collection")
     frames: int = setting(200_000, "total transitions")
     num_envs: int = setting(8, "members of the batched env collecting together")
@@ -276,6 +283,8 @@ def _typed(name: str, kind: str, value):
         return float(value)
     elif kind == "str" and isinstance(value, str):
         return value
+    elif kind == "dict" and isinstance(value, dict) and all(isinstance(k, str) for k in value):
+        return dict(value)
     raise ValueError(f"setting '{name}' must be of type {kind}, got {value!r}")
 
 
@@ -316,6 +325,10 @@ def _check(cfg: Config) -> Config:
                 f"got {getattr(cfg, f.name)!r}"
             )
     env = beacon_torch.registry.env_class(cfg.env)
+    try:
+        check_params(env, cfg.params)
+    except TypeError as err:
+        raise ValueError(f"setting 'params': {err}") from None
     _as_device(cfg.device)
     if cfg.actions == "continuous" and env.discrete:
         raise ValueError(f"{cfg.algo} needs continuous actions; {cfg.env} has discrete ones (use ppo or dqn)")
@@ -397,6 +410,8 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
         helptext = f.metadata.get("help", "")
         if f.name == "env":
             parser.add_argument(flag, required=True, help=helptext)
+        elif f.name == "params":
+            parser.add_argument("--param", dest="params", action="append", metavar="NAME=VALUE", help=helptext)
         elif f.type == "bool":
             parser.add_argument(
                 flag,
@@ -418,8 +433,10 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
     args = vars(parser.parse_args(argv))
     env_id = args.pop("env")
     try:
+        if args["params"] is not None:
+            args["params"] = parse_assignments(args["params"])
         return configure(cls, env_id, **{k: v for k, v in args.items() if v is not None})
-    except (ValueError, KeyError) as err:
+    except (ValueError, KeyError, TypeError) as err:
         parser.error(str(err))
 
 

@@ -36,6 +36,7 @@ def main(cfg: DQNConfig) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
+        **cfg.params,
     )
 
     # the action values (the greedy policy), the DQN loss with its target network
@@ -75,6 +76,7 @@ def main(cfg: DQNConfig) -> dict:
         ray=cfg.ray or None,
         seed=cfg.seed,
         device=cfg.device,
+        params=cfg.params,
     )
 
     for data in collector:

@@ -41,6 +41,7 @@ def main(cfg: PPOConfig) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
+        **cfg.params,
     )
     keys = networks.Keys.of(env)
 
@@ -93,6 +94,7 @@ def main(cfg: PPOConfig) -> dict:
         ray=cfg.ray or None,
         seed=cfg.seed,
         device=cfg.device,
+        params=cfg.params,
     )
     buffer = ReplayBuffer(
         storage=LazyTensorStorage(cfg.n_rollout, device=cfg.device),

@@ -58,6 +58,7 @@ def main(cfg: TD3Config) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
+        **cfg.params,
     )
 
     # a deterministic actor, twin critics (inside the loss) and their optimisers
@@ -121,6 +122,7 @@ def main(cfg: TD3Config) -> dict:
         ray=cfg.ray or None,
         seed=cfg.seed,
         device=cfg.device,
+        params=cfg.params,
     )
 
     for data in collector:

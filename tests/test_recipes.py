@@ -754,3 +754,40 @@ def test_a_replay_buffer_carrying_a_pickle_is_refused_unrun(tmp_path):
     with pytest.raises(ValueError, match="pickle files is refused"):
         td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
     assert not (tmp_path / "pwned").exists()
+
+
+def test_the_env_parameters_a_run_trains_on_are_settings_recorded_with_it(tmp_path):
+    """``--param NAME=VALUE`` (every recipe, as on the command line) builds the env with
+    those physics; the checkpoint records them, so that its evaluation and its exported
+    policy rebuild the env that was trained, and a resume with others is refused."""
+    from beacon_torch import pretrained
+    from beacon_torch.training.run import load_checkpoint
+
+    cfg = parse(PPOConfig, ["--env", "vortex-v0", "--param", "re=60", "--param", "w=40"])
+    assert cfg.params == {"re": 60, "w": 40} and configure(PPOConfig, "vortex-v0").params == {}
+    with pytest.raises(ValueError, match="unknown parameter 'viscosity' of vortex-v0"):
+        configure(PPOConfig, "vortex-v0", params={"viscosity": 1.0})
+    with pytest.raises(ValueError, match="'re'"):
+        configure(PPOConfig, "vortex-v0", params={"re": -5.0})
+    with pytest.raises(SystemExit):
+        parse(PPOConfig, ["--env", "vortex-v0", "--param", "re"])  # not NAME=VALUE
+
+    out = tmp_path / "run"
+    tiny = dict(frames=200, n_rollout=200, num_envs=4, epochs=1, progress=False, compile=False, out=str(out))
+    ppo.main(configure(PPOConfig, "vortex-v0", params={"re": 60.0}, **tiny))
+    assert load_checkpoint(out)["config"]["params"] == {"re": 60.0}
+    # its evaluation's uncontrolled episodes are those of the physics it was trained on
+    from beacon_torch import evaluate
+    from beacon_torch.training.evaluation import EVAL_SEED
+
+    result = evaluate_run(out, members=2)
+    uncontrolled = {}
+    for re in (60.0, 50.0):
+        env = beacon_torch.make("vortex-v0", 2, seed=EVAL_SEED, re=re)
+        uncontrolled[re] = evaluate.scores(evaluate.episode(env, evaluate.null_policy(env))).mean().item()
+    assert result["uncontrolled"] == pytest.approx(uncontrolled[60.0]) and uncontrolled[60.0] != uncontrolled[50.0]
+    exported = pretrained.export(out, tmp_path / "policy.pt")
+    assert pretrained._read(exported)["params"] == {"re": 60.0}
+    pretrained.load_file(exported, "vortex-v0")
+    with pytest.raises(ValueError, match="'params'"):
+        configure(PPOConfig, "vortex-v0", params={"re": 70.0}, resume=True, **{**tiny, "frames": 400})

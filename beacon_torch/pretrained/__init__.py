@@ -26,6 +26,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from beacon_torch.files import replace_file
+from beacon_torch.params import check_params
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
@@ -52,7 +53,8 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
     with the observation normalisation folded into the first layer, and ``record``
     (numbers and strings: score, seed, ...) next to it."""
     state = load_checkpoint(run)
-    env = make_env(state["env"], 1, norm_steps=0)
+    params = state["config"].get("params", {})
+    env = make_env(state["env"], 1, norm_steps=0, **params)
     policy = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"])
     policy.load_state_dict(state["modules"]["actor"])
     loc, scale = state["obs_norm"]["loc"].reshape(-1), state["obs_norm"]["scale"].reshape(-1)
@@ -66,6 +68,7 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
         "algo": state["algo"],
         "network": state["policy"]["network"],
         "hidden": state["policy"]["hidden"],
+        "params": params,
         "frames": state["frames"],
         "weights": policy.state_dict(),
         **record,
@@ -123,6 +126,10 @@ def _read(path: Path, env_id: str | None = None) -> dict:
         raise ValueError(f"{path}: the policy has non-finite weights")
     if env_id is not None and record["env"] != env_id:
         raise ValueError(f"{path}: a policy of {record['env']}, not of {env_id}")
+    try:
+        check_params(ENVS[record["env"]], record.get("params", {}))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: its env parameters: {err}") from None
     return record
 
 
@@ -138,7 +145,7 @@ def load_file(path: str | Path, env_id: str | None = None, *, device="cpu") -> T
     path = Path(path)
     record = _read(path, env_id)
     env_id = record["env"]
-    env = make_env(env_id, 1, norm_steps=0)
+    env = make_env(env_id, 1, norm_steps=0, **record.get("params", {}))
     policy = networks.policy(env, record["network"], record["hidden"])
     try:
         policy.load_state_dict(record["weights"])

@@ -78,13 +78,14 @@ def make_collector(
     seed: int = 0,
     device="cpu",
     init_random_frames: int = 0,
+    params: dict | None = None,
 ):
     """A TorchRL collector over the batched ``env``: a ``Collector`` in this process;
     with ``collectors`` > 1 a ``MultiSyncCollector`` of that many processes; with
     ``ray`` (a Ray cluster address, or "local" for a Ray instance on this machine) a
     synchronous ``RayCollector`` of ``collectors`` Ray actors. Each remote collector
-    steps its own batched env of the same size (seeded apart, with ``env``'s observation
-    normalisation), and their batches are stacked into one ``[collectors, members,
+    steps its own batched env of the same size and physical ``params`` (seeded apart,
+    with ``env``'s observation normalisation), and their batches are stacked into one ``[collectors, members,
     time]`` batch."""
     from torchrl.collectors import Collector, MultiSyncCollector
 
@@ -111,6 +112,7 @@ def make_collector(
             norm=env.transform[0].state_dict(),
             dtype=base.dtype,
             compile=base.kernels.options or False,
+            **(params or {}),
         )
         for k in range(collectors)
     ]

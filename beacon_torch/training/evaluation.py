@@ -34,12 +34,16 @@ def evaluate_policy(
     device="cpu",
     gif: str | Path | None = None,
     seed: int = EVAL_SEED,
+    params: dict | None = None,
 ) -> dict:
-    """``policy``, deterministic, on ``members`` episodes of ``env_id`` (seeded by
-    ``seed``) whose observations are normalised by ``norm`` (an ``ObservationNorm``
-    state; None: raw), next to the uncontrolled score of the same episodes; ``gif``: an
-    animation of member 0's episode."""
-    env = make_env(env_id, members, device=device, seed=seed, norm=norm, norm_steps=0, record_history=gif is not None)
+    """``policy``, deterministic, on ``members`` episodes of ``env_id`` with the physical
+    ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
+    ``ObservationNorm`` state; None: raw), next to the uncontrolled score of the same
+    episodes; ``gif``: an animation of member 0's episode."""
+    params = params or {}
+    env = make_env(
+        env_id, members, device=device, seed=seed, norm=norm, norm_steps=0, record_history=gif is not None, **params
+    )
     base = env.base_env
     frames = []
     every = max(1, base.episode_length // 100)
@@ -54,7 +58,7 @@ def evaluate_policy(
             base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab
         )
     controlled = evaluate.scores(rollout)
-    ref = beacon_torch.make(env_id, members, device=device, seed=seed)  # the same episodes
+    ref = beacon_torch.make(env_id, members, device=device, seed=seed, **params)  # the same episodes
     uncontrolled = evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref)))
     out = {
         "env": env_id,
@@ -76,11 +80,12 @@ def evaluate_run(
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
     device = _as_device(device)  # before the policy is moved there
     state = load_checkpoint(run)
-    env = make_env(state["env"], 1, norm=state["obs_norm"])
+    params = state["config"].get("params", {})  # the physics it was trained on
+    env = make_env(state["env"], 1, norm=state["obs_norm"], **params)
     actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
     actor.load_state_dict(state["modules"]["actor"])
     result = evaluate_policy(
-        state["env"], actor, norm=state["obs_norm"], members=members, device=device, gif=gif, seed=seed
+        state["env"], actor, norm=state["obs_norm"], members=members, device=device, gif=gif, seed=seed, params=params
     )
     return {**result, "frames": state["frames"]}
 

@@ -40,6 +40,7 @@ import torch
 from torchrl.record.loggers import CSVLogger
 
 from beacon_torch import files
+from beacon_torch.params import check_params
 from beacon_torch.registry import ENVS
 from beacon_torch.training.env import sibling
 from beacon_torch.training.networks import NETWORKS
@@ -111,6 +112,10 @@ def check_checkpoint(state, path: str | Path) -> None:
         raise bad("'elapsed' and 'seed' must be non-negative numbers")
     if not isinstance(state["config"], dict) or not all(isinstance(k, str) for k in state["config"]):
         raise bad("'config' must be a dict of settings")
+    try:
+        check_params(ENVS[state["env"]], state["config"].get("params", {}))
+    except (TypeError, ValueError) as err:
+        raise bad(f"its env parameters: {err}") from None
     policy = state["policy"]
     if (
         not isinstance(policy, dict)
