@@ -87,11 +87,43 @@ def describe(params_cls: type) -> list[dict[str, Any]]:
     return rows
 
 
+def markdown(params_cls: type) -> str:
+    """The parameters of an env as the Markdown table of its page (docs/envs), written
+    from their declarations, so that the page cannot drift from the code."""
+    rows = ["| name | default | admissible | meaning |", "|---|---|---|---|"]
+    for f in dataclasses.fields(params_cls):
+        m = f.metadata
+        admissible = ", ".join(f'`"{c}"`' for c in m["choices"]) if m["kind"] == "choice" else _range_text(m)
+        if m["kind"] == "int" and m["low"] is not None and m["high"] is not None:
+            admissible = f"{m['low']}..{m['high']}"
+        if not m["per_member"]:
+            admissible += ", one value"
+        rows.append(
+            f"| `{f.name}` | {_default_text(f.default)} | {admissible.replace('|', chr(92) + '|')} | {m['doc']} |"
+        )
+    return "\n".join(rows)
+
+
+def _default_text(value: Any) -> str:
+    if isinstance(value, str):
+        return f'`"{value}"`'
+    if isinstance(value, complex):
+        return f"{_short(value.real)} {'-' if value.imag < 0 else '+'} {_short(abs(value.imag))}i"
+    if isinstance(value, float):
+        return _short(value)
+    return f"`{value}`" if value is None else str(value)
+
+
+def _short(x: float) -> str:
+    """A number as people write it: 1e6 rather than 1e+06."""
+    return f"{x:g}".replace("e+0", "e").replace("e+", "e").replace("e-0", "e-")
+
+
 def _range_text(m) -> str:
     if m["kind"] == "choice":
         return "one of " + ", ".join(repr(c) for c in m["choices"])
-    lo = "-inf" if m["low"] is None else f"{m['low']:g}"
-    hi = "inf" if m["high"] is None else f"{m['high']:g}"
+    lo = "-inf" if m["low"] is None else _short(m["low"])
+    hi = "inf" if m["high"] is None else _short(m["high"])
     left = "(" if (m["low_open"] or m["low"] is None) else "["
     right = ")" if (m["high_open"] or m["high"] is None) else "]"
     text = f"{left}{lo}, {hi}{right}"

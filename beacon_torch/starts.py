@@ -31,7 +31,8 @@ GENERATED = "generated"
 
 def start_param(doc: str):
     """The ``start`` field of a Params dataclass (None: decided by :func:`choose_start`)."""
-    return param(None, kind="choice", choices=(PUBLISHED, GENERATED), doc=doc)
+    auto = "; None: the published one unless a parameter it was made with is changed"
+    return param(None, kind="choice", choices=(PUBLISHED, GENERATED), doc=doc + auto)
 
 
 def _differs(value, default) -> bool:

@@ -29,11 +29,18 @@ N_OBS = 5
 
 @dataclass(frozen=True)
 class BurgersParams:
-    L: float = param(2.0, low=0.1, high=100.0, per_member=False, doc="domain length")
+    L: float = param(2.0, low=0.1, high=100.0, per_member=False, doc="domain length (500 cells at the default)")
     u_target: float = param(0.5, low=0.0, high=10.0, low_open=True, doc="mean inflow and target velocity")
     sigma: float = param(0.1, low=0.0, high=10.0, doc="half-width of the uniform inlet noise")
     amp: float = param(10.0, low=0.0, high=1e8, doc="actuator amplitude (action scaling)")
-    ctrl_pos: float = param(1.0, low=0.0, high=100.0, low_open=True, per_member=False, doc="actuator position x_p")
+    ctrl_pos: float = param(
+        1.0,
+        low=0.0,
+        high=100.0,
+        low_open=True,
+        per_member=False,
+        doc="actuator position x_p (cell int(x_p / dx)), in [0.024, L - 0.008]",
+    )
 
     def __post_init__(self):
         if not (N_OBS + 1) * DX <= self.ctrl_pos <= self.L - 2 * DX:

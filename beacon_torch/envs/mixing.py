@@ -34,17 +34,21 @@ LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.
 
 @dataclass(frozen=True)
 class MixingParams:
-    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length")
+    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length (100 cells per unit)")
     H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
-    re: float = param(100.0, low=1.0, high=1e3, doc="Reynolds number (viscosity 1 / re)")
+    re: float = param(
+        100.0, low=1.0, high=1e3, doc="Reynolds number: viscosity 1 / re and wall speed u_max = 0.01 re / L"
+    )
     pe: float = param(1e4, low=1.0, high=1e8, doc="Peclet number (diffusivity 1 / pe)")
-    side: float = param(0.5, low=0.02, high=4.0, per_member=False, doc="side of the initial square patch")
+    side: float = param(
+        0.5, low=0.02, high=4.0, per_member=False, doc="side of the initial square patch, at most min(L, H)"
+    )
     c0: float = param(1.0, low=0.0, high=1e3, low_open=True, doc="initial concentration in the patch")
     solver: str = param(
         "direct",
         kind="choice",
         choices=("direct", "jacobi"),
-        doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)",
+        doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons; eager only)",
     )
 
     def __post_init__(self):

@@ -44,16 +44,23 @@ PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
 
 @dataclass(frozen=True)
 class RayleighParams:
-    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length")
+    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length (50 cells per unit)")
     H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
-    n_sgts: int = param(10, low=1, high=200, kind="int", per_member=False, doc="number of bottom segments (actions)")
+    n_sgts: int = param(
+        10,
+        low=1,
+        high=200,
+        kind="int",
+        per_member=False,
+        doc="number of bottom segments (actions); divides the cells along L",
+    )
     ra: float = param(1e4, low=1.0, high=1e6, per_member=False, differentiable=True, doc="Rayleigh number")
     start: str = start_param("the published stored roll, or the one of developed_convection()")
     solver: str = param(
         "direct",
         kind="choice",
         choices=("direct", "jacobi"),
-        doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons)",
+        doc="pressure increment: direct solve, or the published Jacobi iterations (exact comparisons; eager only)",
     )
 
     def __post_init__(self):

@@ -68,13 +68,29 @@ class ShkadovParams:
     L0: float = param(
         150.0, low=20.0, high=DEVELOP_LENGTH, per_member=False, doc="domain length before the jets' extension"
     )
-    n_jets: int = param(5, low=1, high=100, kind="int", per_member=False, doc="number of jets")
+    n_jets: int = param(
+        5,
+        low=1,
+        high=100,
+        kind="int",
+        per_member=False,
+        doc="number of jets (the domain, L0 extended by the jets, at most 580 long)",
+    )
     jet_pos: float = param(
-        150.0, low=OBS_LENGTH + 1.0, high=DEVELOP_LENGTH, per_member=False, doc="position of the first jet"
+        150.0,
+        low=OBS_LENGTH + 1.0,
+        high=DEVELOP_LENGTH,
+        per_member=False,
+        doc="position of the first jet (the last jet's reward region inside the domain)",
     )
     jet_space: float = param(10.0, low=2 * JET_HALF_WIDTH, high=100.0, per_member=False, doc="spacing of the jets")
     delta: float = param(
-        0.1, low=0.01, high=10.0, per_member=False, differentiable=True, doc="the film parameter (Re^2 / We)^(1/3) / 15"
+        0.1,
+        low=0.01,
+        high=10.0,
+        per_member=False,
+        differentiable=True,
+        doc="the film parameter delta of the model (inertia against surface tension)",
     )
     amp: float = param(5.0, low=0.0, high=1e8, doc="jet amplitude A (action scaling)")
     random_start: int = param(

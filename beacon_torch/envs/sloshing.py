@@ -42,13 +42,15 @@ H_MIN, H_MAX = -5.0, 2.0  # the published code's blow-up bounds
 
 @dataclass(frozen=True)
 class SloshingParams:
-    L: float = param(2.5, low=0.1, high=50.0, per_member=False, doc="tank length")
+    L: float = param(2.5, low=0.1, high=50.0, per_member=False, doc="tank length (80 cells per unit)")
     amp: float = param(5.0, low=0.0, high=1e6, doc="acceleration amplitude (action scaling)")
     alpha: float = param(5e-4, low=0.0, high=1e3, doc="weight of the actuation in the reward")
     # a g other than the default starts from the published excitation, whose tank stays
     # wet and finite at every length only for g in [5, 12] (measured on a grid of
     # lengths 0.1 to 50)
-    g: float = param(9.81, low=5.0, high=12.0, doc="gravity")
+    # another value starts from the published excitation, which leaves the tank wet and
+    # finite at every length only in this band (measured on lengths 0.1 to 50)
+    g: float = param(9.81, low=5.0, high=12.0, doc="gravity (the band where the published start stays wet and finite)")
     start: str = start_param("the published stored state, or the one of excited_state()")
 
     def __post_init__(self):

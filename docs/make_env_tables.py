@@ -1,0 +1,22 @@
+"""Write the parameter table of every env page from the env's declarations
+(``param(doc=...)``): `.venv/bin/python docs/make_env_tables.py`. The test suite checks
+that the pages are current."""
+
+from pathlib import Path
+
+from beacon_torch.params import markdown
+from beacon_torch.registry import ENVS, base_envs
+from beacon_torch.training.report import write_block
+
+PAGES = Path(__file__).parent / "envs"
+BEGIN = "<!-- parameters: written from the env's declarations by docs/make_env_tables.py -->"
+END = "<!-- end of the parameters -->"
+
+
+def page(env_id: str) -> Path:
+    return PAGES / f"{env_id.split('-')[0]}.md"
+
+
+if __name__ == "__main__":
+    for env_id in base_envs():
+        print(write_block(page(env_id), BEGIN, END, markdown(ENVS[env_id].Params)))
