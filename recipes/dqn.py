@@ -16,10 +16,9 @@ from torchrl.modules import EGreedyModule
 from torchrl.objectives import DQNLoss, HardUpdate
 
 from beacon_torch.training import networks
+from beacon_torch.training.config import DQNConfig, script
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.run import Run, episode_values
-
-from config import DQNConfig, script
 
 
 def main(cfg: DQNConfig) -> dict:

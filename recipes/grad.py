@@ -21,10 +21,9 @@ from __future__ import annotations
 import torch
 
 from beacon_torch.training import networks
+from beacon_torch.training.config import GradConfig, script
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import Run
-
-from config import GradConfig, script
 
 
 def main(cfg: GradConfig) -> dict:

@@ -1,7 +1,7 @@
 """PPO on a BEACON env, from TorchRL's pieces: ``ClipPPOLoss`` with ``GAE``, a
 ``Collector`` over the batched env, a replay buffer for the minibatches, observation
 normalisation (``ObservationNorm``) and episode returns (``RewardSum``) as transforms,
-and TorchRL's loggers. The paper's settings are the defaults (``config.py``).
+and TorchRL's loggers. The paper's settings are the defaults (``beacon_torch.training.config``).
 
     python recipes/ppo.py --env lorenz-v0 --frames 200000 --num-envs 16
     python recipes/ppo.py --env lorenz-v0 --frames 400000 --resume    # continue to 400k
@@ -21,10 +21,9 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from beacon_torch.training import networks
+from beacon_torch.training.config import PPOConfig, script
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.run import Run, episode_values
-
-from config import PPOConfig, script
 
 
 def main(cfg: PPOConfig) -> dict:

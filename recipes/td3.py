@@ -17,10 +17,9 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from beacon_torch.training import networks
+from beacon_torch.training.config import TD3Config, script
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.run import Run, episode_values
-
-from config import TD3Config, script
 
 ACTOR_DELAY = 2  # critic updates per actor update
 ENDS = ("done", "terminated")

@@ -1,4 +1,7 @@
+import functools
+import importlib.util
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -26,6 +29,24 @@ CHEAP_ENVS = [e for e in ALL_ENVS if e not in EXPENSIVE_ENVS]
 # the cheaper settings each env declares for the behaviour tests run on every env (the
 # published numbers are checked with the defaults in test_scores.py)
 FAST = {e: ENVS[e].test_settings for e in ALL_ENVS}
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@functools.cache
+def script(path: str):
+    """A script of the repository (a recipe, the campaign driver) loaded from its file
+    as a module of its own: scripts are run and edited, not imported from the path."""
+    spec = importlib.util.spec_from_file_location("script_" + Path(path).stem, ROOT / path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def recipe(algo: str):
+    """``recipes/ALGO.py``, the recipe of an algorithm."""
+    return script(f"recipes/{algo}.py")
 
 
 def make(env_id, batch_size=1, **kwargs):

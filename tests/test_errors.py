@@ -104,7 +104,7 @@ def test_compile_options_as_the_quick_start_shows_step():
     ],
 )
 def test_training_settings_out_of_their_domain_are_refused(setting, value, words):
-    from config import PPOConfig, configure
+    from beacon_torch.training.config import PPOConfig, configure
 
     with pytest.raises(ValueError) as err:
         configure(PPOConfig, "lorenz-v0", **{setting: value})

@@ -12,20 +12,28 @@ from pathlib import Path
 import pytest
 import torch
 
+from beacon_torch.training.config import PPOConfig, TD3Config, configure
 from beacon_torch.training.run import load_checkpoint
 
-from config import PPOConfig, TD3Config, configure
+from conftest import recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 
 # the subprocess: a short training that kills itself at the n-th time it passes `point`
 DRIVER = textwrap.dedent(
     """
-    import os, signal, sys
-    sys.path.insert(0, {recipes!r})
+    import importlib.util, os, signal, sys
     import torch
     from torchrl.data import ReplayBuffer
-    import config, ppo, td3
+    from beacon_torch.training import config
+
+    def load(algo):
+        spec = importlib.util.spec_from_file_location("recipe_" + algo, {recipes!r} + "/" + algo + ".py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    ppo, td3 = load("ppo"), load("td3")
     algo, point, nth, out = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
     seen = [0]
 
@@ -93,11 +101,8 @@ def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
     saved = load_checkpoint(run)
     assert 0 < saved["frames"] < settings["frames"]
     # the resume: from the checkpoint to the total, logs continued, the buffer whole
-    import ppo
-    import td3
-
-    cls, recipe = (PPOConfig, ppo) if algo == "ppo" else (TD3Config, td3)
-    last = recipe.main(
+    cls, script = (PPOConfig, recipe("ppo")) if algo == "ppo" else (TD3Config, recipe("td3"))
+    last = script.main(
         configure(
             cls, "vortex-v0", out=str(run), resume=True, progress=False, logger="csv", checkpoint_every=1, **settings
         )
@@ -119,7 +124,7 @@ def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
 
 
 def test_a_truncated_replay_buffer_is_reported_not_trained_on(tmp_path):
-    import td3
+    td3 = recipe("td3")
 
     cfg = dict(TD3, frames=128)
     td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), progress=False, logger="csv", **cfg))

@@ -57,3 +57,23 @@ def test_env_pages_list_the_parameters_as_declared():
         text = tables.page(env_id).read_text()
         block = f"{tables.BEGIN}\n{tables.markdown(tables.ENVS[env_id].Params)}\n{tables.END}"
         assert block in text, f"{tables.page(env_id)} is not current: run docs/make_env_tables.py"
+
+
+def test_recipes_and_tools_are_scripts_on_the_library_alone():
+    """The library is what users import; the recipes and the campaign driver are scripts
+    that import only the library and its dependencies (no module of their own folder),
+    and nothing puts their folders on the import path."""
+    import ast
+
+    allowed = {"__future__", "argparse", "importlib", "json", "os", "shutil", "pathlib", "torch", "torchrl"}
+    allowed |= {"tensordict", "beacon_torch"}
+    for script in [*sorted((ROOT / "recipes").glob("*.py")), ROOT / "tools" / "reproduce.py"]:
+        tree = ast.parse(script.read_text())
+        for node in ast.walk(tree):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            for name in names:
+                assert name.split(".")[0] in allowed, f"{script.name} imports {name}"
+    assert "pythonpath" not in (ROOT / "pyproject.toml").read_text()
+    assert not (ROOT / "recipes" / "config.py").exists()

@@ -7,12 +7,13 @@ import torch
 import beacon_torch
 from beacon_torch import pretrained
 from beacon_torch.cli import main as cli
+from beacon_torch.training import config
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import load_checkpoint
 
-import config
-import ppo
-from conftest import FAST
+from conftest import FAST, recipe
+
+ppo = recipe("ppo")
 
 
 @pytest.mark.parametrize("name", pretrained.available())

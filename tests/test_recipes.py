@@ -13,17 +13,26 @@ import torch
 
 import beacon_torch
 from beacon_torch.cli import main as cli
+from beacon_torch.training import config, networks
 from beacon_torch.training import env as training_env
-from beacon_torch.training import networks
+from beacon_torch.training.config import (
+    CONFIGS,
+    PPO,
+    DQNConfig,
+    GradConfig,
+    PPOConfig,
+    TD3Config,
+    configure,
+    paper_algorithms,
+    parse,
+)
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import evaluate_run
 
-import config
-import dqn
-import grad
-import ppo
-import td3
-from config import ALGORITHMS, CONFIGS, PPO, DQNConfig, GradConfig, PPOConfig, TD3Config, configure, parse
+from conftest import recipe
+from conftest import script as load_script
+
+dqn, grad, ppo, td3 = (recipe(algo) for algo in ("dqn", "grad", "ppo", "td3"))
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -173,16 +182,20 @@ def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
 
 
 def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
-    """``python recipes/ppo.py ...`` with the project's venv, no path set up: the
-    scripts find their config and the library by themselves."""
-    for script, setting in (
+    """``python recipes/ppo.py ...`` with the project's venv, no path set up, from any
+    folder: the scripts take their settings from the library."""
+    for name, setting in (
         ("ppo", "--n-rollout"),
         ("td3", "--policy-noise"),
         ("dqn", "--eps-frames"),
         ("grad", "--horizon"),
     ):
         proc = subprocess.run(
-            [sys.executable, f"recipes/{script}.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True
+            [sys.executable, ROOT / "recipes" / f"{name}.py", "--help"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=True,
         )
         assert setting in proc.stdout and "--num-envs" in proc.stdout and "--resume" in proc.stdout
     proc = subprocess.run(
@@ -252,19 +265,19 @@ TINY = dict(
 )
 
 
-@pytest.mark.parametrize("recipe, env_id", [(td3, "vortex-v0"), (dqn, "lorenz-v0")])
-def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(recipe, env_id, tmp_path, capsys):
-    cls = CONFIGS[recipe.__name__]
-    recipe.main(configure(cls, env_id, out=str(tmp_path), **TINY))
+@pytest.mark.parametrize("algo, env_id", [("td3", "vortex-v0"), ("dqn", "lorenz-v0")])
+def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, env_id, tmp_path, capsys):
+    cls = CONFIGS[algo]
+    recipe(algo).main(configure(cls, env_id, out=str(tmp_path), **TINY))
     state = checkpoint(tmp_path)
-    assert state["algo"] == recipe.__name__ and state["frames"] == 256
+    assert state["algo"] == algo and state["frames"] == 256
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
     assert (tmp_path / "buffer").exists()  # the collected transitions survive a stop
     # the schedules counted in updates (TD3's actor delay, DQN's copies into the target)
     # go on across a resume: 3 rounds of 4 updates after the warm-up round, then 2 more
-    counter = {"td3": "updates", "dqn": "target_counter"}[recipe.__name__]
+    counter = {"td3": "updates", "dqn": "target_counter"}[algo]
     assert state["counters"][counter] == 12
-    recipe.main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
+    recipe(algo).main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
     state = checkpoint(tmp_path)
     assert state["frames"] == 384 and state["counters"][counter] == 20
     assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), (
@@ -373,7 +386,9 @@ def test_multi_agent_ppo_shares_one_policy_and_scores_the_team(tmp_path):
     assert result["env"] == "shkadov-separable-v0" and torch.isfinite(torch.tensor(result["score_mean"]))
 
 
-@pytest.mark.parametrize("env_id, algo", [(env_id, algo) for env_id, algos in ALGORITHMS.items() for algo in algos])
+@pytest.mark.parametrize(
+    "env_id, algo", [(env_id, algo) for env_id in beacon_torch.list_envs() for algo in paper_algorithms(env_id)]
+)
 def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, monkeypatch):
     """One tiny update of each (env, algorithm) pair the paper reports, every variant
     included: the recipes fit every action space and observation layout. Two env steps
@@ -388,7 +403,6 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
             functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].test_settings),
         )
 
-    assert set(ALGORITHMS) == set(beacon_torch.registry.ENVS)
     tiny = dict(
         frames=2, num_envs=2, hidden=8, norm_steps=1, compile=False, collectors=1, out=str(tmp_path), progress=False
     )
@@ -538,7 +552,7 @@ def test_continuous_actions_reach_the_env_clipped_and_the_data_keeps_the_sample(
 
 
 def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, monkeypatch):
-    """What ``recipes/reproduce.py`` does: ``train`` writes the seeds, their evaluation
+    """What ``tools/reproduce.py`` does: ``train`` writes the seeds, their evaluation
     and the curve inside ``--out`` and nothing else; a second call skips the finished
     seeds; ``publish`` refuses a pair below the recorded budget, and otherwise records
     the summary and the curve, ships the best seed's policy and writes the results
@@ -547,8 +561,7 @@ def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, 
 
     from beacon_torch import pretrained
 
-    import reproduce
-
+    reproduce = load_script("tools/reproduce.py")
     shipped = tmp_path / "shipped"
     shipped.mkdir()
     monkeypatch.setattr(pretrained, "HERE", shipped)
@@ -614,7 +627,12 @@ def test_config_module_is_the_one_place_of_the_algorithms():
     from beacon_torch.training.run import ALGORITHMS as RECORDED
 
     assert set(RECORDED) == set(CONFIGS)
-    assert {algo for algos in ALGORITHMS.values() for algo in algos} <= set(CONFIGS)
+    assert {algo for env_id in beacon_torch.list_envs() for algo in paper_algorithms(env_id)} == {"ppo", "td3", "dqn"}
+    # the paper's pairs: PPO everywhere, TD3 on continuous and DQN on discrete actions,
+    # single-agent layouts only
+    assert paper_algorithms("lorenz-v0") == paper_algorithms("mixing-v0") == ("ppo", "dqn")
+    assert paper_algorithms("burgers-v0") == paper_algorithms("mixing-continuous-v0") == ("ppo", "td3")
+    assert paper_algorithms("shkadov-separable-v0") == ("ppo",)
     assert config.paper_frames("shkadov-separable-v0") == 200_000
 
 

@@ -23,13 +23,13 @@ import beacon_torch
 from beacon_torch import files, pretrained
 from beacon_torch.cli import main as cli
 from beacon_torch.training import report
+from beacon_torch.training.config import DQNConfig, PPOConfig, TD3Config, configure
 from beacon_torch.training.run import BadRun, Diverged, check_checkpoint, load_checkpoint, read_log
 
-import dqn
-import ppo
-import reproduce
-import td3
-from config import DQNConfig, PPOConfig, TD3Config, configure
+from conftest import recipe, script
+
+dqn, ppo, td3 = recipe("dqn"), recipe("ppo"), recipe("td3")
+reproduce = script("tools/reproduce.py")
 
 ROOT = Path(__file__).resolve().parents[1]
 PPO = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger="csv")

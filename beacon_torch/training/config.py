@@ -18,51 +18,45 @@ from pathlib import Path
 from typing import ClassVar
 
 import beacon_torch
-from beacon_torch.base import _as_device
+from beacon_torch.base import FlowEnv, _as_device
 from beacon_torch.params import check_params, parse_assignments
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 
+# The per-env settings of the recipes: data of the library, read by ``configure``. Each
+# table holds what differs from its class's defaults; a variant trains like its base env.
+# Why each entry is what it is, with the measurements, is in docs/training.md.
+
 # the paper's PPO settings per env: its table, and what its runs used beyond the table
-# (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks); the
-# variants train like their base env
+# (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks)
 PPO = {
     "shkadov-v0": dict(n_rollout=3200, frames=200_000, critic_optim="nadam"),
-    # mixing's step costs most of its training, so two collector processes step it on
-    # both cores (58 transitions/s against 41 with 2 x 8, 25 minutes a seed;
-    # docs/results.md)
     "rayleigh-v0": dict(n_rollout=1000, frames=600_000, entropy=0.001, hidden=128),
+    # mixing's step costs most of its training: two collector processes use both cores
     "mixing-v0": dict(n_rollout=2000, frames=100_000, gae_lambda=0.90, collectors=2),
     "lorenz-v0": dict(n_rollout=10_000, frames=2_000_000, entropy=0.005),
     "burgers-v0": dict(n_rollout=4000, frames=500_000, critic_lr=1e-3),
-    # sloshing collects with 4 members, so that each rollout holds 500 steps of each,
-    # two and a half of its episodes: its episodes all start from the same stored state,
-    # so members in step cover only part of an episode per update when they are many
-    # (16 members: 125 steps each, training episodes -1.16; 8: -1.11; docs/training.md)
+    # its episodes all start from one stored state, so few members in step each cover
+    # more of an episode per rollout
     "sloshing-v0": dict(n_rollout=2000, epochs=16, frames=200_000, critic_lr=1e-3, num_envs=4),
-    # vortex alone normalises its observations, which the paper's runs did not (their
-    # library ignored the setting): raw, its five seeds ended at the paper's score, 38,
-    # instead of 54 (docs/training.md)
+    # vortex alone normalises its observations (the paper's library ignored the setting
+    # and its runs stayed at a lower score)
     "vortex-v0": dict(n_rollout=4000, frames=1_000_000, critic_lr=1e-3, norm_steps=64),
 }
-# TD3, where its settings differ from the paper's agent. burgers' sensors read 0.49 with
-# a spread of 0.03: raw, the networks hardly tell its states apart and the paper's
-# agent stayed level with no control up to the full 500 k; normalised, and exploring
-# with the noise of the paper's DDPG runs, its three seeds beat no control by 100 k
-# (docs/training.md, docs/results.md)
+# TD3, where its settings differ from the paper's agent
 TD3 = {
+    # burgers' sensors hardly differ between states: normalised, and exploring with the
+    # noise of the paper's DDPG runs
     "burgers-v0": dict(norm_steps=64, exploration_sigma=0.01),
-    # a jet's push shows in shkadov's reward over the next tens of actions: with one-step
-    # targets every setting tried left at least one of its seeds below no control, with
-    # 20-step targets all three beat it (docs/training.md, docs/results.md)
+    # a jet's push shows in shkadov's reward tens of actions later: multi-step targets
     "shkadov-v0": dict(n_steps=20),
 }
 # gradient-based control, where its settings differ from the defaults
 GRAD = {
     "burgers-v0": dict(frames=51_200, horizon=40),
-    # 100 of the 800 actions per update: the high cycle takes that long to grow; at the
-    # default rate (1e-3) the policies found the high cycle and lost it again
+    # vortex's high cycle takes a hundred actions to grow, and the default rate lost it
+    # again once found
     "vortex-v0": dict(frames=128_000, horizon=100, lr=3e-4, grad_checkpoint=True),
 }
 
@@ -106,8 +100,8 @@ class Config:
     num_envs: int = setting(8, "members of the batched env collecting together")
     hidden: int = setting(64, "width of the hidden layers")
     gamma: float = setting(0.99, "discount", domain=(0.0, 1.0, True))
-    # one compiled call per action: a 1-D env collects 2 to 8 times faster at 16 members,
-    # for 15-35 s of compilation at the start (docs/performance.md)
+    # one compiled call per action: faster collection for a compilation at the start
+    # (docs/performance.md)
     compile: bool = setting(
         True, "the env's compiled physics (--no-compile: eager; BEACON_TORCH_COMPILE=0 turns this default off)"
     )
@@ -239,20 +233,24 @@ class GradConfig(Config):
 
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, DQNConfig, GradConfig)}
 
-# the algorithms the paper trains on each env (PPO everywhere, TD3 where the actions are
-# continuous, DQN where they are discrete)
-ALGORITHMS = {
-    "lorenz-v0": ("ppo", "dqn"),
-    "lorenz-continuous-v0": ("ppo", "td3"),
-    "vortex-v0": ("ppo", "td3"),
-    "burgers-v0": ("ppo", "td3"),
-    "sloshing-v0": ("ppo", "td3"),
-    "shkadov-v0": ("ppo", "td3"),
-    "shkadov-separable-v0": ("ppo",),
-    "rayleigh-v0": ("ppo", "td3"),
-    "mixing-v0": ("ppo", "dqn"),
-    "mixing-continuous-v0": ("ppo", "td3"),
-}
+
+def unfit(cls: type[Config], env: type[FlowEnv]) -> str | None:
+    """Why ``cls``'s algorithm cannot train ``env`` (its actions, its agents), or None."""
+    if cls.actions == "continuous" and env.discrete:
+        return f"{cls.algo} needs continuous actions; {env.env_id} has discrete ones (use ppo or dqn)"
+    if cls.actions == "discrete" and not env.discrete:
+        return f"{cls.algo} needs discrete actions; {env.env_id} has continuous ones (use ppo or td3)"
+    if isinstance(env.observation_key, tuple) and not cls.multi_agent:
+        single = env.base_id() if env.base_id() != env.env_id else "its single-agent layout"
+        return f"{cls.algo} trains single-agent layouts; {env.env_id} has one agent per jet (use ppo, or {single})"
+    return None
+
+
+def paper_algorithms(env_id: str) -> tuple[str, ...]:
+    """The algorithms the paper trains on an env: PPO on every one, TD3 where the actions
+    are continuous and DQN where they are discrete, on single-agent layouts."""
+    env = env_class(env_id)
+    return tuple(cls.algo for cls in (PPOConfig, TD3Config, DQNConfig) if unfit(cls, env) is None)
 
 
 def paper_frames(env_id: str) -> int:
@@ -330,15 +328,9 @@ def _check(cfg: Config) -> Config:
     except TypeError as err:
         raise ValueError(f"setting 'params': {err}") from None
     _as_device(cfg.device)
-    if cfg.actions == "continuous" and env.discrete:
-        raise ValueError(f"{cfg.algo} needs continuous actions; {cfg.env} has discrete ones (use ppo or dqn)")
-    if cfg.actions == "discrete" and not env.discrete:
-        raise ValueError(f"{cfg.algo} needs discrete actions; {cfg.env} has continuous ones (use ppo or td3)")
-    if isinstance(env.observation_key, tuple) and not cfg.multi_agent:
-        raise ValueError(
-            f"{cfg.algo} trains single-agent layouts; {cfg.env} has one agent per jet (use ppo, or "
-            f"{cfg.env.replace('-separable', '')} for {cfg.algo})"
-        )
+    reason = unfit(type(cfg), env)
+    if reason:
+        raise ValueError(reason)
     if cfg.in_process and (cfg.collectors != 1 or cfg.ray):
         raise ValueError(f"{cfg.algo} differentiates through the env in this process: collectors and ray do not apply")
     return cfg

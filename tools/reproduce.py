@@ -3,10 +3,10 @@ env) over several seeds, then publish what was reached: the summary recorded in
 ``docs/results/``, the curve in ``docs/img/results/``, the best seed's policy shipped
 with the package and ``docs/results.md`` written from every recorded summary.
 
-    python recipes/reproduce.py train --algo ppo --envs lorenz-v0 vortex-v0 --seeds 3
-    python recipes/reproduce.py summarise runs/results/ppo-lorenz-v0   # evaluate again
-    python recipes/reproduce.py publish runs/results/ppo-lorenz-v0     # into the repository
-    python recipes/reproduce.py report      # docs/results.md from the recorded summaries
+    python tools/reproduce.py train --algo ppo --envs lorenz-v0 vortex-v0 --seeds 3
+    python tools/reproduce.py summarise runs/results/ppo-lorenz-v0   # evaluate again
+    python tools/reproduce.py publish runs/results/ppo-lorenz-v0     # into the repository
+    python tools/reproduce.py page        # docs/results.md from the recorded summaries
 
 ``train`` and ``summarise`` write inside ``--out`` only: a run goes to
 ``runs/results/<algo>-<env>/seedK`` (``beacon-torch eval/plot`` read it too), the
@@ -21,6 +21,7 @@ replaces a shipped policy or a recorded result.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import shutil
@@ -31,15 +32,25 @@ import torch
 from beacon_torch import files, pretrained
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
+from beacon_torch.training.config import CONFIGS, configure, paper_frames
 from beacon_torch.training.evaluation import summarise
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint, seed_dirs
 
-from config import CONFIGS, configure, paper_frames
-
 ROOT = Path(__file__).resolve().parents[1]
+RECIPES = ROOT / "recipes"
 IMAGES = ROOT / "docs" / "img" / "results"
 RECORDED = ROOT / "docs" / "results"  # the summaries the results page is written from
-BEGIN, END = "<!-- results table: recipes/reproduce.py report -->", "<!-- end of results table -->"
+BEGIN, END = "<!-- results table: tools/reproduce.py page -->", "<!-- end of results table -->"
+
+
+def load_recipe(algo: str):
+    """The recipe script ``recipes/ALGO.py`` as a module of its own (not through
+    ``sys.path``: the recipes are scripts, not a package)."""
+    path = RECIPES / f"{algo}.py"
+    spec = importlib.util.spec_from_file_location(f"recipe_{algo}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def setting(item: str) -> tuple[str, str]:
@@ -72,9 +83,7 @@ def text_value(text: str):
 def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, members: int, progress: bool) -> dict:
     """Train the missing seeds of one (algorithm, env) pair and summarise it, inside
     ``out``."""
-    import importlib
-
-    recipe = importlib.import_module(algo)
+    recipe = load_recipe(algo)
     root = out / f"{algo}-{env_id}"
     for seed in range(seeds):
         run = root / f"seed{seed}"
@@ -205,8 +214,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo-burgers-v0")
     pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
-    rep = sub.add_parser("report", help="write docs/results.md from the recorded summaries (docs/results/)")
-    rep.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
+    page = sub.add_parser("page", help="write docs/results.md from the recorded summaries (docs/results/)")
+    page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
     args = parser.parse_args(argv)
     try:
         if args.command == "summarise":
