@@ -181,12 +181,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.pretrained is not None:
         from beacon_torch import pretrained
 
-        algo, sep, env_id = args.pretrained.partition("/")
-        if not sep:
-            raise CliError(f"--pretrained expects ALGO/ENV (e.g. ppo/burgers-v0), got {args.pretrained!r}")
-        policy = pretrained.load(algo, env_id, device=args.device)
-        gif = None if args.no_gif else Path(args.out or ".") / f"{algo}-{env_id}.gif"
-        record = pretrained.info(algo, env_id)
+        try:
+            algo, env_id = pretrained.split_name(args.pretrained)
+        except ValueError as err:
+            raise CliError(f"--pretrained: {err}") from None
+        policy = pretrained.load(args.pretrained, device=args.device)
+        gif = None
+        if not args.no_gif:
+            gif = Path(args.out or ".") / algo / f"{env_id}.gif"
+            gif.parent.mkdir(parents=True, exist_ok=True)
+        record = pretrained.info(args.pretrained)
         params = record.get("params", {})  # the physics it was trained on
         r = evaluate_policy(env_id, policy, members=args.members, device=args.device, gif=gif, params=params)
         trained = f"trained on {record['frames']} transitions"

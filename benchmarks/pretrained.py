@@ -40,7 +40,7 @@ def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ())
     rows = []
     for name in pretrained.available():
         algo, env_id = name.split("/")
-        info = pretrained.info(algo, env_id)
+        info = pretrained.info(name)
         old = kept.get(name)
         if old is not None and (old["trained_seed"], old["frames"], old["recorded"]) == (
             info.get("seed"),
@@ -50,7 +50,7 @@ def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ())
             rows.append(old)
             continue
         start = time.perf_counter()
-        result = evaluate_policy(env_id, pretrained.load(algo, env_id), members=members, seed=seed)
+        result = evaluate_policy(env_id, pretrained.load(name), members=members, seed=seed)
         rows.append(
             {
                 "policy": name,

@@ -6,7 +6,7 @@ and TorchRL's loggers. The paper's settings are the defaults (``beacon_torch.tra
     python recipes/ppo.py --env lorenz-v0 --frames 200000 --num-envs 16
     python recipes/ppo.py --env lorenz-v0 --frames 400000 --resume    # continue to 400k
 
-The run directory (``--out``, default ``runs/ppo-ENV/seedSEED``) holds
+The run directory (``--out``, default ``runs/ppo/ENV/seedSEED``) holds
 ``checkpoint.pt`` (networks, optimiser, normalisation, transitions collected; written
 every ``checkpoint_every`` updates and at the end), the logs and the learning curve.
 """

@@ -19,14 +19,14 @@ ppo = recipe("ppo")
 @pytest.mark.parametrize("name", pretrained.available())
 def test_every_shipped_policy_acts_in_the_action_spec(name):
     algo, env_id = name.split("/")
-    policy = pretrained.load(algo, env_id)
+    policy = pretrained.load(name)
     env = beacon_torch.make(env_id, 2, seed=0, **FAST.get(env_id, {}))
     with torch.no_grad():
         rollout = env.rollout(3, policy)
     assert env.full_action_spec[env.action_key].is_in(rollout[env.action_key][:, 0])
     reward = env.reward_key if isinstance(env.reward_key, tuple) else (env.reward_key,)
     assert torch.isfinite(rollout[("next", *reward)]).all()
-    info = pretrained.info(algo, env_id)
+    info = pretrained.info(name)
     assert info["env"] == env_id and info["algo"] == algo and info["frames"] > 0
 
 
@@ -51,7 +51,7 @@ def shipped(tmp_path, monkeypatch):
     folder = tmp_path / "shipped"
     folder.mkdir()
     monkeypatch.setattr(pretrained, "HERE", folder)
-    pretrained.export(run, pretrained.path_of("ppo", "vortex-v0"), seed=0, score=1.0)
+    pretrained.export(run, pretrained.path_of("ppo/vortex-v0"), seed=0, score=1.0)
     return run
 
 
@@ -68,14 +68,14 @@ def test_export_folds_the_normalisation_into_the_first_layer(shipped):
     raw = beacon_torch.make("vortex-v0", 5, seed=3).reset()
     with torch.no_grad():
         expected = actor(td)["action"]
-        got = pretrained.load("ppo", "vortex-v0")(raw)["action"]
+        got = pretrained.load("ppo/vortex-v0")(raw)["action"]
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
-    assert pretrained.info("ppo", "vortex-v0")["score"] == 1.0
+    assert pretrained.info("ppo/vortex-v0")["score"] == 1.0
 
 
 def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, capsys):
     assert cli(["eval", "--pretrained", "ppo/vortex-v0", "--members", "2", "--out", str(tmp_path)]) == 0
-    assert "pretrained ppo" in capsys.readouterr().out and (tmp_path / "ppo-vortex-v0.gif").stat().st_size > 1000
+    assert "pretrained ppo" in capsys.readouterr().out and (tmp_path / "ppo" / "vortex-v0.gif").stat().st_size > 1000
     assert cli(["eval", "--pretrained", "td3/vortex-v0", "--no-gif"]) == 2
     assert "no pretrained td3 policy for vortex-v0" in capsys.readouterr().err
     assert cli(["eval"]) == 2
@@ -112,7 +112,7 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     # it is shipped anew
     bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     assert json.loads((tmp_path / "pretrained.json").read_text())["rows"] == [row]
-    pretrained.export(shipped, pretrained.path_of("ppo", "vortex-v0"), seed=0, score=2.0)
+    pretrained.export(shipped, pretrained.path_of("ppo/vortex-v0"), seed=0, score=2.0)
     bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     (again,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
     assert again["recorded"] == 2.0 and again["seconds"] != row["seconds"] and "| 2 |" in page.read_text()

@@ -48,7 +48,7 @@ def test_config_holds_the_papers_table_and_checks_overrides():
     sloshing = configure(PPOConfig, "sloshing-v0")
     assert sloshing.n_rollout // sloshing.num_envs > beacon_torch.make("sloshing-v0").episode_length
     assert configure(PPOConfig, "mixing-continuous-v0") == replace(
-        configure(PPOConfig, "mixing-v0"), env="mixing-continuous-v0", out="runs/ppo-mixing-continuous-v0/seed0"
+        configure(PPOConfig, "mixing-v0"), env="mixing-continuous-v0", out="runs/ppo/mixing-continuous-v0/seed0"
     )
     assert configure(PPOConfig, "lorenz-v0", epochs=4).epochs == 4
     with pytest.raises(ValueError, match="unknown ppo setting"):
@@ -86,7 +86,7 @@ def test_config_holds_the_papers_table_and_checks_overrides():
     assert configure(PPOConfig, "lorenz-v0", num_envs=16, collectors=3).n_rollout == 9984
     with pytest.raises(ValueError, match="multiple of num_envs x collectors"):
         configure(PPOConfig, "lorenz-v0", num_envs=16, n_rollout=1000)
-    assert configure(PPOConfig, "lorenz-v0", seed=2).out == "runs/ppo-lorenz-v0/seed2"
+    assert configure(PPOConfig, "lorenz-v0", seed=2).out == "runs/ppo/lorenz-v0/seed2"
     # the recorded campaign's ways of stepping are the defaults: 16 members, mixing on two
     # collector processes (its rollout rounded to their 32 members)
     rayleigh, mixing = configure(PPOConfig, "rayleigh-v0"), configure(PPOConfig, "mixing-v0")
@@ -568,11 +568,11 @@ def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, 
     out = tmp_path / "runs"
     settings = dict(frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
     summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, progress=False)
-    root = out / "ppo-burgers-v0"
+    root = out / "ppo" / "burgers-v0"
     assert [s["seed"] for s in summary["seeds"]] == ["seed0", "seed1"] and summary["frames"] == 800
     assert summary["eval_std"] > 0 and summary["wall_s_per_seed"] > 0  # two seeds, two policies
     assert json.loads((root / "summary.json").read_text())["eval_mean"] == summary["eval_mean"]
-    assert (root / "ppo-burgers-v0.png").stat().st_size > 5_000 and not list(shipped.iterdir())
+    assert (root / "burgers-v0.png").stat().st_size > 5_000 and not list(shipped.iterdir())
     stamp = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
     reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, progress=False)
     assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp, "a finished seed was trained again"
@@ -580,15 +580,15 @@ def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, 
     # 800 transitions are below the paper's 500,000: refused, nothing written
     recorded, images = tmp_path / "recorded", tmp_path / "docs" / "img"
     with pytest.raises(ValueError, match=r"below the recorded budget .*\(500,000\)"):
-        reproduce.publish(root, recorded, images)
+        reproduce.publish(root, recorded, images, shipped)
     assert not recorded.exists() and not images.exists() and not list(shipped.iterdir())
     # a pair recorded at 800 transitions: a run of that budget is published
-    recorded.mkdir()
-    (recorded / "ppo-burgers-v0.json").write_text(json.dumps(summary))
-    reproduce.publish(root, recorded, images)
-    assert json.loads((recorded / "ppo-burgers-v0.json").read_text())["seeds"] == summary["seeds"]
+    (recorded / "ppo").mkdir(parents=True)
+    (recorded / "ppo" / "burgers-v0.json").write_text(json.dumps(summary))
+    reproduce.publish(root, recorded, images, shipped)
+    assert json.loads((recorded / "ppo" / "burgers-v0.json").read_text())["seeds"] == summary["seeds"]
     best = max(summary["seeds"], key=lambda s: s["eval"])
-    assert pretrained.available() == ["ppo/burgers-v0"] and pretrained.info("ppo", "burgers-v0")["seed"] == best["seed"]
+    assert pretrained.available() == ["ppo/burgers-v0"] and pretrained.info("ppo/burgers-v0")["seed"] == best["seed"]
     page = tmp_path / "docs" / "results.md"
     page.write_text(f"# Results\n\n{reproduce.BEGIN}\nold\n{reproduce.END}\n\nnotes\n")
     text = reproduce.write_results_page(recorded, page, images).read_text()
@@ -597,7 +597,7 @@ def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, 
     assert "| 2 |" in row and "-1.75" in row
     floor = next(line for line in text.splitlines() if line.startswith("| burgers-v0 | -1.75"))
     assert "**missed**" in floor and "800 of 500,000" in floor
-    assert "](img/ppo-burgers-v0.png)" in text and (images / "ppo-burgers-v0.png").is_file()
+    assert "](img/ppo/burgers-v0.png)" in text and (images / "ppo" / "burgers-v0.png").is_file()
 
 
 def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):

@@ -121,7 +121,7 @@ def test_eval_refuses_a_run_with_a_planted_animation_link(ppo_run, tmp_path, out
 
 
 def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outside):
-    pair = tmp_path / "runs" / "ppo-vortex-v0"
+    pair = tmp_path / "runs" / "ppo" / "vortex-v0"
     copy_run(ppo_run, pair / "seed0")
     summary = {
         "algo": "../../../../outside/owned",
@@ -139,29 +139,35 @@ def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outsi
         reproduce.publish(pair, recorded, images)
     # a known algorithm, recorded at this budget: the curve is the pair's own, never
     # the file the summary names
-    recorded.mkdir(parents=True)
-    (recorded / "ppo-vortex-v0.json").write_text(json.dumps({**summary, "algo": "ppo"}))
+    (recorded / "ppo").mkdir(parents=True)
+    (recorded / "ppo" / "vortex-v0.json").write_text(json.dumps({**summary, "algo": "ppo"}))
     (pair / "summary.json").write_text(json.dumps({**summary, "algo": "ppo"}))
     with pytest.raises(ValueError, match="curve is missing"):
         reproduce.publish(pair, recorded, images)
     assert snapshot(outside) == before and not (tmp_path / "outside" / "owned.json").exists()
     assert not images.exists() or not list(images.iterdir())
     # a recorded summary naming an unknown algorithm stops the page, writing nothing
-    (recorded / "x.json").write_text(json.dumps(summary))
+    (recorded / "x").mkdir()
+    (recorded / "x" / "y.json").write_text(json.dumps(summary))
     page = tmp_path / "repo" / "results.md"
     with pytest.raises(ValueError, match="unknown algorithm"):
         reproduce.write_results_page(recorded, page, images)
     assert not page.exists() and snapshot(outside) == before
 
 
-@pytest.mark.parametrize("algo", ["../../somewhere/evil", "ppo/../../x", "ppo\x00", 3])
-def test_pretrained_load_reads_only_the_shipped_files(algo, tmp_path):
-    evil = tmp_path / "evil-lorenz-v0.pt"
+@pytest.mark.parametrize(
+    "name", ["../../somewhere/evil/lorenz-v0", "ppo/../../x/lorenz-v0", "ppo\x00/lorenz-v0", "../lorenz-v0", 3]
+)
+def test_pretrained_load_reads_only_the_shipped_files(name, tmp_path):
+    evil = tmp_path / "evil" / "lorenz-v0.pt"
+    evil.parent.mkdir()
     torch.save({"env": "lorenz-v0"}, evil)
-    with pytest.raises(ValueError, match="no pretrained"):
-        pretrained.load(algo, "lorenz-v0")
+    with pytest.raises(ValueError, match="no pretrained|a trained pair is named ALGO/ENV"):
+        pretrained.load(name)
+    with pytest.raises(ValueError, match="a trained pair is named ALGO/ENV"):
+        pretrained.load("ppo/../lorenz-v0")
     with pytest.raises(ValueError, match="unknown env id"):
-        pretrained.load("ppo", "../lorenz-v0")
+        pretrained.info("ppo/lorenz")
 
 
 # ---------------------------------------------------------------- nothing overwritten
@@ -616,7 +622,7 @@ def test_a_replay_buffer_that_cannot_fit_on_the_disk_is_one_clear_error(tmp_path
     ],
 )
 def test_policy_files_are_checked_before_use(tmp_path, record, words):
-    shipped = pretrained._read(pretrained.shipped("ppo", "lorenz-v0"))
+    shipped = pretrained._read(pretrained.shipped("ppo/lorenz-v0"))
     forged = dict(shipped)
     for key, value in record.items():
         if value == "nan":
@@ -635,10 +641,10 @@ def test_policy_files_are_checked_before_use(tmp_path, record, words):
 
 def test_a_tampered_policy_file_is_named_and_a_policy_on_another_env_says_so(tmp_path):
     file = tmp_path / "policy.pt"
-    file.write_bytes(pretrained.shipped("ppo", "lorenz-v0").read_bytes()[:500])
+    file.write_bytes(pretrained.shipped("ppo/lorenz-v0").read_bytes()[:500])
     with pytest.raises(ValueError, match=f"{file}: unreadable policy file"):
         pretrained.load_file(file)
-    policy = pretrained.load("ppo", "lorenz-v0")
+    policy = pretrained.load("ppo/lorenz-v0")
     env = beacon_torch.make("vortex-v0", 2)
     with pytest.raises(ValueError, match="trained on lorenz-v0 \\(6 observations\\); it was given 8"):
         policy(env.reset())

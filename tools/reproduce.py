@@ -4,13 +4,13 @@ env) over several seeds, then publish what was reached: the summary recorded in
 with the package and ``docs/results.md`` written from every recorded summary.
 
     python tools/reproduce.py train --algo ppo --envs lorenz-v0 vortex-v0 --seeds 3
-    python tools/reproduce.py summarise runs/results/ppo-lorenz-v0   # evaluate again
-    python tools/reproduce.py publish runs/results/ppo-lorenz-v0     # into the repository
+    python tools/reproduce.py summarise runs/results/ppo/lorenz-v0   # evaluate again
+    python tools/reproduce.py publish runs/results/ppo/lorenz-v0     # into the repository
     python tools/reproduce.py page        # docs/results.md from the recorded summaries
 
 ``train`` and ``summarise`` write inside ``--out`` only: a run goes to
-``runs/results/<algo>-<env>/seedK`` (``beacon-torch eval/plot`` read it too), the
-seeds' evaluation to ``summary.json`` and their curve to ``<algo>-<env>.png`` beside
+``runs/results/ALGO/ENV/seedK`` (``beacon-torch eval/plot`` read it too), the
+seeds' evaluation to ``summary.json`` and their curve to ``ENV.png`` beside
 them. A stopped campaign is resumed by running the same command again (finished seeds
 are skipped, unfinished ones resume from their checkpoint). Only ``publish`` writes
 into the repository, and only a pair trained on at least the recorded budget (that of
@@ -39,6 +39,7 @@ from beacon_torch.training.run import CHECKPOINT, load_checkpoint, seed_dirs
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
 IMAGES = ROOT / "docs" / "img" / "results"
+SHIPPED = ROOT / "beacon_torch" / "pretrained"  # the checkout's, not an installed copy's
 RECORDED = ROOT / "docs" / "results"  # the summaries the results page is written from
 BEGIN, END = "<!-- results table: tools/reproduce.py page -->", "<!-- end of results table -->"
 
@@ -84,7 +85,7 @@ def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path
     """Train the missing seeds of one (algorithm, env) pair and summarise it, inside
     ``out``."""
     recipe = load_recipe(algo)
-    root = out / f"{algo}-{env_id}"
+    root = out / algo / env_id
     for seed in range(seeds):
         run = root / f"seed{seed}"
         started = (run / CHECKPOINT).is_file() or (run / algo).is_dir()
@@ -106,17 +107,17 @@ def read_summary(file: Path) -> dict:
 def recorded_budget(algo: str, env_id: str, recorded: Path = RECORDED) -> int:
     """The transitions a pair must have been trained on to be published: those of its
     recorded summary, else its settings' default budget."""
-    file = recorded / f"{algo}-{env_id}.json"
+    file = recorded / algo / f"{env_id}.json"
     if file.is_file():
         return int(read_summary(file)["frames"])
     return configure(CONFIGS[algo], env_id).frames
 
 
-def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> Path:
+def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES, shipped: Path = SHIPPED) -> Path:
     """Publish a summarised pair (``root``, holding ``summary.json`` and its seeds): its
     summary into ``recorded``, its curve into ``images``, its best seed's policy into
-    the package; refused below the recorded budget or for a summary that does not
-    match its seeds. Returns the recorded summary's file."""
+    ``shipped`` (the checkout's package); refused below the recorded budget or for a
+    summary that does not match its seeds. Returns the recorded summary's file."""
     root = Path(root)
     summary = read_summary(root / "summary.json")
     algo, env_id = summary["algo"], summary["env"]
@@ -136,29 +137,31 @@ def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES) -> Pat
     curve = root / f"{root.name}.png"
     if not curve.is_file():
         raise ValueError(f"{curve}: the pair's curve is missing; summarise it again")
-    recorded.mkdir(parents=True, exist_ok=True)
-    images.mkdir(parents=True, exist_ok=True)
-    copy = images / f"{algo}-{env_id}.png"
+    (recorded / algo).mkdir(parents=True, exist_ok=True)
+    (images / algo).mkdir(parents=True, exist_ok=True)
+    copy = images / algo / f"{env_id}.png"
     files.replace_file(copy, lambda tmp: shutil.copyfile(curve, tmp))
     summary["png"] = (
         os.path.relpath(copy.resolve(), ROOT) if copy.resolve().is_relative_to(ROOT) else str(copy.resolve())
     )
     best = max(summary["seeds"], key=lambda s: s["eval"])
+    policy = shipped / algo / f"{env_id}.pt"
+    policy.parent.mkdir(parents=True, exist_ok=True)
     pretrained.export(
         seeds[best["seed"]],
-        pretrained.path_of(algo, env_id),
+        policy,
         seed=best["seed"],
         score=best["eval"],
         uncontrolled=best["uncontrolled"],
     )
-    return files.write_text(recorded / f"{algo}-{env_id}.json", json.dumps(summary, indent=1))
+    return files.write_text(recorded / algo / f"{env_id}.json", json.dumps(summary, indent=1))
 
 
 def results_block(recorded: Path, page: Path, images: Path) -> str:
     """The results page's generated part: the protocol's figure and table over every
     recorded summary, the PPO floors, and the curves."""
-    summaries = [read_summary(f) for f in sorted(recorded.glob("*.json"))]
-    rows = report.report(sorted(recorded.glob("*.json")), images)
+    summaries = [read_summary(f) for f in sorted(recorded.glob("*/*.json"))]
+    rows = report.report(sorted(recorded.glob("*/*.json")), images)
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = [
         "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "
@@ -173,9 +176,7 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
                 f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} "
                 f"of {paper_frames(s['env']):,} | {met} |"
             )
-    curves = ", ".join(
-        f"[{s['algo']} {s['env']}]({rel(images / (s['algo'] + '-' + s['env'] + '.png'))})" for s in summaries
-    )
+    curves = ", ".join(f"[{s['algo']}/{s['env']}]({rel(images / s['algo'] / (s['env'] + '.png'))})" for s in summaries)
     return "\n\n".join(
         [f"![normalised scores]({rel(rows['png'])})", rows["table"], "\n".join(floors), f"Curves: {curves}."]
     )
@@ -207,12 +208,12 @@ def main(argv: list[str] | None = None) -> None:
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--out", default="runs/results")
     su = sub.add_parser("summarise", help="evaluate and plot trained pairs again (e.g. after a stopped campaign)")
-    su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo-burgers-v0")
+    su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo/burgers-v0")
     su.add_argument("--members", type=positive, default=8)
     pu = sub.add_parser(
         "publish", help="record summarised pairs in docs/results/, ship their best policies and write docs/results.md"
     )
-    pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo-burgers-v0")
+    pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo/burgers-v0")
     pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
     page = sub.add_parser("page", help="write docs/results.md from the recorded summaries (docs/results/)")
     page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))

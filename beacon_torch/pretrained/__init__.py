@@ -4,11 +4,12 @@ pair of the recorded campaign (docs/results.md).
     import beacon_torch.pretrained as pretrained
 
     pretrained.available()                       # ["ppo/burgers-v0", ...]
-    policy = pretrained.load("ppo", "burgers-v0")
+    policy = pretrained.load("ppo/burgers-v0")
     env = beacon_torch.make("burgers-v0", 8)
     rollout = env.rollout(200, policy)           # deterministic actions
 
-A policy is a TorchRL module that reads the env's observation key and writes its
+A pair is named ``ALGO/ENV`` here as everywhere (runs go to ``runs/ALGO/ENV``); its
+file is ``ALGO/ENV.pt`` in this folder. A policy is a TorchRL module that reads the env's observation key and writes its
 action key, deterministic by default (the mean of a PPO policy, the greedy action of a
 DQN one; TorchRL's ``set_exploration_type`` samples a PPO policy instead). It takes the
 raw observations of ``beacon_torch.make``: the observation normalisation a training used
@@ -35,13 +36,24 @@ from beacon_torch.training.run import MAX_HIDDEN, load_checkpoint
 HERE = Path(__file__).resolve().parent
 
 
-def path_of(algo: str, env_id: str) -> Path:
-    return HERE / f"{algo}-{env_id}.pt"
+def path_of(name: str) -> Path:
+    """Where the policy ``ALGO/ENV`` is shipped."""
+    algo, env_id = split_name(name)
+    return HERE / algo / f"{env_id}.pt"
+
+
+def split_name(name: str) -> tuple[str, str]:
+    """``"ppo/burgers-v0"`` as ``("ppo", "burgers-v0")``, the env id checked."""
+    algo, sep, env_id = name.partition("/") if isinstance(name, str) else ("", "", "")
+    if not sep or not algo or "/" in env_id:
+        raise ValueError(f"a trained pair is named ALGO/ENV, like 'ppo/burgers-v0'; got {name!r}")
+    env_class(env_id)  # an unknown id: the registry's error
+    return algo, env_id
 
 
 def available() -> list[str]:
-    """The shipped policies, as ``"algo/env_id"``."""
-    return sorted(f"{p.stem.split('-', 1)[0]}/{p.stem.split('-', 1)[1]}" for p in HERE.glob("*.pt"))
+    """The shipped policies, as ``"ALGO/ENV"``."""
+    return sorted(f"{p.parent.name}/{p.stem}" for p in HERE.glob("*/*.pt"))
 
 
 def _first_layer(module: nn.Module, n_obs: int) -> nn.Linear:
@@ -73,21 +85,23 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
         "weights": policy.state_dict(),
         **record,
     }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     return replace_file(path, lambda tmp: torch.save(out, tmp))
 
 
-def info(algo: str, env_id: str) -> dict:
-    """What a shipped file records besides the weights (transitions, seed, score...)."""
-    return {k: v for k, v in _read(shipped(algo, env_id)).items() if k != "weights"}
+def info(name: str) -> dict:
+    """What the shipped file of ``ALGO/ENV`` records besides the weights (transitions,
+    seed, score...)."""
+    return {k: v for k, v in _read(shipped(name)).items() if k != "weights"}
 
 
-def shipped(algo: str, env_id: str) -> Path:
-    """The file of a shipped policy: ``algo/env_id`` must be one of :func:`available`
-    (so that no name reaches outside the package's folder)."""
-    env_class(env_id)  # an unknown id: the registry's error
-    if not isinstance(algo, str) or f"{algo}/{env_id}" not in available():
+def shipped(name: str) -> Path:
+    """The file of a shipped policy: ``name`` must be one of :func:`available` (so that
+    no name reaches outside the package's folder)."""
+    algo, env_id = split_name(name)
+    if name not in available():
         raise ValueError(f"no pretrained {algo} policy for {env_id}; available: {', '.join(available()) or 'none'}")
-    path = path_of(algo, env_id)
+    path = path_of(name)
     if path.is_symlink():
         raise ValueError(f"{path}: a symbolic link is refused as a shipped policy")
     return path
@@ -133,9 +147,10 @@ def _read(path: Path, env_id: str | None = None) -> dict:
     return record
 
 
-def load(algo: str, env_id: str, *, device="cpu") -> TensorDictModule:
-    """The shipped ``algo`` policy of ``env_id`` (see the module's docstring)."""
-    return load_file(shipped(algo, env_id), env_id, device=device)
+def load(name: str, *, device="cpu") -> TensorDictModule:
+    """The shipped policy ``ALGO/ENV``, e.g. ``"ppo/burgers-v0"`` (see the module's
+    docstring)."""
+    return load_file(shipped(name), split_name(name)[1], device=device)
 
 
 def load_file(path: str | Path, env_id: str | None = None, *, device="cpu") -> TensorDictModule:

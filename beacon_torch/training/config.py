@@ -111,7 +111,7 @@ class Config:
         f"agents saw them; {NORM_STEPS} reach past every env's start-up)",
     )
     device: str = setting("cpu", "torch device of the env and the networks")
-    out: str = setting("", "run directory (default runs/ALGO-ENV/seedSEED)")
+    out: str = setting("", "run directory (default runs/ALGO/ENV/seedSEED)")
     resume: bool = setting(False, "continue the run in OUT from its checkpoint to FRAMES")
     collectors: int = setting(1, "collector processes (or Ray actors), each with a batched env of NUM_ENVS members")
     ray: str = setting(
@@ -351,7 +351,7 @@ def configure(cls: type[Config], env_id: str, **overrides) -> Config:
     if cls.batch not in overrides and members >= 1 and getattr(cfg, cls.batch) % members:
         cfg = replace(cfg, **{cls.batch: max(members, getattr(cfg, cls.batch) // members * members)})
     if not cfg.out:
-        cfg = replace(cfg, out=f"runs/{cls.algo}-{env_id}/seed{cfg.seed}")
+        cfg = replace(cfg, out=f"runs/{cls.algo}/{env_id}/seed{cfg.seed}")
     if cfg.resume and (Path(cfg.out) / CHECKPOINT).is_file():
         cfg = resumed(cfg, {name: getattr(cfg, name) for name in overrides})
     return _check(cfg)

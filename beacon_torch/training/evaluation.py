@@ -192,8 +192,8 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
     }
     write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
-        f"{root.name}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, training tail "
-        f"{summary['train_mean']:.4g} "
+        f"{summary['algo']}/{summary['env']}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, "
+        f"training tail {summary['train_mean']:.4g} "
         f"over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed"
     )
     return summary
