@@ -289,11 +289,11 @@ class FlowEnv(EnvBase):
         )
         super().__init__(device=device, batch_size=batch_size)
         self.dtype = _as_dtype(dtype)
-        self.n_envs = batch_size[0]
+        self.num_envs = batch_size[0]
         self.params = resolve_params(
             self.Params,
             params,
-            batch_size=self.n_envs,
+            batch_size=self.num_envs,
             device=device,
             dtype=self.dtype,
             env_id=self.env_id,
@@ -354,11 +354,11 @@ class FlowEnv(EnvBase):
         """Refuse a batch whose states would not fit in the device's free memory, before
         anything of its size is allocated."""
         free = available_bytes(self.device)
-        need = self.n_envs * self.member_floats() * self.dtype.itemsize * WORKSPACE
+        need = self.num_envs * self.member_floats() * self.dtype.itemsize * WORKSPACE
         if free is not None and need > free:
             fits = max(1, free // (self.member_floats() * self.dtype.itemsize * WORKSPACE))
             raise ValueError(
-                f"{self.env_id}: {self.n_envs:,} members need about {need / 2**30:,.1f} GiB on "
+                f"{self.env_id}: {self.num_envs:,} members need about {need / 2**30:,.1f} GiB on "
                 f"{self.device}, {free / 2**30:,.1f} GiB are free; at most about {fits:,} members fit"
             )
 
@@ -647,9 +647,9 @@ class FlowEnv(EnvBase):
                         f"got {tuple(value.shape)}"
                     )
         for key, value in state.items():
-            if value.ndim == 0 or value.shape[0] != self.n_envs:
+            if value.ndim == 0 or value.shape[0] != self.num_envs:
                 raise ValueError(
-                    f"{name}: state[{key!r}] must have the batch size {self.n_envs} first, got "
+                    f"{name}: state[{key!r}] must have the batch size {self.num_envs} first, got "
                     f"shape {tuple(value.shape)}"
                 )
         for key, value in state.items():
@@ -696,10 +696,10 @@ class FlowEnv(EnvBase):
                     f"{self.env_id}: the '_reset' mask must be a bool tensor, got "
                     f"{getattr(mask, 'dtype', type(mask).__name__)}"
                 )
-            if mask.numel() != self.n_envs:
+            if mask.numel() != self.num_envs:
                 raise ValueError(
                     f"{self.env_id}: the '_reset' mask must have one entry per member "
-                    f"({self.n_envs}), got shape {tuple(mask.shape)}"
+                    f"({self.num_envs}), got shape {tuple(mask.shape)}"
                 )
             mask = mask.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
@@ -759,10 +759,10 @@ class FlowEnv(EnvBase):
                     f"{self.env_id}: the '_step' mask must be a bool tensor, got "
                     f"{getattr(stepping, 'dtype', type(stepping).__name__)}"
                 )
-            if stepping.numel() != self.n_envs:
+            if stepping.numel() != self.num_envs:
                 raise ValueError(
                     f"{self.env_id}: the '_step' mask must have one entry per member "
-                    f"({self.n_envs}), got shape {tuple(stepping.shape)}"
+                    f"({self.num_envs}), got shape {tuple(stepping.shape)}"
                 )
             stepping = stepping.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
@@ -889,7 +889,7 @@ class FlowEnv(EnvBase):
         per_member = {
             name: stand_in(v)
             for name, v in vars(self.params).items()
-            if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.n_envs
+            if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.num_envs
         }
         params = dataclasses.replace(self.params, **per_member)
         return self._settled_step(
@@ -946,10 +946,10 @@ class FlowEnv(EnvBase):
         if (
             isinstance(index, (bool, np.bool_))
             or not isinstance(index, (int, np.integer))
-            or not 0 <= index < self.n_envs
+            or not 0 <= index < self.num_envs
         ):
             raise ValueError(
-                f"{self.env_id}: render_index must be a member's index in [0, {self.n_envs}), got {index!r}"
+                f"{self.env_id}: render_index must be a member's index in [0, {self.num_envs}), got {index!r}"
             )
         self.history.index = int(index)
 

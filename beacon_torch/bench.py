@@ -171,7 +171,7 @@ def save_rows(rows: list[dict], out: str | Path, name: str) -> Path:
 def run(
     env_ids: Iterable[str],
     *,
-    batch_sizes: Sequence[int] | None = None,
+    num_envs: Sequence[int] | None = None,
     dtypes: Sequence[str] = ("float32",),
     modes: Sequence[str] = ("eager", "compiled"),
     device: str = "cpu",
@@ -186,7 +186,7 @@ def run(
     for env_id in env_ids:
         for dtype in dtypes:
             for mode in modes:
-                for batch in batch_sizes or default_batch_sizes(env_id):
+                for batch in num_envs or default_batch_sizes(env_id):
                     m = measure(env_id, batch, dtype=dtype, mode=mode, device=device, steps=steps, repeats=repeats)
                     echo(m.row())
                     results.append(m)

@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from beacon_torch import evaluate
+from beacon_torch import episodes
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.params import describe, parse_assignments
@@ -81,25 +81,25 @@ def _plot_run(path: Path, env_id: str, null_rewards: torch.Tensor, rand_rewards:
 
 def cmd_run(args: argparse.Namespace) -> int:
     env_class(args.env)  # an unknown id fails here, before anything is built
-    if args.batch_size < 1:
-        raise CliError(f"--batch-size must be a positive integer, got {args.batch_size}")
+    if args.num_envs < 1:
+        raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
     params = _parse_params(args.param)
-    kwargs = dict(device=args.device, dtype=args.dtype, seed=args.seed, **params)
+    kwargs = dict(device=args.device, dtype=args.dtype, seed=args.seed, params=params)
     out = Path(args.out or f"runs/{args.env}")
     out.mkdir(parents=True, exist_ok=True)
 
     results = {}
     rewards = {}
-    for name, batch in (("uncontrolled", 1), ("random", args.batch_size)):
+    for name, batch in (("uncontrolled", 1), ("random", args.num_envs)):
         env = make(args.env, batch, **kwargs)
-        policy = evaluate.null_policy(env) if name == "uncontrolled" else evaluate.random_policy(env, args.seed)
+        policy = episodes.null_policy(env) if name == "uncontrolled" else episodes.random_policy(env, args.seed)
         start = time.perf_counter()
-        rollout = evaluate.episode(env, policy)
+        rollout = episodes.episode(env, policy)
         elapsed = time.perf_counter() - start
-        score = evaluate.scores(rollout)
-        rewards[name] = evaluate.step_rewards(rollout).cpu()
+        score = episodes.scores(rollout)
+        rewards[name] = episodes.step_rewards(rollout).cpu()
         results[name] = dict(
-            members=batch,
+            num_envs=batch,
             mean=score.mean().item(),
             std=score.std(unbiased=False).item(),
             min=score.min().item(),
@@ -134,7 +134,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             if step % every == 0 and step < env.episode_length:
                 frames.append(env.render())
 
-        evaluate.episode(env, evaluate.null_policy(env), frame_hook=grab)
+        episodes.episode(env, episodes.null_policy(env), frame_hook=grab)
         frames.append(env.render())  # the end of the episode, whatever the stride
         gif = save_animation(frames, args.gif)
         print(f"animation ({len(frames)} frames of the uncontrolled episode): {gif}")
@@ -147,15 +147,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
     envs = args.envs or base_envs()
     for env_id in envs:
         env_class(env_id)
-    for b in args.batch_sizes or ():
+    for b in args.num_envs or ():
         if b < 1:
-            raise CliError(f"--batch-sizes must be positive integers, got {b}")
+            raise CliError(f"--num-envs must be positive integers, got {b}")
     for name in ("steps", "repeats"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise CliError(f"--{name} must be a positive integer, got {getattr(args, name)}")
     results = bench.run(
         envs,
-        batch_sizes=args.batch_sizes,
+        num_envs=args.num_envs,
         dtypes=args.dtype,
         modes=args.mode,
         device=args.device,
@@ -173,8 +173,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from beacon_torch.training.evaluation import evaluate_policy, evaluate_run
     from beacon_torch.training.run import seed_dirs
 
-    if args.members < 1:
-        raise CliError(f"--members must be a positive integer, got {args.members}")
+    if args.num_envs < 1:
+        raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
     _as_device(args.device)  # before a policy is moved there
     if (args.run is None) == (args.pretrained is None):
         raise CliError("eval takes a run directory or --pretrained ALGO/ENV, one of the two")
@@ -192,19 +192,19 @@ def cmd_eval(args: argparse.Namespace) -> int:
             gif.parent.mkdir(parents=True, exist_ok=True)
         record = pretrained.info(args.pretrained)
         params = record.get("params", {})  # the physics it was trained on
-        r = evaluate_policy(env_id, policy, members=args.members, device=args.device, gif=gif, params=params)
+        r = evaluate_policy(env_id, policy, num_envs=args.num_envs, device=args.device, gif=gif, params=params)
         trained = f"trained on {record['frames']} transitions"
         runs = [(f"pretrained {algo}", r, trained)]
     else:
         runs = []
         for run in seed_dirs(args.run):
             r = evaluate_run(
-                run, members=args.members, device=args.device, gif=None if args.no_gif else run / "controlled.gif"
+                run, num_envs=args.num_envs, device=args.device, gif=None if args.no_gif else run / "controlled.gif"
             )
             runs.append((str(run), r, f"trained on {r['frames']} transitions"))
     for name, r, trained in runs:
         print(
-            f"{r['env']} {name}: score {r['score_mean']:.6g} +- {r['score_std']:.3g} over {args.members} episodes "
+            f"{r['env']} {name}: score {r['score_mean']:.6g} +- {r['score_std']:.3g} over {args.num_envs} episodes "
             f"(uncontrolled {r['uncontrolled']:.6g}; {trained})" + (f"; animation {r['gif']}" if "gif" in r else "")
         )
     return 0
@@ -236,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="uncontrolled and random-policy episodes of an env")
     run.add_argument("env", help="environment id (see 'beacon-torch list')")
-    run.add_argument("--batch-size", type=int, default=16, help="members of the random-policy batch")
+    run.add_argument("--num-envs", type=int, default=16, help="members of the random-policy batch")
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--device", default="cpu")
     run.add_argument("--dtype", default="float64", choices=["float32", "float64"])
@@ -249,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="transitions per second against the published code")
     bench.add_argument("--envs", nargs="+", metavar="ENV", help="env ids (default: the seven benchmark envs)")
     bench.add_argument(
-        "--batch-sizes", nargs="+", type=int, metavar="B", help="default 1 16 64 256 1024 (1 16 32 64 for the cavities)"
+        "--num-envs", nargs="+", type=int, metavar="N", help="default 1 16 64 256 1024 (1 16 32 64 for the cavities)"
     )
     bench.add_argument("--dtype", nargs="+", default=["float32"], choices=["float32", "float64"])
     bench.add_argument("--mode", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
@@ -265,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--pretrained", metavar="ALGO/ENV", help="a shipped policy instead (beacon_torch.pretrained.available())"
     )
     ev.add_argument("--out", help="where --pretrained writes its animation (default: here)")
-    ev.add_argument("--members", type=int, default=8, help="evaluation episodes (one batch)")
+    ev.add_argument("--num-envs", type=int, default=8, help="evaluation episodes (one batch)")
     ev.add_argument("--device", default="cpu")
     ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")
     ev.set_defaults(func=cmd_eval)

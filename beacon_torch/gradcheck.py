@@ -99,6 +99,6 @@ def check_env(env_id: str, case: GradCheck | None = None) -> dict[str, Derivativ
         raise ValueError(f"{env_id} declares no gradient check (its actions are discrete)")
 
     def make(**kwargs):
-        return make_env(env_id, batch_size=1, dtype=torch.float64, seed=3, **case.params, **kwargs)
+        return make_env(env_id, num_envs=1, dtype=torch.float64, seed=3, **case.params, **kwargs)
 
     return check(make, case.param, case.value, warmup=case.warmup, steps=case.steps)

@@ -54,7 +54,7 @@ def team_reward(env: FlowEnv, reward: torch.Tensor) -> np.ndarray:
     variants, the mean over the agents."""
     if reward.ndim == 1:
         return reward.detach().cpu().numpy().astype(np.float64)
-    return reward.detach().to(torch.float64).reshape(env.n_envs, -1).mean(-1).cpu().numpy()
+    return reward.detach().to(torch.float64).reshape(env.num_envs, -1).mean(-1).cpu().numpy()
 
 
 def batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
@@ -95,7 +95,7 @@ class BeaconGymEnv(gymnasium.Env):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
         params.setdefault("compile", compiles_by_default())
-        self.env = make(env_id, batch_size=1, dtype=dtype, record_history=render_mode is not None, **params)
+        self.env = make(env_id, num_envs=1, dtype=dtype, record_history=render_mode is not None, **params)
         self.observation_space, self.action_space = _spaces(self.env)
         self._np_dtype = self.observation_space.dtype
 
@@ -148,7 +148,7 @@ class BeaconVectorEnv(VectorEnv):
         params.setdefault("compile", compiles_by_default())
         self.env = make(
             env_id,
-            batch_size=num_envs,
+            num_envs=num_envs,
             dtype=dtype,
             device=device,
             record_history=render_mode is not None,

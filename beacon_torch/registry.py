@@ -112,19 +112,26 @@ def compiles_by_default() -> bool:
 
 def make(
     env_id: str,
-    batch_size: int = 1,
+    num_envs: int | None = None,
     *,
     device: Any = "cpu",
     dtype: Any = "float32",
     seed: int | None = None,
-    **params: Any,
+    params: Any = None,
+    batch_size: int | None = None,
+    **options: Any,
 ) -> FlowEnv:
     """Build a batched BEACON environment.
 
-    ``batch_size`` members are stepped together; ``device`` and ``dtype`` (float32 or
-    float64) place the state; ``seed`` seeds the env's own generator. The other keyword
-    arguments are the env's physical parameters (``beacon-torch list``, ``docs/envs``)
-    and the options every env has:
+    ``num_envs`` members are stepped together (default 1; ``batch_size`` is TorchRL's
+    name for the same number, accepted as TorchRL users write it); ``device`` and
+    ``dtype`` (float32 or float64) place the state; ``seed`` seeds the env's own
+    generator. ``params`` is the physics, a value: an instance of the env's ``Params``
+    (``BurgersEnv.Params(amp=5.0)``, every field) or a dict of some of its fields
+    (``{"amp": 5.0}``, the others at their defaults; ``beacon-torch list``,
+    ``docs/envs``). A parameter may also be given as a keyword
+    (``make("burgers-v0", amp=5.0)``). The other keywords are the options every env
+    has:
 
     ``compile``
         True (or a dict of ``torch.compile`` options) runs each step as one compiled
@@ -145,6 +152,38 @@ def make(
         False skips the check of action values (NaN, range), which synchronises with
         an accelerator on every step; default True.
     """
-    return env_class(env_id)(
-        batch_size, device=device, dtype=dtype, seed=seed, **{**DEFAULTS.get(env_id, {}), **params}
+    cls = env_class(env_id)
+    if batch_size is not None:
+        if num_envs is not None:
+            raise TypeError(f"{env_id}: give num_envs or batch_size (TorchRL's name for it), not both")
+        num_envs = batch_size
+    physics = params_dict(cls, params)
+    sugar = {k: v for k, v in options.items() if k not in OPTIONS}
+    twice = sorted(set(sugar) & set(physics))
+    if twice:
+        raise TypeError(f"{env_id}: parameter {twice[0]!r} given twice, in params and as a keyword")
+    defaults = DEFAULTS.get(env_id, {})
+    return cls(
+        1 if num_envs is None else num_envs, device=device, dtype=dtype, seed=seed, **{**defaults, **physics, **options}
+    )
+
+
+def params_dict(cls: type[FlowEnv], params: Any) -> dict[str, Any]:
+    """The parameters given to :func:`make` as a dict: ``None``, a dict of names to
+    values, or an instance of the env's own ``Params``, which is the whole physics (every
+    field, a registered variant's defaults included)."""
+    if params is None:
+        return {}
+    if isinstance(params, dict):
+        names = [f.name for f in dataclasses.fields(cls.Params)]
+        unknown = sorted(set(params) - set(names))
+        if unknown:
+            # an option among them too: params are the physics alone
+            raise TypeError(f"unknown parameter {unknown[0]!r} of {cls.env_id}; the parameters are: {', '.join(names)}")
+        return dict(params)
+    if isinstance(params, cls.Params):
+        return {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
+    raise TypeError(
+        f"{cls.env_id}: params must be a {cls.Params.__name__} (the env's Params) or a dict of its fields, "
+        f"got {type(params).__name__}"
     )

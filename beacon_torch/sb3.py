@@ -72,14 +72,14 @@ class BeaconVecEnv(VecEnv):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         options.setdefault("compile", compiles_by_default())
         self.env = make(
-            env_id, batch_size=n_envs, dtype=dtype, device=device, record_history=render_mode is not None, **options
+            env_id, num_envs=n_envs, dtype=dtype, device=device, record_history=render_mode is not None, **options
         )
         self.render_mode = render_mode
         self.env_id = env_id
         observation_space, action_space = _spaces(self.env)
         self._np_dtype = observation_space.dtype
         self._actions: torch.Tensor | None = None
-        super().__init__(self.env.n_envs, observation_space, action_space)
+        super().__init__(self.env.num_envs, observation_space, action_space)
 
     # ------------------------------------------------------------------ stepping
     def _numpy(self, obs: torch.Tensor) -> np.ndarray:

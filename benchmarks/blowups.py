@@ -18,14 +18,14 @@ import time
 import torch
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 
 PERIODS = (4, 8, 16, 32, 64)  # square waves, in actions
 
 
 def policies(env, seed: int):
     g = torch.Generator(device=env.device).manual_seed(seed)
-    shape = (env.n_envs, *env.action_shape)
+    shape = (env.num_envs, *env.action_shape)
     ones = torch.ones(shape, dtype=env.dtype, device=env.device)
     out = {
         "random": lambda step: env.random_action(g),
@@ -52,8 +52,8 @@ def measure(env_id: str, batch: int, seed: int) -> list[str]:
         return td
 
     start = time.perf_counter()
-    rollout = evaluate.episode(env, policy)
-    scores = evaluate.scores(rollout)
+    rollout = episodes.episode(env, policy)
+    scores = episodes.scores(rollout)
     done = rollout["next", "done"][..., 0]
     terminated = (rollout["next", "terminated"][..., 0] & (done.cumsum(-1) == done.to(torch.int64))).any(-1)
     lines = [

@@ -17,7 +17,7 @@ import time
 import torch
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 from beacon_torch.registry import ENVS, base_envs
 
 PUBLISHED = {env_id: ENVS[env_id].published_speed for env_id in base_envs() if ENVS[env_id].family == "cavity"}
@@ -25,7 +25,7 @@ PUBLISHED = {env_id: ENVS[env_id].published_speed for env_id in base_envs() if E
 
 def substep_breakdown(env, repeats: int = 50) -> dict:
     """Milliseconds per batched substep: the Poisson solve alone, and the whole substep."""
-    rhs = torch.randn((env.nx, env.ny, env.n_envs), dtype=env.dtype, device=env.device)  # batch last
+    rhs = torch.randn((env.nx, env.ny, env.num_envs), dtype=env.dtype, device=env.device)  # batch last
     env.solver.solve(rhs)
     start = time.perf_counter()
     for _ in range(repeats):
@@ -58,7 +58,7 @@ def main() -> None:
             env.step(env.reset().set("action", env.null_action()))
             compile_s = time.perf_counter() - start
         start = time.perf_counter()
-        rollout = evaluate.episode(env, evaluate.null_policy(env))
+        rollout = episodes.episode(env, episodes.null_policy(env))
         elapsed = time.perf_counter() - start
         rate = rollout.numel() / elapsed
         row = {

@@ -98,7 +98,7 @@ def main(argv=None) -> None:
     print("|---|---|---|---|---|---|")
     for env_id in args.envs:
         params = ENVS[env_id]
-        probe = beacon_torch.make(env_id, batch_size=1, dtype=dtype, seed=0, **params)
+        probe = beacon_torch.make(env_id, num_envs=1, dtype=dtype, seed=0, **params)
         probe.reset()
         state = sum(v.numel() * v.element_size() for v in probe.state.values())
         full, t_full, *_ = measure(env_id, args.steps, args.batch, dtype, False, **params)

@@ -1,6 +1,6 @@
 """Every shipped policy evaluated again, as a user gets it.
 
-    .venv/bin/python benchmarks/pretrained.py [--members 8] [--page docs/results.md] [--changed]
+    .venv/bin/python benchmarks/pretrained.py [--num-envs 8] [--page docs/results.md] [--changed]
 
 Loads each policy of ``beacon_torch.pretrained.available()`` through
 ``pretrained.load`` (raw observations, the training's normalisation folded into the
@@ -32,9 +32,9 @@ ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of shipped policies -->"
 
 
-def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()) -> list[dict]:
+def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()) -> list[dict]:
     """One row per shipped policy: its deterministic score against no control. A row of
-    ``keep`` (taken with the same members and seed) stands for its policy while the
+    ``keep`` (taken with the same num_envs and seed) stands for its policy while the
     policy's shipping record is the one the row holds."""
     kept = {row["policy"]: row for row in keep}
     rows = []
@@ -50,7 +50,7 @@ def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ())
             rows.append(old)
             continue
         start = time.perf_counter()
-        result = evaluate_policy(env_id, pretrained.load(name), members=members, seed=seed)
+        result = evaluate_policy(env_id, pretrained.load(name), num_envs=num_envs, seed=seed)
         rows.append(
             {
                 "policy": name,
@@ -67,10 +67,10 @@ def evaluate_all(members: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ())
     return rows
 
 
-def table(rows: list[dict], members: int, seed: int) -> str:
+def table(rows: list[dict], num_envs: int, seed: int) -> str:
     lines = [
         f"Every shipped policy, loaded with `beacon_torch.pretrained.load` and run "
-        f"deterministically on {members} episodes"
+        f"deterministically on {num_envs} episodes"
         f" of evaluation seed {seed} (float32), against no control on the same episodes (`benchmarks/pretrained.py`):",
         "",
         "| policy | trained on (seed) | score (std over episodes) | uncontrolled | normalised | recorded at shipping |",
@@ -87,7 +87,7 @@ def table(rows: list[dict], members: int, seed: int) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--members", type=int, default=8, help="evaluation episodes per policy")
+    parser.add_argument("--num-envs", type=int, default=8, help="evaluation episodes per policy")
     parser.add_argument("--seed", type=int, default=EVAL_SEED)
     parser.add_argument(
         "--page", default=str(ROOT / "docs" / "results.md"), help="the page whose marked part is rewritten"
@@ -99,24 +99,24 @@ def main(argv: list[str] | None = None) -> None:
         help="evaluate only the policies shipped since --json was written, keep its other rows",
     )
     args = parser.parse_args(argv)
-    if args.members < 1:
-        parser.error(f"--members must be at least 1, got {args.members}")
+    if args.num_envs < 1:
+        parser.error(f"--num-envs must be at least 1, got {args.num_envs}")
     keep = []
     if args.changed and Path(args.json).is_file():
         before = json.loads(Path(args.json).read_text())
-        if (before["members"], before["seed"]) == (args.members, args.seed):
+        if (before["num_envs"], before["seed"]) == (args.num_envs, args.seed):
             keep = before["rows"]
         else:
             print(
-                f"{args.json} was taken with {before['members']} members and seed {before['seed']}: "
+                f"{args.json} was taken with {before['num_envs']} members and seed {before['seed']}: "
                 f"evaluating every policy"
             )
-    rows = evaluate_all(args.members, args.seed, keep)
+    rows = evaluate_all(args.num_envs, args.seed, keep)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(
-        json.dumps({"members": args.members, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1)
+        json.dumps({"num_envs": args.num_envs, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1)
     )
-    text = table(rows, args.members, args.seed)
+    text = table(rows, args.num_envs, args.seed)
     write_block(args.page, BEGIN, END, text)
     print(text)
 

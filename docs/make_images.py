@@ -5,7 +5,7 @@ from pathlib import Path
 from PIL import Image
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 
 OUT = Path(__file__).parent / "img"
 
@@ -22,7 +22,7 @@ if __name__ == "__main__":
     )
     for env_id, steps, params in cases:
         env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True, **params)
-        policy = evaluate.random_policy(env, seed=0)
+        policy = episodes.random_policy(env, seed=0)
         env.rollout(steps, policy=policy)
         Image.fromarray(env.render()).save(OUT / f"{env_id}.png")
         print(OUT / f"{env_id}.png")

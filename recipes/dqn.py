@@ -35,7 +35,7 @@ def main(cfg: DQNConfig) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
-        **cfg.params,
+        params=cfg.params,
     )
 
     # the action values (the greedy policy), the DQN loss with its target network

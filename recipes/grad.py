@@ -40,7 +40,7 @@ def main(cfg: GradConfig) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
-        **cfg.params,
+        params=cfg.params,
         differentiable=True,
         grad_checkpoint=cfg.grad_checkpoint,
     )

@@ -40,7 +40,7 @@ def main(cfg: PPOConfig) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
-        **cfg.params,
+        params=cfg.params,
     )
     keys = networks.Keys.of(env)
 

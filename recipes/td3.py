@@ -57,7 +57,7 @@ def main(cfg: TD3Config) -> dict:
         norm=run.obs_norm,
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
-        **cfg.params,
+        params=cfg.params,
     )
 
     # a deterministic actor, twin critics (inside the loss) and their optimisers

@@ -49,8 +49,8 @@ def recipe(algo: str):
     return script(f"recipes/{algo}.py")
 
 
-def make(env_id, batch_size=1, **kwargs):
-    return beacon_torch.make(env_id, batch_size, **{**FAST[env_id], **kwargs})
+def make(env_id, num_envs=1, **kwargs):
+    return beacon_torch.make(env_id, num_envs, **{**FAST[env_id], **kwargs})
 
 
 @pytest.fixture(params=ALL_ENVS)

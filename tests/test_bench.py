@@ -33,7 +33,7 @@ def test_bench_command_writes_table_csv_json_and_plot(tmp_path, capsys):
             "--envs",
             "lorenz-v0",
             "vortex-v0",
-            "--batch-sizes",
+            "--num-envs",
             "1",
             "8",
             "--mode",
@@ -63,5 +63,5 @@ def test_bench_command_writes_table_csv_json_and_plot(tmp_path, capsys):
 def test_bench_command_reports_bad_input(capsys):
     assert main(["bench", "--envs", "nope-v0"]) == 2
     assert "nope-v0" in capsys.readouterr().err
-    assert main(["bench", "--envs", "lorenz-v0", "--batch-sizes", "0"]) == 2
-    assert "--batch-sizes" in capsys.readouterr().err
+    assert main(["bench", "--envs", "lorenz-v0", "--num-envs", "0"]) == 2
+    assert "--num-envs" in capsys.readouterr().err

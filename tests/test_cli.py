@@ -10,12 +10,12 @@ from beacon_torch.cli import main
 
 
 def test_run_reports_scores_and_writes_a_plot(tmp_path, capsys):
-    assert main(["run", "lorenz-v0", "--batch-size", "4", "--out", str(tmp_path)]) == 0
+    assert main(["run", "lorenz-v0", "--num-envs", "4", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "uncontrolled: score 207" in out
     scores = json.loads((tmp_path / "scores.json").read_text())
     assert scores["uncontrolled"]["mean"] == 207.0
-    assert scores["random"]["members"] == 4
+    assert scores["random"]["num_envs"] == 4
     with Image.open(tmp_path / "run.png") as im:
         assert im.size[0] > 300
 
@@ -25,7 +25,7 @@ def test_run_with_parameters_and_gif(tmp_path):
     args = [
         "run",
         "vortex-v0",
-        "--batch-size",
+        "--num-envs",
         "2",
         "--out",
         str(tmp_path),
@@ -50,8 +50,8 @@ def test_bad_arguments_get_one_line(tmp_path, capsys):
     assert "'re'" in capsys.readouterr().err
     assert main(["run", "vortex-v0", "--param", "re", "--out", str(tmp_path)]) == 2
     assert "NAME=VALUE" in capsys.readouterr().err
-    assert main(["run", "vortex-v0", "--batch-size", "0", "--out", str(tmp_path)]) == 2
-    assert "--batch-size" in capsys.readouterr().err
+    assert main(["run", "vortex-v0", "--num-envs", "0", "--out", str(tmp_path)]) == 2
+    assert "--num-envs" in capsys.readouterr().err
 
 
 def test_list_and_console_script():

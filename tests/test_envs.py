@@ -8,7 +8,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 
 from conftest import EXPENSIVE_ENVS, make, run_actions
 
@@ -16,7 +16,7 @@ from conftest import EXPENSIVE_ENVS, make, run_actions
 def test_episode_truncates_at_its_length(cheap_env_id):
     env_id = cheap_env_id
     env = make(env_id, 3)
-    r = evaluate.episode(env, evaluate.random_policy(env))
+    r = episodes.episode(env, episodes.random_policy(env))
     n = env.episode_length
     assert r.shape == (3, n)
     assert r["next", "truncated"][:, -1].all() and r["next", "done"][:, -1].all()
@@ -231,11 +231,11 @@ def test_compiled_path_on_cuda():
 def test_a_blowup_never_pays(env_id, params, push):
     env = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0, **params)
     constant = torch.full((2, env.n_actions), push, dtype=torch.float64)
-    rollout = evaluate.episode(env, lambda td: td.set("action", constant))
+    rollout = episodes.episode(env, lambda td: td.set("action", constant))
     assert rollout["next", "terminated"].any(-2).all(), "no member left the physical bounds"
-    blown = evaluate.scores(rollout)
+    blown = episodes.scores(rollout)
     calm = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0, **{k: v for k, v in params.items() if k != "amp"})
-    uncontrolled = evaluate.scores(evaluate.episode(calm, evaluate.null_policy(calm)))
+    uncontrolled = episodes.scores(episodes.episode(calm, episodes.null_policy(calm)))
     assert (blown <= env.blowup_reward).all() and (blown < uncontrolled).all()
 
 

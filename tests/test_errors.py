@@ -35,7 +35,7 @@ def test_an_unusable_device_is_named(device):
         pytest.skip("a CUDA device is present")
     with pytest.raises(ValueError, match=f"device '{device}'"):
         beacon_torch.make("lorenz-v0", device=device)
-    assert cli(["run", "lorenz-v0", "--device", device, "--batch-size", "1"]) == 2
+    assert cli(["run", "lorenz-v0", "--device", device, "--num-envs", "1"]) == 2
 
 
 def test_reset_masks_are_bool_with_one_entry_per_member():
@@ -125,7 +125,7 @@ def test_absurd_batch_sizes_are_refused_before_any_allocation():
 def test_cli_paths_that_cannot_be_written_are_one_line(tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("a file where a folder should go")
-    assert cli(["run", "lorenz-v0", "--batch-size", "1", "--out", str(blocker / "sub")]) == 2
+    assert cli(["run", "lorenz-v0", "--num-envs", "1", "--out", str(blocker / "sub")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and str(blocker) in err
 

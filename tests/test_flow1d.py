@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch import cache, evaluate
+from beacon_torch import cache, episodes
 from beacon_torch.envs import shkadov, sloshing
 
 from conftest import run_actions
@@ -126,5 +126,5 @@ def test_separable_shkadov_observation_does_not_grow_with_jets():
     assert r["agents", "observation"].shape == (2, 2, 20, 10)
     assert r["agents", "action"].shape == (2, 2, 20, 1)
     assert env.full_observation_spec["agents", "observation"].shape == (2, 20, 10)
-    score = evaluate.scores(r)
+    score = episodes.scores(r)
     assert score.shape == (2,)

@@ -86,7 +86,7 @@ def test_detach_state_truncates_backpropagation():
 def test_default_mode_keeps_no_graph():
     theta = torch.tensor(0.5, requires_grad=True)
     with pytest.warns(UserWarning, match="require grad but the env is not differentiable"):
-        env = beacon_torch.make("burgers-v0", batch_size=2, u_target=theta)
+        env = beacon_torch.make("burgers-v0", num_envs=2, u_target=theta)
     env.reset()
     action = torch.zeros((2, 1), requires_grad=True)
     with pytest.warns(UserWarning, match="gradient is dropped"):
@@ -96,7 +96,7 @@ def test_default_mode_keeps_no_graph():
 
 
 def test_policy_gradient_through_a_torchrl_rollout():
-    env = beacon_torch.make("sloshing-v0", batch_size=2, seed=0, differentiable=True)
+    env = beacon_torch.make("sloshing-v0", num_envs=2, seed=0, differentiable=True)
     net = torch.nn.Sequential(torch.nn.Linear(env.n_obs, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1), torch.nn.Tanh())
     td = env.rollout(5, TensorDictModule(net, ["observation"], ["action"]))
     td["next", "reward"].sum().backward()
@@ -105,7 +105,7 @@ def test_policy_gradient_through_a_torchrl_rollout():
 
 def test_per_member_parameter_gets_per_member_gradients():
     g = torch.tensor([9.0, 9.81, 11.0], dtype=F64, requires_grad=True)
-    env = beacon_torch.make("sloshing-v0", batch_size=3, dtype=F64, differentiable=True, g=g)
+    env = beacon_torch.make("sloshing-v0", num_envs=3, dtype=F64, differentiable=True, g=g)
     env.reset()
     actions = torch.full((3, 3, 1), 0.2, dtype=F64)
     summed = 0.0
@@ -129,10 +129,10 @@ def test_errors_name_the_problem():
     with pytest.raises(ValueError, match="'re' must be in"):
         beacon_torch.make("vortex-v0", re=torch.tensor(-1.0, requires_grad=True))
     with pytest.raises(ValueError, match=r"shape \(2,\)"):
-        beacon_torch.make("vortex-v0", batch_size=2, re=torch.ones(3, requires_grad=True))
+        beacon_torch.make("vortex-v0", num_envs=2, re=torch.ones(3, requires_grad=True))
     with pytest.raises(ValueError, match="needs differentiable=True"):
         beacon_torch.make("vortex-v0", grad_checkpoint=True)
-    env = beacon_torch.make("vortex-v0", batch_size=2)
+    env = beacon_torch.make("vortex-v0", num_envs=2)
     env.reset()
     with pytest.raises(KeyError, match="missing \\['k'"):
         env.set_state({k: v for k, v in env.state.items() if k != "k"})
@@ -141,7 +141,7 @@ def test_errors_name_the_problem():
 
 
 def test_partial_reset_keeps_the_graph_of_the_members_that_go_on():
-    env = beacon_torch.make("vortex-v0", batch_size=2, dtype=F64, differentiable=True)
+    env = beacon_torch.make("vortex-v0", num_envs=2, dtype=F64, differentiable=True)
     env.reset()
     first = torch.full((2, 2), 0.3, dtype=F64, requires_grad=True)
     env.step(TensorDict({"action": first}, batch_size=[2]))

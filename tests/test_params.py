@@ -76,6 +76,40 @@ def test_bad_parameters_raise_naming_the_parameter(env_id, kwargs, exc, words):
         assert word in str(info.value), (word, str(info.value))
 
 
+def test_params_are_a_value_separate_from_the_options():
+    """``params=`` takes the env's ``Params`` (the whole physics) or a dict of some of its
+    fields; keywords stay sugar for the same; options never mix with them."""
+    from beacon_torch.envs.burgers import BurgersEnv
+
+    as_value = beacon_torch.make("burgers-v0", 2, params=BurgersEnv.Params(amp=5.0, sigma=0.2), seed=0)
+    as_dict = beacon_torch.make("burgers-v0", 2, params={"amp": 5.0, "sigma": 0.2}, seed=0)
+    as_keywords = beacon_torch.make("burgers-v0", 2, amp=5.0, sigma=0.2, seed=0)
+    for env in (as_value, as_dict, as_keywords):
+        assert env.params.amp.tolist() == [5.0, 5.0] and env.params.sigma.tolist() == pytest.approx([0.2, 0.2])
+        assert env.params.ctrl_pos == BurgersEnv.Params().ctrl_pos
+    both = beacon_torch.make("burgers-v0", 2, params={"amp": 5.0}, record_history=True)
+    assert both.history.enabled and both.params.amp.tolist() == [5.0, 5.0]
+    with pytest.raises(TypeError, match="'amp' given twice"):
+        beacon_torch.make("burgers-v0", params={"amp": 5.0}, amp=6.0)
+    with pytest.raises(TypeError, match="BurgersParams .*or a dict"):
+        beacon_torch.make("burgers-v0", params=("amp", 5.0))
+    from beacon_torch.envs.lorenz import LorenzEnv
+
+    with pytest.raises(TypeError, match="burgers-v0: params must be a BurgersParams"):
+        beacon_torch.make("burgers-v0", params=LorenzEnv.Params())
+    with pytest.raises(TypeError, match="unknown parameter 'compile'"):
+        beacon_torch.make("burgers-v0", params={"compile": True})
+
+
+def test_num_envs_is_the_batch_and_batch_size_torchrls_name_for_it():
+    env = beacon_torch.make("lorenz-v0", num_envs=3)
+    assert env.num_envs == 3 and env.batch_size == torch.Size([3])
+    assert beacon_torch.make("lorenz-v0", batch_size=5).num_envs == 5  # as TorchRL users write it
+    assert beacon_torch.make("lorenz-v0").num_envs == 1
+    with pytest.raises(TypeError, match="num_envs or batch_size"):
+        beacon_torch.make("lorenz-v0", 2, batch_size=2)
+
+
 def test_per_member_parameters_become_batch_tensors():
     env = beacon_torch.make("lorenz-v0", 3, dtype=torch.float64, rho=torch.tensor([10.0, 28.0, 99.0]))
     assert isinstance(env.params.rho, torch.Tensor)

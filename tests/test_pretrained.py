@@ -74,7 +74,7 @@ def test_export_folds_the_normalisation_into_the_first_layer(shipped):
 
 
 def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, capsys):
-    assert cli(["eval", "--pretrained", "ppo/vortex-v0", "--members", "2", "--out", str(tmp_path)]) == 0
+    assert cli(["eval", "--pretrained", "ppo/vortex-v0", "--num-envs", "2", "--out", str(tmp_path)]) == 0
     assert "pretrained ppo" in capsys.readouterr().out and (tmp_path / "ppo" / "vortex-v0.gif").stat().st_size > 1000
     assert cli(["eval", "--pretrained", "td3/vortex-v0", "--no-gif"]) == 2
     assert "no pretrained td3 policy for vortex-v0" in capsys.readouterr().err
@@ -98,26 +98,26 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     spec.loader.exec_module(bench)
     page = tmp_path / "results.md"
     page.write_text(f"# Results\n\nby hand\n\n{bench.BEGIN}\nold\n{bench.END}\n\nnotes\n")
-    bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json")])
+    bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json")])
     text = page.read_text()
     assert "old" not in text and "by hand" in text and text.endswith("notes\n")
     assert "| ppo/vortex-v0 | 400 (0) |" in text
     (row,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
     assert row["policy"] == "ppo/vortex-v0" and row["recorded"] == 1.0
-    checkpoint = evaluate_run(shipped, members=2)
+    checkpoint = evaluate_run(shipped, num_envs=2)
     assert row["uncontrolled"] == checkpoint["uncontrolled"]
     assert abs(row["score"] - checkpoint["score_mean"]) <= 1e-4 * max(1.0, abs(checkpoint["score_mean"]))
     assert row["normalised"] == pytest.approx((row["score"] - row["uncontrolled"]) / (38 - row["uncontrolled"]))
     # --changed keeps the row of a policy shipped as it was, and evaluates it again once
     # it is shipped anew
-    bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
+    bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     assert json.loads((tmp_path / "pretrained.json").read_text())["rows"] == [row]
     pretrained.export(shipped, pretrained.path_of("ppo/vortex-v0"), seed=0, score=2.0)
-    bench.main(["--members", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
+    bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     (again,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
     assert again["recorded"] == 2.0 and again["seconds"] != row["seconds"] and "| 2 |" in page.read_text()
     with pytest.raises(SystemExit):
-        bench.main(["--members", "0", "--page", str(page)])
+        bench.main(["--num-envs", "0", "--page", str(page)])
 
 
 def test_a_generated_part_without_its_end_marker_is_refused(tmp_path):

@@ -240,7 +240,7 @@ def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
             )
         )
     capsys.readouterr()
-    assert cli(["eval", str(out / "seed0"), "--members", "2"]) == 0
+    assert cli(["eval", str(out / "seed0"), "--num-envs", "2"]) == 0
     text = capsys.readouterr().out
     assert "uncontrolled" in text and (out / "seed0" / "controlled.gif").stat().st_size > 1000
     png = tmp_path / "curve.png"
@@ -284,7 +284,7 @@ def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, en
         "training did not change the policy"
     )
     capsys.readouterr()
-    assert cli(["eval", str(tmp_path), "--members", "2", "--no-gif"]) == 0
+    assert cli(["eval", str(tmp_path), "--num-envs", "2", "--no-gif"]) == 0
     assert "uncontrolled" in capsys.readouterr().out
 
 
@@ -382,7 +382,7 @@ def test_multi_agent_ppo_shares_one_policy_and_scores_the_team(tmp_path):
     state = checkpoint(tmp_path)
     assert state["modules"]["actor"]["module.0.module.trunk.0.weight"].shape == (16, 10)  # one agent's observation
     assert state["obs_norm"]["loc"].shape[-1] == 10  # statistics shared by the agents
-    result = evaluate_run(tmp_path, members=1)
+    result = evaluate_run(tmp_path, num_envs=1)
     assert result["env"] == "shkadov-separable-v0" and torch.isfinite(torch.tensor(result["score_mean"]))
 
 
@@ -500,7 +500,7 @@ def test_short_training_beats_the_random_policy(tmp_path):
     same episodes, so the gain is learnt, not the luck of the initial weights."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from beacon_torch import evaluate
+    from beacon_torch import episodes
 
     env_id, seed, members = "sloshing-v0", 2, 8
     cfg = configure(
@@ -512,14 +512,14 @@ def test_short_training_beats_the_random_policy(tmp_path):
     env = make_env(env_id, members, seed=12345, norm=normalised.transform[0].state_dict())  # evaluate_run's episodes
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         before = (
-            evaluate.scores(env.rollout(env.base_env.episode_length, policy=untrained, break_when_any_done=False))
+            episodes.scores(env.rollout(env.base_env.episode_length, policy=untrained, break_when_any_done=False))
             .mean()
             .item()
         )
     base = beacon_torch.make(env_id, members, seed=12345)
-    rand = evaluate.scores(evaluate.episode(base, evaluate.random_policy(base)))
+    rand = episodes.scores(episodes.episode(base, episodes.random_policy(base)))
     ppo.main(cfg)
-    after = evaluate_run(tmp_path, members=members)["score_mean"]
+    after = evaluate_run(tmp_path, num_envs=members)["score_mean"]
     assert after > rand.mean().item() + 3 * rand.std().item(), (after, rand)
     # measured -3.19 -> -2.32 on one thread, -2.56 on two (the sums differ in the last bits)
     assert after > before + 0.3, (after, before)
@@ -567,14 +567,14 @@ def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, 
     monkeypatch.setattr(pretrained, "HERE", shipped)
     out = tmp_path / "runs"
     settings = dict(frames=800, n_rollout=800, num_envs=4, epochs=1)  # one whole episode each
-    summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, progress=False)
+    summary = reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, num_envs=2, progress=False)
     root = out / "ppo" / "burgers-v0"
     assert [s["seed"] for s in summary["seeds"]] == ["seed0", "seed1"] and summary["frames"] == 800
     assert summary["eval_std"] > 0 and summary["wall_s_per_seed"] > 0  # two seeds, two policies
     assert json.loads((root / "summary.json").read_text())["eval_mean"] == summary["eval_mean"]
     assert (root / "burgers-v0.png").stat().st_size > 5_000 and not list(shipped.iterdir())
     stamp = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
-    reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, members=2, progress=False)
+    reproduce.train_pair("ppo", "burgers-v0", 2, settings, out=out, num_envs=2, progress=False)
     assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp, "a finished seed was trained again"
 
     # 800 transitions are below the paper's 500,000: refused, nothing written
@@ -608,7 +608,7 @@ def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
     grad.main(configure(GradConfig, "burgers-v0", num_envs=4, frames=800, out=str(tmp_path), progress=False))
     state = checkpoint(tmp_path)
     assert state["algo"] == "grad" and state["frames"] == 800 and state["counters"]["skipped"] == 0
-    result = evaluate_run(tmp_path, members=4)
+    result = evaluate_run(tmp_path, num_envs=4)
     assert result["score_mean"] < 0 and result["score_mean"] > result["uncontrolled"] + 0.5, result
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
     grad.main(
@@ -795,14 +795,14 @@ def test_the_env_parameters_a_run_trains_on_are_settings_recorded_with_it(tmp_pa
     ppo.main(configure(PPOConfig, "vortex-v0", params={"re": 60.0}, **tiny))
     assert load_checkpoint(out)["config"]["params"] == {"re": 60.0}
     # its evaluation's uncontrolled episodes are those of the physics it was trained on
-    from beacon_torch import evaluate
+    from beacon_torch import episodes
     from beacon_torch.training.evaluation import EVAL_SEED
 
-    result = evaluate_run(out, members=2)
+    result = evaluate_run(out, num_envs=2)
     uncontrolled = {}
     for re in (60.0, 50.0):
         env = beacon_torch.make("vortex-v0", 2, seed=EVAL_SEED, re=re)
-        uncontrolled[re] = evaluate.scores(evaluate.episode(env, evaluate.null_policy(env))).mean().item()
+        uncontrolled[re] = episodes.scores(episodes.episode(env, episodes.null_policy(env))).mean().item()
     assert result["uncontrolled"] == pytest.approx(uncontrolled[60.0]) and uncontrolled[60.0] != uncontrolled[50.0]
     exported = pretrained.export(out, tmp_path / "policy.pt")
     assert pretrained._read(exported)["params"] == {"re": 60.0}

@@ -5,7 +5,7 @@ import pytest
 from PIL import Image
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 from beacon_torch.render import save_animation
 
 from conftest import ALL_ENVS, CHEAP_ENVS, make
@@ -16,7 +16,7 @@ def test_render_frame_shows_the_state(env_id):
     env = make(env_id, 2, record_history=True)
     env.reset()
     blank_ish = env.render()
-    evaluate.episode(env, evaluate.random_policy(env))
+    episodes.episode(env, episodes.random_policy(env))
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
     assert frame.shape == blank_ish.shape

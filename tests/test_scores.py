@@ -4,16 +4,16 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 
 
 def uncontrolled(env_id, batch_size, seed=None, **params):
     env = beacon_torch.make(env_id, batch_size, dtype=torch.float64, seed=seed, **params)
-    rollout = evaluate.episode(env, evaluate.null_policy(env))
+    rollout = episodes.episode(env, episodes.null_policy(env))
     assert rollout.shape == (batch_size, env.episode_length)
     assert rollout["next", "truncated"][:, -1].all()
     assert not rollout["next", "done"][:, :-1].any()
-    return evaluate.scores(rollout)
+    return episodes.scores(rollout)
 
 
 @pytest.mark.parametrize("env_id", ["lorenz-v0", "lorenz-continuous-v0"])
@@ -42,8 +42,8 @@ def test_vortex_per_member_initial_states_score_like_separate_runs():
 
 def test_random_policy_is_reproducible_from_its_seed():
     env = beacon_torch.make("lorenz-v0", 8, dtype=torch.float64)
-    a = evaluate.scores(evaluate.episode(env, evaluate.random_policy(env, seed=3)))
-    b = evaluate.scores(evaluate.episode(env, evaluate.random_policy(env, seed=3)))
+    a = episodes.scores(episodes.episode(env, episodes.random_policy(env, seed=3)))
+    b = episodes.scores(episodes.episode(env, episodes.random_policy(env, seed=3)))
     assert torch.equal(a, b)
     assert a.unique().numel() > 1  # members draw different actions
 
@@ -88,7 +88,7 @@ def test_rayleigh_uncontrolled_score_from_the_published_start():
 def test_mixing_constant_actions_score_like_the_published_baseline():
     env = beacon_torch.make("mixing-v0", 4, dtype=torch.float64)
     actions = torch.arange(4)
-    rollout = evaluate.episode(env, lambda td: td.set("action", actions))
-    score = evaluate.scores(rollout)
+    rollout = episodes.episode(env, lambda td: td.set("action", actions))
+    score = episodes.scores(rollout)
     assert score[0].item() == pytest.approx(-17.48, rel=0.02)
     assert (score.max() - score.min()).item() <= 0.01 * abs(score.mean().item())

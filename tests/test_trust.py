@@ -114,7 +114,7 @@ def test_eval_refuses_a_run_with_a_planted_animation_link(ppo_run, tmp_path, out
     run = copy_run(ppo_run, tmp_path / "run")
     os.symlink(outside / "precious.txt", run / "controlled.gif")
     before = snapshot(outside)
-    assert cli(["eval", str(run), "--members", "2"]) == 2
+    assert cli(["eval", str(run), "--num-envs", "2"]) == 2
     err = capsys.readouterr().err
     assert "controlled.gif" in err and "symbolic link" in err and len(err.strip().splitlines()) == 1
     assert snapshot(outside) == before
@@ -275,7 +275,7 @@ def test_a_resume_and_an_eval_refuse_forged_checkpoint_records(ppo_run, tmp_path
     with pytest.raises(BadRun, match=words):
         ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), resume=True, **{**PPO, "frames": 600}))
     assert snapshot(run / "ppo") == logs, "a refused resume changed the logs"
-    assert cli(["eval", str(run), "--no-gif", "--members", "2"]) == 2
+    assert cli(["eval", str(run), "--no-gif", "--num-envs", "2"]) == 2
     err = capsys.readouterr().err
     assert "checkpoint.pt" in err and len(err.strip().splitlines()) == 1
 
@@ -471,7 +471,7 @@ def test_a_diverging_training_stops_and_keeps_its_last_good_checkpoint(tmp_path)
             "64",
             "--updates-per-batch",
             "16",
-            "--batch-size",
+            "--num-envs",
             "32",
             "--hidden",
             "16",

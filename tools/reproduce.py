@@ -81,7 +81,9 @@ def text_value(text: str):
     return text
 
 
-def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, members: int, progress: bool) -> dict:
+def train_pair(
+    algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, num_envs: int, progress: bool
+) -> dict:
     """Train the missing seeds of one (algorithm, env) pair and summarise it, inside
     ``out``."""
     recipe = load_recipe(algo)
@@ -92,7 +94,7 @@ def train_pair(algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path
         cfg = configure(CONFIGS[algo], env_id, **overrides, seed=seed, out=str(run), resume=started, progress=progress)
         if not (run / CHECKPOINT).is_file() or load_checkpoint(run)["frames"] < cfg.frames:
             recipe.main(cfg)
-    return summarise(root, members=members)
+    return summarise(root, num_envs=num_envs)
 
 
 def read_summary(file: Path) -> dict:
@@ -203,13 +205,13 @@ def main(argv: list[str] | None = None) -> None:
         metavar="NAME=VALUE",
         help="a recipe setting for every env (e.g. frames=100000)",
     )
-    tr.add_argument("--members", type=positive, default=8, help="evaluation episodes per seed")
+    tr.add_argument("--num-envs", type=positive, default=8, help="evaluation episodes per seed (one batch)")
     tr.add_argument("--threads", type=positive, help="torch threads (default: torch's)")
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--out", default="runs/results")
     su = sub.add_parser("summarise", help="evaluate and plot trained pairs again (e.g. after a stopped campaign)")
     su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo/burgers-v0")
-    su.add_argument("--members", type=positive, default=8)
+    su.add_argument("--num-envs", type=positive, default=8, help="evaluation episodes per seed (one batch)")
     pu = sub.add_parser(
         "publish", help="record summarised pairs in docs/results/, ship their best policies and write docs/results.md"
     )
@@ -221,7 +223,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if args.command == "summarise":
             for root in args.pairs:
-                summarise(root, members=args.members)
+                summarise(root, num_envs=args.num_envs)
             return
         if args.command == "train":
             if args.threads:
@@ -234,7 +236,7 @@ def main(argv: list[str] | None = None) -> None:
                     args.seeds,
                     overrides,
                     out=Path(args.out),
-                    members=args.members,
+                    num_envs=args.num_envs,
                     progress=not args.no_progress,
                 )
             return

@@ -95,13 +95,13 @@ class BurgersEnv(FlowEnv):
         self._substeps = self.kernels.loop(burgers_substep)
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        u = torch.ones((self.n_envs, self.n_cells), dtype=self.dtype, device=self.device)
+        u = torch.ones((self.num_envs, self.n_cells), dtype=self.dtype, device=self.device)
         u = u * self.member(self.params.u_target)
         return {"u": u, "u_prev": u.clone(), "a": torch.zeros_like(u[:, 0])}
 
     def noise(self) -> State:
         # one inlet value per action
-        return {"inlet": torch.rand(self.n_envs, generator=self.rng, dtype=self.dtype, device=self.device)}
+        return {"inlet": torch.rand(self.num_envs, generator=self.rng, dtype=self.dtype, device=self.device)}
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
         p = self.params

@@ -79,7 +79,7 @@ class LorenzEnv(FlowEnv):
         return torch.ones(self.batch_size, dtype=torch.int64, device=self.device)
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        xyz = self.tensor(START).expand(self.n_envs, 3).clone()
+        xyz = self.tensor(START).expand(self.num_envs, 3).clone()
         # the published reset observes zero time derivatives
         return {"xyz": xyz, "rate": torch.zeros_like(xyz), "u": torch.zeros_like(xyz[:, 0])}
 

@@ -125,7 +125,7 @@ class MixingEnv(CavityEnv):
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
         p = self.params
-        B, nx, ny = self.n_envs, self.nx, self.ny
+        B, nx, ny = self.num_envs, self.nx, self.ny
         zeros = lambda *shape: torch.zeros((B, *shape), dtype=self.dtype, device=self.device)
         c = zeros(nx + 2, ny + 2)
         # the published patch spans ghosted indices i0 .. i0 + n - 1, i.e. one cell off
@@ -169,6 +169,6 @@ class MixingContinuousEnv(MixingEnv):
 
     def null_action(self) -> torch.Tensor:
         # the continuous image of discrete action 0 (the paper's constant baseline)
-        a = torch.zeros((self.n_envs, 2), dtype=self.dtype, device=self.device)
+        a = torch.zeros((self.num_envs, 2), dtype=self.dtype, device=self.device)
         a[:, 0] = 1.0
         return a

@@ -94,8 +94,8 @@ def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
     return ((T_HOT - theta[:, 1:-1, 1]) / (0.5 * dy)).mean(-1)
 
 
-def rest_state(n_envs: int, nx: int, ny: int, dtype, device) -> State:
-    zeros = lambda *shape: torch.zeros((n_envs, *shape), dtype=dtype, device=device)
+def rest_state(num_envs: int, nx: int, ny: int, dtype, device) -> State:
+    zeros = lambda *shape: torch.zeros((num_envs, *shape), dtype=dtype, device=device)
     return {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "theta": zeros(nx + 2, ny + 2)}
 
 
@@ -183,8 +183,8 @@ class RayleighEnv(CavityEnv):
         return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        state = {k: v.expand(self.n_envs, *v.shape).clone() for k, v in self._start.items()}
-        state["bottom"] = torch.full((self.n_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
+        state = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start.items()}
+        state["bottom"] = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
         return self.observed(state)
 
     def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):

@@ -205,15 +205,15 @@ def run_action(
     return {"h": h, "q": q, "dh_prev": dh_prev, "dq_prev": dq_prev, "u_prev": action}
 
 
-def flat_state(n_envs: int, n_cells: int, n_jets: int, dtype, device) -> State:
-    one = torch.ones((n_envs, n_cells), dtype=dtype, device=device)
-    zero = torch.zeros((n_envs, n_cells - 2), dtype=dtype, device=device)
+def flat_state(num_envs: int, n_cells: int, n_jets: int, dtype, device) -> State:
+    one = torch.ones((num_envs, n_cells), dtype=dtype, device=device)
+    zero = torch.zeros((num_envs, n_cells - 2), dtype=dtype, device=device)
     return {
         "h": one,
         "q": one.clone(),
         "dh_prev": zero,
         "dq_prev": zero.clone(),
-        "u_prev": torch.zeros((n_envs, n_jets), dtype=dtype, device=device),
+        "u_prev": torch.zeros((num_envs, n_jets), dtype=dtype, device=device),
     }
 
 
@@ -296,7 +296,7 @@ class ShkadovEnv(FlowEnv):
         return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
 
     def noise(self) -> State:
-        return {"inlet": inlet_noise(self.rng, self.n_envs, self.dtype, self.device)}
+        return {"inlet": inlet_noise(self.rng, self.num_envs, self.dtype, self.device)}
 
     def _advance_state(self, state: State, action: torch.Tensor, noise: State) -> State:
         return run_action(
@@ -311,14 +311,14 @@ class ShkadovEnv(FlowEnv):
         )
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        state = flat_state(self.n_envs, self.n_cells, self.n_jets, self.dtype, self.device)
-        state["h"] = self._film["h"].expand(self.n_envs, -1).clone()
-        state["q"] = self._film["q"].expand(self.n_envs, -1).clone()
+        state = flat_state(self.num_envs, self.n_cells, self.n_jets, self.dtype, self.device)
+        state["h"] = self._film["h"].expand(self.num_envs, -1).clone()
+        state["q"] = self._film["q"].expand(self.num_envs, -1).clone()
         if self.params.random_start == 0:
             return state
         # each member being reset runs its own random number of uncontrolled actions;
         # only those members are computed, and each stops at its own count
-        n_run = torch.randint(0, self.params.random_start + 1, (self.n_envs,), generator=self.rng, device=self.device)
+        n_run = torch.randint(0, self.params.random_start + 1, (self.num_envs,), generator=self.rng, device=self.device)
         if mask is not None:
             n_run = torch.where(mask, n_run, torch.zeros_like(n_run))
         idx = (n_run > 0).nonzero()[:, 0]
@@ -328,7 +328,7 @@ class ShkadovEnv(FlowEnv):
         # copies of the first, whose results are dropped): a compiled action then
         # exists for a few batch sizes, not for every count of members reset at once
         n = idx.numel()
-        size = min(self.n_envs, 1 << (n - 1).bit_length())
+        size = min(self.num_envs, 1 << (n - 1).bit_length())
         rows = torch.cat((idx, idx[:1].expand(size - n)))
         runs = torch.cat((n_run[idx], n_run.new_zeros(size - n)))
         sub = {k: v[rows] for k, v in state.items()}
@@ -427,4 +427,4 @@ class ShkadovSeparableEnv(ShkadovEnv):
         return new, self.jet_rewards(new["h"])
 
     def observe(self, state: State) -> torch.Tensor:
-        return super().observe(state).reshape(self.n_envs, self.n_jets, -1)
+        return super().observe(state).reshape(self.num_envs, self.n_jets, -1)

@@ -110,18 +110,18 @@ def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, su
     return {"h": h, "q": q, "fh_prev": fh_prev, "fq_prev": fq_prev, "u_prev": u_prev}
 
 
-def excited_state(L: float, g, n_envs: int, dtype: torch.dtype, device) -> State:
+def excited_state(L: float, g, num_envs: int, dtype: torch.dtype, device) -> State:
     """The tank after the published excitation: from rest (h = 1, q = 0) 40 actions
     :func:`excitation` (t = 0, 0.05, ...) scaled by the published amplitude 5 and
     interpolated like any action; the published code stores this state and starts every
-    episode from it. ``g`` is a number or one value per member ``[n_envs, 1]``."""
+    episode from it. ``g`` is a number or one value per member ``[num_envs, 1]``."""
     n = int(round(L * CELLS_PER_UNIT))
     dx = L / n
-    h = torch.ones((n_envs, n), dtype=dtype, device=device)
+    h = torch.ones((num_envs, n), dtype=dtype, device=device)
     zero = torch.zeros_like(h)
     state = {"h": h, "q": zero, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
     actions = [
-        torch.full((n_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)
+        torch.full((num_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)
     ]
     return run_actions(state, actions, EXCITATION_AMP, g, dx)
 
@@ -160,14 +160,14 @@ class SloshingEnv(FlowEnv):
     def _start_state(self) -> State:
         p = self.params
         table = published_table("sloshing")  # rows: x, h, q of the interior cells
-        h, q = table[:, 1].expand(self.n_envs, -1), table[:, 2].expand(self.n_envs, -1)
+        h, q = table[:, 1].expand(self.num_envs, -1), table[:, 2].expand(self.num_envs, -1)
         zero = torch.zeros_like(h)
         published = {"h": h, "q": q, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
         if p.start == PUBLISHED:
             start = published
         elif bool((p.g != p.g[0]).any()):  # one start per member
             g = p.g.detach().to(torch.float64)[:, None]
-            start = excited_state(p.L, g, self.n_envs, torch.float64, self.device)
+            start = excited_state(p.L, g, self.num_envs, torch.float64, self.device)
             # a member at the published g starts as it would alone
             chosen = published_members(p, ("L", "g"))
             if chosen is not None:
@@ -180,7 +180,7 @@ class SloshingEnv(FlowEnv):
             n = self.n_cells
             shapes = {"h": (1, n), "q": (1, n), "fh_prev": (1, n), "fq_prev": (1, n), "u_prev": (1,)}
             start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"), shapes)
-            start = {k: v.expand(self.n_envs, *v.shape[1:]) for k, v in start.items()}
+            start = {k: v.expand(self.num_envs, *v.shape[1:]) for k, v in start.items()}
         # generated in float64 like the published code, then cast
         return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
 

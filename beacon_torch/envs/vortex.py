@@ -107,7 +107,7 @@ class VortexEnv(FlowEnv):
         self._substeps = self.kernels.loop(vortex_substep)
 
     def null_action(self) -> torch.Tensor:
-        a = torch.zeros((self.n_envs, 2), dtype=self.dtype, device=self.device)
+        a = torch.zeros((self.num_envs, 2), dtype=self.dtype, device=self.device)
         a[:, 0] = -1.0
         return a
 
@@ -116,8 +116,8 @@ class VortexEnv(FlowEnv):
         # complex128 for float64: a Python complex would become complex64 and round the
         # start to float32
         cdtype = torch.complex128 if self.dtype == torch.float64 else torch.complex64
-        a0 = torch.as_tensor(p.a0, dtype=cdtype, device=self.device).expand(self.n_envs)
-        y0 = torch.as_tensor(p.y0, dtype=cdtype, device=self.device).expand(self.n_envs)
+        a0 = torch.as_tensor(p.a0, dtype=cdtype, device=self.device).expand(self.num_envs)
+        y0 = torch.as_tensor(p.y0, dtype=cdtype, device=self.device).expand(self.num_envs)
         s = torch.stack((a0.real, a0.imag, y0.real, y0.imag), -1).to(self.dtype)
         zero = torch.zeros_like(s[:, 0])
         # the published reset observes zero time derivatives

@@ -66,7 +66,7 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
     (numbers and strings: score, seed, ...) next to it."""
     state = load_checkpoint(run)
     params = state["config"].get("params", {})
-    env = make_env(state["env"], 1, norm_steps=0, **params)
+    env = make_env(state["env"], 1, norm_steps=0, params=params)
     policy = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"])
     policy.load_state_dict(state["modules"]["actor"])
     loc, scale = state["obs_norm"]["loc"].reshape(-1), state["obs_norm"]["scale"].reshape(-1)

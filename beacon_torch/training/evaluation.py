@@ -14,7 +14,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
-from beacon_torch import evaluate
+from beacon_torch import episodes
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.training import networks
@@ -30,19 +30,26 @@ def evaluate_policy(
     policy,
     *,
     norm: dict | None = None,
-    members: int = 8,
+    num_envs: int = 8,
     device="cpu",
     gif: str | Path | None = None,
     seed: int = EVAL_SEED,
     params: dict | None = None,
 ) -> dict:
-    """``policy``, deterministic, on ``members`` episodes of ``env_id`` with the physical
+    """``policy``, deterministic, on ``num_envs`` episodes of ``env_id`` with the physical
     ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
     ``ObservationNorm`` state; None: raw), next to the uncontrolled score of the same
     episodes; ``gif``: an animation of member 0's episode."""
     params = params or {}
     env = make_env(
-        env_id, members, device=device, seed=seed, norm=norm, norm_steps=0, record_history=gif is not None, **params
+        env_id,
+        num_envs,
+        device=device,
+        seed=seed,
+        norm=norm,
+        norm_steps=0,
+        record_history=gif is not None,
+        params=params,
     )
     base = env.base_env
     frames = []
@@ -57,9 +64,9 @@ def evaluate_policy(
         rollout = env.rollout(
             base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab
         )
-    controlled = evaluate.scores(rollout)
-    ref = beacon_torch.make(env_id, members, device=device, seed=seed, **params)  # the same episodes
-    uncontrolled = evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref)))
+    controlled = episodes.scores(rollout)
+    ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params)  # the same episodes
+    uncontrolled = episodes.scores(episodes.episode(ref, episodes.null_policy(ref)))
     out = {
         "env": env_id,
         "score_mean": controlled.mean().item(),
@@ -75,17 +82,17 @@ def evaluate_policy(
 
 
 def evaluate_run(
-    run: str | Path, *, members: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED
+    run: str | Path, *, num_envs: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED
 ) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
     device = _as_device(device)  # before the policy is moved there
     state = load_checkpoint(run)
     params = state["config"].get("params", {})  # the physics it was trained on
-    env = make_env(state["env"], 1, norm=state["obs_norm"], **params)
+    env = make_env(state["env"], 1, norm=state["obs_norm"], params=params)
     actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
     actor.load_state_dict(state["modules"]["actor"])
     result = evaluate_policy(
-        state["env"], actor, norm=state["obs_norm"], members=members, device=device, gif=gif, seed=seed, params=params
+        state["env"], actor, norm=state["obs_norm"], num_envs=num_envs, device=device, gif=gif, seed=seed, params=params
     )
     return {**result, "frames": state["frames"]}
 
@@ -127,10 +134,10 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
     for env_id in envs:
         # in the recipes' float32 (chaotic lorenz-v0 scores 238 there, 207 in float64);
         # one episode where the physics is deterministic, else the mean of 16
-        members = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
-        ref = beacon_torch.make(env_id, members, seed=0)
+        num_envs = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
+        ref = beacon_torch.make(env_id, num_envs, seed=0)
         ax.axhline(
-            evaluate.scores(evaluate.episode(ref, evaluate.null_policy(ref))).mean().item(),
+            episodes.scores(episodes.episode(ref, episodes.null_policy(ref))).mean().item(),
             color="k",
             ls="--",
             lw=1,
@@ -146,9 +153,9 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
     return Path(path)
 
 
-def summarise(root: str | Path, *, members: int = 8, images: str | Path | None = None) -> dict:
+def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None = None) -> dict:
     """A run directory's results, also written to ``root/summary.json``: per seed, the
-    deterministic policy's score on ``members`` fresh episodes and the mean score of
+    deterministic policy's score on ``num_envs`` fresh episodes and the mean score of
     the training episodes that ended in the last tenth of the transitions; their mean
     and spread over the seeds; transitions and wall time; the curve drawn into
     ``images/<root name>.png`` (default: ``root``)."""
@@ -157,7 +164,7 @@ def summarise(root: str | Path, *, members: int = 8, images: str | Path | None =
     per_seed = []
     for run in seeds:
         state = load_checkpoint(run)
-        ev = evaluate_run(run, members=members, gif=None)
+        ev = evaluate_run(run, num_envs=num_envs, gif=None)
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
         per_seed.append(

@@ -243,7 +243,7 @@ def tensorboard_installed() -> bool:
 def episode_values(data, reward_key: str | tuple[str, ...] = "reward") -> dict[str, float]:
     """The mean reward of a collected batch and the mean score of the episodes that
     ended in it (``RewardSum``'s ``episode_reward``); over the agents too where there
-    are several (the team's score, as ``evaluate.scores`` counts it)."""
+    are several (the team's score, as ``episodes.scores`` counts it)."""
     done = data["next", "done"][..., 0]
     reward, score = data["next", reward_key], data["next", sibling(reward_key, "episode_reward")]
     values = {"reward": reward.float().mean().item()}

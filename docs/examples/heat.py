@@ -75,7 +75,7 @@ class HeatEnv(FlowEnv):
         self._substeps = self.kernels.loop(heat_substep)
 
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        where = torch.rand((self.n_envs, 1), generator=self.rng, dtype=self.dtype, device=self.device)
+        where = torch.rand((self.num_envs, 1), generator=self.rng, dtype=self.dtype, device=self.device)
         bump = self.member(self.params.spot) * torch.exp(-(((self._x - where) / 0.1) ** 2))
         return {"T": torch.nn.functional.pad(bump[:, 1:-1], (1, 1))}
 
