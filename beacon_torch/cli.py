@@ -12,6 +12,9 @@
                                       interquartile mean over seeds and its bootstrap
                                       interval, a table and a figure
 
+An env registered by a module of your own (``beacon_torch.register``) is named
+``module:env-id``, or its module imported first with ``beacon-torch --import module``.
+
 Training is the recipes' (``recipes/ppo.py``, ``td3.py``, ``dqn.py``, ``grad.py`` in the
 repository); ``eval`` and ``plot`` read the run directories they write.
 """
@@ -19,6 +22,7 @@ repository); ``eval`` and ``plot`` read the run directories they write.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
 import time
@@ -32,7 +36,7 @@ from beacon_torch import episodes
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.params import describe, parse_assignments
-from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make
+from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make, resolve_id
 
 
 class CliError(Exception):
@@ -80,6 +84,7 @@ def _plot_run(path: Path, env_id: str, null_rewards: torch.Tensor, rand_rewards:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    args.env = resolve_id(args.env)  # "module:env-id" registers it
     env_class(args.env)  # an unknown id fails here, before anything is built
     if args.num_envs < 1:
         raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
@@ -144,7 +149,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from beacon_torch import bench
 
-    envs = args.envs or base_envs()
+    envs = [resolve_id(env_id) for env_id in args.envs or base_envs()]
     for env_id in envs:
         env_class(env_id)
     for b in args.num_envs or ():
@@ -231,6 +236,14 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="beacon-torch", description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--import",
+        dest="imports",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="import a module that registers envs (beacon_torch.register) first (repeatable)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("list", help="list the environments and their parameters").set_defaults(func=cmd_list)
 
@@ -291,6 +304,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        for module in args.imports:
+            try:
+                importlib.import_module(module)
+            except ImportError as err:
+                raise CliError(f"--import {module}: {err}") from None
         return args.func(args)
     except (
         CliError,

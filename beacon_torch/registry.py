@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import os
 import re
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -36,6 +38,9 @@ ENVS: dict[str, type[FlowEnv]] = {
 
 # parameters and options that make() uses for a registered id unless given
 DEFAULTS: dict[str, dict[str, Any]] = {}
+# the module that registered an id from outside the package, so that another process
+# (a collector's worker) can import it again before building the env
+ORIGIN: dict[str, str] = {}
 # called with each id registered after import (the gymnasium adapter registers it too)
 _listeners: list[Callable[[str], None]] = []
 # what make() takes beside an env's physical parameters
@@ -44,8 +49,9 @@ OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "ch
 
 def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[FlowEnv]:
     """Make an env available by id: :func:`make`, gymnasium's ``beacon/<id>`` (and
-    ``make_vec``), the Stable-Baselines3 vector env, the conformance kit, and the CLI and
-    recipes run in the same process. ``env_class`` is a :class:`FlowEnv` subclass whose
+    ``make_vec``), the Stable-Baselines3 vector env, the conformance kit, the recipes
+    (their collector processes import the registering module again) and the CLI (as
+    ``module:env-id``, or with ``beacon-torch --import module``). ``env_class`` is a :class:`FlowEnv` subclass whose
     ``env_id`` is ``env_id`` (a new case), or a registered env's class: then the id is a
     variant of it, measured against it, whose ``defaults`` (physical parameters and
     :data:`OPTIONS`) :func:`make` uses unless told otherwise. Returns the registered
@@ -78,9 +84,35 @@ def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[Flo
         raise ValueError(f"{env_id} is registered already (as {ENVS[env_id].__name__}); register a new version instead")
     ENVS[env_id] = env_class
     DEFAULTS[env_id] = dict(defaults)
+    caller = sys._getframe(1).f_globals.get("__name__", "")
+    if caller.split(".")[0] != "beacon_torch":
+        ORIGIN[env_id] = caller
     for listener in _listeners:
         listener(env_id)
     return env_class
+
+
+def resolve_id(env_id: str) -> str:
+    """An env id as written by a user: ``"module:env-id"`` (gymnasium's spelling)
+    imports ``module``, which registers the env, and gives ``env-id``; a plain id is
+    itself."""
+    if not isinstance(env_id, str):
+        raise TypeError(f"env id must be a string, got {type(env_id).__name__}")
+    module, sep, bare = env_id.rpartition(":")
+    if sep:
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            raise ValueError(f"{env_id}: cannot import {module!r} to register it ({err})") from None
+    return bare
+
+
+def qualified_id(env_id: str) -> str:
+    """The id as another process rebuilds it: ``"module:env-id"`` for an env that an
+    importable module registered (not a script run as ``__main__``, which a spawned
+    process runs again by itself), else the id."""
+    origin = ORIGIN.get(env_id)
+    return f"{origin}:{env_id}" if origin and origin not in ("__main__", "__mp_main__") else env_id
 
 
 def list_envs() -> list[str]:
@@ -94,8 +126,8 @@ def base_envs() -> list[str]:
 
 
 def env_class(env_id: str) -> type[FlowEnv]:
-    if not isinstance(env_id, str):
-        raise TypeError(f"env id must be a string, got {type(env_id).__name__}")
+    """The class of a registered id (or of ``"module:env-id"``, :func:`resolve_id`)."""
+    env_id = resolve_id(env_id)
     try:
         return ENVS[env_id]
     except KeyError:
@@ -152,6 +184,7 @@ def make(
         False skips the check of action values (NaN, range), which synchronises with
         an accelerator on every step; default True.
     """
+    env_id = resolve_id(env_id)
     cls = env_class(env_id)
     if batch_size is not None:
         if num_envs is not None:

@@ -59,7 +59,7 @@ from beacon_torch.registry import ENVS, env_class
 
 F64 = torch.float64
 # compiled code may fuse or reorder floating-point operations: trajectories of a few
-# float64 steps agree to this much (measured: 0 on most envs, below 1e-13 elsewhere)
+# float64 steps agree to round-off, well inside this
 ROUND_OFF = dict(rtol=1e-10, atol=1e-12)
 # relative agreement of autograd with central differences of relative step 1e-6
 GRADIENT_REL = 1e-5

@@ -3,6 +3,7 @@ check, a new env registered from outside the package gets the library's entry po
 and the worked example of docs/adding-an-env.md passes the kit."""
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -39,6 +40,7 @@ def test_every_env_passes_the_kit(env_id, check):
 def unregister(env_id):
     ENVS.pop(env_id, None)
     DEFAULTS.pop(env_id, None)
+    beacon_torch.registry.ORIGIN.pop(env_id, None)
     gymnasium.registry.pop(f"beacon/{env_id}", None)
 
 
@@ -70,6 +72,8 @@ def test_the_worked_example_passes_every_check(example):
 
 
 def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
+    import beacon_torch.gym  # noqa: F401  (gymnasium's ids, registered as envs are)
+
     try:
         cls = beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0)
         assert cls.base_id() == "burgers-v0" and cls.paper_ppo == BurgersEnv.paper_ppo
@@ -83,6 +87,53 @@ def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
     finally:
         unregister("burgers-calm-v0")
     assert "burgers-calm-v0" not in beacon_torch.list_envs()
+
+
+CALM = """
+import beacon_torch
+from beacon_torch.envs.burgers import BurgersEnv
+
+beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0)
+"""
+
+
+@pytest.mark.slow(seconds=25)
+def test_an_env_registered_by_a_module_reaches_other_processes(tmp_path, monkeypatch):
+    """An env that a user's module registers is rebuilt in processes that did not import
+    it: the command line (``module:env-id`` or ``--import``) and collector workers."""
+    import subprocess
+
+    from torchrl.collectors import MultiSyncCollector
+
+    from beacon_torch.training.env import make_collector, make_env
+
+    (tmp_path / "calm_envs.py").write_text(CALM)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    cli = [sys.executable, "-m", "beacon_torch.cli"]
+    listed = subprocess.run([*cli, "--import", "calm_envs", "list"], capture_output=True, text=True, check=True)
+    assert "burgers-calm-v0:" in listed.stdout
+    ran = subprocess.run(
+        [*cli, "run", "calm_envs:burgers-calm-v0", "--num-envs", "2", "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+    )
+    assert ran.returncode == 0, ran.stderr
+    scores = json.loads((tmp_path / "out" / "scores.json").read_text())
+    assert scores["env"] == "burgers-calm-v0" and scores["random"]["num_envs"] == 2
+    try:
+        env = make_env("calm_envs:burgers-calm-v0", 2, norm_steps=0)
+        assert beacon_torch.registry.qualified_id("burgers-calm-v0") == "calm_envs:burgers-calm-v0"
+        collector = make_collector("burgers-calm-v0", env, None, frames_per_batch=8, total_frames=8, collectors=2)
+        assert isinstance(collector, MultiSyncCollector)
+        try:
+            (batch,) = list(collector)
+        finally:
+            collector.shutdown()
+        assert batch.shape[:2] == (2, 2) and torch.isfinite(batch["next", "reward"]).all()
+    finally:
+        unregister("burgers-calm-v0")
+        sys.modules.pop("calm_envs", None)
 
 
 def test_register_refuses_what_it_cannot_serve():

@@ -242,10 +242,8 @@ class ShkadovEnv(FlowEnv):
     env_id = "shkadov-v0"
     Params = ShkadovParams
     episode_length = EPISODE_LENGTH
-    # Below every completed episode measured: 256 members under random, bang-bang,
-    # constant and square-wave jets never left the bounds, the worst scored -27.3
-    # (all jets at +1); every reward is negative, so a blown-up episode scores below
-    # this whenever it happens (docs/envs/shkadov.md)
+    # Below every completed episode of the policies tried (docs/envs/shkadov.md); every
+    # reward is negative, so a blown-up episode scores below this whenever it happens
     blowup_reward = -100.0
     deterministic = False
     family = "1-D"

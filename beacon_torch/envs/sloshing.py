@@ -45,11 +45,8 @@ class SloshingParams:
     L: float = param(2.5, low=0.1, high=50.0, per_member=False, doc="tank length (80 cells per unit)")
     amp: float = param(5.0, low=0.0, high=1e6, doc="acceleration amplitude (action scaling)")
     alpha: float = param(5e-4, low=0.0, high=1e3, doc="weight of the actuation in the reward")
-    # a g other than the default starts from the published excitation, whose tank stays
-    # wet and finite at every length only for g in [5, 12] (measured on a grid of
-    # lengths 0.1 to 50)
-    # another value starts from the published excitation, which leaves the tank wet and
-    # finite at every length only in this band (measured on lengths 0.1 to 50)
+    # a g other than the default starts from the published excitation, which leaves the
+    # tank wet and finite at every length only in this band (docs/envs/sloshing.md)
     g: float = param(9.81, low=5.0, high=12.0, doc="gravity (the band where the published start stays wet and finite)")
     start: str = start_param("the published stored state, or the one of excited_state()")
 
@@ -140,8 +137,8 @@ class SloshingEnv(FlowEnv):
     # Below every episode that completes: it keeps 0 <= h <= 2 (a negative depth makes
     # the wave speed non-finite, which ends the episode too), so each step earns at least
     # -(dx sqrt(n_cells) + alpha amp) = -0.179 and 200 steps at least -35.9 at the
-    # defaults; the worst measured is -10.5 (docs/envs/sloshing.md). The published code
-    # meant -10, which its own step then overwrites with the step's reward.
+    # defaults (the measured episodes: docs/envs/sloshing.md). The published code meant
+    # -10, which its own step then overwrites with the step's reward.
     blowup_reward = -40.0
 
     @classmethod

@@ -2,9 +2,8 @@
 
 Layout: every field is ``[X, Y, B]``, x first, **batch last**. The members are the
 contiguous dimension, so a stencil shift moves whole rows of members: the fused kernels
-of the compiled path then vectorise across the batch with no tails and no masks (on two
-cores a 5-point stencil with ghost values runs 2 to 5 times faster this way than batch
-first with ghost assignments; docs/performance.md). Envs keep their state batch first
+of the compiled path then vectorise across the batch with no tails and no masks (the
+comparison with batch first: docs/performance.md). Envs keep their state batch first
 with ghost layers (``[B, nx + 2, ny + 2]``, what probes and rendering read) and convert
 once per action with :meth:`Cavity.fields` and :meth:`Cavity.stored`.
 
@@ -69,8 +68,8 @@ def _mm_second(a: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
 
 
 # below this many members the y products of the Poisson solve run as one matrix product
-# over all x rows (a batch of matrix-vector products at one member is 20 times slower);
-# from about 32 members on, the batched products are faster (measured on two cores)
+# over all x rows, as a batch of matrix-vector products is slow for few members; from
+# here on the batched products are faster (docs/performance.md)
 FEW_MEMBERS = 32
 
 
@@ -379,8 +378,8 @@ def predict(
     ghosts (:class:`Ghosts`); ``v_source`` (``[nx, ny - 1, B]``) is added on the
     interior v faces (buoyancy). Returns u* ``[nx + 1, ny, B]`` and v* ``[nx, ny + 1, B]``
     with zero normal velocity on the walls. (Computing every face and zeroing the walls
-    instead, to save the padding pass, measured 4 % slower compiled: the wider ghosted
-    inputs cost more than the pad.)"""
+    instead, to save the padding pass, is slower compiled: the wider ghosted inputs cost
+    more than the pad; docs/performance.md.)"""
     # u on the interior x-faces 1..nx-1, cells 0..ny-1 (ghost rows 0 and ny + 1 in y)
     uf = u[1:-1, 1:-1]
     ue = 0.5 * (uf + u[2:, 1:-1])  # the cell centre east of the face

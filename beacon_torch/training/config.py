@@ -341,6 +341,7 @@ def configure(cls: type[Config], env_id: str, **overrides) -> Config:
     ``overrides`` (field=value, in the field's type or as text), checked. When the
     members change and the collected batch is not given, the batch is rounded to a
     multiple of them, near its default."""
+    env_id = beacon_torch.registry.resolve_id(env_id)  # "module:env-id" registers it here
     known = {f.name: f.type for f in fields(cls)}
     unknown = set(overrides) - set(known)
     if unknown:

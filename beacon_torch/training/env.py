@@ -10,6 +10,7 @@ import torch
 from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, TransformedEnv
 
 import beacon_torch
+from beacon_torch.registry import qualified_id
 
 # random steps whose observations set the normalisation: 64 reach past the start-up of
 # every env (burgers' sensors see the inlet noise only after about 40 actions; with 16
@@ -105,7 +106,7 @@ def make_collector(
     makers = [
         partial(
             make_env,
-            env_id,
+            qualified_id(env_id),  # a worker process imports what registered it
             members,
             device=device,
             seed=seed + 7919 * (k + 1),
