@@ -64,7 +64,20 @@ from beacon_torch.compiled import Kernels, standard
 from beacon_torch.history import History
 from beacon_torch.params import resolve_params
 
-State = dict[str, torch.Tensor]
+# An env's state: a NamedTuple of tensors, batch first, declared at the top of its module
+# as its ``state_type`` (NamedTuples are pytrees: torch.compile, while_loop and
+# torch.utils.checkpoint carry them as they carry tuples, with no conversion).
+State = tuple
+
+
+# the random numbers of one action, by name (none for deterministic physics)
+Noise = dict[str, torch.Tensor]
+
+
+def map_state(fn, state: State) -> State:
+    """``fn`` applied to every tensor of ``state``, in a state of the same type."""
+    return type(state)(*(fn(value) for value in state))
+
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -154,7 +167,7 @@ def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor
 
 def where_members(mask: torch.Tensor, a: State, b: State) -> State:
     """Per batch member, take the state ``a`` where ``mask`` is true and ``b`` elsewhere."""
-    return {key: select(mask, va, b[key]) for key, va in a.items()}
+    return type(a)(*(select(mask, va, vb) for va, vb in zip(a, b, strict=True)))
 
 
 def _standard(state: State, obs: torch.Tensor) -> tuple[State, torch.Tensor]:
@@ -163,13 +176,13 @@ def _standard(state: State, obs: torch.Tensor) -> tuple[State, torch.Tensor]:
     on which of them alias, and a start's views (a slice, a member of size one, an
     observation that is a view of the state) or shared zeros would otherwise compile it
     again on the second step."""
-    out, storages = {}, set()
-    for key, value in {**state, None: obs}.items():
+    out, storages = [], set()
+    for value in (*state, obs):
         storage = value.untyped_storage().data_ptr()
-        out[key] = standard(value) if storage not in storages else value.clone(memory_format=torch.contiguous_format)
+        out.append(standard(value) if storage not in storages else value.clone(memory_format=torch.contiguous_format))
         storages.add(storage)
-    obs = out.pop(None)
-    return out, obs
+    *fields, obs = out
+    return type(state)(*fields), obs
 
 
 def _finite_members(t: torch.Tensor) -> torch.Tensor:
@@ -191,7 +204,7 @@ def settle(
     ``(state, observation, reward, ok)``. A kernel of its own: compiled, its few dozen
     small operations are one call, which at small batches costs less than they do."""
     ok = _finite_members(obs) & _finite_members(reward) & inside
-    for value in new.values():
+    for value in new:
         if value.is_floating_point() or value.is_complex():
             ok = ok & _finite_members(value)
     new = where_members(ok, new, old)
@@ -221,6 +234,8 @@ class FlowEnv(EnvBase):
     Params: ClassVar[type]
     episode_length: ClassVar[int]
     discrete: ClassVar[bool] = False
+    # the type of the env's state: a NamedTuple of tensors, batch first
+    state_type: ClassVar[type]
     # where the action is read from and the observation and reward written to
     # (nested keys for multi-agent variants)
     action_key: ClassVar[str | tuple[str, ...]] = "action"
@@ -391,7 +406,7 @@ class FlowEnv(EnvBase):
         and parameters)."""
         out = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
         if self._state is not None:
-            for key, value in self._state.items():
+            for key, value in self._state._asdict().items():
                 out[f"{prefix}state.{key}"] = value if keep_vars else value.detach()
             out[f"{prefix}count"] = self._count.clone()
         out[f"{prefix}rng"] = self.rng.get_state()
@@ -430,15 +445,15 @@ class FlowEnv(EnvBase):
 
     @abc.abstractmethod
     def initial_state(self, mask: torch.Tensor | None) -> State:
-        """The state at the start of an episode, for the whole batch: a dict of tensors
-        whose first dimension is the batch, in the env's dtype (counters excepted) and
+        """The state at the start of an episode, for the whole batch: a
+        :attr:`state_type` of tensors whose first dimension is the batch, in the env's dtype (counters excepted) and
         on its device. ``mask`` (``[batch]`` bool, or None for all) says which members
         are being reset; the others' entries are discarded, so a costly start may
         compute only the masked members. Random starts draw from ``self.rng``."""
 
     @abc.abstractmethod
     def advance(
-        self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State
+        self, state: State, action: torch.Tensor, count: torch.Tensor, noise: Noise
     ) -> tuple[State, torch.Tensor]:
         """``(new_state, reward)`` after one action of the whole batch: ``action`` is
         checked and in range (``[batch, *action_shape]``; int64 indices if discrete),
@@ -459,7 +474,7 @@ class FlowEnv(EnvBase):
         dtype = torch.int64 if self.discrete else self.dtype
         return torch.zeros((*self.batch_size, *self.action_shape), dtype=dtype, device=self.device)
 
-    def noise(self) -> State:
+    def noise(self) -> Noise:
         """The random numbers one action of the whole batch uses, drawn from
         ``self.rng`` (none for deterministic physics)."""
         return {}
@@ -622,45 +637,47 @@ class FlowEnv(EnvBase):
         later rewards are differentiated back to here, not further."""
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before detach_state()")
-        self._state = {k: v.detach() for k, v in self._state.items()}
+        self._state = map_state(torch.Tensor.detach, self._state)
         self._obs = self._obs.detach()
 
-    def set_state(self, state: State, count: int | torch.Tensor = 0) -> torch.Tensor:
-        """Continue every member from ``state`` (a dict like :attr:`state`, e.g. saved
-        from this env or another one of the same kind and batch size) with ``count``
-        actions already taken; returns the observation. Tensors that require grad are
-        kept, so a differentiable env gives gradients with respect to the state."""
+    def set_state(self, state: State | dict[str, torch.Tensor], count: int | torch.Tensor = 0) -> torch.Tensor:
+        """Continue every member from ``state`` (an instance of the env's
+        :attr:`state_type` like :attr:`state`, or a dict of its fields, e.g. saved from
+        this env or another one of the same kind and batch size) with ``count`` actions
+        already taken; returns the observation. Tensors that require grad are kept, so a
+        differentiable env gives gradients with respect to the state."""
         name = self.env_id or type(self).__name__
+        fields = self.state_type._fields
+        if isinstance(state, self.state_type):
+            state = state._asdict()
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-            raise TypeError(f"{name}: set_state needs a dict of tensors like env.state")
+            raise TypeError(f"{name}: set_state needs a {self.state_type.__name__} of tensors like env.state")
+        missing = sorted(set(fields) - set(state))
+        extra = sorted(set(state) - set(fields))
+        if missing or extra:
+            raise KeyError(f"{name}: set_state needs the fields {list(fields)}; missing {missing}, unknown {extra}")
         if self._state is not None:
-            missing = sorted(set(self._state) - set(state))
-            extra = sorted(set(state) - set(self._state))
-            if missing or extra:
-                raise KeyError(
-                    f"{name}: set_state needs the keys {sorted(self._state)}; missing {missing}, unknown {extra}"
-                )
             for key, value in state.items():
-                if value.shape != self._state[key].shape:
+                now = getattr(self._state, key)
+                if value.shape != now.shape:
                     raise ValueError(
-                        f"{name}: state[{key!r}] must have shape {tuple(self._state[key].shape)}, "
-                        f"got {tuple(value.shape)}"
+                        f"{name}: state.{key} must have shape {tuple(now.shape)}, got {tuple(value.shape)}"
                     )
         for key, value in state.items():
             if value.ndim == 0 or value.shape[0] != self.num_envs:
                 raise ValueError(
-                    f"{name}: state[{key!r}] must have the batch size {self.num_envs} first, got "
+                    f"{name}: state.{key} must have the batch size {self.num_envs} first, got "
                     f"shape {tuple(value.shape)}"
                 )
         for key, value in state.items():
             if value.is_complex() or value.dtype == torch.bool:
-                raise TypeError(f"{name}: state[{key!r}] must hold real numbers, got dtype {value.dtype}")
+                raise TypeError(f"{name}: state.{key} must hold real numbers, got dtype {value.dtype}")
             if value.is_floating_point() and not bool(torch.isfinite(value.detach()).all()):
-                raise ValueError(f"{name}: state[{key!r}] has non-finite values")
+                raise ValueError(f"{name}: state.{key} has non-finite values")
         traced = [key for key, value in state.items() if value.requires_grad]
         if traced and not self.differentiable:
             warnings.warn(
-                f"{name}: state{traced} require grad but the env is not differentiable; their "
+                f"{name}: state fields {traced} require grad but the env is not differentiable; their "
                 f"gradients are dropped (make(..., differentiable=True) keeps them)",
                 stacklevel=2,
             )
@@ -670,12 +687,9 @@ class FlowEnv(EnvBase):
                 f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}"
             )
         # every state is of the env's dtype (integers given are cast), as its specs say
-        state = {k: v.to(self.device, self.dtype) for k, v in state.items()}
+        state = self.state_type(*(state[k].to(self.device, self.dtype) for k in fields))
         with graph_mode(self.differentiable):
-            try:
-                obs = self.observe(state)
-            except KeyError as err:
-                raise KeyError(f"{name}: set_state got a state without {err}") from None
+            obs = self.observe(state)
         self._state, self._obs = _standard(state, obs)
         self._count = count.expand(self.batch_size).clone()
         return self._obs
@@ -704,6 +718,11 @@ class FlowEnv(EnvBase):
             mask = mask.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
             init = self.initial_state(mask)
+        if type(init) is not self.state_type:
+            raise TypeError(
+                f"{self.env_id}: initial_state returned a {type(init).__name__}, not the env's "
+                f"state type {self.state_type.__name__}"
+            )
         # in differentiable mode the members that go on keep their graph through a
         # partial reset; the new starts are data
         with graph_mode(self.differentiable):
@@ -716,7 +735,7 @@ class FlowEnv(EnvBase):
             obs = self.observe(self._state)
         with torch.no_grad():
             started = _finite_members(obs)
-            for value in self._state.values():
+            for value in self._state:
                 if value.is_floating_point():
                     started = started & _finite_members(value)
         if not bool(started.all()):
@@ -787,7 +806,7 @@ class FlowEnv(EnvBase):
         old_obs: torch.Tensor,
         action: torch.Tensor,
         count: torch.Tensor,
-        noise: State,
+        noise: Noise,
         stepping: torch.Tensor | None,
     ):
         """A whole step as one function of tensors, what the compiled path runs as one
@@ -807,7 +826,7 @@ class FlowEnv(EnvBase):
         old_obs: torch.Tensor,
         action: torch.Tensor,
         count: torch.Tensor,
-        noise: State,
+        noise: Noise,
         stepping: torch.Tensor | None,
     ):
         """:meth:`_step_core` keeping the autograd graph (differentiable mode), its
@@ -840,7 +859,7 @@ class FlowEnv(EnvBase):
             after = torch.where(stepping, after, count)
         # in standard strides, as the next step's inputs were compiled for (a cavity's
         # fields come out of its batch-last solver permuted)
-        new = {k: standard(v) for k, v in new.items()}
+        new = map_state(standard, new)
         return new, standard(obs), reward, ~ok, after >= self.episode_length, after
 
     def _settled_step(
@@ -848,7 +867,7 @@ class FlowEnv(EnvBase):
         advance,
         old: State,
         action: torch.Tensor,
-        noise: State,
+        noise: Noise,
         inside: torch.Tensor | None = None,
         start: State | None = None,
     ):
@@ -871,7 +890,7 @@ class FlowEnv(EnvBase):
             float(self.blowup_reward),
         )
 
-    def _differentiated_step(self, old: State, action: torch.Tensor, noise: State):
+    def _differentiated_step(self, old: State, action: torch.Tensor, noise: Noise):
         """A step that keeps its graph. A member that blows up keeps its last state, but
         its own backward pass would still multiply a zero gradient by an infinite
         derivative (0 * inf = NaN), which would reach the gradients of every other
@@ -892,9 +911,7 @@ class FlowEnv(EnvBase):
             if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.num_envs
         }
         params = dataclasses.replace(self.params, **per_member)
-        return self._settled_step(
-            self._with_params(params), old, stand_in(action), noise, ok, {k: stand_in(v) for k, v in old.items()}
-        )
+        return self._settled_step(self._with_params(params), old, stand_in(action), noise, ok, map_state(stand_in, old))
 
     def _with_params(self, params):
         """``advance`` run with ``params`` in place of the env's own (in the backward

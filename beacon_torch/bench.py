@@ -76,7 +76,7 @@ def _sync(device: torch.device) -> None:
 
 
 def _state_mb(env) -> float:
-    return sum(t.numel() * t.element_size() for t in env.state.values() if isinstance(t, torch.Tensor)) / 2**20
+    return sum(t.numel() * t.element_size() for t in env.state if isinstance(t, torch.Tensor)) / 2**20
 
 
 def measure(

@@ -1,7 +1,8 @@
 """Cache of expensive initial states (developed films, excited tanks).
 
-A state is a dict of tensors identified by a name and a key of the parameters that
-determine it. It is looked up in memory, then in the package data (the states of the
+A state is a NamedTuple of tensors (an env's state type, or part of one), stored as a
+dict of its fields and identified by a name and a key of the parameters that determine
+it. It is looked up in memory, then in the package data (the states of the
 default parameters ship with the package), then in the user cache directory
 (``$BEACON_TORCH_CACHE``, default ``~/.cache/beacon-torch``); on a miss it is computed by
 the env's public generator function and written to the user cache.
@@ -44,21 +45,22 @@ def file_name(name: str, key: dict) -> str:
     return f"{name}-{digest}.pt"
 
 
-def _load(path: Path, shapes: dict[str, tuple[int, ...]] | None) -> State | None:
-    """The state in ``path``, or None (with a warning saying why) if it is unusable."""
+def _load(path: Path, like: State) -> State | None:
+    """The state in ``path``, of ``like``'s type and shapes, or None (with a warning
+    saying why) if it is unusable."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, ValueError) as err:
         problem = f"unreadable ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
     else:
-        problem = _problem(state, shapes)
+        problem = _problem(state, like)
     if problem is None:
-        return state
+        return type(like)(**state)
     warnings.warn(f"cached state {path}: {problem}; computing it again", stacklevel=3)
     return None
 
 
-def _problem(state, shapes: dict[str, tuple[int, ...]] | None) -> str | None:
+def _problem(state, like: State) -> str | None:
     if not isinstance(state, dict) or not all(
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
     ):
@@ -66,12 +68,12 @@ def _problem(state, shapes: dict[str, tuple[int, ...]] | None) -> str | None:
     for key, value in state.items():
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             return f"non-finite values in {key!r}"
-    if shapes is not None:
-        if set(state) != set(shapes):
-            return f"keys {sorted(state)}, expected {sorted(shapes)}"
-        for key, shape in shapes.items():
-            if tuple(state[key].shape) != tuple(shape):
-                return f"{key!r} has shape {tuple(state[key].shape)}, expected {tuple(shape)}"
+    shapes = {key: tuple(value.shape) for key, value in like._asdict().items()}
+    if set(state) != set(shapes):
+        return f"keys {sorted(state)}, expected {sorted(shapes)}"
+    for key, shape in shapes.items():
+        if tuple(state[key].shape) != shape:
+            return f"{key!r} has shape {tuple(state[key].shape)}, expected {shape}"
     return None
 
 
@@ -79,25 +81,24 @@ def save(state: State, path: Path) -> None:
     """Write atomically, so that concurrent processes never read half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     # a path that cannot be replaced (a folder of that name) removes the temporary file
-    replace_file(path, lambda tmp: torch.save({k: v.detach().cpu() for k, v in state.items()}, tmp))
+    replace_file(path, lambda tmp: torch.save({k: v.detach().cpu() for k, v in state._asdict().items()}, tmp))
 
 
-def cached(
-    name: str, key: dict, compute: Callable[[], State], shapes: dict[str, tuple[int, ...]] | None = None
-) -> State:
-    """The state ``compute()`` returns, computed at most once per key and machine;
-    ``shapes``: the shape of each of its tensors, which a stored file must have."""
+def cached(name: str, key: dict, compute: Callable[[], State], like: State) -> State:
+    """The state ``compute()`` returns, computed at most once per key and machine.
+    ``like`` is a cheap state of the same type and shapes (at rest, say): a stored file
+    must have its fields and shapes."""
     fname = file_name(name, key)
     if fname in _memory:
         return _memory[fname]
     state = None
     for folder in (PACKAGE_DATA, cache_dir()):
         if (folder / fname).is_file():
-            state = _load(folder / fname, shapes)
+            state = _load(folder / fname, like)
             if state is not None:
                 break
     if state is None:
-        state = {k: v.detach().cpu() for k, v in compute().items()}
+        state = type(like)(*(v.detach().cpu() for v in compute()))
         try:
             save(state, cache_dir() / fname)
         except OSError:

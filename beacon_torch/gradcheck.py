@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
-from beacon_torch.base import FlowEnv, GradCheck, State
+from beacon_torch.base import FlowEnv, GradCheck, State, map_state
 from beacon_torch.registry import env_class
 from beacon_torch.registry import make as make_env
 
@@ -55,7 +55,7 @@ def generic_start(env: FlowEnv, n: int, seed: int = 5) -> State:
         for _ in range(n):
             a = torch.rand(env.full_action_spec[env.action_key].shape, generator=gen, dtype=env.dtype) - 0.5
             env.step(TensorDict({env.action_key: a.to(env.device)}, batch_size=env.batch_size))
-    return {k: v.detach().clone() for k, v in env.state.items()}
+    return map_state(lambda v: v.detach().clone(), env.state)
 
 
 def check(

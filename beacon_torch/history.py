@@ -12,7 +12,7 @@ if TYPE_CHECKING:
 
 
 def _kept(state: State) -> State:
-    return {k: v.detach().clone() for k, v in state.items()}
+    return type(state)(*(v.detach().clone() for v in state))
 
 
 class History:
@@ -43,7 +43,7 @@ class History:
             return
         if mask is None or self.start is None or not self.states:
             self.states = [_kept(state)]
-            self.start = torch.zeros(next(iter(state.values())).shape[0], dtype=torch.int64)
+            self.start = torch.zeros(state[0].shape[0], dtype=torch.int64)
             return
         # the members not reset are where the last state left them: that state becomes
         # the reset members' first one instead of a repeated entry for the others
@@ -63,4 +63,4 @@ class History:
         the current one."""
         i = self.index
         states = self.states[int(self.start[i]) :] if self.enabled and self.states else [state]
-        return [{k: v[i].detach().cpu() for k, v in s.items()} for s in states]
+        return [type(s)(*(v[i].detach().cpu() for v in s)) for s in states]

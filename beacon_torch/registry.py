@@ -62,6 +62,11 @@ def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[Flo
         raise TypeError(f"register needs a FlowEnv subclass, got {env_class!r}")
     if not env_class.env_id:
         raise ValueError(f"{env_class.__name__} declares no env_id (set env_id = {env_id!r} on the class)")
+    state_type = getattr(env_class, "state_type", None)
+    if not (isinstance(state_type, type) and issubclass(state_type, tuple) and hasattr(state_type, "_fields")):
+        raise TypeError(
+            f"{env_class.__name__} declares no state type (state_type = a NamedTuple of its state's tensors)"
+        )
     known = {f.name for f in dataclasses.fields(env_class.Params)} | set(OPTIONS)
     unknown = sorted(set(defaults) - known)
     if unknown:

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv
+from beacon_torch.base import FlowEnv, map_state
 from beacon_torch.registry import ENVS, env_class
 
 F64 = torch.float64
@@ -220,12 +220,12 @@ def check_partial_reset(cls: type[FlowEnv]) -> None:
     start = env.reset_members().clone()
     for a in _actions(env, 5):
         env.step_members(a)
-    before = {k: v.clone() for k, v in env.state.items()}
+    before = {k: v.clone() for k, v in env.state._asdict().items()}
     obs_before = env.observation.clone()
     mask = torch.tensor([True, False, True, False])
     obs = env.reset_members(mask)
-    for key, value in env.state.items():
-        _equal(f"state[{key!r}] of the members not reset", value[~mask], before[key][~mask])
+    for key, value in env.state._asdict().items():
+        _equal(f"state.{key} of the members not reset", value[~mask], before[key][~mask])
     _equal("the observations of the members not reset", obs[~mask], obs_before[~mask])
     assert env.step_count.tolist() == [0, 5, 0, 5], f"step counts after the reset: {env.step_count.tolist()}"
     if cls.deterministic:
@@ -240,8 +240,8 @@ def check_blow_up(cls: type[FlowEnv]) -> None:
     ref_obs, ref_rew, ref_term = _rollout(ref, actions)
     env.reset_members()
     # every number of member 1 absurd: its next step overflows or leaves its bounds
-    state = {k: v.clone() for k, v in env.state.items()}
-    for v in state.values():
+    state = map_state(torch.clone, env.state)
+    for v in state:
         if v.is_floating_point():
             v[1] = 1e150
     env.set_state(state)

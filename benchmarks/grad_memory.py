@@ -100,7 +100,7 @@ def main(argv=None) -> None:
         params = ENVS[env_id]
         probe = beacon_torch.make(env_id, num_envs=1, dtype=dtype, seed=0, **params)
         probe.reset()
-        state = sum(v.numel() * v.element_size() for v in probe.state.values())
+        state = sum(v.numel() * v.element_size() for v in probe.state)
         full, t_full, *_ = measure(env_id, args.steps, args.batch, dtype, False, **params)
         ck, t_ck, *_ = measure(env_id, args.steps, args.batch, dtype, True, **params)
         print(

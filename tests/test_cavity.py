@@ -28,7 +28,7 @@ def test_flow_stays_divergence_free(env_id):
     env = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0)
     g = torch.Generator().manual_seed(0)
     run_actions(env, [env.random_action(g)])
-    fields = env.cavity.fields(env.state, {})
+    fields = env.cavity.fields(env.flow(env.state), {})
     div = divergence(fields["u"], fields["v"], env.dx, env.dy)
     if env_id == "mixing-v0":
         # the increment's zero ghost on the lid leaves, as published, the top cells
@@ -59,7 +59,7 @@ def test_continuous_mixing_corners_are_the_discrete_actions():
 def test_mixing_initial_patch_and_reward():
     env = beacon_torch.make("mixing-v0", 1, dtype=torch.float64)
     env.reset()
-    c = env.state["c"][0]
+    c = env.state.c[0]
     assert c.sum().item() == 2500.0 and c[25:75, 25:75].min() == 1.0
     # the first reward is the distance from the mixed value, near -mean|c0 1_patch - 0.25|
     _, rew = run_actions(env, [env.null_action()])

@@ -72,7 +72,7 @@ def test_the_worked_example_passes_every_check(example):
 
 
 def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
-    import beacon_torch.gym  # noqa: F401  (gymnasium's ids, registered as envs are)
+    import beacon_torch.gym  # gymnasium's ids, registered as envs are
 
     try:
         cls = beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0)
@@ -145,12 +145,32 @@ def test_register_refuses_what_it_cannot_serve():
         beacon_torch.register("burgers-odd-v0", BurgersEnv, viscosity=1.0)
     with pytest.raises(ValueError, match="registered already"):
         beacon_torch.register("lorenz-v0", BurgersEnv)
-    assert "burgers-odd-v0" not in ENVS
+    untyped = type("UntypedEnv", (BurgersEnv,), {"env_id": "untyped-v0", "state_type": dict})
+    with pytest.raises(TypeError, match="UntypedEnv declares no state type"):
+        beacon_torch.register("untyped-v0", untyped)
+    assert "burgers-odd-v0" not in ENVS and "untyped-v0" not in ENVS
+
+
+def test_the_state_is_the_envs_declared_type(monkeypatch):
+    """Every env's state is its NamedTuple, batch first, whatever path made it."""
+    for env_id in ALL_ENVS:
+        cls = ENVS[env_id]
+        assert issubclass(cls.state_type, tuple) and cls.state_type._fields, env_id
+    env = beacon_torch.make("burgers-v0", 2, seed=0)
+    env.reset()
+    assert type(env.state) is env.state_type and env.state.u.shape[0] == 2
+    env.step_members(env.null_action())
+    assert type(env.state) is env.state_type
+    env.set_state(env.state._asdict())  # a dict of its fields is taken too
+    assert type(env.state) is env.state_type
+    monkeypatch.setattr(BurgersEnv, "initial_state", lambda self, mask: {"u": torch.zeros(2, 500)})
+    with pytest.raises(TypeError, match="burgers-v0: initial_state returned a dict, not the env's state type"):
+        beacon_torch.make("burgers-v0", 2).reset()
 
 
 def test_the_kit_names_the_env_the_check_and_the_fault(monkeypatch):
     """An env that breaks a promise fails the kit with a message that says which."""
-    monkeypatch.setattr(BurgersEnv, "observe", lambda self, state: state["u"][:, :5] * torch.rand(()))
+    monkeypatch.setattr(BurgersEnv, "observe", lambda self, state: state.u[:, :5] * torch.rand(()))
     with pytest.raises(ConformanceError, match="burgers-v0: seeding: two envs of seed 123: observations differ"):
         check_flow_env("burgers-v0", ["seeding"])
     with pytest.raises(ValueError, match="unknown check"):

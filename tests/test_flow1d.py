@@ -14,19 +14,19 @@ from conftest import run_actions
 def test_burgers_steady_state_without_noise_or_action():
     env = beacon_torch.make("burgers-v0", 2, dtype=torch.float64, sigma=0.0)
     obs, rew = run_actions(env, [env.null_action()] * 3)
-    assert torch.equal(env.state["u"], torch.full_like(env.state["u"], 0.5))
+    assert torch.equal(env.state.u, torch.full_like(env.state.u, 0.5))
     assert (rew == 0).all() and (obs == 0.5).all()
 
 
 def test_burgers_inlet_noise_is_one_draw_per_action_and_actuator_acts_downstream():
     env = beacon_torch.make("burgers-v0", 1, dtype=torch.float64, seed=3)
     run_actions(env, [env.null_action()])
-    u = env.state["u"][0]
+    u = env.state.u[0]
     assert u[0] != 0.5 and abs(u[0] - 0.5) <= 0.1
     # a positive action lowers u at the actuator (the source enters as -amp * a)
     env = beacon_torch.make("burgers-v0", 1, dtype=torch.float64, sigma=0.0)
     run_actions(env, [torch.ones(1, 1, dtype=torch.float64)])
-    u = env.state["u"][0]
+    u = env.state.u[0]
     assert u[env.ctrl] < 0.5 and (u[: env.ctrl - 5] == 0.5).all()
 
 
@@ -37,7 +37,7 @@ def test_sloshing_rest_is_steady_and_excitation_moves_the_tank():
     assert (fh == 0).all() and (fq == 0).all()
     env = beacon_torch.make("sloshing-v0", 1, dtype=torch.float64)
     env.reset()
-    h0 = env.state["h"][0]
+    h0 = env.state.h[0]
     assert (h0 - 1).abs().max() > 0.05 and torch.isfinite(h0).all()
     # the published generator's signal, not clipped to the action box
     assert sloshing.excitation(0.0) == 2.0 and sloshing.excitation(0.5) == pytest.approx(1.5)
@@ -61,7 +61,7 @@ def test_excited_state_is_cached_on_disk(tmp_path, monkeypatch):
     monkeypatch.setattr(cache, "_memory", {})
     monkeypatch.setattr(sloshing, "excited_state", lambda *a, **k: pytest.fail("recomputed"))
     again = beacon_torch.make("sloshing-v0", 1, g=9.0)
-    assert torch.equal(again._start["h"], env._start["h"])
+    assert torch.equal(again._start.h, env._start.h)
 
 
 def test_shkadov_flat_film_is_steady_and_jets_remove_flow_rate():
@@ -75,15 +75,15 @@ def test_shkadov_flat_film_is_steady_and_jets_remove_flow_rate():
     state = shkadov.flat_state(1, n, 1, torch.float64, "cpu")
     noise = shkadov.inlet_noise(None, 1, torch.float64)
     out = shkadov.run_action(state, torch.ones(1, 1, dtype=torch.float64), prof[:, 1:-1], 0.1, 0.2, noise)
-    assert out["q"][0, 50] < 1.0
+    assert out.q[0, 50] < 1.0
 
 
 def test_developed_film_generator_is_reproducible():
     a = shkadov.developed_film(0.1, time=0.5)
     b = shkadov.developed_film(0.1, time=0.5)
-    assert torch.equal(a["h"], b["h"]) and a["h"].shape == (2900,)
+    assert torch.equal(a.h, b.h) and a.h.shape == (2900,)
     c = shkadov.developed_film(0.1, time=0.5, seed=1)
-    assert not torch.equal(a["h"], c["h"])
+    assert not torch.equal(a.h, c.h)
 
 
 def test_shkadov_ships_its_developed_film():
@@ -91,7 +91,7 @@ def test_shkadov_ships_its_developed_film():
     assert (cache.PACKAGE_DATA / cache.file_name("shkadov-film", key)).is_file()
     env = beacon_torch.make("shkadov-v0", 1, random_start=0, dtype=torch.float64)
     env.reset()
-    h = env.state["h"][0]
+    h = env.state.h[0]
     # a developed film: waves of order 0.3 downstream, still flat near the inlet
     assert (h[:200] - 1).abs().max() < 0.01 and (h[700:] - 1).abs().max() > 0.2
 

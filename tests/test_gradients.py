@@ -29,15 +29,15 @@ def relative(a, b):
 def test_gradient_with_respect_to_the_initial_state():
     env = beacon_torch.make("lorenz-continuous-v0", dtype=F64, differentiable=True, reward_width=2.0)
     start = generic_start(env, 10)
-    xyz = start["xyz"].clone().requires_grad_()
+    xyz = start.xyz.clone().requires_grad_()
     actions = torch.zeros((15, 1, 1), dtype=F64)
-    total = summed_reward(env, {**start, "xyz": xyz}, actions)
+    total = summed_reward(env, start._replace(xyz=xyz), actions)
     (grad,) = torch.autograd.grad(total, xyz)
     direction = torch.tensor([[0.3, -1.0, 0.5]], dtype=F64)
     h = 1e-6
     with torch.no_grad():
-        plus = summed_reward(env, {**start, "xyz": start["xyz"] + h * direction}, actions)
-        minus = summed_reward(env, {**start, "xyz": start["xyz"] - h * direction}, actions)
+        plus = summed_reward(env, start._replace(xyz=start.xyz + h * direction), actions)
+        minus = summed_reward(env, start._replace(xyz=start.xyz - h * direction), actions)
     assert relative((grad * direction).sum(), (plus - minus) / (2 * h)) < REL
 
 
@@ -80,7 +80,7 @@ def test_detach_state_truncates_backpropagation():
     env.detach_state()
     td = env.step(TensorDict({"action": torch.zeros((1, 2), dtype=F64)}, batch_size=[1]))
     assert not td["next", "reward"].requires_grad
-    assert not env.state["ay"].requires_grad
+    assert not env.state.ay.requires_grad
 
 
 def test_default_mode_keeps_no_graph():
@@ -135,9 +135,9 @@ def test_errors_name_the_problem():
     env = beacon_torch.make("vortex-v0", num_envs=2)
     env.reset()
     with pytest.raises(KeyError, match="missing \\['k'"):
-        env.set_state({k: v for k, v in env.state.items() if k != "k"})
-    with pytest.raises(ValueError, match=r"state\['ay'\] must have shape \(2, 4\)"):
-        env.set_state({**env.state, "ay": torch.zeros(2, 3)})
+        env.set_state({k: v for k, v in env.state._asdict().items() if k != "k"})
+    with pytest.raises(ValueError, match=r"state.ay must have shape \(2, 4\)"):
+        env.set_state({**env.state._asdict(), "ay": torch.zeros(2, 3)})
 
 
 def test_partial_reset_keeps_the_graph_of_the_members_that_go_on():

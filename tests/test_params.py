@@ -198,7 +198,7 @@ def test_the_published_start_is_the_stored_state_and_its_file_is_read_once():
     env.reset()
     table = starts.published_table("sloshing")
     assert table.shape == (200, 3)
-    assert torch.equal(env.state["h"][1], table[:, 1]) and torch.equal(env.state["q"][0], table[:, 2])
+    assert torch.equal(env.state.h[1], table[:, 1]) and torch.equal(env.state.q[0], table[:, 2])
     misses = starts._table.cache_info().misses
     for _ in range(3):
         beacon_torch.make("sloshing-v0", 4).reset()
@@ -214,4 +214,4 @@ def test_published_rayleigh_start_has_the_published_nusselt_number():
     for start in ("published", "generated"):
         env = beacon_torch.make("rayleigh-v0", 1, dtype=torch.float64, start=start)
         env.reset()
-        assert nusselt(env.state["theta"], env.dy).item() == pytest.approx(2.16, rel=0.01)
+        assert nusselt(env.state.theta, env.dy).item() == pytest.approx(2.16, rel=0.01)

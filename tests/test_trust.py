@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 import beacon_torch
 from beacon_torch import files, pretrained
 from beacon_torch.cli import main as cli
+from beacon_torch.envs import shkadov
 from beacon_torch.training import report
 from beacon_torch.training.config import DQNConfig, PPOConfig, TD3Config, configure
 from beacon_torch.training.run import BadRun, Diverged, check_checkpoint, load_checkpoint, read_log
@@ -532,7 +533,7 @@ def differentiated_grads(env_id: str, n_steps: int, *, scale: float | None = Non
     env = beacon_torch.make(env_id, members, dtype="float64", differentiable=True, **params)
     env.reset()
     if scale is not None:  # the second member's state scaled out of any range
-        env.set_state({k: torch.cat([v[:1], v[1:] * scale]) for k, v in env.state.items()})
+        env.set_state({k: torch.cat([v[:1], v[1:] * scale]) for k, v in env.state._asdict().items()})
     w = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
     total = 0.0
     ended = torch.zeros(members, dtype=torch.bool)
@@ -578,7 +579,7 @@ def test_a_blown_up_member_steps_as_without_gradients():
     for differentiable in (True, False):
         env = beacon_torch.make("burgers-v0", 2, dtype="float64", seed=4, differentiable=differentiable)
         env.reset()
-        env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in env.state.items()})
+        env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in env.state._asdict().items()})
         action = torch.full((2, 1), 0.3, dtype=torch.float64, requires_grad=differentiable)
         rewards.append(torch.stack([env.step_members(action)[1] for _ in range(5)]).detach())
     assert torch.equal(*rewards)
@@ -676,11 +677,11 @@ def test_masks_states_and_devices_of_the_wrong_kind_are_named():
     with pytest.raises(ValueError, match="meta"):
         env.to("meta")
     assert env.to("cpu") is env
-    state = {k: v.to(torch.int64) for k, v in env.state.items()}
+    state = {k: v.to(torch.int64) for k, v in env.state._asdict().items()}
     obs = env.set_state(state)
-    assert obs.dtype == torch.float32 and env.state["ay"].dtype == torch.float32
+    assert obs.dtype == torch.float32 and env.state.ay.dtype == torch.float32
     with pytest.raises(TypeError, match="real numbers"):
-        env.set_state({k: v.to(torch.complex64) for k, v in env.state.items()})
+        env.set_state({k: v.to(torch.complex64) for k, v in env.state._asdict().items()})
     env.close()
     with pytest.raises(RuntimeError, match="closed env"):
         env.step(td)
@@ -694,7 +695,7 @@ def test_gradients_that_would_be_dropped_warn():
         env = beacon_torch.make("lorenz-v0", 2, rho=rho)
     env.reset()
     with pytest.warns(UserWarning, match="require grad but the env is not differentiable"):
-        env.set_state({k: v.clone().requires_grad_() for k, v in env.state.items()})
+        env.set_state({k: v.clone().requires_grad_() for k, v in env.state._asdict().items()})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         beacon_torch.make("lorenz-v0", 2, rho=rho, differentiable=True)
@@ -719,7 +720,7 @@ def test_a_member_at_the_published_gravity_starts_from_the_published_state():
     for g, row in ((9.81, 1), (5.0, 0)):
         alone = beacon_torch.make("sloshing-v0", 1, g=g, dtype="float64")
         alone.reset()
-        assert all(torch.equal(mixed.state[k][row], alone.state[k][0]) for k in alone.state)
+        assert all(torch.equal(m[row], a[0]) for m, a in zip(mixed.state, alone.state, strict=True))
 
 
 def test_huge_batches_are_refused_before_allocating_and_envs_pickle():
@@ -782,6 +783,6 @@ def test_the_cache_ignores_an_empty_path_and_leaves_no_temporary_file(tmp_path, 
     blocked = tmp_path / "blocked"
     (blocked / "x.pt").mkdir(parents=True)  # a folder where the file should go
     with pytest.raises(OSError):
-        cache.save({"a": torch.zeros(2)}, blocked / "x.pt")
+        cache.save(shkadov.Film(h=torch.zeros(2), q=torch.zeros(2)), blocked / "x.pt")
     assert sorted(p.name for p in blocked.iterdir()) == ["x.pt"]
     np.testing.assert_equal(len(list(blocked.rglob("*"))), 1)

@@ -12,11 +12,12 @@ upstream of it and is rewarded on the flatness of the field downstream.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, State
+from beacon_torch.base import FlowEnv, GradCheck, Noise
 from beacon_torch.numerics import bdf2_explicit_step, tvd_derivative, van_leer
 from beacon_torch.params import param
 
@@ -25,6 +26,14 @@ DT = 0.2 * DX
 SUBSTEPS = int(0.05 / DT)  # 62: the published code truncates 62.5
 EPISODE_LENGTH = 200
 N_OBS = 5
+
+
+class BurgersState(NamedTuple):
+    """One member per row."""
+
+    u: torch.Tensor  # [batch, n_cells] the velocity in the cells
+    u_prev: torch.Tensor  # [batch, n_cells] the velocity one substep before (BDF2)
+    a: torch.Tensor  # [batch] the last action
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,7 @@ class BurgersEnv(FlowEnv):
 
     env_id = "burgers-v0"
     Params = BurgersParams
+    state_type = BurgersState
     episode_length = EPISODE_LENGTH
     deterministic = False
     family = "1-D"
@@ -94,32 +104,32 @@ class BurgersEnv(FlowEnv):
         self._source = source
         self._substeps = self.kernels.loop(burgers_substep)
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
+    def initial_state(self, mask: torch.Tensor | None) -> BurgersState:
         u = torch.ones((self.num_envs, self.n_cells), dtype=self.dtype, device=self.device)
         u = u * self.member(self.params.u_target)
-        return {"u": u, "u_prev": u.clone(), "a": torch.zeros_like(u[:, 0])}
+        return BurgersState(u=u, u_prev=u.clone(), a=torch.zeros_like(u[:, 0]))
 
-    def noise(self) -> State:
+    def noise(self) -> Noise:
         # one inlet value per action
         return {"inlet": torch.rand(self.num_envs, generator=self.rng, dtype=self.dtype, device=self.device)}
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: BurgersState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         p = self.params
         inlet = (p.u_target + p.sigma * (2.0 * noise["inlet"] - 1.0))[:, None]
         forcing = (self.member(p.amp) * action) * self._source  # [B, n-2]
-        u, u_prev = self._substeps(SUBSTEPS, (state["u"], state["u_prev"]), inlet, forcing)
+        u, u_prev = self._substeps(SUBSTEPS, (state.u, state.u_prev), inlet, forcing)
         reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
-        return {"u": u, "u_prev": u_prev, "a": action[:, 0]}, reward
+        return BurgersState(u=u, u_prev=u_prev, a=action[:, 0]), reward
 
-    def observe(self, state: State) -> torch.Tensor:
-        return state["u"][:, self.ctrl - N_OBS : self.ctrl]
+    def observe(self, state: BurgersState) -> torch.Tensor:
+        return state.u[:, self.ctrl - N_OBS : self.ctrl]
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[BurgersState]) -> np.ndarray:
         from beacon_torch.render import burgers_frame
 
         last = history[-1]
-        u = last["u"].double().numpy()
+        u = last.u.double().numpy()
         x = DX * np.arange(self.n_cells)
         t = DT * SUBSTEPS * (len(history) - 1)
         u_target = float(self.params.u_target[self.render_index])
-        return burgers_frame(x, u, self.ctrl * DX, u_target, float(last["a"]), t)
+        return burgers_frame(x, u, self.ctrl * DX, u_target, float(last.a), t)

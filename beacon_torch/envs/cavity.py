@@ -25,6 +25,11 @@ HISTORY = 4  # the 3 previous probe vectors and the current one, oldest first
 FIELDS = 3  # the scalar, u and v at every probe
 N_OBS = FIELDS * N_PROBES**2 * HISTORY
 
+# The flow by name, as the solver takes and gives it: u, v, p and the scalar, ghosted
+# ``[B, nx + 2, ny + 2]`` batch first (p ``[B, nx, ny]``) outside the substeps, batch
+# last inside them. A cavity env's state holds these fields and what it adds.
+Fields = dict[str, torch.Tensor]
+
 
 def grid(L: float, H: float, cells_per_unit: int) -> tuple[int, int, float, float]:
     """``(nx, ny, dx, dy)`` of an L x H cavity."""
@@ -47,19 +52,19 @@ class Probes:
         self.iy = probe_indices(ny, device)[None, :]
         self.size = len(keys) * N_PROBES**2
 
-    def sample(self, state: State) -> torch.Tensor:
+    def sample(self, flow: Fields) -> torch.Tensor:
         """``[B, len(keys) * N_PROBES^2]``, field by field."""
-        return torch.cat([state[k][:, self.ix, self.iy].flatten(1) for k in self.keys], -1)
+        return torch.cat([flow[k][:, self.ix, self.iy].flatten(1) for k in self.keys], -1)
 
-    def start(self, state: State) -> torch.Tensor:
+    def start(self, flow: Fields) -> torch.Tensor:
         """``[B, HISTORY, size]``: zeros for the steps before, the current sample last
         (the published order: oldest first)."""
-        current = self.sample(state)[:, None]
+        current = self.sample(flow)[:, None]
         return torch.cat((current.new_zeros((current.shape[0], HISTORY - 1, self.size)), current), 1)
 
-    def push(self, history: torch.Tensor, state: State) -> torch.Tensor:
+    def push(self, history: torch.Tensor, flow: Fields) -> torch.Tensor:
         """The history with the oldest sample dropped and the current one appended."""
-        return torch.cat((history[:, 1:], self.sample(state)[:, None]), 1)
+        return torch.cat((history[:, 1:], self.sample(flow)[:, None]), 1)
 
 
 def transport(
@@ -74,7 +79,7 @@ def transport(
     return torch.cat((s[:1], torch.cat((s[1:-1, :1], interior, s[1:-1, -1:]), 1), s[-1:]), 0)
 
 
-def _any_substep(substep: Callable, i, fields: State, *inputs) -> State:
+def _any_substep(substep: Callable, i, fields: Fields, *inputs) -> Fields:
     """A cavity's substep as the loop over an action's substeps calls it (every
     substep of an action is the same)."""
     return substep(fields, *inputs)
@@ -118,21 +123,20 @@ class CavityEnv(FlowEnv):
         """The ghost map of the scalar (its wall conditions)."""
         raise NotImplementedError
 
-    def run(self, state: State, n: int, nu, kappa, *, walls=None, offset: torch.Tensor | None = None) -> State:
-        """``n`` substeps from a batch-first ghosted state
+    def run(self, flow: Fields, n: int, nu, kappa, *, walls=None, offset: torch.Tensor | None = None) -> Fields:
+        """``n`` substeps from a batch-first ghosted flow
         (``u``, ``v``, ``p`` and the scalar) with the wall-velocity offsets ``walls``
         (``Cavity.walls``; None for walls at rest) and the scalar's ghost offset."""
-        fields = self.cavity.fields(state, {self.scalar: (self.ghosts, offset)})
+        fields = self.cavity.fields(flow, {self.scalar: (self.ghosts, offset)})
         fields = self._substeps(n, fields, walls, offset, self.cavity, self.ghosts, nu, kappa)
         return self.cavity.stored(fields, walls if walls is not None else self.cavity.walls(like=fields["u"]))
 
-    def observed(self, new: State, old: State | None = None) -> State:
-        """``new`` with its probe history: started, or pushed onto ``old``'s."""
-        new["probes"] = self.probes.start(new) if old is None else self.probes.push(old["probes"], new)
-        return new
+    def flow(self, state: State) -> Fields:
+        """The flow fields of a state, by name."""
+        return {name: getattr(state, name) for name in ("u", "v", "p", self.scalar)}
 
     def observe(self, state: State) -> torch.Tensor:
-        return state["probes"].flatten(1)
+        return state.probes.flatten(1)
 
     def actuation(self, state: State) -> np.ndarray:
         """The actuation bars of a frame of one member's ``state``."""
@@ -149,9 +153,9 @@ class CavityEnv(FlowEnv):
         vmin, vmax = self.scalar_range()
         return cavity_frame(
             self.env_id.split("-")[0],
-            last[self.scalar][1:-1, 1:-1].double().numpy(),
-            last["u"].double().numpy(),
-            last["v"].double().numpy(),
+            getattr(last, self.scalar)[1:-1, 1:-1].double().numpy(),
+            last.u.double().numpy(),
+            last.v.double().numpy(),
             self.params.L,
             self.params.H,
             self.actuation(last),

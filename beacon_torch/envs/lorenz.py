@@ -18,17 +18,26 @@ goes to 0 (the published scores use the indicator, the default).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, State
+from beacon_torch.base import FlowEnv, GradCheck, Noise
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
 DT = 0.05
 EPISODE_LENGTH = 500
 START = (10.0, 10.0, 10.0)
+
+
+class LorenzState(NamedTuple):
+    """One member per row."""
+
+    xyz: torch.Tensor  # [batch, 3] the position (x, y, z)
+    rate: torch.Tensor  # [batch, 3] the right-hand side of the last LSRK4 stage
+    u: torch.Tensor  # [batch] the forcing of the last action
 
 
 @dataclass(frozen=True)
@@ -58,6 +67,7 @@ class LorenzEnv(FlowEnv):
 
     env_id = "lorenz-v0"
     Params = LorenzParams
+    state_type = LorenzState
     episode_length = EPISODE_LENGTH
     discrete = True
     family = "ode"
@@ -78,16 +88,16 @@ class LorenzEnv(FlowEnv):
     def null_action(self) -> torch.Tensor:
         return torch.ones(self.batch_size, dtype=torch.int64, device=self.device)
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
+    def initial_state(self, mask: torch.Tensor | None) -> LorenzState:
         xyz = self.tensor(START).expand(self.num_envs, 3).clone()
         # the published reset observes zero time derivatives
-        return {"xyz": xyz, "rate": torch.zeros_like(xyz), "u": torch.zeros_like(xyz[:, 0])}
+        return LorenzState(xyz=xyz, rate=torch.zeros_like(xyz), u=torch.zeros_like(xyz[:, 0]))
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: LorenzState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         u = self.forcing(action)
-        xyz, rate = self._lorenz(state["xyz"], u, self.params)
+        xyz, rate = self._lorenz(state.xyz, u, self.params)
         reward = self.reward(xyz[:, 0])
-        return {"xyz": xyz, "rate": rate, "u": u}, reward
+        return LorenzState(xyz=xyz, rate=rate, u=u), reward
 
     def reward(self, x: torch.Tensor) -> torch.Tensor:
         width = self.params.reward_width
@@ -95,16 +105,16 @@ class LorenzEnv(FlowEnv):
         # a width of 0 keeps the indicator
         return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
 
-    def observe(self, state: State) -> torch.Tensor:
+    def observe(self, state: LorenzState) -> torch.Tensor:
         # the "time derivatives" are those of the published code: the right-hand side
         # of the last LSRK4 stage, not the one at the new state
-        return torch.cat((state["xyz"], state["rate"]), -1)
+        return torch.cat((state.xyz, state.rate), -1)
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[LorenzState]) -> np.ndarray:
         from beacon_torch.render import lorenz_frame
 
-        xyz = torch.stack([s["xyz"] for s in history]).double().numpy()
-        return lorenz_frame(xyz, float(history[-1]["u"]), t=DT * (len(history) - 1))
+        xyz = torch.stack([s.xyz for s in history]).double().numpy()
+        return lorenz_frame(xyz, float(history[-1].u), t=DT * (len(history) - 1))
 
 
 class LorenzContinuousEnv(LorenzEnv):

@@ -17,12 +17,13 @@ mean distance of c from its perfectly mixed value.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import GradCheck, State
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
+from beacon_torch.base import GradCheck, Noise
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, Fields, transport
 from beacon_torch.numerics.projection import GRADIENT, NEUMANN, ZERO_GHOST, Cavity, Ghosts, project
 from beacon_torch.params import param
 
@@ -30,6 +31,17 @@ DT = 0.002
 SUBSTEPS = 250
 # wall velocities (u_bottom, u_top, v_left, v_right) of the discrete actions, in u_max
 LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 1.0, -1.0))
+
+
+class MixingState(NamedTuple):
+    """The flow, batch first, and what the env adds."""
+
+    u: torch.Tensor  # [batch, nx + 2, ny + 2] the x-velocity on the faces, ghosted
+    v: torch.Tensor  # [batch, nx + 2, ny + 2] the y-velocity on the faces, ghosted
+    p: torch.Tensor  # [batch, nx, ny] the pressure of the cells
+    c: torch.Tensor  # [batch, nx + 2, ny + 2] the concentration, ghosted
+    walls: torch.Tensor  # [batch, 4] the wall speeds of the last action, in units of u_max
+    probes: torch.Tensor  # [batch, HISTORY, 3 * 16] the probe samples, oldest first
 
 
 @dataclass(frozen=True)
@@ -56,7 +68,7 @@ class MixingParams:
             raise ValueError(f"parameter 'side' = {self.side:g} must fit in the cavity ({self.L:g} x {self.H:g})")
 
 
-def substep(fields: State, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -> State:
+def substep(fields: Fields, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -> Fields:
     """One projection substep on the solver's batch-last fields with the wall-velocity
     ghost offsets ``walls`` (:meth:`Cavity.walls`); no flux of c through the walls
     (``c_offset`` None)."""
@@ -70,6 +82,7 @@ class MixingEnv(CavityEnv):
 
     env_id = "mixing-v0"
     Params = MixingParams
+    state_type = MixingState
     discrete = True
     published_speed = 3.7
     speed_target = 30.0
@@ -123,7 +136,7 @@ class MixingEnv(CavityEnv):
         in units of u_max."""
         return self._lids[action]
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
+    def initial_state(self, mask: torch.Tensor | None) -> MixingState:
         p = self.params
         B, nx, ny = self.num_envs, self.nx, self.ny
         zeros = lambda *shape: torch.zeros((B, *shape), dtype=self.dtype, device=self.device)
@@ -134,18 +147,18 @@ class MixingEnv(CavityEnv):
         i0, j0 = int(round((nx - n_side[0]) / 2)), int(round((ny - n_side[1]) / 2))
         c[:, i0 : i0 + n_side[0], j0 : j0 + n_side[1]] = 1.0
         c = c * self.member(p.c0, 2)
-        state = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c, "walls": zeros(4)}
-        return self.observed(state)
+        flow = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c}
+        return MixingState(**flow, walls=zeros(4), probes=self.probes.start(flow))
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: MixingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         walls = self.walls(action)
         lids = (walls * self.u_max).T
-        new = self.run(state, SUBSTEPS, self.nu, self.kappa, walls=self.cavity.walls(*lids, like=lids))
-        new["walls"] = walls
-        return self.observed(new, state), -(new["c"] - self.target).abs().mean((-2, -1))
+        flow = self.run(self.flow(state), SUBSTEPS, self.nu, self.kappa, walls=self.cavity.walls(*lids, like=lids))
+        new = MixingState(**flow, walls=walls, probes=self.probes.push(state.probes, flow))
+        return new, -(new.c - self.target).abs().mean((-2, -1))
 
-    def actuation(self, state: State) -> np.ndarray:
-        return state["walls"].double().numpy()
+    def actuation(self, state: MixingState) -> np.ndarray:
+        return state.walls.double().numpy()
 
     def scalar_range(self) -> tuple[float, float]:
         return 0.0, float(self.params.c0[self.render_index])

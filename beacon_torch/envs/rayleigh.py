@@ -20,13 +20,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import GradCheck, State
+from beacon_torch.base import GradCheck, Noise, map_state
 from beacon_torch.cache import cached
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, transport
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, Fields, transport
 from beacon_torch.numerics.projection import GRADIENT, VALUE, Cavity, Ghosts, edge_offset, project
 from beacon_torch.params import number, param
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
@@ -40,6 +41,28 @@ C = 0.75  # largest temperature fluctuation of a segment
 DEVELOP_TIME = 200.0
 DEVELOP_SEED = 0
 PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
+
+
+class Convection(NamedTuple):
+    """The flow of a cavity, batch first (or one member without its batch dimension):
+    ghosted ``[nx + 2, ny + 2]`` velocities (faces) and temperature (cells), the
+    pressure of the cells ``[nx, ny]``."""
+
+    u: torch.Tensor
+    v: torch.Tensor
+    p: torch.Tensor
+    theta: torch.Tensor
+
+
+class RayleighState(NamedTuple):
+    """The flow (:class:`Convection`'s fields, batch first) and what the env adds."""
+
+    u: torch.Tensor  # [batch, nx + 2, ny + 2]
+    v: torch.Tensor  # [batch, nx + 2, ny + 2]
+    p: torch.Tensor  # [batch, nx, ny]
+    theta: torch.Tensor  # [batch, nx + 2, ny + 2] the temperature
+    bottom: torch.Tensor  # [batch, nx] the bottom plate's temperature of the last action
+    probes: torch.Tensor  # [batch, HISTORY, 3 * 16] the probe samples, oldest first
 
 
 @dataclass(frozen=True)
@@ -77,7 +100,9 @@ def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.T
     return edge_offset(ny + 2, 1, low, T_COLD, bottom)
 
 
-def substep(fields: State, walls, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa) -> State:
+def substep(
+    fields: Fields, walls, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa
+) -> Fields:
     """One projection substep of the Boussinesq flow on the solver's batch-last fields
     (no-slip walls: ``walls`` None; ``theta_offset`` from :func:`temperature_offset`)."""
     theta = fields["theta"]
@@ -94,14 +119,14 @@ def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
     return ((T_HOT - theta[:, 1:-1, 1]) / (0.5 * dy)).mean(-1)
 
 
-def rest_state(num_envs: int, nx: int, ny: int, dtype, device) -> State:
+def rest_state(num_envs: int, nx: int, ny: int, dtype, device) -> Convection:
     zeros = lambda *shape: torch.zeros((num_envs, *shape), dtype=dtype, device=device)
-    return {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "theta": zeros(nx + 2, ny + 2)}
+    return Convection(u=zeros(nx + 2, ny + 2), v=zeros(nx + 2, ny + 2), p=zeros(nx, ny), theta=zeros(nx + 2, ny + 2))
 
 
 def developed_convection(
     p: RayleighParams = RayleighParams(), *, time: float = DEVELOP_TIME, seed: int = DEVELOP_SEED
-) -> State:
+) -> Convection:
     """The published initial state: from rest (theta = 0) ``time`` time units without
     control, in float64, after a perturbation of the temperature of amplitude 1e-6 drawn
     from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
@@ -110,21 +135,21 @@ def developed_convection(
     # an env of these parameters runs the substeps; its own start is never made
     env = RayleighEnv(1, dtype=torch.float64, **{**dataclasses.asdict(p), "start": "generated"})
     g = torch.Generator().manual_seed(seed)
-    state = rest_state(1, env.nx, env.ny, torch.float64, "cpu")
-    state["theta"] = PERTURBATION * (2.0 * torch.rand(state["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
+    flow = rest_state(1, env.nx, env.ny, torch.float64, "cpu")._asdict()
+    flow["theta"] = PERTURBATION * (2.0 * torch.rand(flow["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
     bottom = torch.full((1, env.nx), T_HOT, dtype=torch.float64)
-    state = env.run(
-        state, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny)
+    flow = env.run(
+        flow, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny)
     )
-    return {k: v[0] for k, v in state.items()}
+    return Convection(**{k: flow[k][0] for k in Convection._fields})
 
 
-def published_convection(nx: int, ny: int) -> State:
+def published_convection(nx: int, ny: int) -> Convection:
     """The developed roll stored with the published code: the file's four blocks of
     ghosted ``[nx + 2, ny + 2]`` arrays u, v, p, T (our pressure keeps the cells only)."""
     table = published_table("rayleigh")
     u, v, p, theta = table.reshape(4, nx + 2, ny + 2).unbind(0)
-    return {"u": u, "v": v, "p": p[1:-1, 1:-1].contiguous(), "theta": theta}
+    return Convection(u=u, v=v, p=p[1:-1, 1:-1].contiguous(), theta=theta)
 
 
 def normalise(action: torch.Tensor) -> torch.Tensor:
@@ -140,6 +165,7 @@ class RayleighEnv(CavityEnv):
 
     env_id = "rayleigh-v0"
     Params = RayleighParams
+    state_type = RayleighState
     blowup_reward = -1.0
     published_speed = 13.8
     speed_target = 20.0
@@ -170,32 +196,32 @@ class RayleighEnv(CavityEnv):
         return 1.0 / (PR * self.params.ra) ** 0.5
 
     @functools.cached_property
-    def _start(self) -> State:
+    def _start(self) -> Convection:
         # loaded at the first reset: an env started by set_state never develops its roll
         if self.params.start == PUBLISHED:
             start = published_convection(self.nx, self.ny)
         else:
             p = dataclasses.replace(self.params, ra=number(self.params.ra))
             key = dict(version=3, L=p.L, H=p.H, ra=p.ra)
-            ghosted = (self.nx + 2, self.ny + 2)
-            shapes = {"u": ghosted, "v": ghosted, "p": (self.nx, self.ny), "theta": ghosted}
-            start = cached("rayleigh-convection", key, lambda: developed_convection(p), shapes)
-        return {k: v.to(device=self.device, dtype=self.dtype) for k, v in start.items()}
+            like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
+            start = cached("rayleigh-convection", key, lambda: developed_convection(p), like)
+        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
-        state = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start.items()}
-        state["bottom"] = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
-        return self.observed(state)
+    def initial_state(self, mask: torch.Tensor | None) -> RayleighState:
+        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start._asdict().items()}
+        bottom = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
+        return RayleighState(**flow, bottom=bottom, probes=self.probes.start(flow))
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
-        new = self.run(state, SUBSTEPS, self.nu, self.kappa, offset=temperature_offset(bottom, self.ghosts, self.ny))
-        new["bottom"] = bottom
-        return self.observed(new, state), -nusselt(new["theta"], self.dy)
+        offset = temperature_offset(bottom, self.ghosts, self.ny)
+        flow = self.run(self.flow(state), SUBSTEPS, self.nu, self.kappa, offset=offset)
+        new = RayleighState(**flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
+        return new, -nusselt(new.theta, self.dy)
 
-    def actuation(self, state: State) -> np.ndarray:
-        return (state["bottom"].double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C
+    def actuation(self, state: RayleighState) -> np.ndarray:
+        return (state.bottom.double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C
 
     def scalar_range(self) -> tuple[float, float]:
         return T_COLD, T_HOT

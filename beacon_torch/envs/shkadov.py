@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.data import Composite, Unbounded
 
-from beacon_torch.base import FlowEnv, GradCheck, State, where_members
+from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.numerics import (
@@ -61,6 +62,24 @@ H_MAX = 25.0  # the published code's blow-up bound on |h|
 DEVELOP_TIME = 200.0
 DEVELOP_LENGTH = 580.0
 DEVELOP_SEED = 0
+
+
+class ShkadovState(NamedTuple):
+    """One member per row; the cells span the film, the interior ones exclude the
+    inlet and outlet cells."""
+
+    h: torch.Tensor  # [batch, n_cells] the film thickness
+    q: torch.Tensor  # [batch, n_cells] the flow rate
+    dh_prev: torch.Tensor  # [batch, n_cells - 2] the thickness's interior increment one substep before
+    dq_prev: torch.Tensor  # [batch, n_cells - 2] the flow rate's interior increment one substep before
+    u_prev: torch.Tensor  # [batch, n_jets] the last action (its substeps interpolate from it)
+
+
+class Film(NamedTuple):
+    """A developed film on the development domain: the start of every episode."""
+
+    h: torch.Tensor  # [cells] the film thickness
+    q: torch.Tensor  # [cells] the flow rate
 
 
 @dataclass(frozen=True)
@@ -181,7 +200,7 @@ def inlet_noise(generator: torch.Generator | None, members: int, dtype: torch.dt
 
 
 def run_action(
-    state: State,
+    state: ShkadovState,
     action: torch.Tensor,
     profiles: torch.Tensor,
     delta,
@@ -189,7 +208,7 @@ def run_action(
     noise: torch.Tensor,
     amp=5.0,
     substeps=None,
-) -> State:
+) -> ShkadovState:
     """One action period (``SUBSTEPS`` AB2 steps) of jet amplitudes ``action`` ``[B, n_jets]``
     with the inlet drawn from ``noise`` (:func:`inlet_noise`); ``amp`` is a number or a
     ``[B, 1]`` tensor; ``substeps`` is the loop of :func:`action_substep` (an env's
@@ -197,27 +216,22 @@ def run_action(
     inlet = 1.0 + NOISE * (2.0 * noise - 1.0)
     # the forcing is linear in the jet amplitudes: interpolate it, not the amplitudes,
     # so that the profiles are summed twice per action instead of at every substep
-    forcing_prev, forcing_new = amp * (state["u_prev"] @ profiles), amp * (action @ profiles)
+    forcing_prev, forcing_new = amp * (state.u_prev @ profiles), amp * (action @ profiles)
     alpha = interpolation_weights(SUBSTEPS, N_INTERP, action.dtype, action.device)
     substeps = Kernels().loop(action_substep) if substeps is None else substeps
-    fields = state["h"], state["q"], state["dh_prev"], state["dq_prev"]
+    fields = state.h, state.q, state.dh_prev, state.dq_prev
     h, q, dh_prev, dq_prev = substeps(SUBSTEPS, fields, forcing_prev, forcing_new, alpha, inlet, delta, dx)
-    return {"h": h, "q": q, "dh_prev": dh_prev, "dq_prev": dq_prev, "u_prev": action}
+    return ShkadovState(h=h, q=q, dh_prev=dh_prev, dq_prev=dq_prev, u_prev=action)
 
 
-def flat_state(num_envs: int, n_cells: int, n_jets: int, dtype, device) -> State:
+def flat_state(num_envs: int, n_cells: int, n_jets: int, dtype, device) -> ShkadovState:
     one = torch.ones((num_envs, n_cells), dtype=dtype, device=device)
     zero = torch.zeros((num_envs, n_cells - 2), dtype=dtype, device=device)
-    return {
-        "h": one,
-        "q": one.clone(),
-        "dh_prev": zero,
-        "dq_prev": zero.clone(),
-        "u_prev": torch.zeros((num_envs, n_jets), dtype=dtype, device=device),
-    }
+    u_prev = torch.zeros((num_envs, n_jets), dtype=dtype, device=device)
+    return ShkadovState(h=one, q=one.clone(), dh_prev=zero, dq_prev=zero.clone(), u_prev=u_prev)
 
 
-def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float = DEVELOP_TIME, device="cpu") -> State:
+def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float = DEVELOP_TIME, device="cpu") -> Film:
     """The published initial film: from the flat film (h = q = 1) on a 580-unit domain,
     ``time`` time units without control, in float64, with the inlet noise drawn from a
     generator seeded by ``seed``. Returns ``h`` and ``q`` of shape ``[n_cells]``.
@@ -233,7 +247,7 @@ def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float 
     zero = torch.zeros((1, 1), dtype=torch.float64, device=device)
     for _ in range(int(round(time / (DT * SUBSTEPS)))):
         state = run_action(state, zero, profiles, delta, DX, inlet_noise(g, 1, torch.float64, device))
-    return {"h": state["h"][0], "q": state["q"][0]}
+    return Film(h=state.h[0], q=state.q[0])
 
 
 class ShkadovEnv(FlowEnv):
@@ -241,6 +255,7 @@ class ShkadovEnv(FlowEnv):
 
     env_id = "shkadov-v0"
     Params = ShkadovParams
+    state_type = ShkadovState
     episode_length = EPISODE_LENGTH
     # Below every completed episode of the policies tried (docs/envs/shkadov.md); every
     # reward is negative, so a blown-up episode scores below this whenever it happens
@@ -280,23 +295,22 @@ class ShkadovEnv(FlowEnv):
         self._reward_index = torch.tensor([[c + m for m in range(width)] for c in self.jet_centres], device=self.device)
 
     @functools.cached_property
-    def _film(self) -> State:
+    def _film(self) -> Film:
         # loaded at the first reset: an env started by set_state never develops its film
         if self.params.start == PUBLISHED:
             table = published_table("shkadov")  # rows: x, h, q on the development domain
-            film = {"h": table[:, 1], "q": table[:, 2]}
+            film = Film(h=table[:, 1], q=table[:, 2])
         else:
             delta = number(self.params.delta)
             n = int(round(DEVELOP_LENGTH / DX))
-            film = cached(
-                "shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), {"h": (n,), "q": (n,)}
-            )
-        return {k: v[: self.n_cells].to(device=self.device, dtype=self.dtype) for k, v in film.items()}
+            like = Film(h=torch.ones(n, dtype=torch.float64), q=torch.ones(n, dtype=torch.float64))
+            film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), like)
+        return map_state(lambda v: v[: self.n_cells].to(device=self.device, dtype=self.dtype), film)
 
-    def noise(self) -> State:
+    def noise(self) -> Noise:
         return {"inlet": inlet_noise(self.rng, self.num_envs, self.dtype, self.device)}
 
-    def _advance_state(self, state: State, action: torch.Tensor, noise: State) -> State:
+    def _advance_state(self, state: ShkadovState, action: torch.Tensor, noise: Noise) -> ShkadovState:
         return run_action(
             state,
             action,
@@ -308,10 +322,10 @@ class ShkadovEnv(FlowEnv):
             self._substeps,
         )
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
-        state = flat_state(self.num_envs, self.n_cells, self.n_jets, self.dtype, self.device)
-        state["h"] = self._film["h"].expand(self.num_envs, -1).clone()
-        state["q"] = self._film["q"].expand(self.num_envs, -1).clone()
+    def initial_state(self, mask: torch.Tensor | None) -> ShkadovState:
+        state = flat_state(self.num_envs, self.n_cells, self.n_jets, self.dtype, self.device)._replace(
+            h=self._film.h.expand(self.num_envs, -1).clone(), q=self._film.q.expand(self.num_envs, -1).clone()
+        )
         if self.params.random_start == 0:
             return state
         # each member being reset runs its own random number of uncontrolled actions;
@@ -329,7 +343,7 @@ class ShkadovEnv(FlowEnv):
         size = min(self.num_envs, 1 << (n - 1).bit_length())
         rows = torch.cat((idx, idx[:1].expand(size - n)))
         runs = torch.cat((n_run[idx], n_run.new_zeros(size - n)))
-        sub = {k: v[rows] for k, v in state.items()}
+        sub = map_state(lambda v: v[rows], state)
         zero = torch.zeros((size, self.n_jets), dtype=self.dtype, device=self.device)
         for a in range(int(n_run.max())):
             # uncontrolled: no jet forcing, whatever the (per-member) amplitude; the
@@ -338,9 +352,7 @@ class ShkadovEnv(FlowEnv):
             noise = torch.cat((noise, noise.new_zeros((SUBSTEPS, size - n, 1))), 1)
             new = run_action(sub, zero, self._profiles, self.params.delta, DX, noise, 0.0, self._substeps)
             sub = where_members(runs > a, new, sub)
-        for k, v in sub.items():
-            state[k] = state[k].index_copy(0, idx, v[:n])
-        return state
+        return type(state)(*(v.index_copy(0, idx, w[:n]) for v, w in zip(state, sub, strict=True)))
 
     def jet_rewards(self, h: torch.Tensor) -> torch.Tensor:
         """``[B, n_jets]``: -dx sum (h - 1)^2 over the cells downstream of each jet,
@@ -348,22 +360,22 @@ class ShkadovEnv(FlowEnv):
         region = h[:, self._reward_index]  # [B, n_jets, cells]
         return -DX * ((region - 1.0) ** 2).sum(-1) / region.shape[-1]
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         new = self._advance_state(state, action, noise)
-        return new, self.jet_rewards(new["h"]).mean(-1)
+        return new, self.jet_rewards(new.h).mean(-1)
 
-    def observe(self, state: State) -> torch.Tensor:
-        return state["q"][:, self._obs_index]
+    def observe(self, state: ShkadovState) -> torch.Tensor:
+        return state.q[:, self._obs_index]
 
-    def out_of_bounds(self, state: State) -> torch.Tensor:
-        return (state["h"].abs() > H_MAX).any(-1)
+    def out_of_bounds(self, state: ShkadovState) -> torch.Tensor:
+        return (state.h.abs() > H_MAX).any(-1)
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[ShkadovState]) -> np.ndarray:
         from beacon_torch.render import shkadov_frame
 
         x = DX * np.arange(self.n_cells)
-        h = torch.stack([s["h"] for s in history]).double().numpy()
-        actions = history[-1]["u_prev"].double().numpy().ravel()
+        h = torch.stack([s.h for s in history]).double().numpy()
+        actions = history[-1].u_prev.double().numpy().ravel()
         jets_x = [DX * c for c in self.jet_centres]
         return shkadov_frame(x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS)
 
@@ -420,9 +432,9 @@ class ShkadovSeparableEnv(ShkadovEnv):
             agents["reward"] = reward[..., None]
         return {"agents": TensorDict(agents, batch_size=(*self.batch_size, self.n_jets), device=self.device)}
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         new = self._advance_state(state, action[..., 0], noise)
-        return new, self.jet_rewards(new["h"])
+        return new, self.jet_rewards(new.h)
 
-    def observe(self, state: State) -> torch.Tensor:
+    def observe(self, state: ShkadovState) -> torch.Tensor:
         return super().observe(state).reshape(self.num_envs, self.n_jets, -1)

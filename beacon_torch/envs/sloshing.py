@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, State, where_members
+from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
@@ -38,6 +39,23 @@ EPISODE_LENGTH = 200
 EXCITATION_ACTIONS = 40  # 2 time units
 EXCITATION_AMP = 5.0  # the published amp: the excitation does not follow the amp parameter
 H_MIN, H_MAX = -5.0, 2.0  # the published code's blow-up bounds
+
+
+class SloshingState(NamedTuple):
+    """One member per row; the cells span the tank."""
+
+    h: torch.Tensor  # [batch, n_cells] the depth
+    q: torch.Tensor  # [batch, n_cells] the discharge
+    fh_prev: torch.Tensor  # [batch, n_cells] the depth's right-hand side one substep before (AB2)
+    fq_prev: torch.Tensor  # [batch, n_cells] the discharge's right-hand side one substep before
+    u_prev: torch.Tensor  # [batch] the last action (its substeps interpolate from it)
+
+
+def at_rest(num_envs: int, n_cells: int, dtype: torch.dtype, device) -> SloshingState:
+    """A level tank at rest (h = 1, q = 0) with no AB2 history and no action before."""
+    h = torch.ones((num_envs, n_cells), dtype=dtype, device=device)
+    zero = torch.zeros_like(h)
+    return SloshingState(h=h, q=zero, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
 
 
 @dataclass(frozen=True)
@@ -92,31 +110,29 @@ def sloshing_substep(
     return ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT), fh, fq
 
 
-def run_actions(state: State, actions: list[torch.Tensor], amp, g, dx: float, substeps=None) -> State:
+def run_actions(state: SloshingState, actions: list[torch.Tensor], amp, g, dx: float, substeps=None) -> SloshingState:
     """Advance ``state`` through a sequence of action batches (each ``[B]``) scaled by
     ``amp`` (a number or ``[B]``), each interpolated from the one before; ``substeps``
     is the loop of :func:`sloshing_substep` (an env's ``kernels.loop``; None: eager)."""
     substeps = Kernels().loop(sloshing_substep) if substeps is None else substeps
-    fields = state["h"], state["q"], state["fh_prev"], state["fq_prev"]
-    u_prev = state["u_prev"]
+    fields = state.h, state.q, state.fh_prev, state.fq_prev
+    u_prev = state.u_prev
     alpha = interpolation_weights(SUBSTEPS, N_INTERP, u_prev.dtype, u_prev.device)[:, None]
     for u in actions:
         fields = substeps(SUBSTEPS, fields, amp * interpolated_action(u_prev, u, alpha), g, dx)
         u_prev = u
     h, q, fh_prev, fq_prev = fields
-    return {"h": h, "q": q, "fh_prev": fh_prev, "fq_prev": fq_prev, "u_prev": u_prev}
+    return SloshingState(h=h, q=q, fh_prev=fh_prev, fq_prev=fq_prev, u_prev=u_prev)
 
 
-def excited_state(L: float, g, num_envs: int, dtype: torch.dtype, device) -> State:
+def excited_state(L: float, g, num_envs: int, dtype: torch.dtype, device) -> SloshingState:
     """The tank after the published excitation: from rest (h = 1, q = 0) 40 actions
     :func:`excitation` (t = 0, 0.05, ...) scaled by the published amplitude 5 and
     interpolated like any action; the published code stores this state and starts every
     episode from it. ``g`` is a number or one value per member ``[num_envs, 1]``."""
     n = int(round(L * CELLS_PER_UNIT))
     dx = L / n
-    h = torch.ones((num_envs, n), dtype=dtype, device=device)
-    zero = torch.zeros_like(h)
-    state = {"h": h, "q": zero, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+    state = at_rest(num_envs, n, dtype, device)
     actions = [
         torch.full((num_envs,), excitation(k * DT_ACT), dtype=dtype, device=device) for k in range(EXCITATION_ACTIONS)
     ]
@@ -128,6 +144,7 @@ class SloshingEnv(FlowEnv):
 
     env_id = "sloshing-v0"
     Params = SloshingParams
+    state_type = SloshingState
     episode_length = EPISODE_LENGTH
     family = "1-D"
     published_speed = 1_060.0
@@ -154,12 +171,12 @@ class SloshingEnv(FlowEnv):
         self._substeps = self.kernels.loop(sloshing_substep)
         self._start = self._start_state()
 
-    def _start_state(self) -> State:
+    def _start_state(self) -> SloshingState:
         p = self.params
         table = published_table("sloshing")  # rows: x, h, q of the interior cells
         h, q = table[:, 1].expand(self.num_envs, -1), table[:, 2].expand(self.num_envs, -1)
         zero = torch.zeros_like(h)
-        published = {"h": h, "q": q, "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+        published = SloshingState(h=h, q=q, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
         if p.start == PUBLISHED:
             start = published
         elif bool((p.g != p.g[0]).any()):  # one start per member
@@ -168,43 +185,40 @@ class SloshingEnv(FlowEnv):
             # a member at the published g starts as it would alone
             chosen = published_members(p, ("L", "g"))
             if chosen is not None:
-                start = where_members(
-                    chosen.to(self.device), {k: v.to(self.device) for k, v in published.items()}, start
-                )
+                start = where_members(chosen.to(self.device), map_state(lambda v: v.to(self.device), published), start)
         else:  # one start for all, cached
             g = float(p.g[0])
             key = dict(version=2, L=p.L, g=g)
-            n = self.n_cells
-            shapes = {"h": (1, n), "q": (1, n), "fh_prev": (1, n), "fq_prev": (1, n), "u_prev": (1,)}
-            start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"), shapes)
-            start = {k: v.expand(self.num_envs, *v.shape[1:]) for k, v in start.items()}
+            like = at_rest(1, self.n_cells, torch.float64, "cpu")
+            start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"), like)
+            start = map_state(lambda v: v.expand(self.num_envs, *v.shape[1:]), start)
         # generated in float64 like the published code, then cast
-        return {k: v.to(device=self.device, dtype=self.dtype).clone() for k, v in start.items()}
+        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype).clone(), start)
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
-        zero = torch.zeros_like(self._start["h"])
+    def initial_state(self, mask: torch.Tensor | None) -> SloshingState:
+        zero = torch.zeros_like(self._start.h)
         # the published reset reloads h and q only: the AB2 history and the previous
         # action start from zero
-        return {"h": self._start["h"], "q": self._start["q"], "fh_prev": zero, "fq_prev": zero, "u_prev": zero[:, 0]}
+        return SloshingState(h=self._start.h, q=self._start.q, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: SloshingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         p = self.params
         u = action[:, 0]
         new = run_actions(state, [u], p.amp, self.member(p.g), self.dx, self._substeps)
-        h = new["h"]
+        h = new.h
         reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
         return new, reward
 
-    def observe(self, state: State) -> torch.Tensor:
-        return state["q"][:, ::2]
+    def observe(self, state: SloshingState) -> torch.Tensor:
+        return state.q[:, ::2]
 
-    def out_of_bounds(self, state: State) -> torch.Tensor:
-        h = state["h"]
+    def out_of_bounds(self, state: SloshingState) -> torch.Tensor:
+        h = state.h
         return ((h < H_MIN) | (h > H_MAX)).any(-1)
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[SloshingState]) -> np.ndarray:
         from beacon_torch.render import sloshing_frame
 
         last = history[-1]
         x = self.dx * (np.arange(self.n_cells) + 0.5)
-        return sloshing_frame(x, last["h"].double().numpy(), float(last["u_prev"]), DT_ACT * (len(history) - 1))
+        return sloshing_frame(x, last.h.double().numpy(), float(last.u_prev), DT_ACT * (len(history) - 1))

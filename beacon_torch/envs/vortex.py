@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, State
+from beacon_torch.base import FlowEnv, GradCheck, Noise
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -40,6 +41,16 @@ DT = 0.1
 SUBSTEPS = 5
 DT_ACT = DT * SUBSTEPS
 EPISODE_LENGTH = 800
+
+
+class VortexState(NamedTuple):
+    """One member per row."""
+
+    ay: torch.Tensor  # [batch, 4] (Re A, Im A, Re Y, Im Y)
+    rate: torch.Tensor  # [batch, 4] the right-hand side of the last LSRK4 stage
+    k: torch.Tensor  # [batch] the control gain of the last action
+    phi: torch.Tensor  # [batch] the control phase of the last action
+    y_prev: torch.Tensor  # [batch] the cylinder's displacement at the last action
 
 
 @dataclass(frozen=True)
@@ -92,6 +103,7 @@ class VortexEnv(FlowEnv):
 
     env_id = "vortex-v0"
     Params = VortexParams
+    state_type = VortexState
     episode_length = EPISODE_LENGTH
     family = "ode"
     published_speed = 6_560.0
@@ -111,7 +123,7 @@ class VortexEnv(FlowEnv):
         a[:, 0] = -1.0
         return a
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
+    def initial_state(self, mask: torch.Tensor | None) -> VortexState:
         p = self.params
         # complex128 for float64: a Python complex would become complex64 and round the
         # start to float32
@@ -121,30 +133,30 @@ class VortexEnv(FlowEnv):
         s = torch.stack((a0.real, a0.imag, y0.real, y0.imag), -1).to(self.dtype)
         zero = torch.zeros_like(s[:, 0])
         # the published reset observes zero time derivatives
-        return {"ay": s, "rate": torch.zeros_like(s), "k": zero, "phi": zero.clone(), "y_prev": displacement(s, zero)}
+        return VortexState(ay=s, rate=torch.zeros_like(s), k=zero, phi=zero.clone(), y_prev=displacement(s, zero))
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: VortexState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         k = 0.5 * K_MAX * (action[:, 0] + 1.0)
         phi = math.pi * action[:, 1]
-        s, rate = self._substeps(SUBSTEPS, (state["ay"], state["rate"]), k, phi, self.params.re)
+        s, rate = self._substeps(SUBSTEPS, (state.ay, state.rate), k, phi, self.params.re)
         t = DT_ACT * (count + 1).to(self.dtype)
         y = displacement(s, t)
         # The published scores divide by the numerical step (0.1), not by the 0.5
         # between the two samples of y; kept for comparability.
-        energy = 2.0 * OMEGA_S * GAMMA * ((y - state["y_prev"]) / DT) ** 2
+        energy = 2.0 * OMEGA_S * GAMMA * ((y - state.y_prev) / DT) ** 2
         c, sn = torch.cos(OMEGA_STAR * t), torch.sin(OMEGA_STAR * t)
         ar, ai = s[:, 0], s[:, 1]
         lift = 2.0 * k * torch.cos(phi) * (ar * c - ai * sn) - 2.0 * k * torch.sin(phi) * (ai * c + ar * sn)
         reward = energy - self.params.w * 0.5 * lift**2
-        return {"ay": s, "rate": rate, "k": k, "phi": phi, "y_prev": y}, reward
+        return VortexState(ay=s, rate=rate, k=k, phi=phi, y_prev=y), reward
 
-    def observe(self, state: State) -> torch.Tensor:
+    def observe(self, state: VortexState) -> torch.Tensor:
         # the published "time derivatives": the last LSRK4 stage's right-hand side
-        return torch.cat((state["ay"], state["rate"]), -1)
+        return torch.cat((state.ay, state.rate), -1)
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[VortexState]) -> np.ndarray:
         from beacon_torch.render import vortex_frame
 
-        ay = torch.stack([s["ay"] for s in history]).double().numpy()
+        ay = torch.stack([s.ay for s in history]).double().numpy()
         last = history[-1]
-        return vortex_frame(ay, float(last["k"]), float(last["phi"]), t=DT_ACT * (len(history) - 1))
+        return vortex_frame(ay, float(last.k), float(last.phi), t=DT_ACT * (len(history) - 1))

@@ -15,12 +15,13 @@ module, registered with ``beacon_torch.register`` and checked by the conformance
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 import beacon_torch
-from beacon_torch.base import FlowEnv, GradCheck, State
+from beacon_torch.base import FlowEnv, GradCheck, Noise
 from beacon_torch.params import param
 
 N_CELLS = 32
@@ -28,6 +29,12 @@ DX = 1.0 / N_CELLS
 SUBSTEPS = 20
 EPISODE_LENGTH = 100
 PROBES = (4, 12, 20, 28)  # the cells the thermometers sit in
+
+
+class HeatState(NamedTuple):
+    """One member per row."""
+
+    T: torch.Tensor  # [batch, N_CELLS + 2] the temperature, the two wall cells included
 
 
 @dataclass(frozen=True)
@@ -50,6 +57,7 @@ class HeatEnv(FlowEnv):
 
     env_id = "heat-v0"
     Params = HeatParams
+    state_type = HeatState
     episode_length = EPISODE_LENGTH
     deterministic = False  # the hot spot of a start is drawn from the env's generator
     # the card
@@ -74,30 +82,30 @@ class HeatEnv(FlowEnv):
         self._dt = 0.4 * DX**2 / self._kappa  # within the explicit scheme's limit, 0.5
         self._substeps = self.kernels.loop(heat_substep)
 
-    def initial_state(self, mask: torch.Tensor | None) -> State:
+    def initial_state(self, mask: torch.Tensor | None) -> HeatState:
         where = torch.rand((self.num_envs, 1), generator=self.rng, dtype=self.dtype, device=self.device)
         bump = self.member(self.params.spot) * torch.exp(-(((self._x - where) / 0.1) ** 2))
-        return {"T": torch.nn.functional.pad(bump[:, 1:-1], (1, 1))}
+        return HeatState(T=torch.nn.functional.pad(bump[:, 1:-1], (1, 1)))
 
-    def advance(self, state: State, action: torch.Tensor, count: torch.Tensor, noise: State):
+    def advance(self, state: HeatState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         heating = self.member(self.params.power) * action * self._heater
-        T = self._substeps(SUBSTEPS, state["T"], heating, self._kappa, self._dt)
+        T = self._substeps(SUBSTEPS, state.T, heating, self._kappa, self._dt)
         reward = -((T - self._target) ** 2).mean(-1)
-        return {"T": T}, reward
+        return HeatState(T=T), reward
 
-    def observe(self, state: State) -> torch.Tensor:
-        return state["T"][:, list(PROBES)]
+    def observe(self, state: HeatState) -> torch.Tensor:
+        return state.T[:, list(PROBES)]
 
-    def out_of_bounds(self, state: State) -> torch.Tensor:
-        return state["T"].abs().amax(-1) > 1e3
+    def out_of_bounds(self, state: HeatState) -> torch.Tensor:
+        return state.T.abs().amax(-1) > 1e3
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[HeatState]) -> np.ndarray:
         from beacon_torch.render import new_figure, to_rgb
 
         fig = new_figure()
         ax = fig.add_axes((0.1, 0.14, 0.85, 0.74))
         ax.plot(self._x.numpy(), self._target.numpy(), color="#555555", lw=0.6, ls="--")
-        ax.plot(self._x.numpy(), history[-1]["T"].double().numpy(), color="#d62728")
+        ax.plot(self._x.numpy(), history[-1].T.double().numpy(), color="#d62728")
         ax.set_ylim(-0.5, 2.0)
         ax.set_xlabel("x")
         ax.set_ylabel("T")
