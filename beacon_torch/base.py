@@ -974,13 +974,18 @@ class FlowEnv(EnvBase):
         """An RGB frame (``H x W x 3`` uint8) of member ``render_index``.
 
         With ``record_history=True`` the frame shows the episode so far (trajectories,
-        space-time diagrams); without it, only the current state.
+        space-time diagrams); without it, only the current state. The clock is the
+        member's own either way: its actions since its last reset.
         """
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before render()")
-        return self.render_frame(self.history.frames(self._state))
+        step = int(self._count[self.history.index])
+        return self.render_frame(self.history.frames(self._state), step)
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[State], step: int) -> np.ndarray:
+        """The frame of the render member: ``history`` its states to draw (the episode
+        so far with ``record_history=True``, else the current one), ``step`` the number
+        of actions it has taken since its last reset (the clock of the last state)."""
         raise NotImplementedError
 
     def __repr__(self) -> str:

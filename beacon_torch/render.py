@@ -170,9 +170,13 @@ def shkadov_frame(
     jet_half_width: float,
     actions: Sequence[float],
     dt_act: float,
+    step: int,
+    space_time: bool = True,
 ) -> np.ndarray:
     """The film height with a bar per jet over it, and below it the space-time diagram
-    of h over the episode so far (``h_history``: ``[T, n]``)."""
+    of h over the episode so far (``h_history``: ``[T, n]``, its last row ``step``
+    actions into the episode). Without the episode's states (``space_time=False``) the
+    panel says how to record them rather than drawing one row as if it were the episode."""
     fig = new_figure(size=(6.4, 5.2))
     ax = fig.add_axes((0.09, 0.56, 0.88, 0.36))
     h = h_history[-1]
@@ -186,14 +190,19 @@ def shkadov_frame(
     ax.set_xlim(x[0], x[-1])
     ax.set_ylim(0.0, top)
     ax.set_ylabel("h")
-    ax.set_title(f"shkadov   t = {dt_act * (len(h_history) - 1):.2f}   (red: jet actions)", fontsize=10)
+    ax.set_title(f"shkadov   t = {dt_act * step:.2f}   (red: jet actions)", fontsize=10)
     st = fig.add_axes((0.09, 0.09, 0.88, 0.36))
-    t_end = max(dt_act * (len(h_history) - 1), dt_act)
+    if not space_time:
+        st.set_axis_off()
+        st.text(0.5, 0.5, "space-time diagram: make the env with record_history=True", ha="center", va="center")
+        return to_rgb(fig)
+    t_end = dt_act * step
+    t_start = t_end - dt_act * (len(h_history) - 1)
     st.imshow(
         h_history,
         aspect="auto",
         origin="lower",
-        extent=(x[0], x[-1], 0.0, t_end),
+        extent=(x[0], x[-1], t_start, max(t_end, t_start + dt_act)),
         cmap="viridis",
         vmin=0.5,
         vmax=max(1.5, float(h_history.max())),

@@ -78,3 +78,39 @@ def test_cavity_frames(env_id):
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.shape[2] == 3 and frame.std() > 10
     assert len(env.history) == 3
+
+
+@pytest.mark.parametrize("env_id", CHEAP_ENVS)
+def test_the_clock_runs_without_history(env_id):
+    """Without record_history the frame still shows the member's time in its episode:
+    the same state drawn at action 0 and at action 10 gives two different titles."""
+    env = make(env_id, 1)
+    env.reset()
+    state = env.state
+    env.set_state(state, count=0)
+    at_start = env.render()
+    env.set_state(state, count=10)
+    later = env.render()
+    assert (at_start != later).any()
+
+
+def test_shkadov_without_history_draws_no_one_row_diagram(monkeypatch):
+    """A space-time diagram needs the episode's states: without them the frame says how
+    to get them instead of drawing a single row as if it were the whole episode."""
+    import beacon_torch.render as render
+
+    drawn = {}
+
+    def spy(x, h_history, *args, space_time=True, **kwargs):
+        drawn.update(rows=len(h_history), space_time=space_time)
+        return np.zeros((2, 2, 3), dtype=np.uint8)
+
+    monkeypatch.setattr(render, "shkadov_frame", spy)
+    env = make("shkadov-v0", 1)
+    env.reset()
+    env.render()
+    assert drawn == {"rows": 1, "space_time": False}
+    env = make("shkadov-v0", 1, record_history=True)
+    env.rollout(3)
+    env.render()
+    assert drawn == {"rows": 4, "space_time": True}

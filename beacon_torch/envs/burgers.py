@@ -124,12 +124,12 @@ class BurgersEnv(FlowEnv):
     def observe(self, state: BurgersState) -> torch.Tensor:
         return state.u[:, self.ctrl - N_OBS : self.ctrl]
 
-    def render_frame(self, history: list[BurgersState]) -> np.ndarray:
+    def render_frame(self, history: list[BurgersState], step: int) -> np.ndarray:
         from beacon_torch.render import burgers_frame
 
         last = history[-1]
         u = last.u.double().numpy()
         x = DX * np.arange(self.n_cells)
-        t = DT * SUBSTEPS * (len(history) - 1)
+        t = DT * SUBSTEPS * step
         u_target = float(self.params.u_target[self.render_index])
         return burgers_frame(x, u, self.ctrl * DX, u_target, float(last.a), t)

@@ -146,7 +146,7 @@ class CavityEnv(FlowEnv):
         """The colour range of the scalar in the frames of member ``render_index``."""
         raise NotImplementedError
 
-    def render_frame(self, history: list[State]) -> np.ndarray:
+    def render_frame(self, history: list[State], step: int) -> np.ndarray:
         from beacon_torch.render import cavity_frame
 
         last = history[-1]
@@ -159,7 +159,7 @@ class CavityEnv(FlowEnv):
             self.params.L,
             self.params.H,
             self.actuation(last),
-            t=self.dt * self.substeps * (len(history) - 1),
+            t=self.dt * self.substeps * step,
             scalar_label=self.scalar,
             vmin=vmin,
             vmax=vmax,

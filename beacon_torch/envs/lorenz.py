@@ -110,11 +110,11 @@ class LorenzEnv(FlowEnv):
         # of the last LSRK4 stage, not the one at the new state
         return torch.cat((state.xyz, state.rate), -1)
 
-    def render_frame(self, history: list[LorenzState]) -> np.ndarray:
+    def render_frame(self, history: list[LorenzState], step: int) -> np.ndarray:
         from beacon_torch.render import lorenz_frame
 
         xyz = torch.stack([s.xyz for s in history]).double().numpy()
-        return lorenz_frame(xyz, float(history[-1].u), t=DT * (len(history) - 1))
+        return lorenz_frame(xyz, float(history[-1].u), t=DT * step)
 
 
 class LorenzContinuousEnv(LorenzEnv):

@@ -370,14 +370,16 @@ class ShkadovEnv(FlowEnv):
     def out_of_bounds(self, state: ShkadovState) -> torch.Tensor:
         return (state.h.abs() > H_MAX).any(-1)
 
-    def render_frame(self, history: list[ShkadovState]) -> np.ndarray:
-        from beacon_torch.render import shkadov_frame
+    def render_frame(self, history: list[ShkadovState], step: int) -> np.ndarray:
+        from beacon_torch import render
 
         x = DX * np.arange(self.n_cells)
         h = torch.stack([s.h for s in history]).double().numpy()
         actions = history[-1].u_prev.double().numpy().ravel()
         jets_x = [DX * c for c in self.jet_centres]
-        return shkadov_frame(x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS)
+        return render.shkadov_frame(
+            x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS, step, space_time=self.history.enabled
+        )
 
 
 class ShkadovSeparableEnv(ShkadovEnv):

@@ -216,9 +216,9 @@ class SloshingEnv(FlowEnv):
         h = state.h
         return ((h < H_MIN) | (h > H_MAX)).any(-1)
 
-    def render_frame(self, history: list[SloshingState]) -> np.ndarray:
+    def render_frame(self, history: list[SloshingState], step: int) -> np.ndarray:
         from beacon_torch.render import sloshing_frame
 
         last = history[-1]
         x = self.dx * (np.arange(self.n_cells) + 0.5)
-        return sloshing_frame(x, last.h.double().numpy(), float(last.u_prev), DT_ACT * (len(history) - 1))
+        return sloshing_frame(x, last.h.double().numpy(), float(last.u_prev), DT_ACT * step)

@@ -154,9 +154,9 @@ class VortexEnv(FlowEnv):
         # the published "time derivatives": the last LSRK4 stage's right-hand side
         return torch.cat((state.ay, state.rate), -1)
 
-    def render_frame(self, history: list[VortexState]) -> np.ndarray:
+    def render_frame(self, history: list[VortexState], step: int) -> np.ndarray:
         from beacon_torch.render import vortex_frame
 
         ay = torch.stack([s.ay for s in history]).double().numpy()
         last = history[-1]
-        return vortex_frame(ay, float(last.k), float(last.phi), t=DT_ACT * (len(history) - 1))
+        return vortex_frame(ay, float(last.k), float(last.phi), t=DT_ACT * step)

@@ -99,7 +99,7 @@ class HeatEnv(FlowEnv):
     def out_of_bounds(self, state: HeatState) -> torch.Tensor:
         return state.T.abs().amax(-1) > 1e3
 
-    def render_frame(self, history: list[HeatState]) -> np.ndarray:
+    def render_frame(self, history: list[HeatState], step: int) -> np.ndarray:
         from beacon_torch.render import new_figure, to_rgb
 
         fig = new_figure()
@@ -109,7 +109,7 @@ class HeatEnv(FlowEnv):
         ax.set_ylim(-0.5, 2.0)
         ax.set_xlabel("x")
         ax.set_ylabel("T")
-        ax.set_title(f"heat   action {len(history) - 1}", fontsize=10)
+        ax.set_title(f"heat   action {step}", fontsize=10)
         return to_rgb(fig)
 
 
