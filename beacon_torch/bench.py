@@ -1,14 +1,19 @@
 """Throughput of the environments against the published code's speed.
 
 ``beacon-torch bench`` (and ``benchmarks/throughput.py``) measure, per env, batch size,
-dtype and mode (eager or compiled): transitions per second (the median of several
-timed repeats after a warm-up that includes any compilation), the latency of one step
-at batch 1, the compile time and the memory. Random actions from a fixed generator;
-episodes are reset as they end (TorchRL's ``step_and_maybe_reset``), as a collector does.
+dtype and mode (eager or compiled): transitions per second, the latency of one step,
+the compile time, the compiles left after the warm-up, and the memory. Random actions
+from a fixed generator; episodes are reset as they end (TorchRL's
+``step_and_maybe_reset``), as a collector does.
 
-Memory: on CUDA the peak allocated by torch during the measurement; on CPU the bytes of
-the env's state tensors and the process's peak resident size so far (the CPU allocator
-has no per-measurement peak).
+The timing is ``torch.utils.benchmark``'s (its timer synchronises CUDA; the threads are
+the process's): after a warm-up that steps until a step compiles nothing new, so that
+compilation is never counted as speed; graphs compiled during the timed steps are
+reported (``recompiles``), not hidden.
+
+Memory: each configuration runs in a fresh process (:func:`run`), so its peak is its
+own: on CUDA the peak allocated by torch, on CPU the process's peak resident size
+(``peak_mb``, with ``base_mb`` the same process before the env was made).
 """
 
 from __future__ import annotations
@@ -18,18 +23,21 @@ import json
 import platform
 import resource
 import statistics
+import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+import torch.utils.benchmark as benchmark
 
-from beacon_torch.files import save_figure
-from beacon_torch.registry import env_class, make
+from beacon_torch.files import create_file, dated_name, refuse_existing, save_figure
+from beacon_torch.registry import env_class, make, qualified_id
 
 BATCH_SIZES = (1, 16, 64, 256, 1024)
 CAVITY_BATCH_SIZES = (1, 16, 32, 64)
+MAX_WARM_UP = 20  # steps; a step that still compiles after these shows in ``recompiles``
 
 
 def default_batch_sizes(env_id: str) -> tuple[int, ...]:
@@ -50,33 +58,55 @@ class Measurement:
     device: str
     transitions_per_s: float
     step_ms: float  # median wall time of one batched step
-    compile_s: float  # the first step minus a later one: compilation (shkadov compiles at reset)
+    compile_s: float  # reset and warm-up minus as many timed steps: compilation
+    warm_up_steps: int  # steps until one compiled nothing new
+    recompiles: int  # graphs compiled during the timed steps (0 when the compiled code is stable)
     state_mb: float
-    peak_mb: float
+    peak_mb: float | None  # the configuration's own peak (None: measured in a shared process)
+    base_mb: float | None  # the same process before the env was made
     published_per_s: float | None
     speedup: float | None
 
     def row(self) -> str:
         vs = f"{self.speedup:7.1f}x" if self.speedup is not None else "        "
+        peak = f"{self.peak_mb:>9.1f}" if self.peak_mb is not None else f"{'-':>9}"
         return (
             f"{self.env:<22} {self.mode:<8} {self.dtype:<8} {self.batch:>6} {self.transitions_per_s:>14,.1f} {vs}"
-            f" {self.step_ms:>10.3f} {self.compile_s:>9.1f} {self.peak_mb:>9.1f}"
+            f" {self.step_ms:>10.3f} {self.compile_s:>9.1f} {self.recompiles:>9} {peak}"
         )
 
 
 HEADER = (
     f"{'env':<22} {'mode':<8} {'dtype':<8} {'batch':>6} {'transitions/s':>14} {'vs pub':>8} "
-    f"{'step ms':>10} {'compile s':>9} {'peak MB':>9}"
+    f"{'step ms':>10} {'compile s':>9} {'recompile':>9} {'peak MB':>9}"
 )
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+def compiled_graphs() -> int:
+    """The graphs dynamo has compiled in this process so far."""
+    from torch._dynamo.utils import counters
+
+    return counters["stats"]["unique_graphs"]
+
+
+def warm_up(step: Callable[[], object], max_steps: int = MAX_WARM_UP) -> int:
+    """Call ``step`` until a call compiles nothing new (at most ``max_steps`` calls);
+    the number of calls made."""
+    for n in range(1, max_steps + 1):
+        before = compiled_graphs()
+        step()
+        if compiled_graphs() == before:
+            return n
+    return max_steps
 
 
 def _state_mb(env) -> float:
     return sum(t.numel() * t.element_size() for t in env.state if isinstance(t, torch.Tensor)) / 2**20
+
+
+def _resident_mb() -> float:
+    scale = 2**20 if sys.platform == "darwin" else 2**10  # bytes on macOS, KiB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
 
 
 def measure(
@@ -89,43 +119,44 @@ def measure(
     steps: int | None = None,
     repeats: int = 5,
     seed: int = 0,
+    own_process: bool = False,
 ) -> Measurement:
-    """Transitions per second of ``env_id`` at ``batch`` members (see the module doc)."""
+    """Transitions per second of ``env_id`` at ``batch`` members (see the module doc),
+    in this process. ``own_process=True`` says the process is fresh and measures nothing
+    else, so that its peak memory is the configuration's (:func:`run` does that);
+    otherwise no peak is reported."""
     if mode not in ("eager", "compiled"):
         raise ValueError(f"mode must be 'eager' or 'compiled', got {mode!r}")
     if repeats < 1:
         raise ValueError(f"repeats must be a positive integer, got {repeats}")
     steps = steps or default_steps(env_id)
     dev = torch.device(device)
-    env = make(env_id, batch, dtype=dtype, device=device, seed=seed, compile=mode == "compiled", check_actions=False)
-    g = torch.Generator(device=dev).manual_seed(seed)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
-    td = env.reset()
-
-    def step(td):
-        td[env.action_key] = env.random_action(g)
-        _, td = env.step_and_maybe_reset(td)
-        return td
-
-    _sync(dev)
+    base = _resident_mb()
     start = time.perf_counter()
-    td = step(td)  # the warm-up step compiles
-    _sync(dev)
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(steps):
-            td = step(td)
-        _sync(dev)
-        times.append((time.perf_counter() - start) / steps)
+    env = make(env_id, batch, dtype=dtype, device=device, seed=seed, compile=mode == "compiled", check_actions=False)
+    g = torch.Generator(device=dev).manual_seed(seed)
+    box = {"td": env.reset()}
+
+    def step() -> None:
+        td = box["td"]
+        td[env.action_key] = env.random_action(g)
+        _, box["td"] = env.step_and_maybe_reset(td)
+
+    n_warm = warm_up(step)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+    warm_s = time.perf_counter() - start
+    graphs = compiled_graphs()
+    timer = benchmark.Timer(stmt="step()", globals={"step": step}, num_threads=torch.get_num_threads())
+    times = [timer.timeit(steps).median for _ in range(repeats)]
+    recompiles = compiled_graphs() - graphs
     step_s = statistics.median(times)
     rate = batch / step_s
-    if dev.type == "cuda":
-        peak = torch.cuda.max_memory_allocated(dev) / 2**20
-    else:
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    peak = None
+    if own_process:
+        peak = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else _resident_mb()
     published = env_class(env_id).published_speed
     return Measurement(
         env=env_id,
@@ -135,12 +166,45 @@ def measure(
         device=str(dev),
         transitions_per_s=rate,
         step_ms=1e3 * step_s,
-        compile_s=max(0.0, first - step_s),
+        compile_s=max(0.0, warm_s - n_warm * step_s),
+        warm_up_steps=n_warm,
+        recompiles=recompiles,
         state_mb=_state_mb(env),
         peak_mb=peak,
+        base_mb=base if own_process and dev.type != "cuda" else None,
         published_per_s=published,
         speedup=rate / published if published else None,
     )
+
+
+def measure_in_fresh_process(env_id: str, batch: int, **kwargs) -> Measurement:
+    """:func:`measure` in a new Python process (with this one's thread count), so that
+    the peak memory is this configuration's alone. A subprocess, not multiprocessing:
+    nothing of the caller's script is imported again there."""
+    import subprocess
+    import tempfile
+
+    job = {"env_id": qualified_id(env_id), "batch": batch, "threads": torch.get_num_threads(), "kwargs": kwargs}
+    with tempfile.TemporaryDirectory() as tmp:
+        result = Path(tmp) / "measurement.json"
+        done = subprocess.run(
+            [sys.executable, "-m", "beacon_torch.bench", json.dumps(job), str(result)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        if done.returncode != 0:
+            raise RuntimeError(f"measuring {env_id} at {batch} members failed:\n{done.stderr[-3000:]}")
+        m = Measurement(**json.loads(result.read_text()))
+    m.env = env_id
+    return m
+
+
+def _measure_job(job: str, result: str) -> None:
+    job = json.loads(job)
+    torch.set_num_threads(job["threads"])
+    m = measure(job["env_id"], job["batch"], own_process=True, **job["kwargs"])
+    Path(result).write_text(json.dumps(asdict(m)))
 
 
 def machine() -> str:
@@ -160,12 +224,12 @@ def machine() -> str:
 
 
 def save_rows(rows: list[dict], out: str | Path, name: str) -> Path:
-    """``rows`` with the machine they were measured on, as ``out/name.json``."""
+    """``rows`` with the machine they were measured on, as a new dated file
+    ``out/name-YYYYmmdd-HHMMSS.json`` (an earlier record is never replaced)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{name}.json"
-    path.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
-    return path
+    text = json.dumps({"machine": machine(), "rows": rows}, indent=1)
+    return create_file(out / dated_name(name, ".json"), lambda tmp: tmp.write_text(text))
 
 
 def run(
@@ -178,18 +242,29 @@ def run(
     steps: int | None = None,
     repeats: int = 5,
     echo=print,
+    progress=None,
 ) -> list[Measurement]:
-    """Every combination, printed as a table while it runs."""
+    """Every combination, each in a fresh process (:func:`measure_in_fresh_process`),
+    printed as a table while it runs; ``progress`` (a callable taking a line, stderr by
+    default) says which one is being measured."""
+    if progress is None:
+        progress = lambda line: print(line, file=sys.stderr, flush=True)
+    env_ids = list(env_ids)
+    jobs = [
+        (env_id, dtype, mode, batch)
+        for env_id in env_ids
+        for dtype in dtypes
+        for mode in modes
+        for batch in num_envs or default_batch_sizes(env_id)
+    ]
     echo(f"# {machine()}")
     echo(HEADER)
     results = []
-    for env_id in env_ids:
-        for dtype in dtypes:
-            for mode in modes:
-                for batch in num_envs or default_batch_sizes(env_id):
-                    m = measure(env_id, batch, dtype=dtype, mode=mode, device=device, steps=steps, repeats=repeats)
-                    echo(m.row())
-                    results.append(m)
+    for k, (env_id, dtype, mode, batch) in enumerate(jobs, 1):
+        progress(f"[{k}/{len(jobs)}] measuring {env_id} {mode} {dtype} at {batch} members ...")
+        m = measure_in_fresh_process(env_id, batch, dtype=dtype, mode=mode, device=device, steps=steps, repeats=repeats)
+        echo(m.row())
+        results.append(m)
     return results
 
 
@@ -202,34 +277,47 @@ def best(results: Sequence[Measurement]) -> dict[str, Measurement]:
     return out
 
 
+OUTPUTS = ("results.csv", "results.json", "results.md", "throughput.png")
+
+
 def write(results: Sequence[Measurement], out_dir: str | Path) -> dict[str, Path]:
     """``results.csv``, ``results.json``, ``results.md`` and ``throughput.png`` in
-    ``out_dir``."""
+    ``out_dir``, which must not hold them yet (:func:`check_out`)."""
     out = Path(out_dir)
+    check_out(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = [asdict(m) for m in results]
-    paths = {
-        "csv": out / "results.csv",
-        "json": out / "results.json",
-        "md": out / "results.md",
-        "png": out / "throughput.png",
-    }
-    with paths["csv"].open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    paths["json"].write_text(json.dumps({"machine": machine(), "results": rows}, indent=2))
-    paths["md"].write_text(
+    paths = {name.split(".")[-1]: out / name for name in OUTPUTS}
+
+    def write_csv(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+
+    create_file(paths["csv"], write_csv)
+    text = json.dumps({"machine": machine(), "results": rows}, indent=2)
+    create_file(paths["json"], lambda tmp: tmp.write_text(text))
+    text = (
         f"Machine: {machine()}\n\n## Best speed per env\n\n{markdown(results)}\n\n## Every "
         f"measurement\n\n{full_table(results)}\n"
     )
+    create_file(paths["md"], lambda tmp: tmp.write_text(text))
     plot(results, paths["png"])
     return paths
 
 
+def check_out(out_dir: str | Path) -> None:
+    """Refuse an output directory that already holds results (before measuring)."""
+    refuse_existing([Path(out_dir) / name for name in OUTPUTS], "give a new --out")
+
+
 def load(path: str | Path) -> list[Measurement]:
     """The measurements of a ``results.json`` written by :func:`write`."""
-    return [Measurement(**row) for row in json.loads(Path(path).read_text())["results"]]
+    fields = Measurement.__dataclass_fields__
+    rows = json.loads(Path(path).read_text())["results"]
+    # records written before the warm-up and memory columns existed lack them
+    return [Measurement(**{k: row.get(k) for k in fields}) for row in rows]
 
 
 def plot(results: Sequence[Measurement], path: str | Path) -> None:
@@ -267,14 +355,15 @@ def plot(results: Sequence[Measurement], path: str | Path) -> None:
 def full_table(results: Sequence[Measurement]) -> str:
     """Every measurement as a Markdown table."""
     lines = [
-        "| env | mode | dtype | batch | transitions/s | vs published | step ms | compile s | peak MB |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| env | mode | dtype | batch | transitions/s | vs published | step ms | compile s | recompiles | peak MB |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for m in results:
         vs = f"{m.speedup:.2f}x" if m.speedup is not None else "-"
         lines.append(
             f"| {m.env} | {m.mode} | {m.dtype} | {m.batch} | {m.transitions_per_s:,.1f} | {vs} | "
-            f"{m.step_ms:.3f} | {m.compile_s:.1f} | {m.peak_mb:.0f} |"
+            f"{m.step_ms:.3f} | {m.compile_s:.1f} | {'-' if m.recompiles is None else m.recompiles} | "
+            f"{'-' if m.peak_mb is None else f'{m.peak_mb:.0f}'} |"
         )
     return "\n".join(lines)
 
@@ -292,3 +381,7 @@ def markdown(results: Sequence[Measurement]) -> str:
         tgt = f"{target:g}x" if target else "-"
         lines.append(f"| {env_id} | {m.transitions_per_s:,.1f} | {m.batch} | {m.mode} | {vs} | {tgt} | {met} |")
     return "\n".join(lines)
+
+
+if __name__ == "__main__":  # one measurement in a fresh process: measure_in_fresh_process
+    _measure_job(*sys.argv[1:])

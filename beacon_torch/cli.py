@@ -34,7 +34,7 @@ import torch
 
 from beacon_torch import episodes
 from beacon_torch.base import _as_device
-from beacon_torch.files import save_figure, write_text
+from beacon_torch.files import create_file, outputs, save_figure
 from beacon_torch.params import describe, parse_assignments
 from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make, resolve_id
 
@@ -90,8 +90,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
     params = _parse_params(args.param)
     kwargs = dict(device=args.device, dtype=args.dtype, seed=args.seed, params=params)
-    out = Path(args.out or f"runs/{args.env}")
-    out.mkdir(parents=True, exist_ok=True)
+    plot, scores_file = outputs(args.out, f"runs/{args.env}", "run.png", "scores.json")
+    gif = outputs(args.gif, None, option="--gif")[0] if args.gif else None
+    plot.parent.mkdir(parents=True, exist_ok=True)
 
     results = {}
     rewards = {}
@@ -118,15 +119,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"  [{batch} x {rollout.shape[-1]} steps, {r['transitions_per_s']:.0f} transitions/s]"
         )
 
-    plot = out / "run.png"
     _plot_run(plot, args.env, rewards["uncontrolled"], rewards["random"])
-    write_text(
-        out / "scores.json",
-        json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2),
-    )
-    print(f"plot: {plot}\nscores: {out / 'scores.json'}")
+    text = json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2)
+    create_file(scores_file, lambda tmp: tmp.write_text(text))
+    print(f"plot: {plot}\nscores: {scores_file}")
 
-    if args.gif:
+    if gif is not None:
         from beacon_torch.render import save_animation
 
         env = make(args.env, 1, record_history=True, **kwargs)
@@ -141,7 +139,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         episodes.episode(env, episodes.null_policy(env), frame_hook=grab)
         frames.append(env.render())  # the end of the episode, whatever the stride
-        gif = save_animation(frames, args.gif)
+        gif = save_animation(frames, gif)
         print(f"animation ({len(frames)} frames of the uncontrolled episode): {gif}")
     return 0
 
@@ -158,6 +156,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for name in ("steps", "repeats"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise CliError(f"--{name} must be a positive integer, got {getattr(args, name)}")
+    from beacon_torch.files import dated_name
+
+    out = Path(args.out or Path("runs/bench") / dated_name("bench"))
+    bench.check_out(out)
     results = bench.run(
         envs,
         num_envs=args.num_envs,
@@ -167,7 +169,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         steps=args.steps,
         repeats=args.repeats,
     )
-    paths = bench.write(results, args.out)
+    paths = bench.write(results, out)
     print()
     print(bench.markdown(results))
     print(f"\nresults: {paths['csv']}, {paths['json']}\nplot: {paths['png']}")
@@ -193,7 +195,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         policy = pretrained.load(args.pretrained, device=args.device)
         gif = None
         if not args.no_gif:
-            gif = Path(args.out or ".") / algo / f"{env_id}.gif"
+            gif = outputs(args.out, ".", f"{algo}/{env_id}.gif")[0]
             gif.parent.mkdir(parents=True, exist_ok=True)
         record = pretrained.info(args.pretrained)
         params = record.get("params", {})  # the physics it was trained on
@@ -203,9 +205,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     else:
         runs = []
         for run in seed_dirs(args.run):
-            r = evaluate_run(
-                run, num_envs=args.num_envs, device=args.device, gif=None if args.no_gif else run / "controlled.gif"
-            )
+            gif = None if args.no_gif else outputs(None, run, "controlled.gif")[0]
+            r = evaluate_run(run, num_envs=args.num_envs, device=args.device, gif=gif)
             runs.append((str(run), r, f"trained on {r['frames']} transitions"))
     for name, r, trained in runs:
         print(
@@ -218,7 +219,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from beacon_torch.training.evaluation import plot_runs
 
-    path = plot_runs(args.runs, args.out, name=args.scalar)
+    path = plot_runs(args.runs, outputs(args.out, "learning_curve.png")[0], name=args.scalar)
     print(f"plot: {path}")
     return 0
 
@@ -226,11 +227,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from beacon_torch.training.report import report
 
-    result = report(args.runs, args.out)
+    md, numbers, png = outputs(args.out, "runs/report", "report.md", "report.json", "report.png")
+    result = report(args.runs, md, numbers, png)
     print(result["table"])
-    print(
-        f"\ntable: {Path(args.out) / 'report.md'}, numbers: {Path(args.out) / 'report.json'}\nfigure: {result['png']}"
-    )
+    print(f"\ntable: {md}, numbers: {numbers}\nfigure: {png}")
     return 0
 
 
@@ -254,8 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--device", default="cpu")
     run.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     run.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="an env parameter (repeatable)")
-    run.add_argument("--out", help="output directory (default runs/ENV)")
-    run.add_argument("--gif", metavar="PATH", help="write an animation of the uncontrolled episode")
+    run.add_argument("--out", help="output directory (default runs/ENV, under new names if run.png is taken)")
+    run.add_argument("--gif", metavar="PATH", help="write an animation of the uncontrolled episode (a new file)")
     run.add_argument("--gif-every", type=int, default=0, help="render every N-th step (default: about 100 frames)")
     run.set_defaults(func=cmd_run)
 
@@ -269,7 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--device", default="cpu")
     bench.add_argument("--steps", type=int, help="timed steps per repeat (default 20; 2 for the cavities)")
     bench.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is reported")
-    bench.add_argument("--out", default="runs/bench", help="output directory")
+    bench.add_argument(
+        "--out", help="output directory, without earlier results (default: a new runs/bench/bench-DATE-TIME)"
+    )
     bench.set_defaults(func=cmd_bench)
 
     ev = sub.add_parser("eval", help="score a trained policy against the uncontrolled env")
@@ -277,7 +279,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--pretrained", metavar="ALGO/ENV", help="a shipped policy instead (beacon_torch.pretrained.available())"
     )
-    ev.add_argument("--out", help="where --pretrained writes its animation (default: here)")
+    ev.add_argument(
+        "--out", help="where --pretrained writes ALGO/ENV.gif (default: here, under a new name if it is taken)"
+    )
     ev.add_argument("--num-envs", type=int, default=8, help="evaluation episodes (one batch)")
     ev.add_argument("--device", default="cpu")
     ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")
@@ -285,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     pl = sub.add_parser("plot", help="learning curves of run directories, paper style")
     pl.add_argument("runs", nargs="+", help="run directories")
-    pl.add_argument("--out", default="learning_curve.png", help="the PNG to write")
+    pl.add_argument("--out", help="the PNG to write, a new file (default learning_curve.png, or a free name)")
     pl.add_argument("--scalar", default="episode_score", help="the logged value to draw")
     pl.set_defaults(func=cmd_plot)
 
@@ -295,7 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument(
         "runs", nargs="+", help="run directories (seedK folders of one env and algorithm) or their summary.json files"
     )
-    rp.add_argument("--out", default="runs/report", help="where report.md, report.json and report.png go")
+    rp.add_argument(
+        "--out", help="where report.md, report.json and report.png go, new files (default runs/report, free names)"
+    )
     rp.set_defaults(func=cmd_report)
     return parser
 

@@ -57,6 +57,64 @@ def replace_file(path: str | Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+def create_file(path: str | Path, write: Callable[[Path], object], hint: str = "") -> Path:
+    """Write a new file at ``path`` by ``write(temporary)``, refusing one that exists
+    (:class:`FileExistsError`, naming it and ``hint``): the file appears whole or not at
+    all, and whatever was there, a file or a link, is left as it was."""
+    path = Path(path)
+    refuse_existing([path], hint)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=f"-{path.name}.partial")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        try:
+            os.link(tmp, path)  # fails if the name was taken meanwhile: never replaces
+        except FileExistsError:
+            refuse_existing([path], hint)
+            raise
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    return path
+
+
+def refuse_existing(paths, hint: str = "") -> None:
+    """:class:`FileExistsError` for the first of ``paths`` that exists (or is a link):
+    a command checks the files it will write before its work, not after."""
+    for path in map(Path, paths):
+        if path.exists() or path.is_symlink():
+            raise FileExistsError(f"{path} exists and is not overwritten" + (f"; {hint}" if hint else ""))
+
+
+def free_names(*paths: str | Path) -> list[Path]:
+    """``paths`` themselves when none exists, else each with the same first free number
+    (``run-2.png``, ``scores-2.json``): default output names that never replace a file."""
+    paths = [Path(p) for p in paths]
+    for n in range(1, 10_000):
+        named = paths if n == 1 else [p.with_name(f"{p.stem}-{n}{p.suffix}") for p in paths]
+        if not any(p.exists() or p.is_symlink() for p in named):
+            return named
+    raise FileExistsError(f"{paths[0].parent}: no free name for {', '.join(p.name for p in paths)}")
+
+
+def outputs(given: str | Path | None, default: str | Path, *names: str, option: str = "--out") -> list[Path]:
+    """The files a command writes: in (or at) the place the user ``given``, refused there
+    if any exists; at the ``default`` place, under free names (:func:`free_names`). A
+    command calls it before its work, so that nothing is lost to a refusal at the end."""
+    place = Path(given if given is not None else default)
+    paths = [place / n for n in names] if names else [place]
+    if given is not None:
+        refuse_existing(paths, f"give a new {option} (nothing is overwritten)")
+        return paths
+    return free_names(*paths)
+
+
+def dated_name(stem: str, suffix: str = "") -> str:
+    """``stem-YYYYmmdd-HHMMSS`` + ``suffix``: a name for a new record of a measurement."""
+    import time
+
+    return f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}{suffix}"
+
+
 def write_text(path: str | Path, text: str) -> Path:
     """:func:`replace_file` with ``text``."""
     return replace_file(path, lambda tmp: tmp.write_text(text))

@@ -18,6 +18,7 @@ import torch
 
 import beacon_torch
 from beacon_torch import episodes
+from beacon_torch.files import create_file, refuse_existing
 from beacon_torch.registry import ENVS, base_envs
 
 PUBLISHED = {env_id: ENVS[env_id].published_speed for env_id in base_envs() if ENVS[env_id].family == "cavity"}
@@ -44,6 +45,8 @@ def main() -> None:
     parser.add_argument("--envs", nargs="+", default=list(PUBLISHED))
     parser.add_argument("--out", help="write the results as JSON")
     args = parser.parse_args()
+    if args.out:
+        refuse_existing([args.out], "give another --out")  # before the measurement, not after
     results = {
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} "
         f"threads, torch {torch.__version__}"
@@ -79,8 +82,8 @@ def main() -> None:
             f"{row['substep_ms']:.2f} ms per batched substep of which Poisson {row['poisson_ms']:.2f} ms"
         )
     if args.out:
-        with open(args.out, "w") as f:
-            json.dump(results, f, indent=2)
+        text = json.dumps(results, indent=2)
+        create_file(args.out, lambda tmp: tmp.write_text(text), "give another --out")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ For every env, two fresh processes share a new, empty torch compile cache
 Each times ``make``, ``reset`` and the first step (what a user waits for), then one
 more step (which must not compile again), and counts the graphs torch found in its
 cache, compiled anew, or could not cache. Prints a markdown table and writes
-``compile_time.json`` to ``--out``. The numbers in benchmarks/RESULTS.md come from this
+a new ``compile_time-DATE-TIME.json`` to ``--out``. The numbers in benchmarks/RESULTS.md come from this
 script, run on an otherwise idle machine.
 """
 

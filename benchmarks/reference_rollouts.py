@@ -20,6 +20,7 @@ import time
 import torch
 
 from beacon_torch import reference
+from beacon_torch.files import create_file, refuse_existing
 from beacon_torch.registry import env_class
 
 
@@ -28,6 +29,8 @@ def main() -> None:
     parser.add_argument("env_ids", nargs="*", default=reference.env_ids(), choices=reference.env_ids())
     parser.add_argument("--out", help="write the markdown table here")
     args = parser.parse_args()
+    if args.out:
+        refuse_existing([args.out], "give another --out")  # before the rollouts, not after
     torch.set_num_threads(1)
     rows = [
         "| env | solver | actions | return | published | running return, largest rel. difference | "
@@ -49,8 +52,7 @@ def main() -> None:
     table = "\n".join(rows) + "\n"
     print(table)
     if args.out:
-        with open(args.out, "w") as f:
-            f.write(table)
+        create_file(args.out, lambda tmp: tmp.write_text(table), "give another --out")
 
 
 if __name__ == "__main__":

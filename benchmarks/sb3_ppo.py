@@ -29,6 +29,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
 
 import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
+from beacon_torch.files import create_file, refuse_existing
 from beacon_torch.sb3 import BeaconVecEnv
 
 
@@ -57,6 +58,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
+    out = Path(args.out)
+    refuse_existing([out / "curve.csv", out / "summary.json"], "give a new --out")  # before training
     torch.set_num_threads(args.threads)
     if args.vec == "batched":
         venv = BeaconVecEnv(args.env, args.copies, seed=args.seed)
@@ -84,11 +87,9 @@ def main() -> None:
     start = time.perf_counter()
     model.learn(args.frames, callback=curve)
     wall = time.perf_counter() - start
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "curve.csv", "w") as f:
-        f.write("transitions,return,wall_s\n")
-        f.writelines(f"{t},{r},{w:.1f}\n" for t, r, w in curve.rows)
+    lines = ["transitions,return,wall_s\n", *(f"{t},{r},{w:.1f}\n" for t, r, w in curve.rows)]
+    create_file(out / "curve.csv", lambda tmp: tmp.write_text("".join(lines)))
     returns = np.array([r for _, r, _ in curve.rows])
     tail = returns[-max(1, len(returns) // 10) :]
     summary = {
@@ -102,7 +103,7 @@ def main() -> None:
         "threads": args.threads,
         "seed": args.seed,
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    create_file(out / "summary.json", lambda tmp: tmp.write_text(json.dumps(summary, indent=1)))
     print(json.dumps(summary))
 
 

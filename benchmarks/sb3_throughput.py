@@ -5,7 +5,7 @@ same number of single gymnasium envs.
     .venv/bin/python benchmarks/sb3_throughput.py [--envs ...] [--copies 16 64]
 
 Random actions (fixed seed) through ``VecEnv.step`` with its auto-resets, as SB3's
-algorithms call it. Prints a markdown table and writes ``sb3_throughput.json`` to
+algorithms call it. Prints a markdown table and writes a new ``sb3_throughput-DATE-TIME.json`` to
 ``--out``; the numbers in benchmarks/RESULTS.md come from this script, run on an
 otherwise idle machine.
 """

@@ -11,7 +11,7 @@ For every env, random actions (fixed seed) through
   action's checks and the bookkeeping; compiled, the one compiled call), the floor of
   any wrapper: what the lean step costs beyond it is the adapter's share.
 
-Prints a markdown table and writes ``single_env.json`` to ``--out``. The numbers in
+Prints a markdown table and writes a new ``single_env-DATE-TIME.json`` to ``--out``. The numbers in
 benchmarks/RESULTS.md come from this script, run on an otherwise idle machine.
 """
 

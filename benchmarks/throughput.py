@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/throughput.py [beacon-torch bench options]
 
 The same as ``beacon-torch bench``: a table while it runs, then ``results.csv``,
-``results.json`` and ``throughput.png`` in ``--out`` (default runs/bench). The numbers
+``results.json`` and ``throughput.png`` in ``--out`` (default a new runs/bench/bench-DATE-TIME). The numbers
 recorded in benchmarks/RESULTS.md come from this script.
 """
 

@@ -19,6 +19,44 @@ def test_measure_reports_rates_against_the_published_speed():
     assert bench.measure("mixing-continuous-v0", 1, steps=1, repeats=1).published_per_s == 3.7
 
 
+def test_warm_up_steps_until_nothing_compiles():
+    """Compilation is never timed as speed: a step that compiles on its first three calls
+    (three shapes) is warmed up four times, and the fourth call compiled nothing."""
+    import torch
+
+    f = torch.compile(lambda x: x * 2 + 1, dynamic=False)
+    sizes = iter([3, 4, 5] + [5] * 20)
+    calls = []
+
+    def step():
+        calls.append(f(torch.ones(next(sizes))))
+
+    assert bench.warm_up(step) == 4 and len(calls) == 4
+    assert bench.warm_up(lambda: None) == 1
+
+
+@pytest.mark.slow(20)
+def test_compiled_measurement_is_not_compile_time():
+    """A short compiled measurement (5 steps, 2 repeats) times compiled steps: no graph
+    is compiled while timing, and the compile time is reported apart."""
+    m = bench.measure("lorenz-v0", 1, mode="compiled", steps=5, repeats=2)
+    assert m.recompiles == 0 and m.warm_up_steps >= 2
+    assert m.compile_s > 0.5 and m.step_ms < 100  # compiling takes seconds, a step far less
+    assert m.peak_mb is None  # in a shared process a peak would be another's
+
+
+@pytest.mark.slow(15)
+def test_each_configuration_reports_its_own_peak_memory():
+    """Each configuration runs in a fresh process: a small one measured after a large
+    one reports its own peak, not the process's running maximum."""
+    large, small = bench.run(
+        ["lorenz-v0"], num_envs=[2**20, 1], modes=["eager"], steps=1, repeats=1, echo=lambda line: None
+    )
+    assert large.peak_mb - large.base_mb > 200  # a million members' states and intermediates
+    assert small.peak_mb < large.peak_mb - 200
+    assert small.recompiles == 0
+
+
 def test_measure_rejects_bad_arguments():
     with pytest.raises(ValueError, match="mode"):
         bench.measure("lorenz-v0", 1, mode="fast")
@@ -35,7 +73,6 @@ def test_bench_command_writes_table_csv_json_and_plot(tmp_path, capsys):
             "vortex-v0",
             "--num-envs",
             "1",
-            "8",
             "--mode",
             "eager",
             "--steps",
@@ -50,14 +87,28 @@ def test_bench_command_writes_table_csv_json_and_plot(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "transitions/s" in out and "| lorenz-v0 |" in out
     rows = list(csv.DictReader((tmp_path / "results.csv").open()))
-    assert {(r["env"], int(r["batch"])) for r in rows} == {(e, b) for e in ("lorenz-v0", "vortex-v0") for b in (1, 8)}
+    assert {(r["env"], int(r["batch"])) for r in rows} == {(e, b) for e in ("lorenz-v0", "vortex-v0") for b in (1,)}
     data = json.loads((tmp_path / "results.json").read_text())
-    assert data["machine"] and len(data["results"]) == 4
+    assert data["machine"] and len(data["results"]) == 2
     assert (tmp_path / "throughput.png").stat().st_size > 10_000
     md = (tmp_path / "results.md").read_text()
-    assert "## Best speed per env" in md and md.count("| lorenz-v0 |") == 3  # best + 2 rows
+    assert "## Best speed per env" in md and md.count("| lorenz-v0 |") == 2  # best + its row
     again = bench.load(tmp_path / "results.json")
     assert [m.transitions_per_s for m in again] == [float(r["transitions_per_s"]) for r in rows]
+    assert all(m.peak_mb > 0 for m in again)  # each measured in its own process
+
+
+def test_bench_replaces_no_earlier_results(tmp_path, capsys):
+    """An output directory with results is refused before anything is measured; the
+    default is a new dated directory; a benchmark script's record gets a new dated name."""
+    (tmp_path / "results.csv").write_text("mine")
+    assert main(["bench", "--envs", "lorenz-v0", "--num-envs", "1", "--out", str(tmp_path)]) == 2
+    assert "results.csv exists" in capsys.readouterr().err
+    assert (tmp_path / "results.csv").read_text() == "mine"
+    first = bench.save_rows([{"a": 1}], tmp_path, "single_env")
+    (tmp_path / "single_env.json").write_text("mine")
+    assert first.name.startswith("single_env-") and first.read_text().count('"a"') == 1
+    assert (tmp_path / "single_env.json").read_text() == "mine"
 
 
 def test_bench_command_reports_bad_input(capsys):

@@ -121,6 +121,55 @@ def test_eval_refuses_a_run_with_a_planted_animation_link(ppo_run, tmp_path, out
     assert snapshot(outside) == before
 
 
+# ---------------------------------------------------------------- documented commands replace nothing
+def test_run_replaces_no_file(tmp_path, monkeypatch, capsys):
+    """Under default names a command writes beside what is there (free numbered names);
+    a name the user gives that is taken is refused before any work."""
+    monkeypatch.chdir(tmp_path)
+    mine = tmp_path / "runs" / "vortex-v0"
+    mine.mkdir(parents=True)
+    (mine / "run.png").write_text("mine")
+    assert cli(["run", "vortex-v0", "--num-envs", "2"]) == 0
+    assert (mine / "run.png").read_text() == "mine"
+    assert (mine / "run-2.png").stat().st_size > 1000 and (mine / "scores-2.json").is_file()
+    assert "run-2.png" in capsys.readouterr().out
+    assert cli(["run", "vortex-v0", "--out", str(mine)]) == 2
+    assert "run.png exists" in capsys.readouterr().err
+    (tmp_path / "a.gif").write_text("mine")
+    assert cli(["run", "vortex-v0", "--gif", "a.gif"]) == 2
+    assert (tmp_path / "a.gif").read_text() == "mine" and not (mine / "run-3.png").exists()
+
+
+def test_eval_plot_and_report_replace_no_file(ppo_run, tmp_path, monkeypatch, capsys):
+    run = copy_run(ppo_run, tmp_path / "run")
+    (run / "controlled.gif").write_text("mine")
+    assert cli(["eval", str(run), "--num-envs", "1"]) == 0
+    assert (run / "controlled.gif").read_text() == "mine" and (run / "controlled-2.gif").stat().st_size > 1000
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "learning_curve.png").write_text("mine")
+    assert cli(["plot", str(run), "--scalar", "reward"]) == 0
+    assert (tmp_path / "learning_curve.png").read_text() == "mine" and (tmp_path / "learning_curve-2.png").is_file()
+    assert cli(["plot", str(run), "--scalar", "reward", "--out", "learning_curve.png"]) == 2
+    assert "learning_curve.png exists" in capsys.readouterr().err
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "report.png").write_text("mine")
+    summary = tmp_path / "summary.json"
+    summary.write_text(json.dumps(summary_of()))
+    assert cli(["report", str(summary), "--out", "rep"]) == 2
+    assert (tmp_path / "rep" / "report.png").read_text() == "mine" and not (tmp_path / "rep" / "report.md").exists()
+    assert cli(["report", str(summary)]) == 0 and cli(["report", str(summary)]) == 0
+    assert (tmp_path / "runs" / "report" / "report-2.md").is_file()
+
+
+def test_eval_pretrained_replaces_no_animation(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ppo").mkdir()
+    (tmp_path / "ppo" / "lorenz-v0.gif").write_text("mine")
+    assert cli(["eval", "--pretrained", "ppo/lorenz-v0", "--num-envs", "1"]) == 0
+    assert (tmp_path / "ppo" / "lorenz-v0.gif").read_text() == "mine"
+    assert (tmp_path / "ppo" / "lorenz-v0-2.gif").stat().st_size > 1000
+
+
 def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outside):
     pair = tmp_path / "runs" / "ppo" / "vortex-v0"
     copy_run(ppo_run, pair / "seed0")

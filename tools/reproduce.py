@@ -163,7 +163,8 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     """The results page's generated part: the protocol's figure and table over every
     recorded summary, the PPO floors, and the curves."""
     summaries = [read_summary(f) for f in sorted(recorded.glob("*/*.json"))]
-    rows = report.report(sorted(recorded.glob("*/*.json")), images)
+    names = [images / f"report.{suffix}" for suffix in ("md", "json", "png")]
+    rows = report.report(sorted(recorded.glob("*/*.json")), *names, replace=True)
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = [
         "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from beacon_torch.files import save_figure, write_text
+from beacon_torch.files import create_file, refuse_existing, save_figure, write_text
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training.evaluation import summarise
 
@@ -179,16 +179,20 @@ def figure(rows: list[dict], path: str | Path) -> Path:
     return Path(path)
 
 
-def report(run_dirs, out: str | Path) -> dict:
-    """The protocol's table (``out/report.md``), numbers (``out/report.json``) and
-    figure (``out/report.png``) of the run directories."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+def report(run_dirs, md: str | Path, numbers: str | Path, png: str | Path, *, replace: bool = False) -> dict:
+    """The protocol's table (``md``), numbers (``numbers``, JSON) and figure (``png``)
+    of the run directories: new files, or with ``replace`` (the results page's own
+    generated files) in place of earlier ones."""
     rows = [row(s) for s in summaries(run_dirs)]
     text = table(rows)
-    write_text(out / "report.md", text + "\n")
-    write_text(out / "report.json", json.dumps(rows, indent=1))
-    png = figure(rows, out / "report.png")
+    for path in (md, numbers, png):
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    write = write_text if replace else lambda path, text: create_file(path, lambda tmp: tmp.write_text(text))
+    write(md, text + "\n")
+    write(numbers, json.dumps(rows, indent=1))
+    if not replace:
+        refuse_existing([png])
+    png = figure(rows, png)
     return {"rows": rows, "table": text, "png": str(png)}
 
 
