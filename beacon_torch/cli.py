@@ -35,7 +35,7 @@ import torch
 from beacon_torch import episodes
 from beacon_torch.base import _as_device
 from beacon_torch.files import create_file, outputs, save_figure
-from beacon_torch.params import describe, parse_assignments
+from beacon_torch.params import describe, parse_assignments, plain
 from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make, resolve_id
 
 
@@ -235,7 +235,14 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="beacon-torch", description=__doc__.split("\n\n")[0])
+    from beacon_torch import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="beacon-torch",
+        description=plain(__doc__.split("\n\n")[0]),
+        epilog="Each command's options: beacon-torch COMMAND --help.",
+    )
+    parser.add_argument("--version", action="version", version=f"beacon-torch {__version__}")
     parser.add_argument(
         "--import",
         dest="imports",

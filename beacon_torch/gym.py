@@ -1,4 +1,7 @@
-"""Gymnasium interop: ``import beacon_torch.gym`` registers every env as ``beacon/<id>``.
+"""Gymnasium interop: every env is registered with gymnasium as ``beacon/<id>`` when
+beacon_torch is imported (``gymnasium.make("beacon_torch:beacon/<id>")`` imports it:
+gymnasium's own ``module:id`` spelling, since gymnasium 1.0 has no plugin entry points),
+with ``max_episode_steps`` the env's episode length.
 
 ``gymnasium.make("beacon/lorenz-v0")`` gives :class:`BeaconGymEnv`, a standard single
 environment with numpy observations over a batch-of-one :class:`~beacon_torch.FlowEnv`.
@@ -28,7 +31,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from beacon_torch.base import FlowEnv
-from beacon_torch.registry import _listeners, compiles_by_default, list_envs, make
+from beacon_torch.registry import _listeners, compiles_by_default, env_class, list_envs, make
 
 NAMESPACE = "beacon"
 RENDER_FPS = 20
@@ -140,11 +143,19 @@ class BeaconVectorEnv(VectorEnv):
         device: Any = "cpu",
         *,
         registered_id: str | None = None,
+        max_episode_steps: int | None = None,
         **params: Any,
     ):
         env_id = _own_id(env_id, registered_id)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        length = env_class(env_id).episode_length
+        if max_episode_steps not in (None, length):
+            # the batched env truncates its members itself, at the benchmark's length
+            raise ValueError(
+                f"{env_id}'s episodes are {length} actions long (the benchmark's); max_episode_steps="
+                f"{max_episode_steps} applies to gymnasium.make's single env (its TimeLimit), not to make_vec"
+            )
         params.setdefault("compile", compiles_by_default())
         self.env = make(
             env_id,
@@ -241,6 +252,7 @@ def register(env_id: str | None = None) -> None:
             entry_point="beacon_torch.gym:BeaconGymEnv",
             vector_entry_point="beacon_torch.gym:BeaconVectorEnv",
             kwargs={"registered_id": own},
+            max_episode_steps=env_class(own).episode_length,
         )
 
 

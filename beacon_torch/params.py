@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -265,7 +266,12 @@ def resolve_params(
     unknown = sorted(set(overrides) - set(fields))
     if unknown:
         label = f" of {env_id}" if env_id else ""
-        raise TypeError(f"unknown parameter {unknown[0]!r}{label}; the parameters are: {', '.join(fields)}")
+        # Python's own words too: wrappers (TorchRL's GymEnv) retry without an option
+        # the env does not take when they read them
+        raise TypeError(
+            f"unknown parameter {unknown[0]!r}{label} (got an unexpected keyword argument {unknown[0]!r}); "
+            f"the parameters are: {', '.join(fields)}"
+        )
     values = {}
     for name, f in fields.items():
         value = overrides.get(name, f.default)
@@ -309,3 +315,9 @@ def check_params(env_class: type, params: dict[str, Any]) -> dict[str, Any]:
         env_class.Params, params, batch_size=members, device=cpu, dtype=torch.float64, env_id=env_class.env_id
     )
     return params
+
+
+def plain(doc: str | None) -> str:
+    """A docstring as a command's description: one paragraph, without reStructuredText's
+    markup (``name`` reads as name)."""
+    return re.sub(r"``([^`]+)``", r"\1", " ".join((doc or "").split()))

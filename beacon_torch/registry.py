@@ -217,7 +217,10 @@ def params_dict(cls: type[FlowEnv], params: Any) -> dict[str, Any]:
         unknown = sorted(set(params) - set(names))
         if unknown:
             # an option among them too: params are the physics alone
-            raise TypeError(f"unknown parameter {unknown[0]!r} of {cls.env_id}; the parameters are: {', '.join(names)}")
+            raise TypeError(
+                f"unknown parameter {unknown[0]!r} of {cls.env_id} (got an unexpected keyword argument "
+                f"{unknown[0]!r}); the parameters are: {', '.join(names)}"
+            )
         return dict(params)
     if isinstance(params, cls.Params):
         return {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}

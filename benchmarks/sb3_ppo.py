@@ -28,7 +28,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
 
-import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
+import beacon_torch  # noqa: F401  (registers the gymnasium ids)
 from beacon_torch.files import create_file, refuse_existing
 from beacon_torch.sb3 import BeaconVecEnv
 

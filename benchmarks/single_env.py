@@ -26,8 +26,6 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-import beacon_torch
-import beacon_torch.gym  # noqa: F401  (registers the gymnasium ids)
 from beacon_torch.bench import machine, save_rows
 from beacon_torch.registry import base_envs, env_class
 

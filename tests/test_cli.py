@@ -59,3 +59,30 @@ def test_list_and_console_script():
         [sys.executable, "-m", "beacon_torch.cli", "list"], capture_output=True, text=True, check=True
     )
     assert "lorenz-v0: 3 discrete actions" in proc.stdout and "rho = 28.0" in proc.stdout
+
+
+def test_version_module_entry_and_plain_help():
+    """``python -m beacon_torch`` is the command; ``--version`` says which; the help's
+    descriptions read as text, not reStructuredText."""
+    import beacon_torch
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "beacon_torch", "--version"], capture_output=True, text=True, check=True
+    )
+    assert proc.stdout.strip() == f"beacon-torch {beacon_torch.__version__}"
+    proc = subprocess.run([sys.executable, "-m", "beacon_torch", "--help"], capture_output=True, text=True, check=True)
+    assert "usage: beacon-torch" in proc.stdout and "``" not in proc.stdout
+
+
+def test_the_package_declares_its_type_hints():
+    """PEP 561: a py.typed marker, shipped as package data."""
+    from pathlib import Path
+
+    import beacon_torch
+
+    root = Path(beacon_torch.__file__).parent
+    assert (root / "py.typed").is_file()
+    import tomllib
+
+    project = tomllib.loads((root.parent / "pyproject.toml").read_text())
+    assert "py.typed" in project["tool"]["setuptools"]["package-data"]["beacon_torch"]

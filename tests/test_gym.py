@@ -104,3 +104,74 @@ def test_gym_env_blow_up_terminates_with_the_penalty():
         last = obs
     assert terminated and reward == env.env.blowup_reward
     np.testing.assert_array_equal(obs, last)  # the last finite observation is kept
+
+
+def run_python(code: str, tmp_path):
+    import subprocess
+    import sys
+
+    script = tmp_path / "script.py"
+    script.write_text(code)
+    return subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+
+
+def test_gym_ids_need_no_import_of_ours(tmp_path):
+    """gymnasium's own 'module:id' spelling imports us; importing beacon_torch is enough
+    for the plain ids (gymnasium 1 has no plugin entry points to do it at its import)."""
+    proc = run_python(
+        "import sys, gymnasium\n"
+        "env = gymnasium.make('beacon_torch:beacon/lorenz-v0', compile=False)\n"
+        "assert env.reset(seed=0)[0].shape == (6,)\n"
+        "assert 'beacon_torch.gym' in sys.modules\n"
+        "import beacon_torch\n"
+        "env = gymnasium.make('beacon/vortex-v0', compile=False)\n"
+        "print('ok', env.spec.max_episode_steps)\n",
+        tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["ok", "800"]
+
+
+@pytest.mark.parametrize("env_id", beacon_torch.list_envs())
+def test_gym_specs_know_the_episode_length(env_id):
+    spec = gymnasium.spec(f"beacon/{env_id}")
+    assert spec.max_episode_steps == beacon_torch.registry.env_class(env_id).episode_length
+
+
+def test_vector_env_keeps_the_benchmark_episode_length():
+    venv = gymnasium.make_vec("beacon/lorenz-v0", 2, compile=False)  # the spec's length passes through
+    assert venv.env.episode_length == 500
+    with pytest.raises(ValueError, match="500 actions long"):
+        gymnasium.make_vec("beacon/lorenz-v0", 2, max_episode_steps=100, compile=False)
+
+
+def test_torchrl_gym_env_builds_our_ids():
+    """TorchRL's GymEnv passes gymnasium options our env does not take (frameskip) and
+    retries without them on Python's own error words: ours say them."""
+    from torchrl.envs import GymEnv
+    from torchrl.envs.utils import check_env_specs
+
+    env = GymEnv("beacon/lorenz-v0", compile=False)
+    check_env_specs(env)
+    rollout = env.rollout(5)
+    assert rollout.shape == (5,) and rollout["next", "reward"].shape == (5, 1)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):
+        beacon_torch.make("lorenz-v0", frameskip=1)
+
+
+def test_async_vector_env_without_a_main_guard_as_documented(tmp_path):
+    """Importing TorchRL (which we do) sets multiprocessing to spawn; gymnasium's async
+    vector env in a script without a main guard then needs the documented context."""
+    code = (
+        "import multiprocessing, gymnasium, beacon_torch\n"
+        "assert multiprocessing.get_start_method() == 'spawn'\n"
+        "venv = gymnasium.make_vec('beacon/lorenz-v0', 2, vectorization_mode='async', "
+        "vector_kwargs={'context': 'fork'}, compile=False)\n"
+        "obs, _ = venv.reset(seed=0)\n"
+        "obs, *_ = venv.step(venv.action_space.sample())\n"
+        "venv.close()\n"
+        "print('ok', obs.shape)\n"
+    )
+    proc = run_python(code, tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["ok", "(2,", "6)"]

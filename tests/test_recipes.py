@@ -223,6 +223,53 @@ def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
     assert checkpoint(tmp_path)["frames"] == 200
 
 
+def help_of(cls, argv, capsys) -> str:
+    """The --help text of a recipe's command line after its usage line, on one line."""
+    with pytest.raises(SystemExit):
+        parse(cls, [*argv, "--help"])
+    return " ".join(capsys.readouterr().out.split("\n\n", 1)[1].split())
+
+
+def shown_default(text: str, option: str) -> str:
+    """The default the help shows for ``option``."""
+    return text.split(option + " ", 1)[1].split("(default: ", 1)[1].split(")", 1)[0]
+
+
+def test_help_shows_the_values_the_chosen_env_uses(capsys):
+    text = help_of(PPOConfig, ["--env", "lorenz-v0"], capsys)
+    cfg = configure(PPOConfig, "lorenz-v0")
+    assert (cfg.frames, cfg.entropy, cfg.n_rollout) == (2_000_000, 0.005, 10_000)
+    for option in ("frames", "entropy", "n_rollout", "hidden", "critic_lr"):
+        flag = f"--{option.replace('_', '-')} {option.upper()}"
+        assert shown_default(text, flag) == str(getattr(cfg, option)), option
+    mixing = configure(PPOConfig, "mixing-v0")
+    text = help_of(PPOConfig, ["--env", "mixing-v0"], capsys)
+    assert shown_default(text, "--compile, --no-compile") == str(mixing.compile)
+    assert shown_default(text, "--collectors COLLECTORS") == "2" == str(mixing.collectors)
+    assert "mixing-v0's" in text and "runs/ppo/mixing-v0/seedSEED" in text
+    # without an env, the help says whose defaults it shows; no markup leaks
+    text = help_of(GradConfig, [], capsys)
+    assert "--env ENV with --help" in text and "``" not in text
+
+
+def test_a_recipe_prints_its_resolved_settings_at_start(tmp_path):
+    """What a run uses is printed before it starts, the budget's rounding to whole
+    rounds of collection included."""
+    proc = subprocess.run(
+        [sys.executable, "recipes/ppo.py", "--env", "vortex-v0", "--frames", "300", "--num-envs", "4"]
+        + ["--n-rollout", "200", "--epochs", "1", "--out", str(tmp_path), "--logger", "csv", "--no-progress"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    head = proc.stdout.split("ppo vortex-v0 seed 0")[0]
+    assert "ppo on vortex-v0, settings:" in head
+    assert "frames             300 (runs 400: whole rounds of 200 transitions)" in head
+    assert "critic_lr          0.001" in head and "norm_steps         64" in head  # vortex's own entries
+    assert checkpoint(tmp_path)["frames"] == 400
+
+
 def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
     out = tmp_path / "run"
     for seed in (0, 1):

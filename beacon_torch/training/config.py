@@ -19,7 +19,7 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.base import FlowEnv, _as_device
-from beacon_torch.params import check_params, parse_assignments
+from beacon_torch.params import check_params, parse_assignments, plain
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.run import CHECKPOINT, load_checkpoint
@@ -131,6 +131,10 @@ class Config:
     def tensorboard(self) -> bool | None:
         return {"auto": None, "csv": False, "tensorboard": True}[self.logger]
 
+    def per_round(self) -> int:
+        """The transitions collected per round of updates: a run collects whole rounds."""
+        return getattr(self, self.batch)
+
 
 @dataclass(frozen=True, kw_only=True)
 class PPOConfig(Config):
@@ -229,6 +233,9 @@ class GradConfig(Config):
     # a differentiated step is compiled substep by substep, not as one call; the
     # recorded runs are eager
     compile: bool = setting(False, "the env's compiled physics")
+
+    def per_round(self) -> int:
+        return self.num_envs * self.horizon
 
 
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, DQNConfig, GradConfig)}
@@ -391,38 +398,50 @@ def resumed(cfg: Config, given: dict) -> Config:
         raise ValueError(f"resuming {Path(cfg.out) / CHECKPOINT}: {err}") from None
 
 
+def _env_of(argv: list[str] | None) -> str | None:
+    """The env a command line names (before the whole line is parsed), if it is one."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--env")
+    known, _ = pre.parse_known_args(argv)
+    if known.env is None:
+        return None
+    try:
+        return beacon_torch.registry.resolve_id(known.env)
+    except (KeyError, ValueError, ImportError):
+        return None  # reported by the full parse
+
+
 def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
     """A run's settings from the command line: ``--env`` and any field as
     ``--name value`` (booleans as ``--name``/``--no-name``); what is not given takes the
-    env's default (``--help`` shows the defaults of envs without an entry in the
-    tables)."""
-    parser = argparse.ArgumentParser(description=(cls.__doc__ or "").strip())
+    env's default. ``--help`` after ``--env ENV`` shows the values that env's run uses."""
+    env_id = _env_of(argv)
+    values = {f.name: f.default for f in fields(cls) if f.default is not MISSING}
+    if env_id is not None:
+        values.update(defaults(cls, env_id), out=f"runs/{cls.algo}/{env_id}/seedSEED")
+        note = f"The defaults shown are {env_id}'s."
+    else:
+        note = (
+            "The defaults shown are those of an env without entries in the tables; give --env ENV with --help "
+            "for ENV's."
+        )
+    parser = argparse.ArgumentParser(description=f"{plain(cls.__doc__)} {note}")
     for f in fields(cls):
         flag = "--" + f.name.replace("_", "-")
-        default = None if f.default is MISSING else f.default
-        helptext = f.metadata.get("help", "")
+        default = values.get(f.name)
+        shown = default if f.name != "out" or default else "runs/ALGO/ENV/seedSEED"
+        helptext = f"{f.metadata.get('help', '')} (default: {shown})"
         if f.name == "env":
-            parser.add_argument(flag, required=True, help=helptext)
+            parser.add_argument(flag, required=True, help=f.metadata.get("help", ""))
         elif f.name == "params":
-            parser.add_argument("--param", dest="params", action="append", metavar="NAME=VALUE", help=helptext)
-        elif f.type == "bool":
             parser.add_argument(
-                flag,
-                dest=f.name,
-                action=argparse.BooleanOptionalAction,
-                default=None,
-                help=f"{helptext} (default: {default})",
+                "--param", dest="params", action="append", metavar="NAME=VALUE", help=f.metadata.get("help", "")
             )
+        elif f.type == "bool":
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=helptext)
         else:
             kind = {"int": int, "float": float, "str": str}[f.type]
-            parser.add_argument(
-                flag,
-                dest=f.name,
-                type=kind,
-                default=None,
-                metavar=f.name.upper(),
-                help=f"{helptext} (default: {default})",
-            )
+            parser.add_argument(flag, dest=f.name, type=kind, default=None, metavar=f.name.upper(), help=helptext)
     args = vars(parser.parse_args(argv))
     env_id = args.pop("env")
     try:
@@ -433,11 +452,28 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
         parser.error(str(err))
 
 
+def settings_text(cfg: Config) -> str:
+    """The resolved settings of a run, one per line, as a recipe prints them at its
+    start: what the run uses, whichever table, option or resumed checkpoint set it."""
+    lines = [f"{cfg.algo} on {cfg.env}, settings:"]
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.name == "env":
+            continue
+        text = f"{value:,}" if isinstance(value, int) and not isinstance(value, bool) else repr(value)
+        if f.name == "frames" and value % cfg.per_round():
+            rounded = -(-value // cfg.per_round()) * cfg.per_round()
+            text += f" (runs {rounded:,}: whole rounds of {cfg.per_round():,} transitions)"
+        lines.append(f"  {f.name:<18} {text}")
+    return "\n".join(lines)
+
+
 def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
     """A recipe run from the command line: its settings parsed, then ``main``; a bad
     run directory, a diverged training or a full disk end it with one line naming the
     problem (exit status 2), as a bad setting does."""
     cfg = parse(cls, argv)
+    print(settings_text(cfg), flush=True)
     try:
         main(cfg)
     except (ValueError, OSError) as err:
