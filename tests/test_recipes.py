@@ -524,6 +524,42 @@ def test_ray_collectors_train_on_a_local_ray_instance(tmp_path):
     assert ppo.main(cfg)["frames"] == 800
 
 
+def test_ray_local_is_an_instance_of_its_own_and_collectors_must_fit():
+    """'local' starts a Ray instance of the run's own even beside a running cluster
+    (joining one refuses num_cpus); collectors a cluster cannot place are refused, not
+    waited for forever."""
+    from beacon_torch.training.env import RAY_ACTOR_MEMORY, check_ray_fits, ray_init_config
+
+    assert ray_init_config("local", 3)["address"] == "local" and ray_init_config("local", 3)["num_cpus"] == 3
+    assert ray_init_config("auto", 3)["address"] == "auto" and "num_cpus" not in ray_init_config("auto", 3)
+    check_ray_fits({"CPU": 4.0, "memory": 8.0 * RAY_ACTOR_MEMORY}, 4)
+    with pytest.raises(ValueError, match="2 CPUs .* 16 collectors .* --collectors 2 or fewer"):
+        check_ray_fits({"CPU": 2.0, "memory": 64.0 * RAY_ACTOR_MEMORY}, 16)
+    with pytest.raises(ValueError, match="GiB"):
+        check_ray_fits({"CPU": 16.0, "memory": 1.0 * RAY_ACTOR_MEMORY}, 2)
+
+
+@pytest.mark.skipif(find_spec("ray") is None, reason="ray is not installed (pip install 'beacon-torch[ray]')")
+def test_ray_local_beside_a_running_cluster_and_too_many_collectors(tmp_path):
+    import subprocess
+
+    ray_bin = str(Path(sys.executable).parent / "ray")
+    subprocess.run([ray_bin, "start", "--head", "--num-cpus", "1"], check=True, capture_output=True)
+    try:
+        cfg = dict(frames=800, n_rollout=400, num_envs=4, epochs=1, collectors=2, progress=False)
+        assert ppo.main(configure(PPOConfig, "vortex-v0", ray="local", out=str(tmp_path / "a"), **cfg))["frames"] == 800
+        import ray
+
+        ray.shutdown()
+        with pytest.raises(ValueError, match="1 CPUs .* 2 collectors"):
+            ppo.main(configure(PPOConfig, "vortex-v0", ray="auto", out=str(tmp_path / "b"), **cfg))
+    finally:
+        import ray
+
+        ray.shutdown()
+        subprocess.run([ray_bin, "stop", "--force"], capture_output=True)
+
+
 @pytest.mark.skipif(find_spec("ray") is not None, reason="ray is installed")
 def test_ray_without_the_package_is_one_clear_error(tmp_path):
     cfg = configure(PPOConfig, "vortex-v0", num_envs=4, collectors=2, ray="local", out=str(tmp_path), progress=False)

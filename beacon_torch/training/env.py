@@ -121,11 +121,12 @@ def make_collector(
         return MultiSyncCollector(makers, policy, cat_results="stack", **kwargs, **local)
     if find_spec("ray") is None:
         raise ValueError("collection on Ray needs the ray package (pip install 'beacon-torch[ray]')")
+    import ray as ray_lib
     from torchrl.collectors.distributed import RayCollector
 
-    init = {"address": None if ray == "local" else ray, "ignore_reinit_error": True, "log_to_driver": False}
-    if ray == "local":
-        init["num_cpus"] = collectors
+    init = ray_init_config(ray, collectors)
+    ray_lib.init(**init)
+    check_ray_fits(ray_lib.cluster_resources(), collectors)
     return RayCollector(
         makers,
         policy,
@@ -133,7 +134,38 @@ def make_collector(
         num_collectors=collectors,
         sync=True,
         ray_init_config=init,
-        remote_configs={"num_cpus": 1, "memory": 2 * 1024**3},
+        remote_configs={"num_cpus": 1, "memory": RAY_ACTOR_MEMORY},
         collector_kwargs=local,
         update_after_each_batch=True,
     )
+
+
+# what each collector actor asks of the Ray cluster besides one CPU
+RAY_ACTOR_MEMORY = 2 * 1024**3
+
+
+def ray_init_config(ray: str, collectors: int) -> dict:
+    """``ray.init``'s arguments for ``--ray``: a cluster's address ("auto" finds the
+    running one), or "local": a new instance of this process's own with a CPU per
+    collector, even where a cluster runs beside it (``address=None`` would join that
+    cluster, which refuses ``num_cpus``)."""
+    common = {"ignore_reinit_error": True, "log_to_driver": False}
+    if ray == "local":
+        return {"address": "local", "num_cpus": collectors, **common}
+    return {"address": ray, **common}
+
+
+def check_ray_fits(resources: dict, collectors: int) -> None:
+    """Refuse collectors the cluster cannot place (each actor takes one CPU and
+    :data:`RAY_ACTOR_MEMORY`): Ray would wait for them forever, with no message."""
+    cpus, memory = resources.get("CPU", 0), resources.get("memory", 0)
+    if cpus < collectors:
+        raise ValueError(
+            f"the Ray cluster has {cpus:g} CPUs and each of the {collectors} collectors needs one: give "
+            f"--collectors {int(cpus)} or fewer, or a larger cluster"
+        )
+    if memory < collectors * RAY_ACTOR_MEMORY:
+        raise ValueError(
+            f"the Ray cluster has {memory / 2**30:.1f} GiB for tasks and each of the {collectors} collectors "
+            f"asks {RAY_ACTOR_MEMORY / 2**30:g} GiB: give fewer --collectors, or a larger cluster"
+        )
