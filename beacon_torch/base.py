@@ -327,6 +327,8 @@ class FlowEnv(EnvBase):
         self._warned_grad = False
         self.kernels = Kernels(self.inductor_options)
         self.history = History(record_history)
+        # a state given to set_state with a graph, not stepped yet: a reset would drop it
+        self._traced_start = False
         self._settle = self.kernels(settle)
         self._whole_step = self.kernels(self._step_core)
         if not differentiable:
@@ -692,6 +694,7 @@ class FlowEnv(EnvBase):
             obs = self.observe(state)
         self._state, self._obs = _standard(state, obs)
         self._count = count.expand(self.batch_size).clone()
+        self._traced_start = self.differentiable and bool(traced)
         return self._obs
 
     # ------------------------------------------------------------------ the step itself
@@ -716,6 +719,14 @@ class FlowEnv(EnvBase):
                     f"({self.num_envs}), got shape {tuple(mask.shape)}"
                 )
             mask = mask.reshape(self.batch_size).to(self.device)
+        if self._traced_start and (mask is None or bool(mask.any())):
+            warnings.warn(
+                f"{self.env_id}: this reset replaces the state given to set_state, and with it the gradient "
+                f"with respect to that state; env.rollout resets first unless told not to: "
+                f"env.rollout(n, policy, auto_reset=False, tensordict=env.current())",
+                stacklevel=2,
+            )
+            self._traced_start = False
         with torch.no_grad():
             init = self.initial_state(mask)
         if type(init) is not self.state_type:
@@ -797,6 +808,7 @@ class FlowEnv(EnvBase):
         if self.check_actions and not bool(valid):
             self._refuse_values(action)
         self._state, self._obs, self._count = new, obs, count
+        self._traced_start = False
         self.history.append(new)
         return obs, reward, terminated, truncated
 
@@ -928,7 +940,17 @@ class FlowEnv(EnvBase):
 
     # ------------------------------------------------------------------ TorchRL API
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
-        obs = self.reset_members(None if tensordict is None else tensordict.get("_reset", None))
+        self.reset_members(None if tensordict is None else tensordict.get("_reset", None))
+        return self.current()
+
+    def current(self) -> TensorDictBase:
+        """The members' current observation as :meth:`reset` returns it, without
+        resetting: where ``rollout(n, policy, auto_reset=False, tensordict=env.current())``
+        starts, e.g. from a state given to :meth:`set_state` (whose gradient a reset
+        would lose)."""
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() or set_state() before current()")
+        obs = self._obs
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return TensorDict(
             {**self._pack(obs, None), "done": false, "terminated": false.clone(), "truncated": false.clone()},

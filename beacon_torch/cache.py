@@ -98,7 +98,19 @@ def cached(name: str, key: dict, compute: Callable[[], State], like: State) -> S
             if state is not None:
                 break
     if state is None:
+        # minutes for a developed start: said before, and how long it took after
+        import sys
+        import time
+
+        where = ", ".join(f"{k}={v}" for k, v in key.items() if k != "version")
+        print(
+            f"beacon-torch: generating the {name} start ({where}) once; it is cached in {cache_dir()}",
+            file=sys.stderr,
+            flush=True,
+        )
+        began = time.perf_counter()
         state = type(like)(*(v.detach().cpu() for v in compute()))
+        print(f"beacon-torch: {name} generated in {time.perf_counter() - began:.0f} s", file=sys.stderr, flush=True)
         try:
             save(state, cache_dir() / fname)
         except OSError:

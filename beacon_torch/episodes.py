@@ -24,20 +24,39 @@ def random_policy(env: FlowEnv, seed: int = 0) -> Policy:
     return lambda td: td.set(env.action_key, env.random_action(g))
 
 
-def episode(env: FlowEnv, policy: Policy, *, frame_hook: Callable[[int], None] | None = None) -> TensorDictBase:
+def episode(
+    env: FlowEnv,
+    policy: Policy,
+    *,
+    frame_hook: Callable[[int], None] | None = None,
+    progress: str | None = None,
+) -> TensorDictBase:
     """One full episode of every batch member, as TorchRL's ``rollout`` returns it
-    (``[batch, episode_length]``). ``frame_hook(step)`` runs after each step (rendering)."""
-    callback = None
-    if frame_hook is not None:
-        callback = lambda env_, td: frame_hook(int(env_.step_count[env_.render_index]))
-    return env.rollout(
-        env.episode_length,
-        policy=policy,
-        break_when_any_done=False,
-        # members whose episode ended (a blow-up) stop stepping; the others go on
-        break_when_all_done=True,
-        callback=callback,
-    )
+    (``[batch, episode_length]``). ``frame_hook(step)`` runs after each step (rendering);
+    ``progress``: a progress bar (on stderr) with this title."""
+    with progress_bar(progress, env.episode_length) as bar:
+
+        def callback(env_, td):
+            bar.update()
+            if frame_hook is not None:
+                frame_hook(int(env_.step_count[env_.render_index]))
+
+        return env.rollout(
+            env.episode_length,
+            policy=policy,
+            break_when_any_done=False,
+            # members whose episode ended (a blow-up) stop stepping; the others go on
+            break_when_all_done=True,
+            callback=callback,
+        )
+
+
+def progress_bar(title: str | None, actions: int):
+    """A progress bar over ``actions`` steps, on stderr and gone when done; a bar that
+    shows nothing when ``title`` is None."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=actions, desc=title, unit="actions", leave=False, disable=title is None)
 
 
 def step_rewards(rollout: TensorDictBase) -> torch.Tensor:

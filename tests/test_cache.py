@@ -55,3 +55,17 @@ def test_a_damaged_cache_file_is_reported_and_computed_again(damage, tmp_path, m
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # healed: no warning the next time
         beacon_torch.make("sloshing-v0", 2, L=L).reset()
+
+
+def test_generating_a_start_says_so_before_and_after(tmp_path, monkeypatch, capsys):
+    """A start generated from the equations can take minutes: the user is told before
+    it starts and how long it took, once; a later make reads the cache silently."""
+    monkeypatch.setenv("BEACON_TORCH_CACHE", str(tmp_path))
+    monkeypatch.setattr(cache, "_memory", {})
+    beacon_torch.make("sloshing-v0", 1, L=L).reset()
+    err = capsys.readouterr().err
+    assert "generating the sloshing-excited start (L=0.5" in err and str(tmp_path) in err
+    assert "sloshing-excited generated in" in err
+    monkeypatch.setattr(cache, "_memory", {})
+    beacon_torch.make("sloshing-v0", 1, L=L).reset()
+    assert "generating" not in capsys.readouterr().err

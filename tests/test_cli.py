@@ -59,6 +59,9 @@ def test_list_and_console_script():
         [sys.executable, "-m", "beacon_torch.cli", "list"], capture_output=True, text=True, check=True
     )
     assert "lorenz-v0: 3 discrete actions" in proc.stdout and "rho = 28.0" in proc.stdout
+    # defaults as the env resolves them, ranges as make() enforces them
+    assert "start = 'published'" in proc.stdout and "start = None" not in proc.stdout
+    assert "ctrl_pos = 1.0  [0.024, 99.992]" in proc.stdout
 
 
 def test_version_module_entry_and_plain_help():
@@ -86,3 +89,14 @@ def test_the_package_declares_its_type_hints():
 
     project = tomllib.loads((root.parent / "pyproject.toml").read_text())
     assert "py.typed" in project["tool"]["setuptools"]["package-data"]["beacon_torch"]
+
+
+def test_eval_and_run_show_progress(tmp_path, capsys):
+    """Episodes of a slow env take minutes: eval and run show a bar per episode."""
+    assert main(["eval", "--pretrained", "ppo/vortex-v0", "--num-envs", "1", "--no-gif"]) == 0
+    err = capsys.readouterr().err
+    assert "vortex-v0 controlled" in err and "vortex-v0 uncontrolled" in err and "actions" in err
+    assert main(["run", "lorenz-v0", "--num-envs", "2", "--out", str(tmp_path)]) == 0
+    captured = capsys.readouterr()
+    assert "lorenz-v0 uncontrolled" in captured.err and "lorenz-v0 random" in captured.err
+    assert "500 steps in float64" in captured.out  # the default dtype, said

@@ -41,6 +41,29 @@ def test_gradient_with_respect_to_the_initial_state():
     assert relative((grad * direction).sum(), (plus - minus) / (2 * h)) < REL
 
 
+def test_a_rollout_from_a_state_given_to_set_state():
+    """rollout resets first, which drops the state given to set_state and its gradient:
+    said by a warning; auto_reset=False from env.current() keeps it."""
+    import warnings
+
+    env = beacon_torch.make("lorenz-continuous-v0", dtype=F64, differentiable=True, reward_width=2.0)
+    start = generic_start(env, 10)
+    xyz = start.xyz.clone().requires_grad_()
+    env.set_state(start._replace(xyz=xyz))
+    with pytest.warns(UserWarning, match="auto_reset=False, tensordict=env.current()"):
+        env.rollout(3)
+    env.set_state(start._replace(xyz=xyz))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rollout = env.rollout(15, auto_reset=False, tensordict=env.current())
+    (grad,) = torch.autograd.grad(rollout["next", "reward"].sum(), xyz)
+    assert grad.abs().sum() > 0
+    env.set_state(start)  # no graph to lose: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env.rollout(2)
+
+
 def rollout_gradient(checkpoint, steps=12):
     env = beacon_torch.make(
         "burgers-v0", batch_size=3, dtype=F64, seed=2, differentiable=True, grad_checkpoint=checkpoint

@@ -73,6 +73,20 @@ def test_export_folds_the_normalisation_into_the_first_layer(shipped):
     assert pretrained.info("ppo/vortex-v0")["score"] == 1.0
 
 
+def test_the_readme_snippet_runs_without_a_warning():
+    """A shipped policy is frozen for evaluation: its actions carry no graph that a
+    plain env would have to drop (and warn about)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        policy = pretrained.load("ppo/sloshing-v0")
+        rollout = beacon_torch.make("sloshing-v0", 2).rollout(5, policy)
+    assert rollout.shape == (2, 5) and not any(p.requires_grad for p in policy.parameters())
+    policy.requires_grad_(True)  # fine-tuning, as documented
+    assert all(p.requires_grad for p in policy.parameters())
+
+
 def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, capsys):
     assert cli(["eval", "--pretrained", "ppo/vortex-v0", "--num-envs", "2", "--out", str(tmp_path)]) == 0
     assert "pretrained ppo" in capsys.readouterr().out and (tmp_path / "ppo" / "vortex-v0.gif").stat().st_size > 1000

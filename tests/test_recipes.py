@@ -268,6 +268,8 @@ def test_a_recipe_prints_its_resolved_settings_at_start(tmp_path):
     assert "frames             300 (runs 400: whole rounds of 200 transitions)" in head
     assert "critic_lr          0.001" in head and "norm_steps         64" in head  # vortex's own entries
     assert checkpoint(tmp_path)["frames"] == 400
+    # without the bar, the summary and the curve's line are still printed
+    assert "ppo vortex-v0 seed 0" in proc.stdout and "learning curve" in proc.stdout
 
 
 def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
@@ -294,10 +296,27 @@ def test_eval_and_plot_round_trip_a_run(tmp_path, capsys):
     assert cli(["plot", str(out), "--scalar", "reward", "--out", str(png)]) == 0
     assert png.stat().st_size > 10_000
     # nothing ended within 400 transitions: the episode-score curve has nothing to draw
-    assert cli(["plot", str(out), "--out", str(png)]) == 2
+    assert cli(["plot", str(out), "--out", str(tmp_path / "scores.png")]) == 2
     assert "episode_score" in capsys.readouterr().err
     assert cli(["eval", str(tmp_path / "nothing")]) == 2
     assert "not a run directory" in capsys.readouterr().err
+
+
+def test_plot_draws_a_panel_per_env_and_shows_a_one_point_series(tmp_path, monkeypatch):
+    from beacon_torch.training import evaluation
+
+    runs = []
+    for env_id in ("vortex-v0", "lorenz-v0"):
+        runs.append(tmp_path / env_id)
+        tiny = dict(frames=200, num_envs=4, n_rollout=200, epochs=1, progress=False, logger="csv")
+        ppo.main(configure(PPOConfig, env_id, out=str(runs[-1]), **tiny))
+    figures = []
+    monkeypatch.setattr(evaluation, "save_figure", lambda fig, path: figures.append(fig))
+    evaluation.plot_runs(runs, tmp_path / "curves.png", name="reward")
+    (fig,) = figures
+    assert [ax.get_title() for ax in fig.axes] == ["vortex-v0", "lorenz-v0"]
+    for ax in fig.axes:  # one round logged: a point with its spread, not a line of no length
+        assert "o" in [line.get_marker() for line in ax.lines]
 
 
 TINY = dict(

@@ -42,13 +42,14 @@ class BurgersParams:
     u_target: float = param(0.5, low=0.0, high=10.0, low_open=True, doc="mean inflow and target velocity")
     sigma: float = param(0.1, low=0.0, high=10.0, doc="half-width of the uniform inlet noise")
     amp: float = param(10.0, low=0.0, high=1e8, doc="actuator amplitude (action scaling)")
+    # past the sensors upstream of it and two cells before the outlet (the longest
+    # domain's outlet here; the domain's own is checked below)
     ctrl_pos: float = param(
         1.0,
-        low=0.0,
-        high=100.0,
-        low_open=True,
+        low=0.024,
+        high=99.992,
         per_member=False,
-        doc="actuator position x_p (cell int(x_p / dx)), in [0.024, L - 0.008]",
+        doc="actuator position x_p (cell int(x_p / dx)), at most L - 0.008",
     )
 
     def __post_init__(self):

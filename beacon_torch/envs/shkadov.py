@@ -245,7 +245,9 @@ def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float 
     state = flat_state(1, n, 1, torch.float64, device)
     profiles = torch.zeros((1, n - 2), dtype=torch.float64, device=device)
     zero = torch.zeros((1, 1), dtype=torch.float64, device=device)
-    for _ in range(int(round(time / (DT * SUBSTEPS)))):
+    from tqdm.auto import tqdm
+
+    for _ in tqdm(range(int(round(time / (DT * SUBSTEPS)))), desc="shkadov film", unit="actions", leave=False):
         state = run_action(state, zero, profiles, delta, DX, inlet_noise(g, 1, torch.float64, device))
     return Film(h=state.h[0], q=state.q[0])
 

@@ -16,6 +16,8 @@ raw observations of ``beacon_torch.make``: the observation normalisation a train
 is folded into the network's first layer. A file holds tensors, numbers and strings
 only, read with ``torch.load(weights_only=True)`` and checked (known env and network,
 finite weights); ``load`` reads only the shipped files, ``load_file`` a file you name.
+Its weights come frozen (``requires_grad`` off, as for evaluation); call
+``policy.requires_grad_(True)`` to fine-tune it.
 """
 
 from __future__ import annotations
@@ -180,4 +182,6 @@ def load_file(path: str | Path, env_id: str | None = None, *, device="cpu") -> T
             )
 
     first.register_forward_pre_hook(check)
-    return policy.to(device).eval()
+    # frozen: its actions carry no graph into an env that is not differentiable (which
+    # would warn that their gradient is dropped); requires_grad_(True) to fine-tune
+    return policy.to(device).eval().requires_grad_(False)

@@ -35,11 +35,13 @@ def evaluate_policy(
     gif: str | Path | None = None,
     seed: int = EVAL_SEED,
     params: dict | None = None,
+    progress: bool = False,
 ) -> dict:
     """``policy``, deterministic, on ``num_envs`` episodes of ``env_id`` with the physical
     ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
     ``ObservationNorm`` state; None: raw), next to the uncontrolled score of the same
-    episodes; ``gif``: an animation of member 0's episode."""
+    episodes; ``gif``: an animation of member 0's episode; ``progress``: progress bars
+    of the two episodes on stderr."""
     params = params or {}
     env = make_env(
         env_id,
@@ -55,18 +57,22 @@ def evaluate_policy(
     frames = []
     every = max(1, base.episode_length // 100)
 
+    bar = episodes.progress_bar(f"{env_id} controlled" if progress else None, base.episode_length)
+
     def grab(env_, td):
+        bar.update()
         step = int(base.step_count[base.render_index])
         if gif is not None and step % every == 0:
             frames.append(base.render())
 
-    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad(), bar:
         rollout = env.rollout(
             base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab
         )
     controlled = episodes.scores(rollout)
     ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params)  # the same episodes
-    uncontrolled = episodes.scores(episodes.episode(ref, episodes.null_policy(ref)))
+    title = f"{env_id} uncontrolled" if progress else None
+    uncontrolled = episodes.scores(episodes.episode(ref, episodes.null_policy(ref), progress=title))
     out = {
         "env": env_id,
         "score_mean": controlled.mean().item(),
@@ -82,7 +88,13 @@ def evaluate_policy(
 
 
 def evaluate_run(
-    run: str | Path, *, num_envs: int = 8, device="cpu", gif: str | Path | None = None, seed: int = EVAL_SEED
+    run: str | Path,
+    *,
+    num_envs: int = 8,
+    device="cpu",
+    gif: str | Path | None = None,
+    seed: int = EVAL_SEED,
+    progress: bool = False,
 ) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
     device = _as_device(device)  # before the policy is moved there
@@ -92,7 +104,15 @@ def evaluate_run(
     actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
     actor.load_state_dict(state["modules"]["actor"])
     result = evaluate_policy(
-        state["env"], actor, norm=state["obs_norm"], num_envs=num_envs, device=device, gif=gif, seed=seed, params=params
+        state["env"],
+        actor,
+        norm=state["obs_norm"],
+        num_envs=num_envs,
+        device=device,
+        gif=gif,
+        seed=seed,
+        params=params,
+        progress=progress,
     )
     return {**result, "frames": state["frames"]}
 
@@ -107,53 +127,58 @@ def read_scalar(run: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_score") -> Path:
-    """The paper-style figure: per run directory, the mean and standard deviation over
-    its seeds of ``name`` against transitions (each seed interpolated on a common
-    grid), with the env's uncontrolled score dashed."""
+    """The paper-style figure, one panel per env: per run directory, the mean and
+    standard deviation over its seeds of ``name`` against transitions (each seed
+    interpolated on a common grid), with the env's uncontrolled score dashed. A series
+    of one logged point is drawn as a point with its spread."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(7, 4), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    envs = set()
-    for k, run in enumerate(runs):
+    by_env: dict[str, list] = {}
+    for run in runs:
         seeds = seed_dirs(run)
         state = load_checkpoint(seeds[0])
-        envs.add(state["env"])
-        curves = [read_scalar(s, name) for s in seeds]
-        curves = [c for c in curves if len(c[0])]
+        curves = [c for c in (read_scalar(s, name) for s in seeds) if len(c[0])]
         if not curves:
             raise ValueError(f"{run}: no '{name}' logged yet (no episode has ended)")
-        grid = np.linspace(max(c[0][0] for c in curves), min(c[0][-1] for c in curves), 100)
-        values = np.stack([np.interp(grid, s, v) for s, v in curves])
-        mean, std = values.mean(0), values.std(0)
-        label = f"{state['algo']} {Path(run).name} ({len(curves)} seed{'s' if len(curves) > 1 else ''})"
-        ax.plot(grid, mean, color=f"C{k}", label=label)
-        ax.fill_between(grid, mean - std, mean + std, color=f"C{k}", alpha=0.25, lw=0)
-    for env_id in envs:
-        # in the recipes' float32 (chaotic lorenz-v0 scores 238 there, 207 in float64);
-        # one episode where the physics is deterministic, else the mean of 16
-        num_envs = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
-        ref = beacon_torch.make(env_id, num_envs, seed=0)
-        ax.axhline(
-            episodes.scores(episodes.episode(ref, episodes.null_policy(ref))).mean().item(),
-            color="k",
-            ls="--",
-            lw=1,
-            label=f"{env_id} uncontrolled (float32)",
-        )
-    ax.set_xlabel("transitions")
-    ax.set_ylabel(name.replace("_", " "))
-    ax.set_title(", ".join(sorted(envs)))
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+        by_env.setdefault(state["env"], []).append((run, state["algo"], curves))
+    fig = Figure(figsize=(7, 4 * len(by_env)), dpi=100)
+    FigureCanvasAgg(fig)
+    k = 0
+    for panel, (env_id, env_runs) in enumerate(by_env.items()):
+        ax = fig.add_subplot(len(by_env), 1, panel + 1)
+        for run, algo, curves in env_runs:
+            grid = np.linspace(max(c[0][0] for c in curves), min(c[0][-1] for c in curves), 100)
+            values = np.stack([np.interp(grid, s, v) for s, v in curves])
+            mean, std = values.mean(0), values.std(0)
+            label = f"{algo} {Path(run).name} ({len(curves)} seed{'s' if len(curves) > 1 else ''})"
+            if grid[0] == grid[-1]:  # one point: a line of no length would not show
+                ax.errorbar(grid[:1], mean[:1], yerr=std[:1], fmt="o", color=f"C{k}", capsize=3, label=label)
+            else:
+                ax.plot(grid, mean, color=f"C{k}", label=label)
+                ax.fill_between(grid, mean - std, mean + std, color=f"C{k}", alpha=0.25, lw=0)
+            k += 1
+        ax.axhline(_uncontrolled(env_id), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled (float32)")
+        ax.set_xlabel("transitions")
+        ax.set_ylabel(name.replace("_", " "))
+        ax.set_title(env_id)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
     return Path(path)
 
 
-def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None = None) -> dict:
+def _uncontrolled(env_id: str) -> float:
+    """The uncontrolled score drawn beside curves: in the recipes' float32 (chaotic
+    lorenz-v0 scores 238 there, 207 in float64); one episode where the physics is
+    deterministic, else the mean of 16."""
+    num_envs = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
+    ref = beacon_torch.make(env_id, num_envs, seed=0)
+    return episodes.scores(episodes.episode(ref, episodes.null_policy(ref))).mean().item()
+
+
+def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None = None, progress: bool = False) -> dict:
     """A run directory's results, also written to ``root/summary.json``: per seed, the
     deterministic policy's score on ``num_envs`` fresh episodes and the mean score of
     the training episodes that ended in the last tenth of the transitions; their mean
@@ -164,7 +189,7 @@ def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None 
     per_seed = []
     for run in seeds:
         state = load_checkpoint(run)
-        ev = evaluate_run(run, num_envs=num_envs, gif=None)
+        ev = evaluate_run(run, num_envs=num_envs, gif=None, progress=progress)
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
         per_seed.append(

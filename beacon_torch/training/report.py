@@ -120,9 +120,9 @@ def read(file: str | Path) -> dict:
     return check_summary(summary, file)
 
 
-def summaries(run_dirs) -> list[dict]:
+def summaries(run_dirs, progress: bool = False) -> list[dict]:
     """The summary of each run directory (a ``summary.json`` file, or a directory
-    holding one or to be summarised), checked."""
+    holding one or to be summarised, with progress bars if ``progress``), checked."""
     out = []
     for run in map(Path, run_dirs):
         if run.is_file():
@@ -130,7 +130,7 @@ def summaries(run_dirs) -> list[dict]:
         elif (run / "summary.json").is_file():
             out.append(read(run / "summary.json"))
         else:
-            out.append(check_summary(summarise(run), run / "summary.json"))
+            out.append(check_summary(summarise(run, progress=progress), run / "summary.json"))
     if not out:
         raise ValueError("no summaries to report")
     return out
@@ -179,11 +179,13 @@ def figure(rows: list[dict], path: str | Path) -> Path:
     return Path(path)
 
 
-def report(run_dirs, md: str | Path, numbers: str | Path, png: str | Path, *, replace: bool = False) -> dict:
+def report(
+    run_dirs, md: str | Path, numbers: str | Path, png: str | Path, *, replace: bool = False, progress: bool = False
+) -> dict:
     """The protocol's table (``md``), numbers (``numbers``, JSON) and figure (``png``)
     of the run directories: new files, or with ``replace`` (the results page's own
     generated files) in place of earlier ones."""
-    rows = [row(s) for s in summaries(run_dirs)]
+    rows = [row(s) for s in summaries(run_dirs, progress)]
     text = table(rows)
     for path in (md, numbers, png):
         Path(path).parent.mkdir(parents=True, exist_ok=True)

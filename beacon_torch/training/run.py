@@ -509,17 +509,17 @@ class Run:
 
     def close(self, save) -> dict[str, Any]:
         """End the run: the last checkpoint (``save()``), the loggers flushed, the lock
-        released and, with a progress bar, the learning curve drawn into
-        ``learning_curve.png``. Returns the last logged values and the transitions
-        collected."""
+        released, the progress bar closed, the last values printed and the learning
+        curve drawn into ``learning_curve.png``. Returns the last logged values and the
+        transitions collected."""
+        from beacon_torch.training.evaluation import learning_curve
+
         save()
         self.lock.release()
         for logger in self.loggers[1:]:
             logger.experiment.flush()
         if self.bar is not None:
-            from beacon_torch.training.evaluation import learning_curve
-
             self.bar.close()
-            print(f"{self.algo} {self.env_id} seed {self.seed}: {self.last} -> {self.out}")
-            print(learning_curve(self.out))
+        print(f"{self.algo} {self.env_id} seed {self.seed}: {self.last} -> {self.out}")
+        print(learning_curve(self.out))
         return self.last
