@@ -806,6 +806,30 @@ def test_settings_follow_the_papers_runs_where_its_table_is_silent():
         configure(PPOConfig, "lorenz-v0", critic_optim="sgd")
 
 
+def test_the_protocol_is_rliables_from_scipy_on_the_recorded_runs():
+    """The IQM and its interval are scipy's (rliable's definitions), and the results
+    page shows what they give on the recorded runs."""
+    import numpy as np
+    from scipy import stats
+
+    from beacon_torch.training import report
+
+    files = sorted((ROOT / "docs" / "results").glob("*/*.json"))
+    rows = [report.row(s) for s in report.summaries(files)]
+    for r in rows:
+        x = np.array(r["normalised"])
+        assert r["iqm"] == stats.trim_mean(x, 0.25)
+        ci = stats.bootstrap(
+            (x,),
+            lambda v, axis=-1: stats.trim_mean(v, 0.25, axis=axis),
+            n_resamples=10_000,
+            method="percentile",
+            rng=np.random.default_rng(0),
+        ).confidence_interval
+        assert r["ci"] == (ci.low, ci.high)
+    assert report.table(rows) in (ROOT / "docs" / "results.md").read_text()
+
+
 def test_report_normalises_scores_and_bounds_their_interquartile_mean(tmp_path, capsys):
     from beacon_torch.training import report
 
