@@ -175,3 +175,17 @@ def test_async_vector_env_without_a_main_guard_as_documented(tmp_path):
     proc = run_python(code, tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.split() == ["ok", "(2,", "6)"]
+
+
+def test_record_video_writes_an_episode(tmp_path):
+    """gymnasium's RecordVideo on our frames (the 'video' extra: moviepy)."""
+    pytest.importorskip("moviepy")
+    env = gymnasium.make("beacon/lorenz-v0", render_mode="rgb_array", max_episode_steps=10, compile=False)
+    env = gymnasium.wrappers.RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda episode: True)
+    env.reset(seed=0)
+    truncated = False
+    while not truncated:
+        *_, truncated, _ = env.step(1)
+    env.close()
+    (video,) = (tmp_path / "videos").glob("*.mp4")
+    assert video.stat().st_size > 1000

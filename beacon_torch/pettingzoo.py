@@ -1,0 +1,123 @@
+"""PettingZoo's parallel API for the multi-agent layouts (``shkadov-separable-v0``):
+:class:`BeaconParallelEnv`, each agent a jet of one batch member.
+
+    from beacon_torch.pettingzoo import parallel_env   # pip install "beacon-torch[pettingzoo]"
+
+    env = parallel_env("shkadov-separable-v0", n_jets=5)
+    observations, infos = env.reset(seed=0)
+    while env.agents:
+        actions = {agent: env.action_space(agent).sample() for agent in env.agents}
+        observations, rewards, terminations, truncations, infos = env.step(actions)
+
+The agents (``jet_0`` ... ``jet_{n-1}``) act together on one film: each observes the
+flow rate upstream of its jet, sets its jet's strength in ``[-1, 1]`` and is rewarded
+by the flatness downstream of it (their mean is the single-agent ``shkadov-v0``
+reward). An episode ends for all of them at once, at the episode length or when the
+film blows up. The step is :meth:`FlowEnv.step_members` of a batch of one, the code of
+TorchRL's ``step`` (checks, blow-ups, trajectories bit for bit). PettingZoo's
+``parallel_api_test`` passes (tested).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from beacon_torch.base import FlowEnv
+from beacon_torch.registry import env_class, list_envs, make
+
+
+def multi_agent_envs() -> list[str]:
+    """The ids whose envs have the multi-agent layout (agents under ``"agents"``)."""
+    return [e for e in list_envs() if _is_multi_agent(env_class(e))]
+
+
+def _is_multi_agent(cls: type[FlowEnv]) -> bool:
+    return isinstance(cls.action_key, tuple) and cls.action_key[0] == "agents"
+
+
+class BeaconParallelEnv(ParallelEnv):
+    """PettingZoo's ``ParallelEnv`` over one member of a multi-agent env (see the
+    module's docstring). Physical parameters and the env's options are keywords, as
+    in :func:`beacon_torch.make`."""
+
+    metadata = {"name": "beacon_parallel_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
+
+    def __init__(
+        self,
+        env_id: str = "shkadov-separable-v0",
+        render_mode: str | None = None,
+        dtype: Any = "float32",
+        device: Any = "cpu",
+        **params: Any,
+    ):
+        if not _is_multi_agent(env_class(env_id)):
+            raise ValueError(
+                f"{env_id} has one agent; PettingZoo's API is for the multi-agent layouts: {multi_agent_envs()}"
+            )
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.env = make(env_id, 1, dtype=dtype, device=device, record_history=render_mode is not None, **params)
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "name": env_id.replace("-", "_")}
+        obs_spec = self.env.full_observation_spec[self.env.observation_key]
+        n_agents, n_obs = obs_spec.shape[1:]
+        self.possible_agents = [f"jet_{i}" for i in range(n_agents)]
+        self.agents: list[str] = []
+        np_dtype = np.float64 if self.env.dtype == torch.float64 else np.float32
+        self._observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np_dtype)
+        self._action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np_dtype)
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._observation_space
+
+    def action_space(self, agent: str) -> spaces.Box:
+        return self._action_space
+
+    def _observations(self, obs: torch.Tensor) -> dict[str, np.ndarray]:
+        values = obs[0].detach().cpu().numpy().astype(self._observation_space.dtype)
+        return {agent: values[i] for i, agent in enumerate(self.possible_agents)}
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self.env.set_seed(seed)
+        obs = self.env.reset_members()
+        self.agents = list(self.possible_agents)
+        return self._observations(obs), {agent: {} for agent in self.agents}
+
+    def step(self, actions: dict[str, Any]):
+        if not self.agents:
+            raise RuntimeError(f"{self.env.env_id}: the episode has ended; call reset()")
+        missing = [agent for agent in self.agents if agent not in actions]
+        if missing:
+            raise ValueError(f"{self.env.env_id}: no action for {missing}; every agent acts at each step")
+        action = np.stack([np.asarray(actions[agent], dtype=np.float64).reshape(1) for agent in self.possible_agents])
+        obs, reward, terminated, truncated = self.env.step_members(torch.as_tensor(action)[None])
+        rewards = reward[0].detach().cpu().to(torch.float64).numpy()
+        ended_by = (bool(terminated[0]), bool(truncated[0]))
+        agents = self.agents
+        out = (
+            self._observations(obs),
+            {agent: float(rewards[i]) for i, agent in enumerate(agents)},
+            {agent: ended_by[0] for agent in agents},
+            {agent: ended_by[1] for agent in agents},
+            {agent: {} for agent in agents},
+        )
+        if any(ended_by):
+            self.agents = []
+        return out
+
+    def render(self):
+        return self.env.render() if self.render_mode == "rgb_array" else None
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def parallel_env(env_id: str = "shkadov-separable-v0", **kwargs: Any) -> BeaconParallelEnv:
+    """PettingZoo's conventional constructor: :class:`BeaconParallelEnv`."""
+    return BeaconParallelEnv(env_id, **kwargs)
