@@ -6,10 +6,10 @@ import torch
 
 pytest.importorskip("pettingzoo")
 
-from pettingzoo.test import parallel_api_test  # noqa: E402
+from pettingzoo.test import parallel_api_test
 
-import beacon_torch  # noqa: E402
-from beacon_torch.pettingzoo import BeaconParallelEnv, multi_agent_envs, parallel_env  # noqa: E402
+import beacon_torch
+from beacon_torch.pettingzoo import BeaconParallelEnv, multi_agent_envs, parallel_env
 
 FAST = {"random_start": 3}  # few uncontrolled actions at each reset
 
