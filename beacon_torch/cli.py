@@ -138,7 +138,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             if step % every == 0 and step < env.episode_length:
                 frames.append(env.render())
 
-        episodes.episode(env, episodes.null_policy(env), frame_hook=grab)
+        episodes.episode(env, episodes.null_policy(env), frame_hook=grab, progress=f"{args.env} animation")
         frames.append(env.render())  # the end of the episode, whatever the stride
         gif = save_animation(frames, gif)
         print(f"animation ({len(frames)} frames of the uncontrolled episode): {gif}")

@@ -11,6 +11,8 @@ For every env, random actions (fixed seed) through
   action's checks and the bookkeeping; compiled, the one compiled call), the floor of
   any wrapper: what the lean step costs beyond it is the adapter's share.
 
+Each path is timed by ``torch.utils.benchmark`` after a warm-up that steps until a step
+compiles nothing new; graphs compiled while timing are reported (``recompiles``).
 Prints a markdown table and writes a new ``single_env-DATE-TIME.json`` to ``--out``. The numbers in
 benchmarks/RESULTS.md come from this script, run on an otherwise idle machine.
 """
@@ -19,43 +21,37 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import gymnasium
 import numpy as np
 import torch
+import torch.utils.benchmark as benchmark
 from tensordict import TensorDict
 
-from beacon_torch.bench import machine, save_rows
+from beacon_torch.bench import compiled_graphs, machine, save_rows, warm_up
 from beacon_torch.registry import base_envs, env_class
 
 ENVS = base_envs()  # the seven benchmark envs
 
 
-def rates(steps: dict, seconds: float, repeats: int) -> dict:
-    """Median steps per second of each of ``steps`` (name -> function), the repeats of
-    the paths alternating so that they are measured side by side, each run about
-    ``seconds`` long (at least 2 steps). A warm-up of ``seconds`` per path first: it
-    compiles, and lets the compiler's worker processes finish."""
+def rates(steps: dict, seconds: float, repeats: int) -> tuple[dict, int]:
+    """Median steps per second of each of ``steps`` (name -> function), timed by
+    ``torch.utils.benchmark`` with the repeats of the paths alternating, so that they are
+    measured side by side, each run about ``seconds`` long (at least 2 steps). Each path
+    is first warmed up until a step compiles nothing new; the graphs compiled while
+    timing are returned beside the rates (0 when the compiled code was stable)."""
+    timers = {}
     counts = {}
     for name, step in steps.items():
-        start, n = time.perf_counter(), 0
-        while n < 3 or time.perf_counter() - start < seconds:
-            step()
-            n += 1
-        start, n = time.perf_counter(), 0
-        while n < 2 or time.perf_counter() - start < 0.2 * seconds:
-            step()
-            n += 1
-        counts[name] = max(2, int(seconds * n / (time.perf_counter() - start)))
+        warm_up(step)
+        timers[name] = benchmark.Timer(stmt="step()", globals={"step": step}, num_threads=torch.get_num_threads())
+        counts[name] = max(2, int(seconds / timers[name].timeit(3).median))
+    graphs = compiled_graphs()
     measured = {name: [] for name in steps}
     for _ in range(repeats):
-        for name, step in steps.items():
-            start = time.perf_counter()
-            for _ in range(counts[name]):
-                step()
-            measured[name].append(counts[name] / (time.perf_counter() - start))
-    return {name: statistics.median(r) for name, r in measured.items()}
+        for name, timer in timers.items():
+            measured[name].append(1.0 / timer.timeit(counts[name]).median)
+    return {name: statistics.median(r) for name, r in measured.items()}, compiled_graphs() - graphs
 
 
 def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
@@ -98,12 +94,13 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
         with torch.no_grad():
             env._whole_step(frozen["state"], frozen["obs"], frozen["action"], frozen["count"], frozen["noise"], None)
 
-    measured = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
+    measured, recompiles = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
     return {
         "env": env_id,
         "mode": "compiled" if compiled else "eager",
         "published": env_class(env_id).published_speed,
         **measured,
+        "recompiles": recompiles,
     }
 
 
@@ -121,9 +118,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     print(f"# {machine()}")
     print(
-        "| env | mode | gymnasium (lean) /s | TorchRL step /s | step call alone /s | published /s | lean vs published |"
+        "| env | mode | gymnasium (lean) /s | TorchRL step /s | step call alone /s | published /s | lean vs published "
+        "| recompiles |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
         for mode in args.modes:
@@ -132,7 +130,8 @@ def main() -> None:
             rows.append(r)
             print(
                 f"| {env_id} | {mode} | {r['gymnasium']:,.1f} | {r['torchrl']:,.1f} | "
-                f"{r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x |",
+                f"{r['physics']:,.1f} | {r['published']:,.1f} | {r['gymnasium'] / r['published']:.2f}x | "
+                f"{r['recompiles']} |",
                 flush=True,
             )
     print("results:", save_rows(rows, args.out, "single_env"))

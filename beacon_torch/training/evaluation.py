@@ -175,7 +175,8 @@ def _uncontrolled(env_id: str) -> float:
     deterministic, else the mean of 16."""
     num_envs = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
     ref = beacon_torch.make(env_id, num_envs, seed=0)
-    return episodes.scores(episodes.episode(ref, episodes.null_policy(ref))).mean().item()
+    rollout = episodes.episode(ref, episodes.null_policy(ref), progress=f"{env_id} uncontrolled")
+    return episodes.scores(rollout).mean().item()
 
 
 def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None = None, progress: bool = False) -> dict:
