@@ -105,6 +105,15 @@ def _state_mb(env) -> float:
 
 
 def _resident_mb() -> float:
+    """The process's peak resident size so far. Linux's ``VmHWM`` belongs to the
+    program itself; ``ru_maxrss`` also keeps the peak of the process it was forked from
+    (a pytest worker, a notebook), so it is the fallback only."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 2**10  # kB
+    except OSError:
+        pass
     scale = 2**20 if sys.platform == "darwin" else 2**10  # bytes on macOS, KiB on Linux
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
 

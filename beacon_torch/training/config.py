@@ -406,8 +406,10 @@ def _env_of(argv: list[str] | None) -> str | None:
     if known.env is None:
         return None
     try:
-        return beacon_torch.registry.resolve_id(known.env)
-    except (KeyError, ValueError, ImportError):
+        env_id = beacon_torch.registry.resolve_id(known.env)
+        env_class(env_id)
+        return env_id
+    except (KeyError, ValueError, TypeError, ImportError):
         return None  # reported by the full parse
 
 
