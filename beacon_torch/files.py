@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import time
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -110,8 +111,6 @@ def outputs(given: str | Path | None, default: str | Path, *names: str, option: 
 
 def dated_name(stem: str, suffix: str = "") -> str:
     """``stem-YYYYmmdd-HHMMSS`` + ``suffix``: a name for a new record of a measurement."""
-    import time
-
     return f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}{suffix}"
 
 

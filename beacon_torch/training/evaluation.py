@@ -57,17 +57,16 @@ def evaluate_policy(
     frames = []
     every = max(1, base.episode_length // 100)
 
-    bar = episodes.progress_bar(f"{env_id} controlled" if progress else None, base.episode_length)
-
-    def grab(env_, td):
-        bar.update()
-        step = int(base.step_count[base.render_index])
-        if gif is not None and step % every == 0:
+    def grab(step: int) -> None:
+        if step % every == 0:
             frames.append(base.render())
 
-    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad(), bar:
-        rollout = env.rollout(
-            base.episode_length, policy=policy, break_when_any_done=False, break_when_all_done=True, callback=grab
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        rollout = episodes.episode(
+            env,
+            policy,
+            frame_hook=grab if gif is not None else None,
+            progress=f"{env_id} controlled" if progress else None,
         )
     controlled = episodes.scores(rollout)
     ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params)  # the same episodes
