@@ -36,6 +36,7 @@ from beacon_torch.numerics import native
 
 NEUMANN = "neumann"
 ZERO_GHOST = "zero_ghost"
+ZERO_FACE = "zero_face"  # zero value on the wall face itself (an open boundary's pressure)
 # ghost factors: zero normal gradient (ghost = neighbour), a value imposed through the
 # ghost (ghost = 2 value - neighbour, the value comes as an offset), a zero ghost
 GRADIENT, VALUE, ZERO = 1.0, -1.0, 0.0
@@ -43,14 +44,17 @@ GRADIENT, VALUE, ZERO = 1.0, -1.0, 0.0
 
 def laplacian_1d(n: int, h: float, low: str, high: str) -> torch.Tensor:
     """The ``[n, n]`` second-difference matrix with the boundary rows of each condition:
-    zero normal gradient (ghost = neighbour) or a zero ghost value."""
+    zero normal gradient (ghost = neighbour), a zero ghost value, or a zero value on the
+    wall face (ghost = -neighbour)."""
     a = torch.diag(torch.full((n,), -2.0, dtype=torch.float64))
     a += torch.diag(torch.ones(n - 1, dtype=torch.float64), 1) + torch.diag(torch.ones(n - 1, dtype=torch.float64), -1)
     for index, kind in ((0, low), (n - 1, high)):
         if kind == NEUMANN:
             a[index, index] = -1.0
+        elif kind == ZERO_FACE:
+            a[index, index] = -3.0
         elif kind != ZERO_GHOST:
-            raise ValueError(f"boundary condition must be {NEUMANN!r} or {ZERO_GHOST!r}, got {kind!r}")
+            raise ValueError(f"boundary condition must be {NEUMANN!r}, {ZERO_GHOST!r} or {ZERO_FACE!r}, got {kind!r}")
     return a / h**2
 
 
@@ -80,21 +84,25 @@ class _Basis:
     and each product is two half-size products of the folded field: half the work of
     the dense one (the products are most of the Poisson solve)."""
 
-    def __init__(self, q: torch.Tensor, symmetric: bool, dtype, device) -> None:
+    def __init__(self, q: torch.Tensor, symmetric: bool, dtype, device, scale: torch.Tensor | None = None) -> None:
         n = q.shape[0]
         self.n = n
         self.folded = symmetric and n % 2 == 0
+        # on a stretched grid the eigenvectors are orthonormal in the cell widths' inner
+        # product: forward with q^T diag(scale), back with diag(1 / scale) q
+        fwd, inv = (q, q) if scale is None else (q * scale[:, None], q / scale[:, None])
         if self.folded:
             h = n // 2
             even = (q - q.flip(0)).abs().amax(0) < 1e-8
             if int(even.sum()) != h or not ((q + q.flip(0)).abs().amax(0)[~even] < 1e-8).all():
                 raise AssertionError("eigenvectors of a reversal-symmetric operator must be even or odd")
             self.order = torch.cat((even.nonzero()[:, 0], (~even).nonzero()[:, 0]))
-            self.qe = q[:h, even].to(dtype=dtype, device=device)  # [h, h]: top half of the even ones
-            self.qo = q[:h, ~even].to(dtype=dtype, device=device)
-            self.qet, self.qot = self.qe.T.contiguous(), self.qo.T.contiguous()
-        self.q = q.to(dtype=dtype, device=device)
-        self.qt = q.T.contiguous().to(dtype=dtype, device=device)
+            self.qe = inv[:h, even].to(dtype=dtype, device=device)  # [h, h]: top half of the even ones
+            self.qo = inv[:h, ~even].to(dtype=dtype, device=device)
+            self.qet = fwd[:h, even].T.contiguous().to(dtype=dtype, device=device)
+            self.qot = fwd[:h, ~even].T.contiguous().to(dtype=dtype, device=device)
+        self.q = inv.to(dtype=dtype, device=device)
+        self.qt = fwd.T.contiguous().to(dtype=dtype, device=device)
 
     def forward(self, f: torch.Tensor) -> list[torch.Tensor]:
         """q^T f: the coefficients, as one block or as the (even, odd) blocks."""
@@ -178,16 +186,50 @@ class PoissonSolver:
     ) -> None:
         left, right, bottom, top = bc
         lx, ly = laplacian_1d(nx, dx, left, right), laplacian_1d(ny, dy, bottom, top)
-        ex, qx = torch.linalg.eigh(lx)
-        ey, qy = torch.linalg.eigh(ly)
+        self._build(lx, ly, None, None, left == right, min(dx, dy), dtype, device)
+        self.bc = tuple(bc)
+        factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO, ZERO_FACE: VALUE}
+        # the increment's ghost values, for its gradient on the wall faces
+        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
+
+    @classmethod
+    def stretched(
+        cls, lx: torch.Tensor, wx: torch.Tensor, ly: torch.Tensor, wy: torch.Tensor, *, dtype, device
+    ) -> PoissonSolver:
+        """The solver of a stretched tensor-product grid, from its float64 1-D operators
+        ``lx`` (``[nx, nx]``) and ``ly``: each is ``diag(1 / w) S`` with ``S`` symmetric
+        and ``w`` the cells' widths ``wx``, ``wy`` (a divergence of a gradient). The x
+        products are folded when the x grid and its conditions are mirror images."""
+        solver = cls.__new__(cls)
+        symmetric = torch.equal(lx, lx.flip(0, 1)) and torch.equal(wx, wx.flip(0))
+        solver._build(lx, ly, wx, wy, symmetric, float(min(wx.min(), wy.min())), dtype, device)
+        return solver
+
+    @staticmethod
+    def _eigen(a: torch.Tensor, w: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Eigenvalues and vectors of ``a`` = ``diag(1 / w) S`` through the symmetric
+        ``diag(w)^(1/2) a diag(w)^(-1/2)``, and the scale ``sqrt(w)`` (None: ``a`` is
+        symmetric itself)."""
+        if w is None:
+            e, q = torch.linalg.eigh(a)
+            return e, q, None
+        scale = w.sqrt()
+        m = scale[:, None] * a / scale[None, :]
+        e, q = torch.linalg.eigh(0.5 * (m + m.T))
+        return e, q, scale
+
+    def _build(self, lx, ly, wx, wy, symmetric: bool, h: float, dtype, device) -> None:
+        ex, qx, sx = self._eigen(lx, wx)
+        ey, qy, sy = self._eigen(ly, wy)
         self.lx = lx.to(dtype=dtype, device=device)
         self.ly = ly.to(dtype=dtype, device=device)
-        self.x = _Basis(qx, left == right, dtype, device)
+        self.x = _Basis(qx, symmetric, dtype, device, sx)
         eig = ex[:, None] + ey[None, :]
-        scale = 1.0 / min(dx, dy) ** 2
+        scale = 1.0 / h**2
         inv = torch.where(eig.abs() < 1e-9 * scale, torch.zeros_like(eig), 1.0 / eig)
-        self.qy = qy.to(dtype=dtype, device=device)
-        self.qyt = qy.T.contiguous().to(dtype=dtype, device=device)
+        qy_inv, qy_fwd = (qy, qy) if sy is None else (qy / sy[:, None], qy * sy[:, None])
+        self.qy = qy_inv.to(dtype=dtype, device=device)
+        self.qyt = qy_fwd.T.contiguous().to(dtype=dtype, device=device)
         self.inv = [block[:, :, None].to(dtype=dtype, device=device).contiguous() for block in self.x.blocks(inv)]
         # decided once, so that a compiled step sees a constant
         self.native = native.applies(device, dtype)
@@ -200,10 +242,6 @@ class PoissonSolver:
                 self.lines.append((cast(lower), cast(inverse)))
                 # per block, a 0/1 factor on the modes whose mean along y goes
                 self.singular.append(cast(singular)[:, None, None] if bool(singular.any()) else None)
-        self.bc = tuple(bc)
-        factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO}
-        # the increment's ghost values, for its gradient on the wall faces
-        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """phi with L phi = rhs, both ``[nx, ny, B]``."""
@@ -362,24 +400,11 @@ class Cavity:
         return out
 
 
-def predict(
-    u: torch.Tensor,
-    v: torch.Tensor,
-    p: torch.Tensor,
-    nu,
-    dt: float,
-    dx: float,
-    dy: float,
-    v_source: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Explicit predictor u* = u + dt (-(u.grad)u + nu lap u - grad p [+ source]) on the
-    interior faces, with centred fluxes of face-averaged velocities. ``u``
-    (``[nx + 1, ny + 2, B]``) and ``v`` (``[nx + 2, ny + 1, B]``) carry their wall
-    ghosts (:class:`Ghosts`); ``v_source`` (``[nx, ny - 1, B]``) is added on the
-    interior v faces (buoyancy). Returns u* ``[nx + 1, ny, B]`` and v* ``[nx, ny + 1, B]``
-    with zero normal velocity on the walls. (Computing every face and zeroing the walls
-    instead, to save the padding pass, is slower compiled: the wider ghosted inputs cost
-    more than the pad; docs/performance.md.)"""
+def tendency(u: torch.Tensor, v: torch.Tensor, nu, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The explicit terms -(u.grad)u + nu lap u on the interior faces, with centred
+    fluxes of face-averaged velocities: ``[nx - 1, ny, B]`` on the x-faces 1..nx-1 and
+    ``[nx, ny - 1, B]`` on the y-faces 1..ny-1. ``u`` (``[nx + 1, ny + 2, B]``) and
+    ``v`` (``[nx + 2, ny + 1, B]``) carry their ghosts (:class:`Ghosts`)."""
     # u on the interior x-faces 1..nx-1, cells 0..ny-1 (ghost rows 0 and ny + 1 in y)
     uf = u[1:-1, 1:-1]
     ue = 0.5 * (uf + u[2:, 1:-1])  # the cell centre east of the face
@@ -391,8 +416,7 @@ def predict(
     vs = 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
     duv = (un * vn - us * vs) / dy
     lap_u = (u[2:, 1:-1] - 2.0 * uf + u[:-2, 1:-1]) / dx**2 + (u[1:-1, 2:] - 2.0 * uf + u[1:-1, :-2]) / dy**2
-    gpx = (p[1:] - p[:-1]) / dx
-    u_star = uf + dt * (-duu - duv + nu * lap_u - gpx)
+    hu = -duu - duv + nu * lap_u
 
     # v on the interior y-faces 1..ny-1, cells 0..nx-1 (ghost columns 0 and nx + 1 in x)
     vf = v[1:-1, 1:-1]
@@ -405,11 +429,35 @@ def predict(
     uw_c = 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
     duv_x = (ue_c * ve - uw_c * vw) / dx
     lap_v = (v[2:, 1:-1] - 2.0 * vf + v[:-2, 1:-1]) / dx**2 + (v[1:-1, 2:] - 2.0 * vf + v[1:-1, :-2]) / dy**2
+    return hu, -dvv - duv_x + nu * lap_v
+
+
+def predict(
+    u: torch.Tensor,
+    v: torch.Tensor,
+    p: torch.Tensor,
+    nu,
+    dt: float,
+    dx: float,
+    dy: float,
+    v_source: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Explicit predictor u* = u + dt (:func:`tendency` - grad p [+ source]) on the
+    interior faces of a closed cavity. ``u`` (``[nx + 1, ny + 2, B]``) and ``v``
+    (``[nx + 2, ny + 1, B]``) carry their wall ghosts (:class:`Ghosts`); ``v_source``
+    (``[nx, ny - 1, B]``) is added on the interior v faces (buoyancy). Returns u*
+    ``[nx + 1, ny, B]`` and v* ``[nx, ny + 1, B]`` with zero normal velocity on the
+    walls. (Computing every face and zeroing the walls instead, to save the padding
+    pass, is slower compiled: the wider ghosted inputs cost more than the pad;
+    docs/performance.md.)"""
+    hu, hv = tendency(u, v, nu, dx, dy)
+    gpx = (p[1:] - p[:-1]) / dx
+    u_star = u[1:-1, 1:-1] + dt * (hu - gpx)
     gpy = (p[:, 1:] - p[:, :-1]) / dy
-    dv = -dvv - duv_x + nu * lap_v - gpy
+    dv = hv - gpy
     if v_source is not None:
         dv = dv + v_source
-    v_star = vf + dt * dv
+    v_star = v[1:-1, 1:-1] + dt * dv
     return F.pad(u_star, (0, 0, 0, 0, 1, 1)), F.pad(v_star, (0, 0, 1, 1))
 
 
