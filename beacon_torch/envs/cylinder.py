@@ -1,0 +1,544 @@
+"""cylinder-v0: reduce the drag of a cylinder in a channel with two synthetic jets
+(Rabault, Kuchta, Jensen, Reglade & Cerardi, J. Fluid Mech. 865, 2019), on the
+geometry of the Schaefer & Turek (1996) benchmark 2D-2.
+
+Incompressible flow past a cylinder of diameter D = 0.1 centred at (0.2, 0.2) in the
+channel [0, 2.2] x [0, 0.41]:
+
+    div u = 0
+    u_t + (u.grad) u = -grad p + nu lap u + f
+
+with nu = 1e-3 (Re = U D / nu = 100 on the mean inflow U = 1), the parabolic inflow
+u(0, y) = 4 Um y (H - y) / H^2 (Um = 1.5), no-slip walls, an open outlet (p = 0, the
+velocity carried out at U).
+
+The grid is the cavities' staggered grid, stretched: square cells of D /
+``cells_per_diameter`` in a box around the cylinder and its near wake, growing by 5 %
+a cell outside it. The cylinder is immersed by direct forcing: after the explicit
+predictor, the faces whose points lie inside the circle take the body's velocity (a
+staircase boundary, converging at first order in the cell size), and the projection
+that follows is the rectangle's own, so a direct Poisson solve still applies: tensor
+products of the 1-D operators' eigenvectors across the channel and tridiagonal
+solves along it. The force on the cylinder is the momentum that forcing removes, plus
+the rate of change of the momentum the body's faces hold (the jets' stream through
+it): the method's equivalent of the stress integrated on the surface, and equal to the
+surface pressure's integral where both are measured (docs/envs/cylinder.md).
+
+Time stepping: Adams-Bashforth 2 for advection and diffusion (the forward Euler of
+the cavities is unstable at this cell Reynolds number), the incremental projection of
+the cavities, dt = 5e-4 (stable up to 40 cells across the diameter), 50 steps per
+action, 80 actions per episode.
+
+Control: two jets at 90 and 270 degrees, 10 degrees wide, with opposite mass flow
+rates. The two actions in [-1, 1] are flow rates of at most 1e-2; as published, the
+jets' rates relax each step by a tenth of the way to the action and their mean is
+removed, which leaves the top jet's rate Q relaxing to (a_0 - a_1) / 2 * 1e-2 and the
+bottom's at -Q. The jets' fluid crosses the body as a vertical stream whose profile
+across each jet is the published cosine, averaged over each face and scaled so that
+the flow through the grid's faces is exactly Q.
+
+Observation: the pressure at the published 151 probes (bilinear in the cells).
+Reward per action: -(mean drag force - 0.159) - 0.2 |mean lift force| over the action's
+steps (0.159: the uncontrolled mean drag force of the published mesh). Every episode
+starts from the developed uncontrolled shedding (:func:`developed_shedding`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state
+from beacon_torch.cache import cached
+from beacon_torch.numerics.projection import NEUMANN, VALUE, ZERO_FACE, Ghosts, PoissonSolver
+from beacon_torch.params import number, param
+from beacon_torch.registry import register
+
+LENGTH, HEIGHT = 2.2, 0.41
+CENTRE = (0.2, 0.2)
+DIAMETER = 0.1
+RADIUS = 0.5 * DIAMETER
+NU = 1e-3
+U_MAX = 1.5  # the inflow's centre-line velocity; its mean is 1
+U_MEAN = 1.0
+DT = 5e-4
+SUBSTEPS = 50
+EPISODE_LENGTH = 80
+Q_MAX = 1e-2  # the largest jet flow rate
+SMOOTHING = 0.1  # each step the jets' rates move this fraction of the way to the action
+JET_WIDTH = math.radians(10.0)
+DRAG_OFFSET = 0.159
+LIFT_PENALTY = 0.2
+DEVELOP_TIME = 8.0  # from rest, long enough for the shedding to be periodic
+# the box of uniform cells around the cylinder and its near wake (the probes' region),
+# mirror-symmetric across the channel; outside, cells grow by GROWTH up to WIDEST cells
+FINE_X = (0.12, 0.5)
+FINE_Y = (0.12, 0.29)
+GROWTH = 1.05
+WIDEST = 8.0
+
+# The published probes, relative to the cylinder's centre: a 9 x 7 grid in the wake, a
+# 4 x 4 grid around the cylinder without its middle rows, two rings of 36.
+PROBES = np.array(
+    [(x, y) for x in (0.075, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45) for y in np.arange(-3, 4) * 0.05]
+    + [(x, y) for x in (-0.025, 0.0, 0.025, 0.05) for y in (-0.15, -0.1, 0.1, 0.15)]
+    + [
+        (r * math.cos(math.radians(a)), r * math.sin(math.radians(a)))
+        for r in (RADIUS + 0.02, RADIUS + 0.05)
+        for a in range(0, 360, 10)
+    ]
+)
+N_PROBES = len(PROBES)  # 151
+
+
+class Flow(NamedTuple):
+    """The channel's flow on the staggered grid, batch first: the face velocities (the
+    inflow face and the outlet face included), the cells' pressure, the explicit terms
+    of the previous step on the interior faces (Adams-Bashforth's memory) and the top
+    jet's flow rate."""
+
+    u: torch.Tensor  # [batch, nx + 1, ny]
+    v: torch.Tensor  # [batch, nx, ny + 1]
+    p: torch.Tensor  # [batch, nx, ny]
+    hu: torch.Tensor  # [batch, nx, ny] on the x-faces 1..nx (the outlet's transport last)
+    hv: torch.Tensor  # [batch, nx, ny - 1]
+    q: torch.Tensor  # [batch]
+
+
+class CylinderState(NamedTuple):
+    """The flow and the forces on the cylinder, averaged over the last action."""
+
+    u: torch.Tensor  # [batch, nx + 1, ny]
+    v: torch.Tensor  # [batch, nx, ny + 1]
+    p: torch.Tensor  # [batch, nx, ny]
+    hu: torch.Tensor  # [batch, nx, ny]
+    hv: torch.Tensor  # [batch, nx, ny - 1]
+    q: torch.Tensor  # [batch] the top jet's flow rate (the bottom one's is -q)
+    drag: torch.Tensor  # [batch] the mean drag force of the last action
+    lift: torch.Tensor  # [batch]
+
+
+def _resolution(value: int) -> None:
+    if value % 10:
+        raise ValueError(
+            f"parameter 'cells_per_diameter' = {value} must be a multiple of 10 (the fine box fits whole cells)"
+        )
+
+
+@dataclass(frozen=True)
+class CylinderParams:
+    cells_per_diameter: int = param(
+        40,
+        low=10,
+        high=80,
+        kind="int",
+        per_member=False,
+        doc="grid cells across the cylinder's diameter (a multiple of 10; validated in docs/envs/cylinder.md)",
+    )
+    nu: float = param(NU, low=2e-4, high=1e-2, per_member=False, differentiable=True, doc="kinematic viscosity")
+
+    def __post_init__(self):
+        _resolution(int(self.cells_per_diameter))
+
+
+class Axis:
+    """One axis of the stretched grid (float64): the faces, the cells' centres and
+    widths, and the distances between neighbouring centres, the mirrored ghost centres
+    beyond the ends included (``gaps[0]`` and ``gaps[-1]``: a cell's width)."""
+
+    def __init__(self, length: float, low: float, high: float, h: float, growth: float, widest: float) -> None:
+        def outwards(extent: float) -> np.ndarray:
+            # the ends of cells growing by a common ratio up to ``widest`` from the box
+            # outwards, as few as ``growth`` allows, the ratio then lowered to end there
+            def ends(ratio: float, n: int) -> np.ndarray:
+                return np.concatenate(([0.0], np.cumsum(np.minimum(h * ratio ** np.arange(1, n + 1), widest))))
+
+            n = 1
+            while ends(growth, n)[-1] < extent:
+                n += 1
+            if n * h >= extent:  # too short to grow: equal cells
+                return np.linspace(0.0, extent, round(extent / h) + 1)
+            low_ratio, high_ratio = 1.0, growth
+            for _ in range(80):
+                mid = 0.5 * (low_ratio + high_ratio)
+                low_ratio, high_ratio = (mid, high_ratio) if ends(mid, n)[-1] < extent else (low_ratio, mid)
+            e = ends(high_ratio, n)
+            return e * (extent / e[-1])
+
+        left, right = np.diff(outwards(low))[::-1], np.diff(outwards(length - high))
+        if math.isclose(low, length - high):
+            right = left[::-1]  # exactly mirror-symmetric, so that the solve folds
+        widths = torch.from_numpy(np.concatenate((left, np.full(round((high - low) / h), h), right)))
+        self.widths = widths
+        self.faces = torch.cat((widths.new_zeros(1), widths.cumsum(0)))
+        self.centres = self.faces[:-1] + 0.5 * widths
+        self.gaps = torch.cat((widths[:1], 0.5 * (widths[1:] + widths[:-1]), widths[-1:]))
+        self.n = len(self.widths)
+
+    def laplacian(self, low: str, high: str) -> torch.Tensor:
+        """The cells' ``[n, n]`` divergence of the gradient with zero gradient
+        (``NEUMANN``) or a zero value on the end face (``ZERO_FACE``) at each end."""
+        n, g = self.n, self.gaps
+        a = torch.zeros((n, n), dtype=torch.float64)
+        i = torch.arange(n - 1)
+        a[i, i + 1] = 1.0 / g[1:-1]
+        a[i + 1, i] = 1.0 / g[1:-1]
+        a[i, i] -= 1.0 / g[1:-1]
+        a[i + 1, i + 1] -= 1.0 / g[1:-1]
+        for end, kind in ((0, low), (n - 1, high)):
+            if kind == ZERO_FACE:
+                a[end, end] -= 2.0 / self.widths[end]
+        return a / self.widths[:, None]
+
+
+class Channel:
+    """The stretched grid of the channel and the immersed cylinder: cells of size
+    ``h = D / cells_per_diameter`` in a box around the cylinder and its near wake,
+    growing by 5 % a cell outside it up to 8 h; the inflow, the body fractions of the
+    faces, the jets' stream, the ghost maps, the pressure solver and the probes.
+    Fields are batch-last inside the steps (``[X, Y, B]``), as in the cavities'
+    solver."""
+
+    def __init__(self, cells_per_diameter: int, *, dtype, device) -> None:
+        _resolution(cells_per_diameter)
+        self.h = h = DIAMETER / cells_per_diameter
+        self.x = Axis(LENGTH, *FINE_X, h, GROWTH, WIDEST * h)
+        self.y = Axis(HEIGHT, *FINE_Y, h, GROWTH, WIDEST * h)
+        self.nx, self.ny = nx, ny = self.x.n, self.y.n
+        cast = lambda t: t.to(dtype=dtype, device=device)
+        # spacings, shaped to broadcast against [X, Y, B]
+        along, across = (lambda t: cast(t)[:, None, None]), (lambda t: cast(t)[None, :, None])
+        self.dx_cells, self.dy_cells = along(self.x.widths), across(self.y.widths)
+        self.dx_gaps, self.dy_gaps = along(self.x.gaps), across(self.y.gaps)
+        # the x-gradient's distances on the faces 1..nx (the outlet's mirrored ghost last)
+        self.dx_grad = along(self.x.gaps[1:])
+        x_faces, x_cells, y_faces, y_cells = self.x.faces, self.x.centres, self.y.faces, self.y.centres
+        self.inflow = cast(4.0 * U_MAX * y_cells * (HEIGHT - y_cells) / HEIGHT**2)[:, None]  # [ny, 1]
+        self.solid_u = cast(inside(x_faces[:, None], y_cells[None, :]))[..., None]  # [nx + 1, ny, 1]
+        solid_v = inside(x_cells[:, None], y_faces[None, :])
+        self.solid_v = cast(solid_v)[..., None]  # [nx, ny + 1, 1]
+        # the jets' vertical stream through the body per unit flow rate, on the v faces
+        stream = jet_profile(x_cells, h)[:, None] * solid_v
+        self.jet_v = cast(stream)[..., None]
+        # the momentum the body's faces hold per unit flow rate
+        self.jet_momentum = float(stream.sum()) * h * h
+        # impermeable, no-slip walls below and above; v = 0 at the inflow, carried out
+        self.u_ghosts = Ghosts(None, [1.0] * (nx + 1), *Ghosts._cell_axis(ny, VALUE, VALUE), dtype=dtype, device=device)
+        v_x = Ghosts._cell_axis(nx, VALUE, 1.0)
+        self.v_ghosts = Ghosts(*v_x, None, [0.0, *[1.0] * (ny - 1), 0.0], dtype=dtype, device=device)
+        # solved across the channel first (a mirror-symmetric grid: the folded basis),
+        # then along it: the fields are transposed for the solve
+        self.solver = PoissonSolver.stretched(
+            self.y.laplacian(NEUMANN, NEUMANN),
+            self.y.widths,
+            self.x.laplacian(NEUMANN, ZERO_FACE),
+            self.x.widths,
+            dtype=dtype,
+            device=device,
+        )
+        self.probe_index, self.probe_weight = probe_stencil(PROBES + np.array(CENTRE), x_cells, y_cells)
+        self.probe_index = tuple(i.to(device) for i in self.probe_index)
+        self.probe_weight = cast(self.probe_weight)
+
+    def pressure_probes(self, p: torch.Tensor) -> torch.Tensor:
+        """The pressure ``[B, nx, ny]`` at the probes, ``[B, N_PROBES]``."""
+        ix, iy = self.probe_index
+        return (p[:, ix, iy] * self.probe_weight).sum(-1)
+
+    def x_gradient(self, f: torch.Tensor) -> torch.Tensor:
+        """d/dx of a cell field on the x-faces 1..nx, zero on the outlet face."""
+        ext = torch.cat((f, -f[-1:]), 0)
+        return (ext[1:] - ext[:-1]) / self.dx_grad
+
+    def y_gradient(self, f: torch.Tensor) -> torch.Tensor:
+        """d/dy of a cell field on the interior y-faces 1..ny-1."""
+        return (f[:, 1:] - f[:, :-1]) / self.dy_gaps[:, 1:-1]
+
+    def divergence(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        return (u[1:] - u[:-1]) / self.dx_cells + (v[:, 1:] - v[:, :-1]) / self.dy_cells
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        """phi with lap phi = rhs in the cells: zero normal gradient on the walls and
+        the inflow, zero on the outlet face."""
+        return self.solver.solve(rhs.transpose(0, 1).contiguous()).transpose(0, 1)
+
+    def tendency(self, u: torch.Tensor, v: torch.Tensor, nu) -> tuple[torch.Tensor, torch.Tensor]:
+        """-(u.grad)u + nu lap u on the interior faces of the stretched grid, from the
+        ghosted ``u`` (``[nx + 1, ny + 2, B]``) and ``v`` (``[nx + 2, ny + 1, B]``): the
+        cavities' centred scheme (:func:`~beacon_torch.numerics.projection.tendency`)
+        with each difference over its own distance. Velocities are carried to a
+        control volume's faces by plain averages, exact where the grid is uniform (around
+        the cylinder) and first order where it stretches by 5 %."""
+        cx, cy, gx, gy = self.dx_cells, self.dy_cells, self.dx_gaps, self.dy_gaps
+        uf = u[1:-1, 1:-1]
+        ue, uw = 0.5 * (uf + u[2:, 1:-1]), 0.5 * (u[:-2, 1:-1] + uf)
+        un, us = 0.5 * (uf + u[1:-1, 2:]), 0.5 * (u[1:-1, :-2] + uf)
+        vn, vs = 0.5 * (v[1:-2, 1:] + v[2:-1, 1:]), 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
+        gu = gx[1:-1]  # an x-face's control volume spans the centres on each side
+        lap_u = ((u[2:, 1:-1] - uf) / cx[1:] - (uf - u[:-2, 1:-1]) / cx[:-1]) / gu
+        lap_u = lap_u + ((u[1:-1, 2:] - uf) / gy[:, 1:] - (uf - u[1:-1, :-2]) / gy[:, :-1]) / cy
+        hu = -(ue * ue - uw * uw) / gu - (un * vn - us * vs) / cy + nu * lap_u
+
+        vf = v[1:-1, 1:-1]
+        vn, vs = 0.5 * (vf + v[1:-1, 2:]), 0.5 * (v[1:-1, :-2] + vf)
+        ve, vw = 0.5 * (vf + v[2:, 1:-1]), 0.5 * (v[:-2, 1:-1] + vf)
+        ue, uw = 0.5 * (u[1:, 1:-2] + u[1:, 2:-1]), 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
+        gv = gy[:, 1:-1]
+        lap_v = ((v[2:, 1:-1] - vf) / gx[1:] - (vf - v[:-2, 1:-1]) / gx[:-1]) / cx
+        lap_v = lap_v + ((v[1:-1, 2:] - vf) / cy[:, 1:] - (vf - v[1:-1, :-2]) / cy[:, :-1]) / gv
+        hv = -(vn * vn - vs * vs) / gv - (ue * ve - uw * vw) / cx + nu * lap_v
+        return hu, hv
+
+
+def inside(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """1.0 where the point ``(x, y)`` lies inside the cylinder, else 0.0."""
+    return (torch.hypot(x - CENTRE[0], y - CENTRE[1]) < RADIUS).double()
+
+
+def jet_profile(x_cells: torch.Tensor, h: float, points: int = 64) -> torch.Tensor:
+    """The vertical velocity of the jets' stream per unit flow rate at the cells' x
+    (``[nx]``): the published cosine of the polar angle across the jet, averaged over
+    each cell's width and scaled so that the cells carry exactly a unit flow."""
+    half = RADIUS * math.sin(0.5 * JET_WIDTH)
+    offsets = (torch.arange(points, dtype=torch.float64) + 0.5) / points - 0.5
+    x = x_cells[:, None] + h * offsets[None, :] - CENTRE[0]
+    angle = torch.asin((x / RADIUS).clamp(-1.0, 1.0))
+    inside = x.abs() < half
+    # radial velocity cos(pi angle / width); the stream is vertical, so its vertical
+    # velocity is the radial one over cos(angle)
+    profile = torch.where(inside, torch.cos(math.pi * angle / JET_WIDTH) / torch.cos(angle), 0.0).mean(1)
+    return profile / (profile.sum() * h)
+
+
+def probe_stencil(
+    points: np.ndarray, x_cells: torch.Tensor, y_cells: torch.Tensor
+) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
+    """The four cells around each point and their bilinear weights: indices
+    ``([P, 4], [P, 4])`` and weights ``[P, 4]``."""
+
+    def along(coordinate: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        i = np.clip(np.searchsorted(centres, coordinate) - 1, 0, len(centres) - 2)
+        return i, (coordinate - centres[i]) / (centres[i + 1] - centres[i])
+
+    i0, wx = along(points[:, 0], x_cells.numpy())
+    j0, wy = along(points[:, 1], y_cells.numpy())
+    ix = np.stack((i0, i0 + 1, i0, i0 + 1), 1)
+    iy = np.stack((j0, j0, j0 + 1, j0 + 1), 1)
+    w = np.stack(((1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy), 1)
+    return (torch.from_numpy(ix), torch.from_numpy(iy)), torch.from_numpy(w)
+
+
+def step(i, flow: dict, target: torch.Tensor, channel: Channel, nu, dt: float) -> dict:
+    """One time step of the batch-last flow (``u``, ``v``, ``p``, ``hu``, ``hv``, ``q``
+    and the running sums ``drag``, ``lift`` of the forces on the cylinder) with the top
+    jet's rate relaxing to ``target`` (``[B]``)."""
+    c, h = channel, channel.h
+    u, v, p = flow["u"], flow["v"], flow["p"]
+    q = flow["q"] + SMOOTHING * (target - flow["q"])
+    # explicit terms: centred advection and diffusion inside, the outlet face carried out
+    hu, hv = c.tendency(c.u_ghosts(u), c.v_ghosts(v), nu)
+    hu = torch.cat((hu, -U_MEAN * (u[-1:] - u[-2:-1]) / c.dx_cells[-1:]), 0)
+    u_star = u[1:] + dt * (1.5 * hu - 0.5 * flow["hu"] - c.x_gradient(p))
+    v_star = v[:, 1:-1] + dt * (1.5 * hv - 0.5 * flow["hv"] - c.y_gradient(p))
+    u_star = torch.cat((c.inflow.expand_as(u[:1]), u_star), 0)
+    v_star = torch.nn.functional.pad(v_star, (0, 0, 1, 1))
+    # the body: the faces inside it take its velocity
+    force_u = c.solid_u * u_star
+    force_v = c.solid_v * (v_star - q * c.jet_v)
+    u_new, v_new = u_star - force_u, v_star - force_v
+    cell = h * h / dt
+    drag = force_u.sum((0, 1)) * cell
+    lift = force_v.sum((0, 1)) * cell + c.jet_momentum * (q - flow["q"]) / dt
+    # projection on the rectangle
+    phi = c.solve(c.divergence(u_new, v_new) / dt)
+    u_new = torch.cat((u_new[:1], u_new[1:] - dt * c.x_gradient(phi)), 0)
+    v_new = torch.cat((v_new[:, :1], v_new[:, 1:-1] - dt * c.y_gradient(phi), v_new[:, -1:]), 1)
+    return {
+        "u": u_new,
+        "v": v_new,
+        "p": p + phi,
+        "hu": hu,
+        "hv": hv,
+        "q": q,
+        "drag": flow["drag"] + drag,
+        "lift": flow["lift"] + lift,
+    }
+
+
+def rest(num_envs: int, channel: Channel, dtype, device) -> Flow:
+    """The channel at rest with its inflow on."""
+    nx, ny = channel.nx, channel.ny
+    zeros = lambda *shape: torch.zeros((num_envs, *shape), dtype=dtype, device=device)
+    u = zeros(nx + 1, ny)
+    u[:, 0] = channel.inflow[:, 0].to(dtype)
+    return Flow(u=u, v=zeros(nx, ny + 1), p=zeros(nx, ny), hu=zeros(nx, ny), hv=zeros(nx, ny - 1), q=zeros())
+
+
+def run(
+    flow: Flow, n: int, target: torch.Tensor, channel: Channel, nu, dt: float = DT, loop=None
+) -> tuple[Flow, torch.Tensor, torch.Tensor]:
+    """``n`` steps from a batch-first flow; returns the new flow and the mean drag and
+    lift forces over the steps (``[B]``). ``loop`` runs the steps (an env's substep
+    loop; a Python loop when None)."""
+    last = lambda f: f.movedim(0, -1).contiguous()
+    fields = {k: last(f) for k, f in flow._asdict().items()}
+    fields["drag"] = torch.zeros_like(fields["q"])
+    fields["lift"] = torch.zeros_like(fields["q"])
+    if loop is None:
+        for i in range(n):
+            fields = step(i, fields, target, channel, nu, dt)
+    else:
+        fields = loop(n, fields, target, channel, nu, dt)
+    first = lambda f: f.movedim(-1, 0).contiguous()
+    new = Flow(**{k: first(fields[k]) for k in Flow._fields})
+    return new, fields["drag"] / n, fields["lift"] / n
+
+
+def coefficient(force: torch.Tensor) -> torch.Tensor:
+    """A force's coefficient, 2 F / (rho U^2 D) with the mean inflow U."""
+    return 2.0 * force / (U_MEAN**2 * DIAMETER)
+
+
+# the benchmark's intervals (Schaefer & Turek 1996, unsteady case 2D-2)
+SCHAEFER_TUREK = {"cd_max": (3.22, 3.24), "cl_max": (0.99, 1.01), "strouhal": (0.295, 0.305)}
+
+
+def shedding_figures(time: np.ndarray, drag: np.ndarray, lift: np.ndarray, window: float = 2.0) -> dict[str, float]:
+    """The benchmark's figures over the last ``window`` time units of drag and lift
+    coefficient histories: ``cd_max``, ``cl_max``, ``cd_mean`` and ``strouhal`` (D f / U,
+    the period from the lift's upward crossings of its mean, linearly interpolated)."""
+    last = time > time[-1] - window
+    t, cd, cl = time[last], drag[last], lift[last]
+    s = cl - cl.mean()
+    up = np.nonzero((s[:-1] < 0) & (s[1:] >= 0))[0]
+    crossings = t[up] - s[up] * (t[up + 1] - t[up]) / (s[up + 1] - s[up])
+    period = float(np.diff(crossings).mean()) if len(crossings) > 1 else float("nan")
+    return {
+        "cd_max": float(cd.max()),
+        "cl_max": float(cl.max()),
+        "cd_mean": float(cd.mean()),
+        "strouhal": DIAMETER / (U_MEAN * period),
+    }
+
+
+def developed_shedding(
+    cells_per_diameter: int = 20, *, time: float = DEVELOP_TIME, nu: float = NU, dt: float = DT
+) -> tuple[Flow, dict[str, np.ndarray]]:
+    """The uncontrolled flow ``time`` time units after the inflow is switched on over
+    the channel at rest, in float64, without batch dimension, and the histories of the
+    drag and lift coefficients of every step (``"time"``, ``"drag"``, ``"lift"``).
+    The cylinder sits 0.005 below the channel's centre line, which starts the shedding."""
+    channel = Channel(cells_per_diameter, dtype=torch.float64, device="cpu")
+    flow = rest(1, channel, torch.float64, "cpu")
+    target = torch.zeros(1, dtype=torch.float64)
+    steps = int(round(time / dt))
+    drag, lift = np.empty(steps), np.empty(steps)
+    with torch.no_grad():
+        for k in range(steps):
+            flow, fd, fl = run(flow, 1, target, channel, nu, dt)
+            drag[k], lift[k] = float(fd[0]), float(fl[0])
+    history = {"time": dt * np.arange(1, steps + 1), "drag": coefficient(torch.from_numpy(drag)).numpy()}
+    history["lift"] = coefficient(torch.from_numpy(lift)).numpy()
+    return map_state(lambda f: f[0], flow), history
+
+
+def jet_target(action: torch.Tensor) -> torch.Tensor:
+    """The top jet's flow rate the actions ask for (``[B]``): the published jets' rates
+    ``Q_MAX * action`` with their mean removed (zero net mass flux)."""
+    return Q_MAX * 0.5 * (action[:, 0] - action[:, 1])
+
+
+class CylinderEnv(FlowEnv):
+    """Batched cylinder-v0 (2 continuous actions: the two jets' flow rates)."""
+
+    env_id = "cylinder-v0"
+    Params = CylinderParams
+    state_type = CylinderState
+    episode_length = EPISODE_LENGTH
+    family = "cavity"
+    # no published code in BEACON: the published solver (FEniCS) is not run here
+    published_speed = float("nan")
+    speed_target = 1.0
+    paper_ppo = float("nan")
+    gradcheck = GradCheck("nu", NU, warmup=1, steps=1)
+    test_settings = {"cells_per_diameter": 10}
+    # every completed action's reward is above -(drag - 0.159) - 0.2 |lift| with the
+    # forces of a blown-up flow excluded; a drag force of 10 (C_D 200) is far beyond any
+    blowup_reward = -10.0
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return N_PROBES, 2
+
+    def member_floats(self) -> int:
+        # u, v, p, the two tendencies, and the step's work on as many again
+        return 10 * (self.channel.nx + 1) * (self.channel.ny + 1)
+
+    def setup(self) -> None:
+        self.channel = Channel(int(self.params.cells_per_diameter), dtype=self.dtype, device=self.device)
+        self._steps = self.kernels.loop(step)
+
+    @functools.cached_property
+    def _start(self) -> Flow:
+        cells, nu = int(self.params.cells_per_diameter), number(self.params.nu)
+        key = dict(version=2, cells=cells, nu=nu, time=DEVELOP_TIME)
+        at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
+        like = map_state(lambda v: v[0], at_rest)
+        start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like)
+        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
+
+    def initial_state(self, mask: torch.Tensor | None) -> CylinderState:
+        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start._asdict().items()}
+        zeros = torch.zeros(self.num_envs, dtype=self.dtype, device=self.device)
+        return CylinderState(**flow, drag=zeros, lift=zeros.clone())
+
+    def advance(self, state: CylinderState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+        flow = Flow(*state[: len(Flow._fields)])
+        nu = self.params.nu  # [B]: the batch is the steps' last axis
+        flow, drag, lift = run(flow, SUBSTEPS, jet_target(action), self.channel, nu, DT, self._steps)
+        reward = -(drag - DRAG_OFFSET) - LIFT_PENALTY * lift.abs()
+        return CylinderState(*flow, drag=drag, lift=lift), reward
+
+    def observe(self, state: CylinderState) -> torch.Tensor:
+        return self.channel.pressure_probes(state.p)
+
+    def out_of_bounds(self, state: CylinderState) -> torch.Tensor:
+        # a flow faster than ten times the inflow's has left the scheme's stable range
+        return state.u.abs().flatten(1).amax(1) > 10.0 * U_MAX
+
+    def render_frame(self, history: list[CylinderState], step: int) -> np.ndarray:
+        from matplotlib.patches import Circle
+
+        from beacon_torch.render import action_bars, new_figure, to_rgb
+
+        last, c = history[-1], self.channel
+        u, v = last.u.double(), last.v.double()
+        # vorticity at the cells' corners inside the channel
+        dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / c.x.gaps[1:-1, None]
+        dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / c.y.gaps[None, 1:-1]
+        vorticity = (dvdx - dudy).numpy()
+        fig = new_figure(size=(8.0, 2.6))
+        ax = fig.add_axes((0.05, 0.16, 0.72, 0.72))
+        x, y = c.x.faces[1:-1].numpy(), c.y.faces[1:-1].numpy()
+        ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
+        ax.add_patch(Circle(CENTRE, RADIUS, color="0.3"))
+        ax.set_xlim(0.0, 1.2)
+        ax.set_ylim(0.0, HEIGHT)
+        ax.set_aspect("equal")
+        t = DT * SUBSTEPS * step
+        ax.set_title(f"cylinder   t = {t:.2f}   C_D = {float(coefficient(last.drag)):.3f}", fontsize=9)
+        bars = fig.add_axes((0.84, 0.2, 0.13, 0.6))
+        q = float(last.q) / Q_MAX
+        action_bars(bars, [q, -q], ["top jet", "bottom jet"], [(-1.0, 1.0)] * 2)
+        return to_rgb(fig)
+
+
+# not in the package's table of benchmark envs yet (its PPO campaign is to come):
+# registered where this module is imported, e.g. by the id
+# "beacon_torch.envs.cylinder:cylinder-v0"
+register("cylinder-v0", CylinderEnv)

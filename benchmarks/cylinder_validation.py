@@ -1,0 +1,86 @@
+"""The uncontrolled cylinder wake against the Schaefer-Turek benchmark 2D-2.
+
+    .venv/bin/python benchmarks/cylinder_validation.py [--cells 10 20 ...] [--time 8] [--out DIR]
+
+For each resolution (cells across the diameter), the channel starts at rest with its
+inflow on and runs ``--time`` time units in float64 without control
+(``beacon_torch.envs.cylinder.developed_shedding``); over the last two time units it
+measures the largest drag and lift coefficients, the mean drag coefficient and the
+Strouhal number (from the lift's upward zero crossings), and prints them beside the
+benchmark's intervals with the relative distance to the nearer end. Writes a new dated
+``cylinder_validation-DATE-TIME.json`` (rows and the coefficient histories of the
+window) to ``--out``. Each resolution runs in its own process (one core each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import os
+
+WINDOW = 2.0  # time units at the end of a run that are measured
+
+
+def off_by(value: float, interval: tuple[float, float]) -> float:
+    """The relative distance of ``value`` to the nearer end of ``interval`` (0 inside)."""
+    low, high = interval
+    if value < low:
+        return (value - low) / low
+    if value > high:
+        return (value - high) / high
+    return 0.0
+
+
+def measure(cells: int, time: float, dt: float) -> dict:
+    import torch
+
+    from beacon_torch.envs.cylinder import developed_shedding, shedding_figures
+
+    torch.set_num_threads(1)
+    _, history = developed_shedding(cells, time=time, dt=dt)
+    figures = shedding_figures(history["time"], history["drag"], history["lift"], WINDOW)
+    row = {"cells_per_diameter": cells, "time": time, "dt": dt, **figures}
+    last = history["time"] > history["time"][-1] - WINDOW
+    row["history"] = {k: v[last][::10].tolist() for k, v in history.items()}
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    from beacon_torch.envs.cylinder import SCHAEFER_TUREK
+
+    lines = [
+        "| cells per D | dt | C_D,max | C_L,max | mean C_D | St |",
+        "|---|---|---|---|---|---|",
+        "| Schaefer-Turek 2D-2 | | 3.22-3.24 | 0.99-1.01 | | 0.295-0.305 |",
+    ]
+    for r in rows:
+        cells = [f"{r[k]:.3f} ({100 * off_by(r[k], SCHAEFER_TUREK[k]):+.1f} %)" for k in ("cd_max", "cl_max")]
+        strouhal = f"{r['strouhal']:.4f} ({100 * off_by(r['strouhal'], SCHAEFER_TUREK['strouhal']):+.1f} %)"
+        row = [str(r["cells_per_diameter"]), f"{r['dt']:g}", *cells, f"{r['cd_mean']:.3f}", strouhal]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    from beacon_torch.bench import save_rows
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cells", type=int, nargs="+", default=[10, 20], help="cells across the diameter")
+    parser.add_argument("--time", type=float, default=8.0, help="time units from rest")
+    parser.add_argument(
+        "--dt", type=float, nargs="+", default=None, help="time step per resolution (default: the env's, 5e-4)"
+    )
+    parser.add_argument("--out", default="runs/cylinder_validation")
+    args = parser.parse_args()
+    workers = min(len(args.cells), os.cpu_count() or 1)
+    with concurrent.futures.ProcessPoolExecutor(workers) as pool:
+        dts = args.dt or [5e-4] * len(args.cells)
+        if len(dts) != len(args.cells):
+            parser.error(f"--dt gives {len(dts)} time steps for {len(args.cells)} resolutions")
+        rows = list(pool.map(measure, args.cells, [args.time] * len(args.cells), dts))
+    print(table(rows))
+    print("results:", save_rows(rows, args.out, "cylinder_validation"))
+
+
+if __name__ == "__main__":
+    main()
