@@ -1,6 +1,7 @@
 """The uncontrolled cylinder wake against the Schaefer-Turek benchmark 2D-2.
 
-    .venv/bin/python benchmarks/cylinder_validation.py [--cells 10 20 ...] [--time 8] [--out DIR]
+    .venv/bin/python benchmarks/cylinder_validation.py [--cells 20 40 ...] [--dt ...] [--time 8] [--out DIR]
+    .venv/bin/python benchmarks/cylinder_validation.py --plot RECORD.json FIGURE.png
 
 For each resolution (cells across the diameter), the channel starts at rest with its
 inflow on and runs ``--time`` time units in float64 without control
@@ -10,6 +11,8 @@ Strouhal number (from the lift's upward zero crossings), and prints them beside 
 benchmark's intervals with the relative distance to the nearer end. Writes a new dated
 ``cylinder_validation-DATE-TIME.json`` (rows and the coefficient histories of the
 window) to ``--out``. Each resolution runs in its own process (one core each).
+``--plot`` draws a record's drag and lift histories, one line per resolution, into a
+new figure (the page's, docs/img/cylinder-validation.png).
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ WINDOW = 2.0  # time units at the end of a run that are measured
 def off_by(value: float, interval: tuple[float, float]) -> float:
     """The relative distance of ``value`` to the nearer end of ``interval`` (0 inside)."""
     low, high = interval
+    if value != value:  # a run that blew up
+        return value
     if value < low:
         return (value - low) / low
     if value > high:
@@ -61,6 +66,33 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def plot(record: str, figure: str) -> None:
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from beacon_torch.envs.cylinder import SCHAEFER_TUREK
+    from beacon_torch.files import create_file
+
+    rows = json.loads(open(record).read())["rows"]
+    fig, (drag, lift) = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
+    for r in rows:
+        t = [x - r["history"]["time"][0] for x in r["history"]["time"]]
+        label = f"{r['cells_per_diameter']} cells per D, dt {r['dt']:g}"
+        drag.plot(t, r["history"]["drag"], lw=0.9, label=label)
+        lift.plot(t, r["history"]["lift"], lw=0.9, label=label)
+    for ax, key, name in ((drag, "cd_max", "C_D"), (lift, "cl_max", "C_L")):
+        ax.axhspan(*SCHAEFER_TUREK[key], color="0.8", label="Schaefer-Turek max")
+        ax.set_ylabel(name)
+    lift.set_xlabel("time over the measured window")
+    drag.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    print("figure:", create_file(figure, lambda tmp: fig.savefig(tmp, dpi=110, format="png")))
+
+
 def main() -> None:
     from beacon_torch.bench import save_rows
 
@@ -71,7 +103,10 @@ def main() -> None:
         "--dt", type=float, nargs="+", default=None, help="time step per resolution (default: the env's, 5e-4)"
     )
     parser.add_argument("--out", default="runs/cylinder_validation")
+    parser.add_argument("--plot", nargs=2, metavar=("RECORD", "FIGURE"), help="draw a record's histories")
     args = parser.parse_args()
+    if args.plot:
+        return plot(*args.plot)
     workers = min(len(args.cells), os.cpu_count() or 1)
     with concurrent.futures.ProcessPoolExecutor(workers) as pool:
         dts = args.dt or [5e-4] * len(args.cells)

@@ -19,10 +19,12 @@ if __name__ == "__main__":
         ("shkadov-v0", 100, {"random_start": 0}),
         ("rayleigh-v0", 5, {}),
         ("mixing-v0", 10, {}),
+        ("beacon_torch.envs.cylinder:cylinder-v0", 10, {}),
     )
     for env_id, steps, params in cases:
         env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True, **params)
         policy = episodes.random_policy(env, seed=0)
         env.rollout(steps, policy=policy)
-        Image.fromarray(env.render()).save(OUT / f"{env_id}.png")
-        print(OUT / f"{env_id}.png")
+        path = OUT / f"{env_id.split(':')[-1]}.png"
+        Image.fromarray(env.render()).save(path)
+        print(path)

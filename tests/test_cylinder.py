@@ -20,6 +20,8 @@ from beacon_torch.numerics.projection import NEUMANN, ZERO_FACE, PoissonSolver, 
 from beacon_torch.registry import register
 from beacon_torch.testing import CHECKS, check_flow_env
 
+from conftest import script
+
 # importing the module registered cylinder-v0; the other test modules see the
 # package's own envs only, and the tests here register it where they need the id
 unregister("cylinder-v0")
@@ -144,6 +146,17 @@ def recorded(cells: int, dt: float) -> dict:
         rows += [r for r in json.loads(path.read_text())["rows"] if r["cells_per_diameter"] == cells and r["dt"] == dt]
     assert rows, f"no recorded validation of {cells} cells per diameter"
     return rows[-1]
+
+
+def test_page_shows_the_recorded_validation_and_the_parameters():
+    from beacon_torch.params import markdown
+
+    validation = script("benchmarks/cylinder_validation.py")
+    paths = sorted((ROOT / "benchmarks" / "results" / "cylinder").glob("cylinder_validation-*.json"))
+    page = (ROOT / "docs" / "envs" / "cylinder.md").read_text()
+    assert validation.table(json.loads(paths[-1].read_text())["rows"]) in page
+    assert markdown(CylinderEnv.Params) in page
+    assert (ROOT / "docs" / "img" / "cylinder-validation.png").exists()
 
 
 @pytest.mark.slow(seconds=30)
