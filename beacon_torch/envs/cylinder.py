@@ -220,8 +220,8 @@ class Axis:
 class Channel:
     """The stretched grid of the channel and the immersed cylinder: cells of size
     ``h = D / cells_per_diameter`` in a box around the cylinder and its near wake,
-    growing by 5 % a cell outside it up to 8 h; the inflow, the body fractions of the
-    faces, the jets' stream, the ghost maps, the pressure solver and the probes.
+    growing by 5 % a cell outside it up to 8 h; the inflow, the faces inside the body,
+    the jets' stream, the ghost maps, the pressure solver and the probes.
     Fields are batch-last inside the steps (``[X, Y, B]``), as in the cavities'
     solver."""
 
@@ -330,10 +330,10 @@ def jet_profile(x_cells: torch.Tensor, h: float, points: int = 64) -> torch.Tens
     offsets = (torch.arange(points, dtype=torch.float64) + 0.5) / points - 0.5
     x = x_cells[:, None] + h * offsets[None, :] - CENTRE[0]
     angle = torch.asin((x / RADIUS).clamp(-1.0, 1.0))
-    inside = x.abs() < half
+    across = x.abs() < half
     # radial velocity cos(pi angle / width); the stream is vertical, so its vertical
     # velocity is the radial one over cos(angle)
-    profile = torch.where(inside, torch.cos(math.pi * angle / JET_WIDTH) / torch.cos(angle), 0.0).mean(1)
+    profile = torch.where(across, torch.cos(math.pi * angle / JET_WIDTH) / torch.cos(angle), 0.0).mean(1)
     return profile / (profile.sum() * h)
 
 
