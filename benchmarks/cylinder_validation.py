@@ -58,7 +58,7 @@ def table(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|",
         "| Schaefer-Turek 2D-2 | | 3.22-3.24 | 0.99-1.01 | | 0.295-0.305 |",
     ]
-    for r in rows:
+    for r in sorted(rows, key=lambda r: r["cells_per_diameter"]):
         cells = [f"{r[k]:.3f} ({100 * off_by(r[k], SCHAEFER_TUREK[k]):+.1f} %)" for k in ("cd_max", "cl_max")]
         strouhal = f"{r['strouhal']:.4f} ({100 * off_by(r['strouhal'], SCHAEFER_TUREK['strouhal']):+.1f} %)"
         row = [str(r["cells_per_diameter"]), f"{r['dt']:g}", *cells, f"{r['cd_mean']:.3f}", strouhal]
@@ -79,7 +79,7 @@ def plot(record: str, figure: str) -> None:
 
     rows = json.loads(open(record).read())["rows"]
     fig, (drag, lift) = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
-    for r in rows:
+    for r in sorted(rows, key=lambda r: r["cells_per_diameter"]):
         t = [x - r["history"]["time"][0] for x in r["history"]["time"]]
         label = f"{r['cells_per_diameter']} cells per D, dt {r['dt']:g}"
         drag.plot(t, r["history"]["drag"], lw=0.9, label=label)

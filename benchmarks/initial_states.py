@@ -3,8 +3,10 @@
     .venv/bin/python benchmarks/initial_states.py [--write] [shkadov] [rayleigh]
 
 shkadov: the film developed for 200 time units (default delta), about 50 s here;
-rayleigh: the convection roll developed for 200 time units, about 20 s. Without
---write, compares the regenerated states with the shipped ones.
+rayleigh: the convection roll developed for 200 time units, about 20 s; cylinder and
+cylinder-coarse: the wake shedding 8 time units after the inflow starts, at the default
+40 cells per diameter (about 70 s) and at the tests' 10. Without --write, compares the
+regenerated states with the shipped ones.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import time
 import torch
 
 from beacon_torch import cache
-from beacon_torch.envs import rayleigh, shkadov
+from beacon_torch.envs import cylinder, rayleigh, shkadov
 
 STATES = {
     "shkadov": ("shkadov-film", dict(version=1, delta=0.1), lambda: shkadov.developed_film(0.1)),
@@ -24,6 +26,14 @@ STATES = {
         dict(version=3, L=1.0, H=1.0, ra=1e4),
         lambda: rayleigh.developed_convection(rayleigh.RayleighParams()),
     ),
+    **{
+        name: (
+            "cylinder-shedding",
+            dict(version=cylinder.START_VERSION, cells=cells, nu=cylinder.NU, time=cylinder.DEVELOP_TIME),
+            lambda cells=cells: cylinder.developed_shedding(cells)[0],
+        )
+        for name, cells in (("cylinder", 40), ("cylinder-coarse", 10))
+    },
 }
 
 

@@ -14,15 +14,18 @@ velocity carried out at U).
 
 The grid is the cavities' staggered grid, stretched: square cells of D /
 ``cells_per_diameter`` in a box around the cylinder and its near wake, growing by 5 %
-a cell outside it. The cylinder is immersed by direct forcing: after the explicit
-predictor, the faces whose points lie inside the circle take the body's velocity (a
-staircase boundary, converging at first order in the cell size), and the projection
-that follows is the rectangle's own, so a direct Poisson solve still applies: tensor
-products of the 1-D operators' eigenvectors across the channel and tridiagonal
-solves along it. The force on the cylinder is the momentum that forcing removes, plus
-the rate of change of the momentum the body's faces hold (the jets' stream through
-it): the method's equivalent of the stress integrated on the surface, and equal to the
-surface pressure's integral where both are measured (docs/envs/cylinder.md).
+a cell outside it. The cylinder is immersed by direct forcing (:class:`ImmersedBoundary`):
+after the explicit predictor, the faces inside the circle take the body's velocity and
+the first fluid faces around it the value of a quadratic in the wall distance through
+the wall's velocity and the flow one and two cells further out along the normal, a
+boundary of second order in the cell size. The projection that follows is the
+rectangle's own, so a direct Poisson solve still applies (tensor products of the 1-D
+operators' eigenvectors across the channel, tridiagonal solves along it); mass is
+conserved in every cell whose centre lies in the fluid, and in the body's cells
+together (:meth:`Channel.continuity`). The force on the cylinder is the momentum the
+forcing removes, plus the rate of change of the momentum the body's faces hold (the
+jets' stream through it): the method's equivalent of the stress integrated on the
+surface.
 
 Time stepping: Adams-Bashforth 2 for advection and diffusion (the forward Euler of
 the cavities is unstable at this cell Reynolds number), the incremental projection of
@@ -33,9 +36,9 @@ Control: two jets at 90 and 270 degrees, 10 degrees wide, with opposite mass flo
 rates. The two actions in [-1, 1] are flow rates of at most 1e-2; as published, the
 jets' rates relax each step by a tenth of the way to the action and their mean is
 removed, which leaves the top jet's rate Q relaxing to (a_0 - a_1) / 2 * 1e-2 and the
-bottom's at -Q. The jets' fluid crosses the body as a vertical stream whose profile
-across each jet is the published cosine, averaged over each face and scaled so that
-the flow through the grid's faces is exactly Q.
+bottom's at -Q. The jets' velocity on the wall is the published cosine across each jet
+(:func:`wall_velocity`); inside the body their fluid crosses it as a vertical stream,
+face-averaged and scaled so that the grid's faces carry exactly Q.
 
 Observation: the pressure at the published 151 probes (bilinear in the cells).
 Reward per action: -(mean drag force - 0.159) - 0.2 |mean lift force| over the action's
@@ -75,6 +78,8 @@ JET_WIDTH = math.radians(10.0)
 DRAG_OFFSET = 0.159
 LIFT_PENALTY = 0.2
 DEVELOP_TIME = 8.0  # from rest, long enough for the shedding to be periodic
+# the developed starts' generation: a new one whenever the scheme changes the flow
+START_VERSION = 3
 # the box of uniform cells around the cylinder and its near wake (the probes' region),
 # mirror-symmetric across the channel; outside, cells grow by GROWTH up to WIDEST cells
 FINE_X = (0.12, 0.5)
@@ -220,8 +225,9 @@ class Axis:
 class Channel:
     """The stretched grid of the channel and the immersed cylinder: cells of size
     ``h = D / cells_per_diameter`` in a box around the cylinder and its near wake,
-    growing by 5 % a cell outside it up to 8 h; the inflow, the faces inside the body,
-    the jets' stream, the ghost maps, the pressure solver and the probes.
+    growing by 5 % a cell outside it up to 8 h; the inflow, the body's forcing of each
+    velocity component and its cells, the jets' stream, the ghost maps, the pressure
+    solver and the probes.
     Fields are batch-last inside the steps (``[X, Y, B]``), as in the cavities'
     solver."""
 
@@ -241,14 +247,31 @@ class Channel:
         self.dx_grad = along(self.x.gaps[1:])
         x_faces, x_cells, y_faces, y_cells = self.x.faces, self.x.centres, self.y.faces, self.y.centres
         self.inflow = cast(4.0 * U_MAX * y_cells * (HEIGHT - y_cells) / HEIGHT**2)[:, None]  # [ny, 1]
-        self.solid_u = cast(inside(x_faces[:, None], y_cells[None, :]))[..., None]  # [nx + 1, ny, 1]
+        # the body: the faces inside it and the first fluid faces around it, per component
         solid_v = inside(x_cells[:, None], y_faces[None, :])
-        self.solid_v = cast(solid_v)[..., None]  # [nx, ny + 1, 1]
         # the jets' vertical stream through the body per unit flow rate, on the v faces
         stream = jet_profile(x_cells, h)[:, None] * solid_v
         self.jet_v = cast(stream)[..., None]
+        self.body_u = ImmersedBoundary(x_faces, y_cells, 0, torch.zeros(nx + 1, ny, dtype=torch.float64), h)
+        self.body_v = ImmersedBoundary(x_cells, y_faces, 1, stream, h)
+        self.body_u.to(dtype=dtype, device=device)
+        self.body_v.to(dtype=dtype, device=device)
         # the momentum the body's faces hold per unit flow rate
         self.jet_momentum = float(stream.sum()) * h * h
+        # cells whose centre lies in the body: they need not conserve mass one by one
+        # (their faces are forced), only each half of the body together, so that the
+        # jets' stream carries its rate from the bottom jet to the top one
+        body_cells = inside(x_cells[:, None], y_cells[None, :])
+        self.fluid_cells = cast(1.0 - body_cells)[..., None]
+        upper = (y_cells > CENTRE[1]).double()[None, :]
+        halves = torch.stack((body_cells * upper, body_cells * (1.0 - upper)), -1)  # [nx, ny, 2]
+        self.halves = cast(halves)
+        self.half_share = cast(halves / halves.sum((0, 1)))
+        # cells with a free face: the pressure of the others acts on forced faces only
+        # (each step overwrites them), so it is not carried from step to step
+        free_u, free_v = self.body_u.free.reshape(nx + 1, ny), self.body_v.free.reshape(nx, ny + 1)
+        enclosed = (1 - free_u[1:]) * (1 - free_u[:-1]) * (1 - free_v[:, 1:]) * (1 - free_v[:, :-1])
+        self.live = cast(1.0 - enclosed)[..., None]
         # impermeable, no-slip walls below and above; v = 0 at the inflow, carried out
         self.u_ghosts = Ghosts(None, [1.0] * (nx + 1), *Ghosts._cell_axis(ny, VALUE, VALUE), dtype=dtype, device=device)
         v_x = Ghosts._cell_axis(nx, VALUE, 1.0)
@@ -283,6 +306,15 @@ class Channel:
 
     def divergence(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         return (u[1:] - u[:-1]) / self.dx_cells + (v[:, 1:] - v[:, :-1]) / self.dy_cells
+
+    def continuity(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """The divergence the projection removes: all of it in the fluid's cells; in the
+        body's cells, each half's mean only, so that the faces around the body keep the
+        values the forcing gave them while each half of the body passes on exactly
+        what its jet's stream brings (no fluid made or lost, the jets' rates exact)."""
+        div = self.divergence(u, v)
+        total = torch.einsum("xyb,xyh->hb", div, self.halves)  # [2, B]
+        return div * self.fluid_cells + torch.einsum("xyh,hb->xyb", self.half_share, total)
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """phi with lap phi = rhs in the cells: zero normal gradient on the walls and
@@ -337,6 +369,94 @@ def jet_profile(x_cells: torch.Tensor, h: float, points: int = 64) -> torch.Tens
     return profile / (profile.sum() * h)
 
 
+def wall_velocity(theta: np.ndarray) -> np.ndarray:
+    """The outward velocity of the cylinder's surface at the polar angles ``theta`` per
+    unit flow rate of the top jet (the bottom one's rate is opposite): the published
+    cosine across each jet, 10 degrees wide, which carries a unit flow rate."""
+    amplitude = math.pi / (2.0 * JET_WIDTH * RADIUS)
+    velocity = np.zeros_like(theta)
+    for centre, sign in ((0.5 * math.pi, 1.0), (1.5 * math.pi, -1.0)):
+        off = np.angle(np.exp(1j * (theta - centre)))  # the angle from the jet's centre
+        across = np.abs(off) < 0.5 * JET_WIDTH
+        velocity += np.where(across, sign * amplitude * np.cos(math.pi * off / JET_WIDTH), 0.0)
+    return velocity
+
+
+class ImmersedBoundary:
+    """The cylinder's direct forcing on one velocity component, whose nodes are the grid
+    ``xs`` x ``ys``, applied to a predicted field ``[X, Y, B]`` with the top jet's rate
+    ``q`` (``[B]``). Nodes inside the circle take the body's velocity (``inside`` per
+    unit rate: the jets' stream). Nodes outside it with a neighbour inside, the first
+    fluid nodes, take the value at their wall distance ``d`` of the quadratic in the
+    wall distance through the wall's velocity (zero, or the jets') and the flow at
+    ``d + h`` and ``d + 2 h`` along the wall normal, each read bilinearly from the nodes
+    around it: a boundary of second order, without the staircase's first-order shift of
+    the wall. Where those nodes are first fluid nodes themselves, the conditions are
+    coupled; they are solved once here, so that a step applies
+    ``forced = M @ free_values + m q``."""
+
+    def __init__(self, xs: torch.Tensor, ys: torch.Tensor, component: int, inside_value: torch.Tensor, h: float):
+        xs, ys = xs.numpy(), ys.numpy()
+        x, y = np.meshgrid(xs - CENTRE[0], ys - CENTRE[1], indexing="ij")
+        nx, ny = x.shape
+        r = np.hypot(x, y)
+        solid = r < RADIUS
+        near = np.zeros_like(solid)
+        near[1:] |= solid[:-1]
+        near[:-1] |= solid[1:]
+        near[:, 1:] |= solid[:, :-1]
+        near[:, :-1] |= solid[:, 1:]
+        first = np.flatnonzero(near & ~solid)
+        row = {node: k for k, node in enumerate(first)}
+        normal = np.stack((x.flat[first], y.flat[first])) / r.flat[first]
+        d = r.flat[first] - RADIUS
+        # the quadratic's weights of the points at d + h and d + 2 h; the wall has the rest
+        points = ((h, 2.0 * d / (d + h)), (2.0 * h, -d / (d + 2.0 * h)))
+        wall = 1.0 - points[0][1] - points[1][1]
+        coupled = np.zeros((len(first), len(first)))
+        free: dict[int, int] = {}
+        free_weights: list[tuple[int, int, float]] = []
+        rate = wall * wall_velocity(np.arctan2(normal[1], normal[0])) * normal[component]
+        for distance, weight in points:
+            px = x.flat[first] + CENTRE[0] + distance * normal[0]
+            py = y.flat[first] + CENTRE[1] + distance * normal[1]
+            i = np.clip(np.searchsorted(xs, px) - 1, 0, nx - 2)
+            j = np.clip(np.searchsorted(ys, py) - 1, 0, ny - 2)
+            tx, ty = (px - xs[i]) / (xs[i + 1] - xs[i]), (py - ys[j]) / (ys[j + 1] - ys[j])
+            corners = ((0, 0, (1 - tx) * (1 - ty)), (1, 0, tx * (1 - ty)), (0, 1, (1 - tx) * ty), (1, 1, tx * ty))
+            for di, dj, w in corners:
+                for k, node in enumerate((i + di) * ny + j + dj):
+                    c = weight[k] * w[k]
+                    if node in row:
+                        coupled[k, row[node]] += c
+                    elif solid.flat[node]:
+                        rate[k] += c * float(inside_value.reshape(-1)[node])
+                    else:
+                        free_weights.append((k, free.setdefault(int(node), len(free)), c))
+        weights = np.zeros((len(first), len(free)))
+        for k, column, c in free_weights:
+            weights[k, column] += c
+        system = np.eye(len(first)) - coupled
+        self.matrix = torch.from_numpy(np.linalg.solve(system, weights))  # [first, free]
+        self.rate = torch.from_numpy(np.linalg.solve(system, rate))[:, None]  # [first, 1]
+        self.sources = torch.tensor(sorted(free, key=free.get))  # the free nodes read
+        self.targets = torch.from_numpy(first)  # the first fluid nodes
+        forced = solid | (near & ~solid)
+        self.free = torch.from_numpy(~forced.reshape(-1)).double()[:, None]  # [nodes, 1]
+        self.inside = torch.where(torch.from_numpy(solid), inside_value, 0.0).reshape(-1, 1)
+
+    def to(self, dtype, device) -> None:
+        for name in ("matrix", "rate", "free", "inside"):
+            setattr(self, name, getattr(self, name).to(dtype=dtype, device=device, copy=True))
+        self.sources, self.targets = self.sources.to(device), self.targets.to(device)
+
+    def __call__(self, f: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        nx, ny, batch = f.shape
+        flat = f.reshape(nx * ny, batch)
+        first = self.matrix @ flat[self.sources] + self.rate * q
+        return (flat * self.free + self.inside * q).index_add(0, self.targets, first).reshape(nx, ny, batch)
+
+
 def probe_stencil(
     points: np.ndarray, x_cells: torch.Tensor, y_cells: torch.Tensor
 ) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
@@ -369,21 +489,20 @@ def step(i, flow: dict, target: torch.Tensor, channel: Channel, nu, dt: float) -
     v_star = v[:, 1:-1] + dt * (1.5 * hv - 0.5 * flow["hv"] - c.y_gradient(p))
     u_star = torch.cat((c.inflow.expand_as(u[:1]), u_star), 0)
     v_star = torch.nn.functional.pad(v_star, (0, 0, 1, 1))
-    # the body: the faces inside it take its velocity
-    force_u = c.solid_u * u_star
-    force_v = c.solid_v * (v_star - q * c.jet_v)
-    u_new, v_new = u_star - force_u, v_star - force_v
+    # the body: its faces take its velocity, the first fluid faces around it the value
+    # the wall and the flow further out give them; what that removes is the force
+    u_new, v_new = c.body_u(u_star, q), c.body_v(v_star, q)
     cell = h * h / dt
-    drag = force_u.sum((0, 1)) * cell
-    lift = force_v.sum((0, 1)) * cell + c.jet_momentum * (q - flow["q"]) / dt
+    drag = (u_star - u_new).sum((0, 1)) * cell
+    lift = (v_star - v_new).sum((0, 1)) * cell + c.jet_momentum * (q - flow["q"]) / dt
     # projection on the rectangle
-    phi = c.solve(c.divergence(u_new, v_new) / dt)
+    phi = c.solve(c.continuity(u_new, v_new) / dt)
     u_new = torch.cat((u_new[:1], u_new[1:] - dt * c.x_gradient(phi)), 0)
     v_new = torch.cat((v_new[:, :1], v_new[:, 1:-1] - dt * c.y_gradient(phi), v_new[:, -1:]), 1)
     return {
         "u": u_new,
         "v": v_new,
-        "p": p + phi,
+        "p": p * c.live + phi,
         "hu": hu,
         "hv": hv,
         "q": q,
@@ -513,7 +632,7 @@ class CylinderEnv(FlowEnv):
     @functools.cached_property
     def _start(self) -> Flow:
         cells, nu = int(self.params.cells_per_diameter), number(self.params.nu)
-        key = dict(version=2, cells=cells, nu=nu, time=DEVELOP_TIME)
+        key = dict(version=START_VERSION, cells=cells, nu=nu, time=DEVELOP_TIME)
         at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
         like = map_state(lambda v: v[0], at_rest)
         start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like)
