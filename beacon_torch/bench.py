@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import platform
 import resource
 import statistics
@@ -166,7 +167,7 @@ def measure(
     peak = None
     if own_process:
         peak = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else _resident_mb()
-    published = env_class(env_id).published_speed
+    published = known(env_class(env_id).published_speed)
     return Measurement(
         env=env_id,
         batch=batch,
@@ -184,6 +185,11 @@ def measure(
         published_per_s=published,
         speedup=rate / published if published else None,
     )
+
+
+def known(value: float) -> float | None:
+    """A card's published speed or target, or None for an env beyond BEACON (NaN)."""
+    return value if value and math.isfinite(value) else None
 
 
 def measure_in_fresh_process(env_id: str, batch: int, **kwargs) -> Measurement:
@@ -384,7 +390,7 @@ def markdown(results: Sequence[Measurement]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for env_id, m in best(results).items():
-        target = env_class(env_id).speed_target
+        target = known(env_class(env_id).speed_target)
         met = "" if target is None or m.speedup is None else ("yes" if m.speedup >= target else "**no**")
         vs = f"{m.speedup:.1f}x" if m.speedup is not None else "-"
         tgt = f"{target:g}x" if target else "-"

@@ -12,6 +12,7 @@ from typing import Any
 
 from beacon_torch.base import FlowEnv
 from beacon_torch.envs.burgers import BurgersEnv
+from beacon_torch.envs.cylinder import CylinderEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
 from beacon_torch.envs.mixing import MixingContinuousEnv, MixingEnv
 from beacon_torch.envs.rayleigh import RayleighEnv
@@ -32,6 +33,7 @@ ENVS: dict[str, type[FlowEnv]] = {
         RayleighEnv,
         MixingEnv,
         MixingContinuousEnv,
+        CylinderEnv,
     )
 }
 

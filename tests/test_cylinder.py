@@ -1,30 +1,22 @@
-"""The cylinder wake: its stretched-grid solver, the immersed cylinder and its jets, the
-env through the conformance kit, and the validation figures against the recorded ones."""
+"""The cylinder wake: its stretched-grid solver, the immersed cylinder and its jets, and
+the validation figures against the recorded ones (the conformance kit runs on it with
+every env, in test_conformance.py)."""
 
 from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from test_conformance import unregister
 
 from beacon_torch.envs import cylinder
 from beacon_torch.envs.cylinder import Channel, CylinderEnv, jet_target, rest, run
 from beacon_torch.numerics.projection import NEUMANN, ZERO_FACE, PoissonSolver, laplacian_1d
-from beacon_torch.registry import register
-from beacon_torch.testing import CHECKS, check_flow_env
 
 from conftest import script
-
-# importing the module registered cylinder-v0; the other test modules see the
-# package's own envs only, and the tests here register it where they need the id
-unregister("cylinder-v0")
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = dict(dtype=torch.float64, device="cpu")
@@ -175,30 +167,6 @@ def test_probes_are_the_published_layout(channel):
     points = cylinder.PROBES + np.array(cylinder.CENTRE)
     expected = torch.from_numpy(2.0 * points[:, 0] - 3.0 * points[:, 1])
     assert torch.allclose(channel.pressure_probes(p)[0], expected, atol=1e-12)
-
-
-@pytest.fixture
-def registered():
-    register("cylinder-v0", CylinderEnv)
-    yield
-    unregister("cylinder-v0")
-
-
-@pytest.mark.slow(seconds=120)
-def test_env_passes_the_conformance_kit(registered):
-    found = check_flow_env("cylinder-v0")
-    assert found == dict.fromkeys(CHECKS, "passed")
-
-
-@pytest.mark.slow(seconds=20)
-def test_the_id_with_its_module_makes_the_env_in_a_fresh_process():
-    code = (
-        "import beacon_torch\n"
-        "env = beacon_torch.make('beacon_torch.envs.cylinder:cylinder-v0', 2, cells_per_diameter=10)\n"
-        "print(type(env).__name__, tuple(env.observation_spec['observation'].shape), tuple(env.action_spec.shape))"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
-    assert out.stdout.split("\n")[-2] == "CylinderEnv (2, 151) (2, 2)"
 
 
 def recorded(cells: int, dt: float) -> dict:

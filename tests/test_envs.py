@@ -257,22 +257,27 @@ def test_every_env_declares_its_card():
         "shkadov-v0",
         "rayleigh-v0",
         "mixing-v0",
+        "cylinder-v0",
     ]
     assert {e: envs[e].base_id() for e in envs if envs[e].base_id() != e} == {
         "lorenz-continuous-v0": "lorenz-v0",
         "shkadov-separable-v0": "shkadov-v0",
         "mixing-continuous-v0": "mixing-v0",
     }
-    assert EXPENSIVE_ENVS == {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0"}
+    assert EXPENSIVE_ENVS == {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0", "cylinder-v0"}
     for env_id, cls in envs.items():
         assert cls.family in ("ode", "1-D", "cavity"), env_id
-        assert cls.published_speed > 0 and cls.speed_target > 0 and math.isfinite(cls.paper_ppo), env_id
+        assert math.isfinite(cls.paper_ppo), env_id
+        if cls.base_id() == "cylinder-v0":  # beyond BEACON: no published code run here
+            assert math.isnan(cls.published_speed) and math.isnan(cls.speed_target)
+        else:
+            assert cls.published_speed > 0 and cls.speed_target > 0, env_id
         base = envs[cls.base_id()]
         assert (cls.published_speed, cls.paper_ppo, cls.family) == (
             base.published_speed,
             base.paper_ppo,
             base.family,
-        ), env_id
+        ) or cls is base, env_id
         assert (cls.gradcheck is None) == cls.discrete, env_id
         if cls.gradcheck is not None:
             assert isinstance(cls.gradcheck, GradCheck)

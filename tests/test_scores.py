@@ -92,3 +92,11 @@ def test_mixing_constant_actions_score_like_the_published_baseline():
     score = episodes.scores(rollout)
     assert score[0].item() == pytest.approx(-17.48, rel=0.02)
     assert (score.max() - score.min()).item() <= 0.01 * abs(score.mean().item())
+
+
+@pytest.mark.slow(seconds=40)
+def test_cylinder_uncontrolled_score_from_the_developed_start():
+    # beyond BEACON: no published implementation runs here; the score of the shipped
+    # developed start at the default grid (README), whose every episode is the same
+    score = uncontrolled("cylinder-v0", 1)
+    assert score.item() == pytest.approx(-0.57552, rel=1e-4)

@@ -43,6 +43,19 @@ PPO = {
     # vortex alone normalises its observations (the paper's library ignored the setting
     # and its runs stayed at a lower score)
     "vortex-v0": dict(n_rollout=4000, frames=1_000_000, critic_lr=1e-3, norm_steps=64),
+    # beyond the paper: Rabault et al.'s agent (512-wide networks, both rates 1e-3, 20
+    # episodes of 80 actions per update, 25 minibatch steps of a fifth of them, GAE's
+    # lambda 0.97)
+    "cylinder-v0": dict(
+        n_rollout=1600,
+        frames=64_000,
+        hidden=512,
+        actor_lr=1e-3,
+        critic_lr=1e-3,
+        epochs=5,
+        minibatches=5,
+        gae_lambda=0.97,
+    ),
 }
 # TD3, where its settings differ from the paper's agent
 TD3 = {
