@@ -208,3 +208,39 @@ def test_validation_figures_of_the_default_grid_are_the_recorded_ones():
     got = cylinder.shedding_figures(time, coefficient(drag), coefficient(lift), window=0.8)
     for key, tolerance in (("cd_max", 1e-3), ("cl_max", 2e-3), ("cd_mean", 1e-3), ("strouhal", 1e-2)):
         assert got[key] == pytest.approx(record[key], rel=tolerance), key
+
+
+@pytest.mark.slow(seconds=40)
+def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_path):
+    """benchmarks/cylinder_control.py: a policy file acts for two episodes' worth of
+    actions on the grid it was trained on; the flow goes on across the episode's end,
+    and the member without control is the uncontrolled flow itself."""
+    from beacon_torch import training
+    from beacon_torch.training import networks
+
+    control = script("benchmarks/cylinder_control.py")
+    params = {"cells_per_diameter": 10}
+    env = training.env.make_env("cylinder-v0", 1, norm_steps=0, params=params)
+    policy = networks.policy(env, "deterministic_actor", 16)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(p.numel()))
+    record = {"env": "cylinder-v0", "algo": "td3", "network": "deterministic_actor", "hidden": 16}
+    torch.save({**record, "params": params, "weights": policy.state_dict()}, tmp_path / "policy.pt")
+    row = control.control(str(tmp_path / "policy.pt"), 160, compile=False)
+    assert row["params"] == params and len(row["per_action"]["drag"]) == 160
+
+    free = CylinderEnv(1, cells_per_diameter=10)
+    free.reset()
+    drag = []
+    for _ in range(2):
+        for _ in range(free.episode_length):
+            free.step_members(free.null_action())
+            drag.append(float(cylinder.coefficient(free.state.drag)[0]))
+        free.set_state(free.state, 0)
+    assert row["per_action"]["uncontrolled_drag"] == pytest.approx(drag, rel=1e-5)
+    jets = np.array(row["per_action"]["jet"])
+    assert np.abs(jets).max() <= 1.0 and np.abs(jets).max() > 0.05
+    first, last = np.array(row["per_action"]["drag"][:80]), np.array(row["per_action"]["drag"][80:])
+    assert row["reduction_episode"] == pytest.approx(1 - first.mean() / np.mean(drag[:80]), rel=1e-5)
+    assert row["reduction_second_half"] == pytest.approx(1 - last.mean() / np.mean(drag[80:]), rel=1e-5)

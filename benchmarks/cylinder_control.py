@@ -1,0 +1,155 @@
+"""The drag of cylinder-v0 under trained policies against no control, per action.
+
+    .venv/bin/python benchmarks/cylinder_control.py POLICY [POLICY ...] [--actions 240] [--out DIR]
+    .venv/bin/python benchmarks/cylinder_control.py --plot RECORD.json FIGURE.png
+
+POLICY: a run directory (``runs/ppo/cylinder-v0/seed0``), a policy file
+(``pretrained.export``'s) or a shipped pair (``ppo/cylinder-v0``), run on the env
+parameters it was trained with. From the developed start, each deterministic policy acts for
+``--actions`` actions (three episodes' worth by default: at each episode's end the
+env's counter is set back and the flow goes on), with an uncontrolled member beside
+it, in float32 as the policies were trained. Per action it records the drag and lift
+coefficients of both and the jets' rate, and it reports the mean drag coefficient over
+the first episode (the 80 actions every training and evaluation episode has) and over
+the second half of the run (the regime Rabault et al. report, their single runs'
+measure), each against no control over the same actions. Writes a new dated
+``cylinder_control-DATE-TIME.json`` to ``--out``. ``--plot`` draws a record's drag
+coefficients and jets' rates into a new figure (the page's,
+docs/img/cylinder-control.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+
+def policy_of(name: str):
+    """The raw-observation policy of a run directory, a policy file or a shipped pair,
+    and the env parameters it was trained with."""
+    import torch
+
+    from beacon_torch import pretrained
+
+    if Path(name).is_dir():
+        with tempfile.TemporaryDirectory() as folder:
+            return policy_of(str(pretrained.export(name, Path(folder) / "policy.pt")))
+    if Path(name).is_file():
+        policy = pretrained.load_file(name, "cylinder-v0")
+        return policy, torch.load(name, weights_only=True).get("params", {})
+    return pretrained.load(name), pretrained.info(name).get("params", {})
+
+
+def control(name: str, actions: int, compile: bool = True) -> dict:
+    """``actions`` actions of the policy ``name`` and of no control from the developed
+    start, per action and in the two means."""
+    import numpy as np
+    import torch
+
+    import beacon_torch
+    from beacon_torch.envs import cylinder
+
+    policy, params = policy_of(name)
+    env = beacon_torch.make("cylinder-v0", 2, compile=compile, params=params)  # the policy's member, no control
+    td = env.reset()
+    rows = {"drag": [], "lift": [], "uncontrolled_drag": [], "uncontrolled_lift": [], "jet": []}
+    with torch.no_grad():
+        for k in range(actions):
+            if k and k % env.episode_length == 0:
+                # the episode's end: the flow goes on from where it is
+                env.set_state(env.state, 0)
+                td = env.current()
+            action = policy(td.clone())[env.action_key]
+            action[1] = env.null_action()[1]
+            td = env.step(td.set(env.action_key, action))["next"]
+            state = env.state
+            drag, lift = cylinder.coefficient(state.drag).tolist(), cylinder.coefficient(state.lift).tolist()
+            rows["drag"].append(drag[0])
+            rows["lift"].append(lift[0])
+            rows["uncontrolled_drag"].append(drag[1])
+            rows["uncontrolled_lift"].append(lift[1])
+            rows["jet"].append(float(state.q[0]) / cylinder.Q_MAX)
+    drag, free = np.array(rows["drag"]), np.array(rows["uncontrolled_drag"])
+    episode, half = slice(0, env.episode_length), slice(actions // 2, actions)
+    reduction = lambda part: float(1.0 - drag[part].mean() / free[part].mean())
+    return {
+        "policy": name,
+        "params": params,
+        "actions": actions,
+        "cd_episode": float(drag[episode].mean()),
+        "cd_episode_uncontrolled": float(free[episode].mean()),
+        "reduction_episode": reduction(episode),
+        "cd_second_half": float(drag[half].mean()),
+        "cd_second_half_uncontrolled": float(free[half].mean()),
+        "reduction_second_half": reduction(half),
+        "per_action": rows,
+    }
+
+
+def table(rows: list[dict]) -> str:
+    lines = [
+        "| policy | mean C_D, first episode (80 actions) | no control | reduction "
+        "| mean C_D, second half of the run | no control | reduction |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['policy']} | {r['cd_episode']:.4f} | {r['cd_episode_uncontrolled']:.4f} | "
+            f"{100 * r['reduction_episode']:.1f} % | {r['cd_second_half']:.4f} | "
+            f"{r['cd_second_half_uncontrolled']:.4f} | {100 * r['reduction_second_half']:.1f} % |"
+        )
+    return "\n".join(lines)
+
+
+def plot(record: str, figure: str) -> None:
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from beacon_torch.envs import cylinder
+    from beacon_torch.files import create_file
+
+    rows = json.loads(open(record).read())["rows"]
+    fig, (drag, jets) = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
+    action_time = cylinder.DT * cylinder.SUBSTEPS
+    for k, r in enumerate(rows):
+        t = [action_time * (i + 1) for i in range(r["actions"])]
+        if k == 0:
+            drag.plot(t, r["per_action"]["uncontrolled_drag"], color="k", lw=0.9, label="no control")
+        drag.plot(t, r["per_action"]["drag"], color=f"C{k}", lw=0.9, label=r["policy"])
+        jets.plot(t, r["per_action"]["jet"], color=f"C{k}", lw=0.9)
+    drag.set_ylabel("C_D (mean over each action)")
+    jets.set_ylabel("top jet's rate / 1e-2")
+    jets.set_xlabel("time from the developed start")
+    drag.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    print("figure:", create_file(figure, lambda tmp: fig.savefig(tmp, dpi=110, format="png")))
+
+
+def main() -> None:
+    from beacon_torch.bench import save_rows
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("policies", nargs="*", help="run directories or shipped pairs (ALGO/cylinder-v0)")
+    parser.add_argument("--actions", type=int, default=240, help="actions from the developed start")
+    parser.add_argument("--no-compile", action="store_true", help="eager physics")
+    parser.add_argument("--out", default="runs/cylinder_control")
+    parser.add_argument("--plot", nargs=2, metavar=("RECORD", "FIGURE"), help="draw a record's drag and jets")
+    args = parser.parse_args()
+    if args.plot:
+        return plot(*args.plot)
+    if not args.policies:
+        parser.error("name at least one policy (a run directory or ALGO/cylinder-v0)")
+    if args.actions < 80:
+        parser.error(f"--actions must cover an episode (80), got {args.actions}")
+    rows = [control(name, args.actions, not args.no_compile) for name in args.policies]
+    print(table(rows))
+    print("results:", save_rows(rows, args.out, "cylinder_control"))
+
+
+if __name__ == "__main__":
+    main()
