@@ -88,8 +88,7 @@ def rollout_gradient(checkpoint, steps=12):
 def test_a_checkpointed_episode_holds_little_resident_memory_per_action():
     """What each recomputable action frees goes back to the system: the resident memory
     of a checkpointed rollout of the 2-D cylinder grows by far less than an action's
-    graph (about 160 MB for two members, measured with glibc's adaptive threshold)."""
-    from beacon_torch.autograd import return_freed_blocks
+    graph (about 160 MB for two members where glibc keeps the freed blocks)."""
 
     def resident_mb() -> float:
         return int(open("/proc/self/status").read().split("VmRSS:")[1].split()[0]) / 1024
@@ -105,7 +104,7 @@ def test_a_checkpointed_episode_holds_little_resident_memory_per_action():
         total = total + td["reward"].sum()
     growth = (resident_mb() - before) / 4
     total.backward()
-    assert return_freed_blocks() and action.grad.abs().sum() > 0
+    assert action.grad.abs().sum() > 0
     assert growth < 60.0, f"{growth:.0f} MB per action"
 
 
