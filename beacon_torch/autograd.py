@@ -16,15 +16,38 @@ def graph_mode(differentiable: bool) -> contextlib.AbstractContextManager:
     return contextlib.nullcontext() if differentiable else torch.no_grad()
 
 
-def checkpointed(step: Callable, *tensors):
-    """``step(*tensors)`` under activation checkpointing: the memory of a differentiated
+def checkpointed(step: Callable, *inputs):
+    """``step(*inputs)`` under activation checkpointing: the memory of a differentiated
     episode becomes one state per action. The step draws nothing itself (its noise is
-    among ``tensors``), so its recomputation in the backward pass is the same step."""
+    among ``inputs``), so its recomputation in the backward pass is the same step. The
+    memory an action's forward pass and its recomputation free is handed back to the
+    system after each (:func:`release_free_memory`)."""
+    from torch.utils._pytree import tree_flatten, tree_unflatten
     from torch.utils.checkpoint import checkpoint
 
-    out = checkpoint(step, *tensors, use_reentrant=False)
+    leaves, spec = tree_flatten(inputs)
+    traced = [i for i, x in enumerate(leaves) if isinstance(x, torch.Tensor) and x.requires_grad]
+    if traced:
+        # the backward pass reaches these inputs right after recomputing the action
+        passed = _ReleaseAfterBackward.apply(*(leaves[i] for i in traced))
+        for i, x in zip(traced, passed if isinstance(passed, tuple) else (passed,), strict=True):
+            leaves[i] = x
+    out = checkpoint(step, *tree_unflatten(leaves, spec), use_reentrant=False)
     release_free_memory()
     return out
+
+
+class _ReleaseAfterBackward(torch.autograd.Function):
+    """The identity, whose backward pass releases the free memory."""
+
+    @staticmethod
+    def forward(ctx, *tensors):
+        return tuple(t.view_as(t) for t in tensors)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        release_free_memory()
+        return grads
 
 
 @functools.cache
