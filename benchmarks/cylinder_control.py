@@ -1,7 +1,7 @@
 """The drag of cylinder-v0 under trained policies against no control, per action.
 
     .venv/bin/python benchmarks/cylinder_control.py POLICY [POLICY ...] [--actions 240] [--out DIR]
-    .venv/bin/python benchmarks/cylinder_control.py --plot RECORD.json FIGURE.png
+    .venv/bin/python benchmarks/cylinder_control.py --plot RECORD.json FIGURE.png [--base-flow RECORD.json]
 
 POLICY: a run directory (``runs/ppo/cylinder-v0/seed0``), a policy file
 (``pretrained.export``'s) or a shipped pair (``ppo/cylinder-v0``), run on the env
@@ -15,7 +15,8 @@ the second half of the run (the regime Rabault et al. report, their single runs'
 measure), each against no control over the same actions. Writes a new dated
 ``cylinder_control-DATE-TIME.json`` to ``--out``. ``--plot`` draws a record's drag
 coefficients and jets' rates into a new figure (the page's,
-docs/img/cylinder-control.png).
+docs/img/cylinder-control.png), with ``--base-flow`` the drag of the steady base flow
+(benchmarks/cylinder_base_flow.py) as a line.
 """
 
 from __future__ import annotations
@@ -102,7 +103,7 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def plot(record: str, figure: str) -> None:
+def plot(record: str, figure: str, base_flow: str | None = None) -> None:
     import json
 
     import matplotlib
@@ -122,6 +123,9 @@ def plot(record: str, figure: str) -> None:
             drag.plot(t, r["per_action"]["uncontrolled_drag"], color="k", lw=0.9, label="no control")
         drag.plot(t, r["per_action"]["drag"], color=f"C{k}", lw=0.9, label=r["policy"])
         jets.plot(t, r["per_action"]["jet"], color=f"C{k}", lw=0.9)
+    if base_flow:
+        cd = json.loads(open(base_flow).read())["rows"][0]["cd_base"]
+        drag.axhline(cd, color="0.5", ls=":", lw=1, label=f"steady base flow ({cd:.3f})")
     drag.set_ylabel("C_D (mean over each action)")
     jets.set_ylabel("top jet's rate / 1e-2")
     jets.set_xlabel("time from the developed start")
@@ -139,9 +143,10 @@ def main() -> None:
     parser.add_argument("--no-compile", action="store_true", help="eager physics")
     parser.add_argument("--out", default="runs/cylinder_control")
     parser.add_argument("--plot", nargs=2, metavar=("RECORD", "FIGURE"), help="draw a record's drag and jets")
+    parser.add_argument("--base-flow", help="with --plot: a record of benchmarks/cylinder_base_flow.py (a line)")
     args = parser.parse_args()
     if args.plot:
-        return plot(*args.plot)
+        return plot(*args.plot, base_flow=args.base_flow)
     if not args.policies:
         parser.error("name at least one policy (a run directory or ALGO/cylinder-v0)")
     if args.actions < 80:
