@@ -213,6 +213,7 @@ REACH = {
     "shkadov-separable-v0": (1, 2, {"random_start": 0}),
     "rayleigh-v0": (0, 1, {}),
     "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].test_settings),
+    "cylinder-v0": (0, 1, ENVS["cylinder-v0"].test_settings),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)

@@ -150,6 +150,7 @@ def test_unknown_env_id_lists_the_known_ones():
 def test_list_envs():
     assert beacon_torch.list_envs() == [
         "burgers-v0",
+        "cylinder-v0",
         "lorenz-continuous-v0",
         "lorenz-v0",
         "mixing-continuous-v0",
