@@ -71,6 +71,10 @@ def test_export_folds_the_normalisation_into_the_first_layer(shipped):
         got = pretrained.load("ppo/vortex-v0")(raw)["action"]
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
     assert pretrained.info("ppo/vortex-v0")["score"] == 1.0
+    with torch.no_grad():
+        torch.testing.assert_close(pretrained.load("ppo", "vortex-v0")(raw)["action"], got)
+    with pytest.raises(ValueError, match="algorithm alone"):
+        pretrained.load("ppo/vortex-v0", "vortex-v0")
 
 
 def test_the_readme_snippet_runs_without_a_warning():

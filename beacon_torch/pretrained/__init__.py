@@ -149,9 +149,13 @@ def _read(path: Path, env_id: str | None = None) -> dict:
     return record
 
 
-def load(name: str, *, device="cpu") -> TensorDictModule:
-    """The shipped policy ``ALGO/ENV``, e.g. ``"ppo/burgers-v0"`` (see the module's
-    docstring)."""
+def load(name: str, env_id: str | None = None, *, device="cpu") -> TensorDictModule:
+    """The shipped policy ``ALGO/ENV``, e.g. ``"ppo/burgers-v0"``, also spelt
+    ``load("ppo", "burgers-v0")`` (see the module's docstring)."""
+    if env_id is not None:
+        if not isinstance(name, str) or "/" in name:
+            raise ValueError(f"load(ALGO, ENV) takes the algorithm alone first, like 'ppo'; got {name!r}")
+        name = f"{name}/{env_id}"
     return load_file(shipped(name), split_name(name)[1], device=device)
 
 
