@@ -112,8 +112,9 @@ def plot(record: str, figure: str, base_flow: str | None = None) -> None:
     import matplotlib.pyplot as plt
 
     from beacon_torch.envs import cylinder
-    from beacon_torch.files import create_file
+    from beacon_torch.files import create_file, refuse_existing
 
+    refuse_existing([figure], "give another FIGURE")
     rows = json.loads(open(record).read())["rows"]
     fig, (drag, jets) = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
     action_time = cylinder.DT * cylinder.SUBSTEPS

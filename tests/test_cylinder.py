@@ -244,3 +244,29 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
     first, last = np.array(row["per_action"]["drag"][:80]), np.array(row["per_action"]["drag"][80:])
     assert row["reduction_episode"] == pytest.approx(1 - first.mean() / np.mean(drag[:80]), rel=1e-5)
     assert row["reduction_second_half"] == pytest.approx(1 - last.mean() / np.mean(drag[80:]), rel=1e-5)
+
+
+@pytest.mark.parametrize("planted", ["file", "link"])
+def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted, monkeypatch):
+    """benchmarks/cylinder_control.py --plot and benchmarks/cylinder_learning.py
+    --figure refuse a figure's name that is taken, by a file or a link (dangling
+    included), before any work, and leave it as it was."""
+    control = script("benchmarks/cylinder_control.py")
+    learning = script("benchmarks/cylinder_learning.py")
+    figure, target = tmp_path / "figure.png", tmp_path / "elsewhere.png"
+    if planted == "file":
+        figure.write_bytes(b"mine")
+    else:
+        figure.symlink_to(target)  # dangling: nothing may be created through it
+    record = tmp_path / "record.json"
+    record.write_text(json.dumps({"rows": [{"policy": "p", "per_action": {"drag": [3.0]}}]}))
+    with pytest.raises(FileExistsError, match="figure.png exists"):
+        control.plot(str(record), str(figure))
+    monkeypatch.setattr("sys.argv", ["cylinder_learning.py", str(tmp_path / "no-run"), "--figure", str(figure)])
+    with pytest.raises(FileExistsError, match="figure.png exists"):
+        learning.main()
+    if planted == "file":
+        assert figure.read_bytes() == b"mine"
+    else:
+        assert figure.is_symlink() and not target.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["figure.png", "record.json"])
