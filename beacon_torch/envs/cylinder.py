@@ -251,7 +251,6 @@ class Channel:
         solid_v = inside(x_cells[:, None], y_faces[None, :])
         # the jets' vertical stream through the body per unit flow rate, on the v faces
         stream = jet_profile(x_cells, h)[:, None] * solid_v
-        self.jet_v = cast(stream)[..., None]
         self.body_u = ImmersedBoundary(x_faces, y_cells, 0, torch.zeros(nx + 1, ny, dtype=torch.float64), h)
         self.body_v = ImmersedBoundary(x_cells, y_faces, 1, stream, h)
         self.body_u.to(dtype=dtype, device=device)
