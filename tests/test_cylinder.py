@@ -241,9 +241,15 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
     assert row["per_action"]["uncontrolled_drag"] == pytest.approx(drag, rel=1e-5)
     jets = np.array(row["per_action"]["jet"])
     assert np.abs(jets).max() <= 1.0 and np.abs(jets).max() > 0.05
+    # the reductions are against the run's own uncontrolled member (which matches the
+    # separate env above to float32 rounding only, and a reduction is one minus a ratio
+    # of drags near each other, so that rounding grows a hundredfold in it)
     first, last = np.array(row["per_action"]["drag"][:80]), np.array(row["per_action"]["drag"][80:])
-    assert row["reduction_episode"] == pytest.approx(1 - first.mean() / np.mean(drag[:80]), rel=1e-5)
-    assert row["reduction_second_half"] == pytest.approx(1 - last.mean() / np.mean(drag[80:]), rel=1e-5)
+    free_first, free_last = (
+        np.array(row["per_action"]["uncontrolled_drag"][part]) for part in (slice(80), slice(80, 160))
+    )
+    assert row["reduction_episode"] == pytest.approx(1 - first.mean() / free_first.mean(), rel=1e-9)
+    assert row["reduction_second_half"] == pytest.approx(1 - last.mean() / free_last.mean(), rel=1e-9)
 
 
 @pytest.mark.parametrize("planted", ["file", "link"])
