@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import pickle
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -25,7 +24,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from beacon_torch.files import replace_file
+from beacon_torch import received
+from beacon_torch.files import save_tensors
 
 if TYPE_CHECKING:
     from beacon_torch.base import State
@@ -48,16 +48,19 @@ def file_name(name: str, key: dict) -> str:
 def _load(path: Path, like: State) -> State | None:
     """The state in ``path``, of ``like``'s type and shapes, or None (with a warning
     saying why) if it is unusable."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, ValueError) as err:
-        problem = f"unreadable ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
-    else:
+
+    def check(state) -> None:
         problem = _problem(state, like)
-    if problem is None:
-        return type(like)(**state)
-    warnings.warn(f"cached state {path}: {problem}; computing it again", stacklevel=3)
-    return None
+        if problem is not None:
+            raise ValueError(problem)
+
+    try:
+        # read within bounds, its shapes compared with ``like``'s before any copy
+        state = received.torch_file(path, "cached state", check)
+    except (OSError, ValueError) as err:
+        warnings.warn(f"cached state {path}: {str(err).removeprefix(f'{path}: ')}; computing it again", stacklevel=3)
+        return None
+    return type(like)(**state)
 
 
 def _problem(state, like: State) -> str | None:
@@ -65,15 +68,17 @@ def _problem(state, like: State) -> str | None:
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
     ):
         return "not a dict of tensors"
-    for key, value in state.items():
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            return f"non-finite values in {key!r}"
     shapes = {key: tuple(value.shape) for key, value in like._asdict().items()}
     if set(state) != set(shapes):
         return f"keys {sorted(state)}, expected {sorted(shapes)}"
     for key, shape in shapes.items():
         if tuple(state[key].shape) != shape:
             return f"{key!r} has shape {tuple(state[key].shape)}, expected {shape}"
+    for key, value in state.items():
+        if value.is_complex() or not (value.is_floating_point() or value.dtype == like._asdict()[key].dtype):
+            return f"{key!r} holds {value.dtype} values"
+        if value.is_floating_point() and not bool(torch.isfinite(value.to(like._asdict()[key].dtype)).all()):
+            return f"non-finite values in {key!r}"
     return None
 
 
@@ -81,7 +86,7 @@ def save(state: State, path: Path) -> None:
     """Write atomically, so that concurrent processes never read half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     # a path that cannot be replaced (a folder of that name) removes the temporary file
-    replace_file(path, lambda tmp: torch.save({k: v.detach().cpu() for k, v in state._asdict().items()}, tmp))
+    save_tensors({k: v.detach().cpu() for k, v in state._asdict().items()}, path)
 
 
 def cached(name: str, key: dict, compute: Callable[[], State], like: State) -> State:

@@ -22,6 +22,7 @@ from dataclasses import fields
 import numpy as np
 import torch
 
+from beacon_torch import received
 from beacon_torch.cache import PACKAGE_DATA
 from beacon_torch.params import number, param
 
@@ -85,14 +86,30 @@ def published_members(params, shaping: tuple[str, ...]) -> torch.Tensor | None:
     return mask if mask is not None and bool(mask.any()) else None
 
 
+# the longest line of a stored start: three or 52 numbers of 13 characters each
+LINE_BYTES = 64 * 16
+
+
 @functools.cache
-def _table(env: str) -> np.ndarray:
-    table = np.loadtxt(PACKAGE_DATA / f"{env}-published-start.dat", dtype=np.float64)
+def _table(env: str, rows: int, columns: int) -> np.ndarray:
+    path = PACKAGE_DATA / f"{env}-published-start.dat"
+    # bounded by what the table holds before the text is parsed
+    received.size_of(path, f"stored start of {env}", rows * max(columns, 4) * 16 + LINE_BYTES)
+    try:
+        table = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as err:
+        raise received.BadFile(f"{path}: not a table of numbers ({str(err).splitlines()[0]})") from None
+    if table.shape != (rows, columns) or not np.isfinite(table).all():
+        raise received.BadFile(
+            f"{path}: a table of {table.shape[0]} rows of {table.shape[1]} numbers, finite or not; "
+            f"{env}'s start has {rows} rows of {columns} finite numbers (the file is damaged)"
+        )
     table.setflags(write=False)
     return table
 
 
-def published_table(env: str) -> torch.Tensor:
+def published_table(env: str, rows: int, columns: int) -> torch.Tensor:
     """The stored start of ``env`` (sloshing, shkadov, rayleigh) as a float64 tensor of
-    the file's rows and columns; the text is parsed at the first call only."""
-    return torch.from_numpy(_table(env).copy())
+    ``rows`` rows and ``columns`` columns, the shape the env's grid gives it (another
+    shape is a damaged file, refused); the text is parsed at the first call only."""
+    return torch.from_numpy(_table(env, rows, columns).copy())

@@ -29,16 +29,14 @@ from pathlib import Path
 def policy_of(name: str):
     """The raw-observation policy of a run directory, a policy file or a shipped pair,
     and the env parameters it was trained with."""
-    import torch
-
-    from beacon_torch import pretrained
+    from beacon_torch import pretrained, received
 
     if Path(name).is_dir():
         with tempfile.TemporaryDirectory() as folder:
             return policy_of(str(pretrained.export(name, Path(folder) / "policy.pt")))
     if Path(name).is_file():
         policy = pretrained.load_file(name, "cylinder-v0")
-        return policy, torch.load(name, weights_only=True).get("params", {})
+        return policy, received.torch_file(name, "policy file").get("params", {})
     return pretrained.load(name), pretrained.info(name).get("params", {})
 
 

@@ -20,14 +20,18 @@ from __future__ import annotations
 
 import torch
 
+from beacon_torch.autograd import horizon_bytes
 from beacon_torch.training import networks
 from beacon_torch.training.config import GradConfig, script
 from beacon_torch.training.env import make_env
-from beacon_torch.training.run import Run
+from beacon_torch.training.run import Run, fits
 
 
 def main(cfg: GradConfig) -> dict:
     """Train the policy on ``cfg.frames`` transitions; returns the last logged values."""
+    # the graph of a horizon of every member, estimated from one action, must fit
+    need = horizon_bytes(cfg.env, cfg.horizon, cfg.num_envs, params=cfg.params, grad_checkpoint=cfg.grad_checkpoint)
+    fits(f"the graph of {cfg.horizon} differentiated actions of {cfg.num_envs} members", need, cfg.device)
     run = Run.of(cfg)
     torch.manual_seed(cfg.seed)
 

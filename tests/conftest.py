@@ -88,3 +88,67 @@ def pytest_collection_modifyitems(items):
     # while the other worker idles: xdist hands the first tests out in turn, and the
     # longest one (the mixing episode) holds one worker while the other runs the next
     items.sort(key=seconds, reverse=True)
+
+
+# a run of each kind in seconds, for the tests of run directories
+PPO = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger="csv")
+TD3 = dict(
+    frames=256,
+    frames_per_batch=64,
+    num_envs=4,
+    updates_per_batch=4,
+    init_random_frames=64,
+    batch_size=32,
+    hidden=32,
+    progress=False,
+    logger="csv",
+)
+
+
+@pytest.fixture(scope="module")
+def ppo_run(tmp_path_factory):
+    """A PPO run directory on vortex-v0 (no episode ends in it), for a module's tests
+    to copy."""
+    from beacon_torch.training.config import PPOConfig, configure
+
+    run = tmp_path_factory.mktemp("ppo") / "run"
+    recipe("ppo").main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+    return run
+
+
+@pytest.fixture(scope="module")
+def td3_run(tmp_path_factory):
+    """A TD3 run directory on vortex-v0 with its replay buffer."""
+    from beacon_torch.training.config import TD3Config, configure
+
+    run = tmp_path_factory.mktemp("td3") / "run"
+    recipe("td3").main(configure(TD3Config, "vortex-v0", out=str(run), **TD3))
+    return run
+
+
+def copy_run(run: Path, to: Path) -> Path:
+    import shutil
+
+    shutil.copytree(run, to)
+    return to
+
+
+@pytest.fixture(scope="module")
+def short_lorenz():
+    """``short-lorenz-v0``, registered while a module's tests run: lorenz-v0 with
+    episodes of 25 actions, so that the runs of tests that summarise, evaluate and
+    publish see episodes end in a fraction of a second."""
+    import gymnasium
+
+    from beacon_torch import registry
+    from beacon_torch.envs.lorenz import LorenzEnv
+
+    class ShortLorenz(LorenzEnv):
+        env_id = "short-lorenz-v0"
+        episode_length = 25
+
+    beacon_torch.register("short-lorenz-v0", ShortLorenz)
+    yield "short-lorenz-v0"
+    for table in (registry.ENVS, registry.DEFAULTS, registry.ORIGIN):
+        table.pop("short-lorenz-v0", None)
+    gymnasium.registry.pop("beacon/short-lorenz-v0", None)

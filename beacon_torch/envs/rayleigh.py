@@ -147,7 +147,7 @@ def developed_convection(
 def published_convection(nx: int, ny: int) -> Convection:
     """The developed roll stored with the published code: the file's four blocks of
     ghosted ``[nx + 2, ny + 2]`` arrays u, v, p, T (our pressure keeps the cells only)."""
-    table = published_table("rayleigh")
+    table = published_table("rayleigh", 4 * (nx + 2), ny + 2)
     u, v, p, theta = table.reshape(4, nx + 2, ny + 2).unbind(0)
     return Convection(u=u, v=v, p=p[1:-1, 1:-1].contiguous(), theta=theta)
 

@@ -300,7 +300,9 @@ class ShkadovEnv(FlowEnv):
     def _film(self) -> Film:
         # loaded at the first reset: an env started by set_state never develops its film
         if self.params.start == PUBLISHED:
-            table = published_table("shkadov")  # rows: x, h, q on the development domain
+            table = published_table(
+                "shkadov", int(round(DEVELOP_LENGTH / DX)), 3
+            )  # rows: x, h, q on the development domain
             film = Film(h=table[:, 1], q=table[:, 2])
         else:
             delta = number(self.params.delta)

@@ -169,23 +169,28 @@ class SloshingEnv(FlowEnv):
         self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
         self.dx = self.params.L / self.n_cells
         self._substeps = self.kernels.loop(sloshing_substep)
-        self._start = self._start_state()
+        # made at the first reset, after the base has checked that the batch fits
+        self._start: SloshingState | None = None
 
     def _start_state(self) -> SloshingState:
         p = self.params
-        table = published_table("sloshing")  # rows: x, h, q of the interior cells
-        h, q = table[:, 1].expand(self.num_envs, -1), table[:, 2].expand(self.num_envs, -1)
-        zero = torch.zeros_like(h)
-        published = SloshingState(h=h, q=q, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
+
+        def published() -> SloshingState:
+            table = published_table("sloshing", self.n_cells, 3)  # rows: x, h, q of the interior cells
+            h, q = table[:, 1].expand(self.num_envs, -1), table[:, 2].expand(self.num_envs, -1)
+            zero = torch.zeros_like(h)
+            return SloshingState(h=h, q=q, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
+
         if p.start == PUBLISHED:
-            start = published
+            start = published()
         elif bool((p.g != p.g[0]).any()):  # one start per member
             g = p.g.detach().to(torch.float64)[:, None]
             start = excited_state(p.L, g, self.num_envs, torch.float64, self.device)
-            # a member at the published g starts as it would alone
+            # a member at the published g (and length) starts as it would alone
             chosen = published_members(p, ("L", "g"))
             if chosen is not None:
-                start = where_members(chosen.to(self.device), map_state(lambda v: v.to(self.device), published), start)
+                stored = map_state(lambda v: v.to(self.device), published())
+                start = where_members(chosen.to(self.device), stored, start)
         else:  # one start for all, cached
             g = float(p.g[0])
             key = dict(version=2, L=p.L, g=g)
@@ -196,6 +201,8 @@ class SloshingEnv(FlowEnv):
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype).clone(), start)
 
     def initial_state(self, mask: torch.Tensor | None) -> SloshingState:
+        if self._start is None:
+            self._start = self._start_state()
         zero = torch.zeros_like(self._start.h)
         # the published reset reloads h and q only: the AB2 history and the previous
         # action start from zero

@@ -28,12 +28,13 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from beacon_torch.files import replace_file
+from beacon_torch import received
+from beacon_torch.files import save_tensors
 from beacon_torch.params import check_params
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
-from beacon_torch.training.run import MAX_HIDDEN, load_checkpoint
+from beacon_torch.training.run import CHECKPOINT, MAX_HIDDEN, load_checkpoint
 
 HERE = Path(__file__).resolve().parent
 
@@ -70,7 +71,8 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
     params = state["config"].get("params", {})
     env = make_env(state["env"], 1, norm_steps=0, params=params)
     policy = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"])
-    policy.load_state_dict(state["modules"]["actor"])
+    network = f"a {state['policy']['network']} of width {state['policy']['hidden']} on {state['env']}"
+    received.load_into(policy, state["modules"]["actor"], f"{Path(run) / CHECKPOINT}: the actor's weights", network)
     loc, scale = state["obs_norm"]["loc"].reshape(-1), state["obs_norm"]["scale"].reshape(-1)
     first = _first_layer(policy, loc.numel())
     with torch.no_grad():
@@ -88,13 +90,13 @@ def export(run: str | Path, path: str | Path, **record) -> Path:
         **record,
     }
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    return replace_file(path, lambda tmp: torch.save(out, tmp))
+    return save_tensors(out, path)
 
 
 def info(name: str) -> dict:
     """What the shipped file of ``ALGO/ENV`` records besides the weights (transitions,
     seed, score...)."""
-    return {k: v for k, v in _read(shipped(name)).items() if k != "weights"}
+    return {k: v for k, v in _read(shipped(name))[0].items() if k != "weights"}
 
 
 def shipped(name: str) -> Path:
@@ -109,44 +111,51 @@ def shipped(name: str) -> Path:
     return path
 
 
-def _read(path: Path, env_id: str | None = None) -> dict:
-    """A policy file, checked: tensors and plain values only (nothing in it runs), a
-    known env and network, finite weights; ``env_id``: the env it must have been
-    trained on."""
-    try:
-        record = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as err:  # a missing, truncated or foreign file
-        raise ValueError(
-            f"{path}: unreadable policy file ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
-        ) from None
-    if not isinstance(record, dict) or not all(k in record for k in ("env", "network", "hidden", "weights")):
-        raise ValueError(f"{path}: not a policy file (it needs 'env', 'network', 'hidden' and 'weights')")
-    if (
-        not all(isinstance(record[k], str) for k in ("env", "network"))
-        or record["env"] not in ENVS
-        or record["network"] not in networks.NETWORKS
-    ):
-        raise ValueError(f"{path}: unknown env {record['env']!r} or network {record['network']!r}")
-    if (
-        not isinstance(record["hidden"], int)
-        or isinstance(record["hidden"], bool)
-        or not 1 <= record["hidden"] <= MAX_HIDDEN
-    ):
-        raise ValueError(
-            f"{path}: the network's width must be an integer in [1, {MAX_HIDDEN}], got {record['hidden']!r}"
+def _read(path: Path, env_id: str | None = None) -> tuple[dict, TensorDictModule, int]:
+    """A policy file, checked, and its policy: tensors and plain values only (nothing
+    in it runs), read within bounds (``beacon_torch.received``), a known env and
+    network whose weights have the shapes of that network, finite once cast to its
+    dtype; ``env_id``: the env it must have been trained on. Returns the file's
+    record, the policy and its number of observations."""
+    built = {}
+
+    def check(record) -> None:
+        if not isinstance(record, dict) or not all(k in record for k in ("env", "network", "hidden", "weights")):
+            raise ValueError(f"{path}: not a policy file (it needs 'env', 'network', 'hidden' and 'weights')")
+        if (
+            not all(isinstance(record[k], str) for k in ("env", "network"))
+            or record["env"] not in ENVS
+            or record["network"] not in networks.NETWORKS
+        ):
+            raise ValueError(f"{path}: unknown env {record['env']!r} or network {record['network']!r}")
+        if (
+            not isinstance(record["hidden"], int)
+            or isinstance(record["hidden"], bool)
+            or not 1 <= record["hidden"] <= MAX_HIDDEN
+        ):
+            raise ValueError(
+                f"{path}: the network's width must be an integer in [1, {MAX_HIDDEN}], got {record['hidden']!r}"
+            )
+        weights = record["weights"]
+        if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+            raise ValueError(f"{path}: 'weights' must be a dict of tensors")
+        if env_id is not None and record["env"] != env_id:
+            raise ValueError(f"{path}: a policy of {record['env']}, not of {env_id}")
+        params = record.get("params", {})
+        try:
+            check_params(ENVS[record["env"]], params)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{path}: its env parameters: {err}") from None
+        env = make_env(record["env"], 1, norm_steps=0, **params)
+        policy = networks.policy(env, record["network"], record["hidden"])
+        # the weights are compared with the network's before any is copied, and checked
+        # in the network's dtype (1e300 in float64 is infinite in float32)
+        received.load_into(
+            policy, weights, f"{path}: the weights", f"a {record['network']} of width {record['hidden']}"
         )
-    weights = record["weights"]
-    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
-        raise ValueError(f"{path}: 'weights' must be a dict of tensors")
-    if not all(bool(torch.isfinite(v).all()) for v in weights.values() if v.is_floating_point()):
-        raise ValueError(f"{path}: the policy has non-finite weights")
-    if env_id is not None and record["env"] != env_id:
-        raise ValueError(f"{path}: a policy of {record['env']}, not of {env_id}")
-    try:
-        check_params(ENVS[record["env"]], record.get("params", {}))
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{path}: its env parameters: {err}") from None
-    return record
+        built["policy"], built["n_obs"] = policy, networks.n_observations(env)
+
+    return received.torch_file(path, "policy file", check), built["policy"], built["n_obs"]
 
 
 def load(name: str, env_id: str | None = None, *, device="cpu") -> TensorDictModule:
@@ -164,26 +173,23 @@ def load_file(path: str | Path, env_id: str | None = None, *, device="cpu") -> T
     read as data, checked, and refused if it was trained on another env than
     ``env_id`` (when given)."""
     path = Path(path)
-    record = _read(path, env_id)
+    record, policy, n_obs = _read(path, env_id)
     env_id = record["env"]
-    env = make_env(env_id, 1, norm_steps=0, **record.get("params", {}))
-    policy = networks.policy(env, record["network"], record["hidden"])
-    try:
-        policy.load_state_dict(record["weights"])
-    except RuntimeError as err:
-        raise ValueError(
-            f"{path}: the weights do not fit a {record['network']} of width {record['hidden']} on "
-            f"{env_id} ({str(err).splitlines()[0]})"
-        ) from None
-    n_obs = networks.n_observations(env)
     first = _first_layer(policy, n_obs)
 
     def check(module, args):
-        # a policy given another env's observations: say so, not a matrix shape error
-        if args and isinstance(args[0], torch.Tensor) and args[0].shape[-1] != n_obs:
-            raise ValueError(
-                f"this policy was trained on {env_id} ({n_obs} observations); it was given {args[0].shape[-1]}"
-            )
+        # a policy given another env's observations: say so, not a matrix error
+        if args and isinstance(args[0], torch.Tensor):
+            if args[0].shape[-1] != n_obs:
+                raise ValueError(
+                    f"this policy was trained on {env_id} ({n_obs} observations); it was given {args[0].shape[-1]}"
+                )
+            if args[0].dtype != module.weight.dtype:
+                raise TypeError(
+                    f"this policy computes in {module.weight.dtype} and was given {args[0].dtype} observations: "
+                    f"make the env with dtype={str(module.weight.dtype).removeprefix('torch.')!r}, or convert "
+                    f"the policy (policy.to(torch.float64))"
+                )
 
     first.register_forward_pre_hook(check)
     # frozen: its actions carry no graph into an env that is not differentiable (which

@@ -19,10 +19,10 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.base import FlowEnv, _as_device
-from beacon_torch.params import check_params, parse_assignments, plain
+from beacon_torch.params import check_params, parse_assignments, plain, resolved
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
-from beacon_torch.training.run import CHECKPOINT, load_checkpoint
+from beacon_torch.training.run import CHECKPOINT, fits, load_checkpoint
 
 # The per-env settings of the recipes: data of the library, read by ``configure``. Each
 # table holds what differs from its class's defaults; a variant trains like its base env.
@@ -354,9 +354,25 @@ def _check(cfg: Config) -> Config:
     reason = unfit(type(cfg), env)
     if reason:
         raise ValueError(reason)
+    if isinstance(cfg, OffPolicyConfig):
+        # the replay buffer is allocated whole at the first transition: refused now if
+        # it cannot fit
+        if cfg.buffer_size < 0:
+            raise ValueError(f"setting 'buffer_size' must be 0 (the whole run) or positive, got {cfg.buffer_size}")
+        capacity = cfg.buffer_size or cfg.frames
+        need = capacity * transition_bytes(env, cfg.params)
+        fits(f"a replay buffer of {capacity:,} transitions", need, cfg.device)
     if cfg.in_process and (cfg.collectors != 1 or cfg.ray):
         raise ValueError(f"{cfg.algo} differentiates through the env in this process: collectors and ray do not apply")
     return cfg
+
+
+def transition_bytes(env: type[FlowEnv], params: dict) -> int:
+    """About the bytes one stored transition of ``env`` takes in a replay buffer: the
+    observation before and after, the action and the policy's output, rewards and
+    returns (float32), the end flags and the trajectory's id."""
+    n_obs, n_actions = env.sizes(resolved(env, params))
+    return 4 * (2 * n_obs + 3 * n_actions + 4) + 6 + 8
 
 
 def configure(cls: type[Config], env_id: str, **overrides) -> Config:

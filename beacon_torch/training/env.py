@@ -48,7 +48,15 @@ def make_env(
             "loc": torch.zeros(n_obs, dtype=base.dtype, device=device),
             "scale": torch.ones(n_obs, dtype=base.dtype, device=device),
         }
-    loc, scale = (norm["loc"], norm["scale"]) if norm is not None else (None, None)
+    loc, scale = (None, None)
+    if norm is not None:
+        # in the env's dtype and place, checked after the cast (a float64 scale of
+        # 1e-300 is zero in float32)
+        loc, scale = (norm[k].to(device=base.device, dtype=base.dtype) for k in ("loc", "scale"))
+        if not (bool(torch.isfinite(loc).all()) and bool(torch.isfinite(scale).all()) and bool((scale > 0).all())):
+            raise ValueError(
+                f"{env_id}: the observation statistics are not finite with a positive scale in {base.dtype}"
+            )
     transforms = [
         ObservationNorm(loc=loc, scale=scale, in_keys=[obs], standard_normal=True),
         RewardSum(in_keys=[reward], out_keys=[sibling(reward, "episode_reward")]),

@@ -39,8 +39,9 @@ from typing import Any
 import torch
 from torchrl.record.loggers import CSVLogger
 
-from beacon_torch import files
-from beacon_torch.params import check_params
+from beacon_torch import files, received
+from beacon_torch.base import available_bytes
+from beacon_torch.params import check_params, resolved
 from beacon_torch.registry import ENVS
 from beacon_torch.training.env import sibling
 from beacon_torch.training.networks import NETWORKS
@@ -59,23 +60,36 @@ class BadRun(ValueError):
 
 
 def load_checkpoint(run: str | Path) -> dict:
-    """The checkpoint of a run folder, checked (:func:`check_checkpoint`), with a clear
-    error for a bad file. It holds tensors, numbers, strings and containers of them
-    only, read as such: a file whose pickle would run code is refused."""
+    """The checkpoint of a run folder, checked (:func:`check_checkpoint`) while its
+    tensors are still mapped from the file, then read into memory. It holds tensors,
+    numbers, strings and containers of them only, read as such and within bounds
+    (``beacon_torch.received``): a file whose pickle would run code is refused."""
     path = Path(run) / CHECKPOINT
     if path.is_symlink():
         raise files.UnsafeFile(f"{path}: a symbolic link is refused as a checkpoint")
-    try:
-        state = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as err:  # a missing, truncated or foreign file
-        raise FileNotFoundError(f"{path}: unreadable checkpoint ({err})") from None
-    check_checkpoint(state, path)
-    return state
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no checkpoint")
+    return received.torch_file(path, "checkpoint", lambda state: check_checkpoint(state, path))
 
 
 def _number(value, low: float = 0.0, high: float = math.inf, integer: bool = True) -> bool:
     kinds = (int,) if integer else (int, float)
-    return isinstance(value, kinds) and not isinstance(value, bool) and math.isfinite(value) and low <= value <= high
+    return isinstance(value, kinds) and received.finite_number(value) and low <= value <= high
+
+
+# Network copies a checkpoint may hold, each with the recorded width: the actor, the
+# critics (TD3's two and their targets), the target actor, and the two moments of
+# every optimised network (TD3 holds 13 of them)
+NETWORK_COPIES = 32
+
+
+def checkpoint_bytes(env_id: str, params: dict, hidden: int) -> int:
+    """The most bytes of tensors a checkpoint of a run on ``env_id`` whose networks are
+    ``hidden`` wide can hold: :data:`NETWORK_COPIES` networks of three hidden layers
+    fed an observation and an action, in float64, and the observation statistics."""
+    n_obs, n_actions = ENVS[env_id].sizes(resolved(ENVS[env_id], params))
+    network = hidden * (n_obs + n_actions + 3 * hidden + 2 * n_actions + 8) + 2 * n_actions + 1
+    return 8 * (NETWORK_COPIES * network + 2 * n_obs) + 2**16
 
 
 def _finite_tensors(tree) -> bool:
@@ -126,9 +140,26 @@ def check_checkpoint(state, path: str | Path) -> None:
         raise bad(
             f"'policy' must name a network of {sorted(NETWORKS)} and a width in [1, {MAX_HIDDEN}], got {policy!r}"
         )
+    cls = ENVS[state["env"]]
+    n_obs, n_actions = cls.sizes(resolved(cls, state["config"].get("params", {})))
+    if isinstance(cls.observation_key, tuple):
+        # a multi-agent layout (one action per agent) normalises each agent's share
+        n_obs //= n_actions
+    stored = sum(t.numel() * t.element_size() for t in received.tensors_in(state))
+    most = checkpoint_bytes(state["env"], state["config"].get("params", {}), policy["hidden"])
+    if stored > most:
+        raise bad(
+            f"it holds {stored / 2**20:,.1f} MiB of tensors, more than a run of networks {policy['hidden']} wide "
+            f"on {state['env']} can ({most / 2**20:,.1f} MiB)"
+        )
     norm = state["obs_norm"]
     if not isinstance(norm, dict) or not all(isinstance(norm.get(k), torch.Tensor) for k in ("loc", "scale")):
         raise bad("'obs_norm' must hold the tensors 'loc' and 'scale'")
+    if any(norm[k].shape != (n_obs,) for k in ("loc", "scale")):
+        shapes = {k: tuple(norm[k].shape) for k in ("loc", "scale")}
+        raise bad(f"the observation statistics must have {state['env']}'s {n_obs} observations, got shapes {shapes}")
+    if norm["loc"].is_complex() or not norm["loc"].is_floating_point() or not norm["scale"].is_floating_point():
+        raise bad("the observation statistics must be real numbers")
     if not _finite_tensors(norm) or not bool((norm["scale"] > 0).all()):
         raise bad("the observation statistics must be finite with a positive scale")
     modules = state["modules"]
@@ -196,7 +227,7 @@ def holds_run(folder: str | Path, algo: str) -> str:
 
 def read_log(file: str | Path) -> list[tuple[float, float]]:
     """The ``(step, value)`` lines of a CSV log, checked: each line two numbers, the
-    step a non-negative integer count of transitions."""
+    step a non-negative integer count of transitions, the value finite."""
     rows = []
     try:
         with open(file, newline="", encoding="utf-8") as f:
@@ -205,9 +236,14 @@ def read_log(file: str | Path) -> list[tuple[float, float]]:
                     step, value = (float(x) for x in row) if len(row) == 2 else (None, None)
                 except ValueError:
                     step = None
-                if step is None or not (math.isfinite(step) and step >= 0 and step.is_integer()):
+                # a run logs finite values only (a non-finite one stops it first)
+                if (
+                    step is None
+                    or not (math.isfinite(step) and step >= 0 and step.is_integer())
+                    or not math.isfinite(value)
+                ):
                     raise BadRun(
-                        f"{file}, line {number}: not a log line of a run (a step and a value), got "
+                        f"{file}, line {number}: not a log line of a run (a step and a finite value), got "
                         f"{','.join(row)[:60]!r}"
                     )
                 rows.append((step, value))
@@ -253,6 +289,126 @@ def episode_values(data, reward_key: str | tuple[str, ...] = "reward") -> dict[s
     return values
 
 
+# the float dtype the recipes train in, and the other dtypes a transition holds (flags,
+# trajectory ids)
+BUFFER_DTYPES = ("torch.float32", "torch.bool", "torch.int64")
+
+
+def check_buffer(folder: Path, capacity: int, widest: int) -> None:
+    """Refuse a saved replay buffer whose description (TorchRL's ``meta.json`` files)
+    is not what a run of ``capacity`` transitions writes, before TorchRL allocates what
+    it describes: every entry ``capacity`` long, no entry of a transition wider than
+    the env's widest field (``widest``: its observation or action size), the recipes'
+    dtypes, each file the size its entry says, and the whole fitting in memory."""
+    metas = sorted(folder.rglob("meta.json"))
+    if not metas:
+        raise BadRun(f"{folder}: no description of the replay buffer's storage (meta.json)")
+    total = 0
+    for meta in metas:
+        entries = received.json_file(meta, "replay buffer description")
+        if not isinstance(entries, dict):
+            raise BadRun(f"{meta}: not a replay buffer's description")
+        for key, entry in entries.items():
+            if key in ("shape", "device", "_type"):
+                continue
+            if not isinstance(entry, dict):
+                raise BadRun(f"{meta}: entry {key!r} is not described")
+            if entry.get("type") == "TensorDict" and set(entry) == {"type"}:
+                continue  # a nested folder, described by its own meta.json
+            shape, dtype = entry.get("shape"), entry.get("dtype")
+            if (
+                not isinstance(shape, list)
+                or not shape
+                or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+            ):
+                raise BadRun(f"{meta}: entry {key!r} has no shape of sizes")
+            width = math.prod(shape[1:])
+            if shape[0] != capacity or width > widest:
+                raise BadRun(
+                    f"{meta}: entry {key!r} of shape {shape}, not {capacity:,} transitions of at most {widest} values "
+                    f"(what this run's buffer holds)"
+                )
+            if dtype not in BUFFER_DTYPES:
+                kinds = ", ".join(BUFFER_DTYPES)
+                raise BadRun(f"{meta}: entry {key!r} of dtype {dtype!r}; a run's buffer holds {kinds}")
+            nbytes = capacity * width * {"torch.float32": 4, "torch.bool": 1, "torch.int64": 8}[dtype]
+            file = meta.parent / f"{key}.memmap"
+            if file.is_symlink() or not file.is_file() or file.stat().st_size != nbytes:
+                raise BadRun(f"{file}: not the {nbytes:,} bytes its description {meta} gives")
+            total += nbytes
+        if entries.get("shape") != [capacity] or entries.get("_type") != "<class 'tensordict._td.TensorDict'>":
+            raise BadRun(f"{meta}: not a replay buffer of {capacity:,} transitions")
+    fits(f"{folder}: the replay buffer", total)
+
+
+def fits(what: str, need: int, device="cpu") -> None:
+    """Refuse to allocate ``need`` bytes of ``what`` on ``device`` beyond the memory
+    free there, with the estimate."""
+    free = available_bytes(torch.device(device))
+    if free is not None and need > free:
+        raise ValueError(
+            f"{what} needs about {need / 2**30:,.2f} GiB on {device} and {free / 2**30:,.2f} GiB are free there"
+        )
+
+
+def corrupt_transitions(data) -> str:
+    """What is wrong with stored transitions that no run collects ("" if nothing): a
+    non-finite value, or an end of episode that is neither a termination nor a
+    truncation."""
+    for key, value in data.items(include_nested=True, leaves_only=True):
+        if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            return f"{key} has non-finite values"
+    for prefix in ((), ("next",)):
+        flags = [data.get((*prefix, k), None) for k in ("done", "terminated", "truncated")]
+        if all(f is not None for f in flags) and not bool((flags[0] == (flags[1] | flags[2])).all()):
+            return f"{'/'.join((*prefix, 'done'))} is not terminated or truncated"
+    return ""
+
+
+def load_optimiser(optim: torch.optim.Optimizer, saved, where: str) -> None:
+    """Load an optimiser's saved state, refusing (:class:`ValueError` starting with
+    ``where``) one that does not fit its parameters or that it cannot reach: per
+    parameter, moments of its shape, finite once cast, a non-negative second moment,
+    and Adam's bound on the first by the second (with decays b1, b2, b1**2 < b2,
+    m**2 <= (1 - b1)**2 / ((1 - b2) (1 - b1**2 / b2)) v, whatever the gradients)."""
+    if not isinstance(saved, dict) or not isinstance(saved.get("param_groups"), list):
+        raise ValueError(f"{where} is not an optimiser's state")
+    groups = optim.param_groups
+    if len(saved["param_groups"]) != len(groups) or any(
+        not isinstance(g, dict) or len(g.get("params", ())) != len(own["params"])
+        for g, own in zip(saved["param_groups"], groups, strict=False)
+    ):
+        raise ValueError(f"{where} is not one of this run's optimisers (other parameter groups)")
+    try:
+        optim.load_state_dict(saved)
+    except (ValueError, KeyError, TypeError, RuntimeError, IndexError) as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ValueError(f"{where} is corrupt ({first})") from None
+    for group in optim.param_groups:
+        betas = group.get("betas")
+        for p in group["params"]:
+            state = optim.state.get(p, {})
+            for key, value in state.items():
+                if not isinstance(value, torch.Tensor):
+                    continue
+                if value.ndim and value.shape != p.shape:  # a moment (step counts are scalars)
+                    shapes = f"{key} of shape {tuple(value.shape)} for a parameter of {tuple(p.shape)}"
+                    raise ValueError(f"{where} is corrupt ({shapes})")
+                if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                    raise ValueError(f"{where} is corrupt (non-finite {key})")
+                if not value.ndim and bool(value < 0):  # a step count, NAdam's product of momenta
+                    raise ValueError(f"{where} is corrupt (a negative {key})")
+            m, v = state.get("exp_avg"), state.get("exp_avg_sq")
+            if v is not None and bool((v < 0).any()):
+                raise ValueError(f"{where} is corrupt (a negative second moment)")
+            if m is not None and v is not None and betas is not None and betas[0] ** 2 < betas[1]:
+                b1, b2 = betas
+                c = math.sqrt((1 - b1) ** 2 / ((1 - b2) * (1 - b1**2 / b2)))
+                # the slack covers rounding and squares of gradients that underflow
+                if bool((m.abs() > 1.001 * c * v.sqrt() + 1e-15).any()):
+                    raise ValueError(f"{where} is corrupt (moments no sequence of gradients gives)")
+
+
 class Run:
     """The directory ``out`` of one training of ``algo`` on ``env_id`` towards ``total``
     transitions, new or (``resume``) continued from its checkpoint. ``tensorboard``:
@@ -275,13 +431,15 @@ class Run:
         checkpoint_every: int = 10,
     ) -> None:
         self.out = Path(out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        files.refuse_links(self.out)
         self.path = self.out / CHECKPOINT
         self.env_id, self.algo, self.total, self.seed = env_id, algo, total, seed
         self.settings = settings or {}
         self.checkpoint_every, self.rounds = checkpoint_every, 0
         self.state: dict | None = None
+        # refused before anything is created; checked again under the lock
+        self._refuse(resume)
+        self.out.mkdir(parents=True, exist_ok=True)
+        files.refuse_links(self.out)
         self.lock = files.Lock(self.out)
         try:
             self._open(resume)
@@ -311,9 +469,9 @@ class Run:
 
             self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}")
 
-    def _open(self, resume: bool) -> None:
-        """Check the directory for a new run or read the checkpoint of a resumed one;
-        trim the logs to it."""
+    def _refuse(self, resume: bool) -> None:
+        """Refuse a new run in a directory that holds one, and a resume without a
+        checkpoint."""
         found = holds_run(self.out, self.algo)
         if not resume:
             if found:
@@ -321,11 +479,20 @@ class Run:
                     f"{self.out} holds a run ({found}); continue it with --resume, or give a new --out"
                 )
             return
-        if not self.path.is_file():
-            if not found:
-                raise FileNotFoundError(f"no checkpoint to resume in {self.out}")
-            # stopped before its first checkpoint: its logs are started again
-            self._trim_logs(0)
+        if not self.path.is_file() or self.path.is_symlink():
+            # a run stopped before its first checkpoint, or someone's folder: a resume
+            # continues a checkpoint and nothing else (its logs are left as they are)
+            what = "a directory" if self.path.is_dir() else "a symbolic link" if self.path.is_symlink() else "missing"
+            raise BadRun(
+                f"{self.path}: no checkpoint to resume ({what}); a fresh run needs a new --out"
+                + (f" (this one holds {found})" if found else "")
+            )
+
+    def _open(self, resume: bool) -> None:
+        """Check the directory for a new run or read the checkpoint of a resumed one;
+        trim the logs to it."""
+        self._refuse(resume)
+        if not resume:
             return
         self.state = load_checkpoint(self.out)
         if self.state["env"] != self.env_id or self.state["algo"] != self.algo:
@@ -374,11 +541,24 @@ class Run:
 
     def restore(self, buffer=None, **modules) -> None:
         """Load the saved state into ``modules`` (networks, losses, optimisers, by the
-        names they were saved under) and ``buffer``; nothing for a new run."""
+        names they were saved under) and ``buffer``; nothing for a new run. Each state
+        must fit its module (entries and shapes), hold finite values once cast to its
+        dtype and, for an optimiser, be one it can reach; anything else is named as
+        corrupt (:class:`BadRun`)."""
         if self.state is None:
             return
         for name, module in modules.items():
-            module.load_state_dict(self.state["modules"][name])
+            saved = self.state["modules"].get(name)
+            where = f"{self.path}: the state of {name!r}"
+            if saved is None:
+                raise BadRun(f"{where} is missing (a checkpoint of another recipe?)")
+            try:
+                if isinstance(module, torch.optim.Optimizer):
+                    load_optimiser(module, saved, where)
+                else:
+                    received.load_into(module, saved, where, f"this run's {name}")
+            except ValueError as err:
+                raise BadRun(f"{err}; resume from a copy of the run or start it again") from None
         if buffer is None or "buffer_len" not in self.counters:
             return
         folder = self.out / "buffer"
@@ -403,11 +583,18 @@ class Run:
                 f"{folder}: a replay buffer folder with pickle files is refused (loading it could "
                 f"run code); ours hold tensors and JSON only"
             )
+        capacity = self.counters["buffer_capacity"]
+        recorded = self.state["config"].get("buffer_size") or self.state["config"].get("frames")
+        if capacity != recorded:
+            raise BadRun(
+                f"{self.path}: a replay buffer of {capacity:,} transitions, not the {recorded!r} its settings give"
+            )
+        params = self.state["config"].get("params", {})
+        sizes = ENVS[self.env_id].sizes(resolved(ENVS[self.env_id], params))
+        check_buffer(folder, capacity, max(*sizes, 1))
         # the transitions the checkpoint counted, oldest first (the buffer may hold more:
         # a stop between its save and the checkpoint's), into a buffer of the resumed size
-        saved = type(buffer)(
-            storage=type(buffer.storage)(self.counters["buffer_capacity"], device=buffer.storage.device)
-        )
+        saved = type(buffer)(storage=type(buffer.storage)(capacity, device=buffer.storage.device))
         try:
             saved.loads(folder)
         except Exception as err:  # a tampered or foreign buffer: TorchRL's own errors name no file
@@ -421,7 +608,14 @@ class Run:
                 f"{folder}: the replay buffer holds {len(saved)} transitions, the checkpoint counted {n}: it is damaged"
             )
         if n:
-            buffer.extend(saved[max(0, n - buffer.storage.max_size) : n])
+            kept = saved[max(0, n - buffer.storage.max_size) : n]
+            problem = corrupt_transitions(kept)
+            if problem:
+                raise BadRun(
+                    f"{folder}: the replay buffer is corrupt ({problem}); resume from a copy of the run or start "
+                    f"it again"
+                )
+            buffer.extend(kept)
 
     def seconds(self) -> float:
         return self.elapsed + time.perf_counter() - self._since
@@ -474,7 +668,7 @@ class Run:
                 f"{self.out}: training diverged after {self.frames:,} transitions (non-finite "
                 f"weights); its last checkpoint is kept. Lower the learning rate"
             )
-        files.replace_file(self.path, lambda tmp: torch.save(state, tmp))
+        files.save_tensors(state, self.path)
         shutil.rmtree(self.out / "buffer.old", ignore_errors=True)
 
     def _save_buffer(self, buffer) -> None:
