@@ -15,7 +15,9 @@ them. A stopped campaign is resumed by running the same command again (finished 
 are skipped, unfinished ones resume from their checkpoint). Only ``publish`` writes
 into the repository, and only a pair trained on at least the recorded budget (that of
 the pair's recorded summary, else its settings' default), so that a short trial never
-replaces a shipped policy or a recorded result.
+replaces a shipped policy or a recorded result. What it publishes (the pair, the
+algorithm, the transitions, the scores) is read from the seeds' checkpoints and
+evaluated again; a summary that says otherwise is refused.
 """
 
 from __future__ import annotations
@@ -23,18 +25,18 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import os
-import shutil
 from pathlib import Path
 
 import torch
 
-from beacon_torch import files, pretrained
+from beacon_torch import files, pretrained, received
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
 from beacon_torch.training.config import CONFIGS, configure, paper_frames
-from beacon_torch.training.evaluation import summarise
-from beacon_torch.training.run import CHECKPOINT, load_checkpoint, seed_dirs
+from beacon_torch.training.evaluation import plot_runs, summarise, summary_of
+from beacon_torch.training.run import CHECKPOINT, holds_run, load_checkpoint, seed_dirs
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
@@ -81,6 +83,10 @@ def text_value(text: str):
     return text
 
 
+# the settings train_pair gives each seed's run itself
+DRIVER_SETTINGS = ("seed", "out", "resume", "progress")
+
+
 def train_pair(
     algo: str, env_id: str, seeds: int, overrides: dict, *, out: Path, num_envs: int, progress: bool
 ) -> dict:
@@ -90,7 +96,9 @@ def train_pair(
     root = out / algo / env_id
     for seed in range(seeds):
         run = root / f"seed{seed}"
-        started = (run / CHECKPOINT).is_file() or (run / algo).is_dir()
+        started = (run / CHECKPOINT).is_file()
+        if not started and holds_run(run, algo):
+            raise ValueError(f"{run}: a seed stopped before its first checkpoint; remove the folder to train it again")
         cfg = configure(CONFIGS[algo], env_id, **overrides, seed=seed, out=str(run), resume=started, progress=progress)
         if not (run / CHECKPOINT).is_file() or load_checkpoint(run)["frames"] < cfg.frames:
             recipe.main(cfg)
@@ -115,38 +123,84 @@ def recorded_budget(algo: str, env_id: str, recorded: Path = RECORDED) -> int:
     return configure(CONFIGS[algo], env_id).frames
 
 
+# what publish compares between a summary and its re-evaluation: the pair, the seeds
+# and their transitions exactly, scores and times to float rounding
+EXACT = ("algo", "env", "frames")
+CLOSE = ("eval_mean", "train_mean", "wall_s_per_seed", "uncontrolled")
+PER_SEED_EXACT = ("seed", "frames")
+PER_SEED_CLOSE = ("eval", "train_tail", "uncontrolled", "wall_s")
+
+
+def _same(a, b) -> bool:
+    """Whether a summary's number ``a`` is the re-evaluated ``b`` (NaN only as NaN)."""
+    if not isinstance(a, (int, float)) or isinstance(a, bool):
+        return False
+    if isinstance(b, float) and math.isnan(b):
+        return isinstance(a, float) and math.isnan(a)
+    return received.finite_number(a) and math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9)
+
+
+def _exact(a, b) -> bool:
+    return type(a) is type(b) and a == b
+
+
+def mismatch(summary: dict, actual: dict) -> str:
+    """The first field in which ``summary`` differs from ``actual`` (the re-evaluation
+    of its seeds), as a phrase, or ""."""
+    for key in EXACT:
+        if not _exact(summary.get(key), actual[key]):
+            return f"its {key} {summary.get(key)!r} is not its seeds' ({actual[key]!r})"
+    seeds = summary.get("seeds")
+    if not isinstance(seeds, list) or not all(isinstance(seed, dict) for seed in seeds):
+        return "its seeds are not a list of records"
+    given = {seed.get("seed"): seed for seed in seeds if isinstance(seed.get("seed"), str)}
+    if sorted(given) != [seed["seed"] for seed in actual["seeds"]] or len(given) != len(seeds):
+        names = ", ".join(seed["seed"] for seed in actual["seeds"])
+        return f"its seeds {sorted(given)} are not the run's ({names})"
+    for seed in actual["seeds"]:
+        mine = given[seed["seed"]]
+        for key in (*PER_SEED_EXACT, *PER_SEED_CLOSE):
+            same = _exact(mine.get(key), seed[key]) if key in PER_SEED_EXACT else _same(mine.get(key), seed[key])
+            if not same:
+                return f"{seed['seed']}'s {key} {mine.get(key)!r} is not what its checkpoint gives ({seed[key]!r})"
+    for key in CLOSE:
+        if not _same(summary.get(key), actual[key]):
+            return f"its {key} {summary.get(key)!r} is not what its seeds give ({actual[key]!r})"
+    return ""
+
+
 def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES, shipped: Path = SHIPPED) -> Path:
     """Publish a summarised pair (``root``, holding ``summary.json`` and its seeds): its
     summary into ``recorded``, its curve into ``images``, its best seed's policy into
-    ``shipped`` (the checkout's package); refused below the recorded budget or for a
-    summary that does not match its seeds. Returns the recorded summary's file."""
+    ``shipped`` (the checkout's package). Nothing is taken from the summary on trust:
+    the pair, the algorithm, the budget and the scores are those of the seeds'
+    checkpoints, evaluated again, and a summary that says otherwise is refused; so is
+    a pair below the recorded budget. Returns the recorded summary's file."""
     root = Path(root)
-    summary = read_summary(root / "summary.json")
-    algo, env_id = summary["algo"], summary["env"]
-    seeds = {run.name: run for run in seed_dirs(root)}
-    for s in summary["seeds"]:
-        if s["seed"] not in seeds or load_checkpoint(seeds[s["seed"]])["frames"] != s["frames"]:
-            raise ValueError(
-                f"{root / 'summary.json'}: its seed {s['seed']!r} is not a run of {root} with "
-                f"{s['frames']} transitions; summarise it again"
-            )
+    file = root / "summary.json"
+    summary = read_summary(file)
+    actual = summary_of(root, num_envs=summary.get("num_envs", 8) if isinstance(summary.get("num_envs"), int) else 8)
+    wrong = mismatch(summary, actual)
+    if wrong:
+        raise ValueError(f"{file}: {wrong}; summarise it again")
+    algo, env_id = actual["algo"], actual["env"]
+    if algo not in CONFIGS:
+        raise ValueError(f"{file}: a pair of {algo!r}, which has no recipe to record")
     budget = recorded_budget(algo, env_id, recorded)
-    if summary["frames"] < budget:
+    if actual["frames"] < budget:
         raise ValueError(
-            f"{root}: trained on {summary['frames']:,} transitions, below the recorded budget of "
+            f"{root}: trained on {actual['frames']:,} transitions, below the recorded budget of "
             f"{algo} on {env_id} ({budget:,}); not published"
         )
-    curve = root / f"{root.name}.png"
-    if not curve.is_file():
-        raise ValueError(f"{curve}: the pair's curve is missing; summarise it again")
+    seeds = {run.name: run for run in seed_dirs(root)}
     (recorded / algo).mkdir(parents=True, exist_ok=True)
     (images / algo).mkdir(parents=True, exist_ok=True)
-    copy = images / algo / f"{env_id}.png"
-    files.replace_file(copy, lambda tmp: shutil.copyfile(curve, tmp))
-    summary["png"] = (
+    # the curve drawn again from the seeds' logs, not copied from the pair's folder
+    copy = plot_runs([root], images / algo / f"{env_id}.png")
+    actual["png"] = (
         os.path.relpath(copy.resolve(), ROOT) if copy.resolve().is_relative_to(ROOT) else str(copy.resolve())
     )
-    best = max(summary["seeds"], key=lambda s: s["eval"])
+    best = max(actual["seeds"], key=lambda s: s["eval"])
     policy = shipped / algo / f"{env_id}.pt"
     policy.parent.mkdir(parents=True, exist_ok=True)
     pretrained.export(
@@ -156,7 +210,7 @@ def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES, shippe
         score=best["eval"],
         uncontrolled=best["uncontrolled"],
     )
-    return files.write_text(recorded / algo / f"{env_id}.json", json.dumps(summary, indent=1))
+    return files.write_text(recorded / algo / f"{env_id}.json", json.dumps(actual, indent=1))
 
 
 def results_block(recorded: Path, page: Path, images: Path) -> str:
@@ -230,6 +284,9 @@ def main(argv: list[str] | None = None) -> None:
             if args.threads:
                 torch.set_num_threads(args.threads)
             overrides = {name: text_value(value) for name, value in args.set}
+            taken = sorted(set(overrides) & set(DRIVER_SETTINGS))
+            if taken:
+                parser.error(f"--set {taken[0]}: the driver sets it for each seed ({', '.join(DRIVER_SETTINGS)})")
             for env_id in args.envs:
                 train_pair(
                     args.algo,

@@ -14,12 +14,12 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
-from beacon_torch import episodes
+from beacon_torch import episodes, received
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
-from beacon_torch.training.run import load_checkpoint, read_log, seed_dirs
+from beacon_torch.training.run import CHECKPOINT, BadRun, load_checkpoint, read_log, seed_dirs
 
 # the seed of the evaluation episodes: every evaluation of an env sees the same episodes
 EVAL_SEED = 12345
@@ -100,8 +100,13 @@ def evaluate_run(
     state = load_checkpoint(run)
     params = state["config"].get("params", {})  # the physics it was trained on
     env = make_env(state["env"], 1, norm=state["obs_norm"], params=params)
-    actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"]).to(device)
-    actor.load_state_dict(state["modules"]["actor"])
+    actor = networks.policy(env, state["policy"]["network"], state["policy"]["hidden"])
+    network = f"a {state['policy']['network']} of width {state['policy']['hidden']} on {state['env']}"
+    try:
+        received.load_into(actor, state["modules"]["actor"], f"{Path(run) / CHECKPOINT}: the actor's weights", network)
+    except ValueError as err:
+        raise BadRun(str(err)) from None
+    actor = actor.to(device)
     result = evaluate_policy(
         state["env"],
         actor,
@@ -125,11 +130,12 @@ def read_scalar(run: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
 
 
-def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_score") -> Path:
+def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_score", new: bool = False) -> Path:
     """The paper-style figure, one panel per env: per run directory, the mean and
     standard deviation over its seeds of ``name`` against transitions (each seed
     interpolated on a common grid), with the env's uncontrolled score dashed. A series
-    of one logged point is drawn as a point with its spread."""
+    of one logged point is drawn as a point with its spread. ``new``: ``path`` must not
+    exist when it is written (else it is replaced)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -164,7 +170,7 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    save_figure(fig, path)
+    save_figure(fig, path, new=new)
     return Path(path)
 
 
@@ -178,17 +184,18 @@ def _uncontrolled(env_id: str) -> float:
     return episodes.scores(rollout).mean().item()
 
 
-def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None = None, progress: bool = False) -> dict:
-    """A run directory's results, also written to ``root/summary.json``: per seed, the
+def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -> dict:
+    """A run directory's results, from its checkpoints and logs alone: per seed, the
     deterministic policy's score on ``num_envs`` fresh episodes and the mean score of
     the training episodes that ended in the last tenth of the transitions; their mean
-    and spread over the seeds; transitions and wall time; the curve drawn into
-    ``images/<root name>.png`` (default: ``root``)."""
+    and spread over the seeds; transitions and wall time (what the checkpoints
+    record). Every seed must be a run of the same algorithm on the same env."""
     root = Path(root)
     seeds = seed_dirs(root)
-    per_seed = []
+    per_seed, pairs = [], set()
     for run in seeds:
         state = load_checkpoint(run)
+        pairs.add((state["algo"], state["env"]))
         ev = evaluate_run(run, num_envs=num_envs, gif=None, progress=progress)
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
@@ -202,12 +209,11 @@ def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None 
                 "uncontrolled": ev["uncontrolled"],
             }
         )
-    images = Path(images) if images is not None else root
-    images.mkdir(parents=True, exist_ok=True)
-    png = plot_runs([root], images / f"{root.name}.png")
+    if len(pairs) > 1:
+        raise ValueError(f"{root}: its seeds are runs of several pairs ({', '.join(sorted(map('/'.join, pairs)))})")
     evals = np.array([s["eval"] for s in per_seed])
     tails = np.array([s["train_tail"] for s in per_seed])
-    summary = {
+    return {
         "algo": state["algo"],
         "env": state["env"],
         "config": state["config"],
@@ -219,14 +225,25 @@ def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None 
         "frames": int(min(s["frames"] for s in per_seed)),
         "wall_s_per_seed": float(np.mean([s["wall_s"] for s in per_seed])),
         "uncontrolled": per_seed[0]["uncontrolled"],
-        "png": str(png.resolve()),
+        "num_envs": num_envs,
         "threads": torch.get_num_threads(),
     }
+
+
+def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None = None, progress: bool = False) -> dict:
+    """:func:`summary_of`, also written to ``root/summary.json``, with the curve drawn
+    into ``images/<root name>.png`` (default: ``root``)."""
+    root = Path(root)
+    summary = summary_of(root, num_envs=num_envs, progress=progress)
+    images = Path(images) if images is not None else root
+    images.mkdir(parents=True, exist_ok=True)
+    png = plot_runs([root], images / f"{root.name}.png")
+    summary["png"] = str(png.resolve())
     write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
         f"{summary['algo']}/{summary['env']}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, "
-        f"training tail {summary['train_mean']:.4g} "
-        f"over {len(per_seed)} seeds, {summary['frames']} transitions, {summary['wall_s_per_seed']:.0f} s per seed"
+        f"training tail {summary['train_mean']:.4g} over {len(summary['seeds'])} seeds, {summary['frames']} "
+        f"transitions, {summary['wall_s_per_seed']:.0f} s per seed"
     )
     return summary
 

@@ -1,0 +1,146 @@
+"""The maintainer's driver publishes only what it checks: the pair, the algorithm, the
+budget and the scores come from the seeds' checkpoints, evaluated again, never from
+the summary beside them; a summary that says otherwise is refused in one line naming
+it, and nothing in the repository changes."""
+
+import copy
+import json
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from beacon_torch.training.config import PPOConfig, configure
+from beacon_torch.training.evaluation import summarise
+
+from conftest import recipe, script
+
+ppo = recipe("ppo")
+reproduce = script("tools/reproduce.py")
+
+SETTINGS = dict(frames=400, n_rollout=200, num_envs=1, epochs=1, progress=False, logger="csv")
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory, short_lorenz):
+    """A summarised PPO pair of two seeds (sixteen short episodes each)."""
+    root = tmp_path_factory.mktemp("results") / "ppo" / short_lorenz
+    for seed in (0, 1):
+        ppo.main(configure(PPOConfig, short_lorenz, out=str(root / f"seed{seed}"), seed=seed, **SETTINGS))
+    summarise(root, num_envs=1)
+    return root
+
+
+@pytest.fixture
+def repo(tmp_path):
+    """A repository whose recorded budget for the pair is the pair's own."""
+    recorded, images, shipped = tmp_path / "recorded", tmp_path / "img", tmp_path / "shipped"
+    (recorded / "ppo").mkdir(parents=True)
+    earlier = {"algo": "ppo", "env": "short-lorenz-v0", "frames": 400, "uncontrolled": 1.0, "wall_s_per_seed": 1.0}
+    (recorded / "ppo" / "short-lorenz-v0.json").write_text(json.dumps({**earlier, "seeds": [{"eval": -1.0}]}))
+    (shipped / "ppo").mkdir(parents=True)
+    (shipped / "ppo" / "short-lorenz-v0.pt").write_bytes(b"the shipped policy")
+    return recorded, images, shipped
+
+
+def forged(pair, tmp_path, change) -> tuple:
+    """A copy of ``pair`` whose summary has ``change`` applied."""
+    import shutil
+
+    root = tmp_path / "runs" / "ppo" / "short-lorenz-v0"
+    shutil.copytree(pair, root)
+    summary = json.loads((root / "summary.json").read_text())
+    change(summary)
+    (root / "summary.json").write_text(json.dumps(summary))
+    return root
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (lambda s: s.update(env="burgers-v0"), "its env 'burgers-v0' is not its seeds' \\('short-lorenz-v0'\\)"),
+        (lambda s: s.update(algo="td3"), "its algo 'td3' is not its seeds' \\('ppo'\\)"),
+        (lambda s: s.update(frames=10**9), "its frames 1000000000 is not its seeds' \\(400\\)"),
+        (lambda s: s["seeds"][0].update(eval=1e6), "seed0's eval 1000000.0 is not what its checkpoint gives"),
+        (lambda s: s["seeds"][1].update(frames=10**9), "seed1's frames 1000000000 is not what its checkpoint"),
+        (lambda s: s["seeds"].pop(), "its seeds \\['seed0'\\] are not the run's"),
+        (lambda s: s.update(eval_mean=5.0), "its eval_mean 5.0 is not what its seeds give"),
+    ],
+)
+def test_a_forged_summary_is_refused_and_the_repository_left_alone(pair, repo, tmp_path, change, words):
+    recorded, images, shipped = repo
+    root = forged(pair, tmp_path, change)
+    with pytest.raises(ValueError, match=f"{root / 'summary.json'}: {words}") as err:
+        reproduce.publish(root, recorded, images, shipped)
+    assert "\n" not in str(err.value)
+    assert (shipped / "ppo" / "short-lorenz-v0.pt").read_bytes() == b"the shipped policy"
+    assert json.loads((recorded / "ppo" / "short-lorenz-v0.json").read_text())["frames"] == 400
+    assert not images.exists()
+
+
+def test_a_true_summary_is_published_from_its_checkpoints(pair, repo, tmp_path, capsys):
+    recorded, images, shipped = repo
+    root = forged(pair, tmp_path, lambda s: s.update(png="/elsewhere/curve.png"))
+    reproduce.publish(root, recorded, images, shipped)
+    published = json.loads((recorded / "ppo" / "short-lorenz-v0.json").read_text())
+    true = json.loads((pair / "summary.json").read_text())
+    assert [s["eval"] for s in published["seeds"]] == [s["eval"] for s in true["seeds"]]
+    assert published["png"] != "/elsewhere/curve.png" and (images / "ppo" / "short-lorenz-v0.png").is_file()
+    from beacon_torch import pretrained
+
+    assert pretrained.load_file(shipped / "ppo" / "short-lorenz-v0.pt", "short-lorenz-v0") is not None
+    # from the command line: a forged pair is one line and status 2
+    forged_root = forged(pair, tmp_path / "again", lambda s: s.update(env="burgers-v0"))
+    with pytest.raises(SystemExit) as exit_:
+        reproduce.main(["publish", str(forged_root), "--doc", str(tmp_path / "results.md")])
+    err = capsys.readouterr().err
+    # one line (the progress bars of the re-evaluation return to its start with \r)
+    assert exit_.value.code == 2 and "summary.json: its env 'burgers-v0'" in err and len(err.strip().split("\n")) == 1
+
+
+TRUE = {
+    "algo": "ppo",
+    "env": "short-lorenz-v0",
+    "frames": 400,
+    "eval_mean": -1.5,
+    "train_mean": -1.7,
+    "wall_s_per_seed": 12.0,
+    "uncontrolled": -2.1,
+    "seeds": [
+        {"seed": "seed0", "frames": 400, "eval": -1.4, "train_tail": -1.6, "uncontrolled": -2.1, "wall_s": 11.0},
+        {"seed": "seed1", "frames": 400, "eval": -1.6, "train_tail": -1.8, "uncontrolled": -2.1, "wall_s": 13.0},
+    ],
+}
+FIELDS = ["algo", "env", "frames", "eval_mean", "train_mean", "wall_s_per_seed", "uncontrolled", "seeds"]
+SEED_FIELDS = ["seed", "frames", "eval", "train_tail", "uncontrolled", "wall_s"]
+VALUES = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**12), 10**12),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from(["ppo", "td3", "short-lorenz-v0", "burgers-v0", "seed0", "seed1", "seed2"]),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    field=st.one_of(st.sampled_from(FIELDS), st.tuples(st.integers(0, 1), st.sampled_from(SEED_FIELDS))),
+    value=VALUES,
+)
+def test_any_forged_field_of_a_summary_is_found(field, value):
+    summary = copy.deepcopy(TRUE)
+    if isinstance(field, tuple):
+        original = summary["seeds"][field[0]][field[1]]
+        summary["seeds"][field[0]][field[1]] = value
+    else:
+        original = summary[field]
+        summary[field] = value
+    name = field[1] if isinstance(field, tuple) else field
+    if name in ("algo", "env", "frames", "seeds", "seed"):
+        same = type(value) is type(original) and value == original
+    else:  # a score or a time: the same number, written as an int or a float
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        same = number and math.isclose(value, original, rel_tol=1e-6, abs_tol=1e-9)
+    found = reproduce.mismatch(summary, TRUE)
+    assert (found == "") == same, (field, value, found)
