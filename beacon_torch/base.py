@@ -353,6 +353,7 @@ class FlowEnv(EnvBase):
         self.rng = torch.Generator(device=device)
         self.set_seed(seed)
         self._state: State | None = None
+        self._shapes: dict[str, torch.Size] | None = None
         self._count = torch.zeros(batch_size, dtype=torch.int64, device=device)
 
     def compile(self, *, warmup: int | None = None, **kwargs: Any) -> FlowEnv:
@@ -381,13 +382,19 @@ class FlowEnv(EnvBase):
 
     def to(self, *args, **kwargs) -> FlowEnv:
         """The env itself: its state, generator and kernels live on the device it was
-        made on, so moving it elsewhere is refused (``make(..., device=...)`` builds one
-        there)."""
-        device = torch._C._nn._parse_to(*args, **kwargs)[0]
+        made on and in its dtype, so moving or converting it is refused
+        (``make(..., device=..., dtype=...)`` builds one there)."""
+        device, dtype = torch._C._nn._parse_to(*args, **kwargs)[:2]
         if device is not None and _as_device(device) != self.device:
             raise ValueError(
                 f"{self.env_id}: an env stays on the device it was made on ({self.device}); "
                 f"make(..., device={str(device)!r}) builds one on {device}"
+            )
+        if dtype is not None and dtype != self.dtype:
+            name = str(dtype).removeprefix("torch.")
+            raise ValueError(
+                f"{self.env_id}: an env keeps the dtype it was made with ({self.dtype}); "
+                f"make(..., dtype={name!r}) builds one in {name}"
             )
         return self
 
@@ -403,34 +410,79 @@ class FlowEnv(EnvBase):
 
     def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
         """Where the env is: the state of every member (``state.<key>``), the actions
-        taken in their episodes (``count``) and the generator's state (``rng``);
-        :meth:`load_state_dict` continues from there (an env of the same id, batch size
-        and parameters)."""
+        taken in their episodes (``count``), the generator's state (``rng``) and the
+        parameters it steps with (``params``); :meth:`load_state_dict` continues from
+        there (an env of the same id, batch size and parameters)."""
         out = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
         if self._state is not None:
             for key, value in self._state._asdict().items():
                 out[f"{prefix}state.{key}"] = value if keep_vars else value.detach()
             out[f"{prefix}count"] = self._count.clone()
         out[f"{prefix}rng"] = self.rng.get_state()
+        out[f"{prefix}params"] = {
+            f.name: getattr(self.params, f.name).detach().clone()
+            if isinstance(getattr(self.params, f.name), torch.Tensor)
+            else getattr(self.params, f.name)
+            for f in dataclasses.fields(self.params)
+        }
         return out
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Continue from :meth:`state_dict` (checked as :meth:`set_state` checks)."""
+        """Continue from :meth:`state_dict` (its state checked as :meth:`set_state`
+        checks it, after the cast to this env's dtype). The parameters it records must
+        be this env's (a state of other physics is refused); ``strict`` (the default)
+        also requires every entry a stepped env's state dict has, and no other."""
+        name = self.env_id or type(self).__name__
+        if not isinstance(state_dict, dict):
+            raise TypeError(f"{name}: a state dict is a dict (env.state_dict()), got {type(state_dict).__name__}")
         state = {key.removeprefix("state."): value for key, value in state_dict.items() if key.startswith("state.")}
-        unknown = set(state_dict) - {f"state.{k}" for k in state} - {"count", "rng"}
-        if strict and unknown:
-            raise KeyError(f"{self.env_id}: unknown entries {sorted(unknown)} in the state dict")
-        if state:
-            self.set_state(state, state_dict.get("count", 0))
+        unknown = set(state_dict) - {f"state.{k}" for k in state} - {"count", "rng", "params"}
+        missing = [] if state else [f"state.{k}" for k in self.state_type._fields]
+        missing += [key for key in ("count", "rng", "params") if key not in state_dict and (key != "count" or state)]
+        if strict and (unknown or missing):
+            raise KeyError(
+                f"{name}: the state dict has unknown entries {sorted(unknown)} and lacks {missing}; "
+                f"load_state_dict(..., strict=False) loads what it holds"
+            )
+        if "params" in state_dict:
+            self._check_same_params(state_dict["params"])
         if "rng" in state_dict:
             rng = state_dict["rng"]
             if not isinstance(rng, torch.Tensor) or rng.dtype != torch.uint8 or rng.shape != self.rng.get_state().shape:
                 raise ValueError(
-                    f"{self.env_id}: 'rng' must be a generator state of this device (a uint8 tensor "
+                    f"{name}: 'rng' must be a generator state of this device (a uint8 tensor "
                     f"of shape {tuple(self.rng.get_state().shape)})"
                 )
-            self.rng.set_state(rng)
+        if state:
+            self.set_state(state, state_dict.get("count", 0))
+        if "rng" in state_dict:
+            self.rng.set_state(state_dict["rng"])
         return torch.nn.modules.module._IncompatibleKeys([], [])
+
+    def _check_same_params(self, saved) -> None:
+        """Refuse the parameters of a saved state dict that are not this env's."""
+        name = self.env_id or type(self).__name__
+        own = {f.name: getattr(self.params, f.name) for f in dataclasses.fields(self.params)}
+        if not isinstance(saved, dict) or set(saved) != set(own):
+            raise ValueError(f"{name}: the state dict's 'params' are not those of {name} ({sorted(own)})")
+        for key, mine in own.items():
+            theirs = saved[key]
+            if isinstance(mine, torch.Tensor):
+                same = (
+                    isinstance(theirs, (torch.Tensor, int, float))
+                    and not isinstance(theirs, bool)
+                    and torch.as_tensor(theirs).numel() in (1, mine.numel())
+                    and bool((torch.as_tensor(theirs).to(mine.device, mine.dtype) == mine.detach()).all())
+                )
+            else:
+                same = type(theirs) is type(mine) and theirs == mine
+            if not same:
+                shown = theirs.tolist() if isinstance(theirs, torch.Tensor) and theirs.numel() < 8 else theirs
+                raise ValueError(
+                    f"{name}: the state dict was saved by an env with other parameters ({key} = {shown!r} there, "
+                    f"{mine.tolist() if isinstance(mine, torch.Tensor) else mine!r} here); make the env with its "
+                    f"parameters to continue it"
+                )
 
     # ------------------------------------------------------------------ physics hooks
     @classmethod
@@ -658,24 +710,15 @@ class FlowEnv(EnvBase):
         extra = sorted(set(state) - set(fields))
         if missing or extra:
             raise KeyError(f"{name}: set_state needs the fields {list(fields)}; missing {missing}, unknown {extra}")
-        if self._state is not None:
-            for key, value in state.items():
-                now = getattr(self._state, key)
-                if value.shape != now.shape:
-                    raise ValueError(
-                        f"{name}: state.{key} must have shape {tuple(now.shape)}, got {tuple(value.shape)}"
-                    )
+        shapes = self._field_shapes()
         for key, value in state.items():
-            if value.ndim == 0 or value.shape[0] != self.num_envs:
+            if value.shape != shapes[key]:
                 raise ValueError(
-                    f"{name}: state.{key} must have the batch size {self.num_envs} first, got "
-                    f"shape {tuple(value.shape)}"
+                    f"{name}: state.{key} must have shape {tuple(shapes[key])} (the batch of {self.num_envs} "
+                    f"first), got {tuple(value.shape)}"
                 )
-        for key, value in state.items():
             if value.is_complex() or value.dtype == torch.bool:
                 raise TypeError(f"{name}: state.{key} must hold real numbers, got dtype {value.dtype}")
-            if value.is_floating_point() and not bool(torch.isfinite(value.detach()).all()):
-                raise ValueError(f"{name}: state.{key} has non-finite values")
         traced = [key for key, value in state.items() if value.requires_grad]
         if traced and not self.differentiable:
             warnings.warn(
@@ -683,19 +726,64 @@ class FlowEnv(EnvBase):
                 f"gradients are dropped (make(..., differentiable=True) keeps them)",
                 stacklevel=2,
             )
+        integer = isinstance(count, (int, np.integer)) and not isinstance(count, (bool, np.bool_))
+        if isinstance(count, torch.Tensor):
+            integer = not (count.is_floating_point() or count.is_complex() or count.dtype == torch.bool)
+            integer = integer and count.shape in ((), self.batch_size)
+        if not integer:
+            shown = tuple(count.shape) if isinstance(count, torch.Tensor) else repr(count)[:40]
+            raise TypeError(
+                f"{name}: count must be an integer, or an integer tensor of one per member ({self.num_envs}), "
+                f"got {shown}"
+            )
+        if not isinstance(count, torch.Tensor) and not 0 <= count < self.episode_length:
+            raise ValueError(
+                f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count}"
+            )
         count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
         if bool(((count < 0) | (count >= self.episode_length)).any()):
             raise ValueError(
                 f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}"
             )
-        # every state is of the env's dtype (integers given are cast), as its specs say
+        # every state is of the env's dtype (integers given are cast), as its specs say;
+        # its values are checked after the cast (1e39 is finite in float64 only)
         state = self.state_type(*(state[k].to(self.device, self.dtype) for k in fields))
+        for key, value in state._asdict().items():
+            if not bool(torch.isfinite(value.detach()).all()):
+                raise ValueError(f"{name}: state.{key} has values that are not finite in {self.dtype}")
         with graph_mode(self.differentiable):
             obs = self.observe(state)
+        self._check_observation(obs)
         self._state, self._obs = _standard(state, obs)
         self._count = count.expand(self.batch_size).clone()
         self._traced_start = self.differentiable and bool(traced)
         return self._obs
+
+    def _field_shapes(self) -> dict[str, torch.Size]:
+        """The shape of each field of the state (the batch first): the current state's,
+        or, before the first reset, that of a start computed once without drawing from
+        the env's generator."""
+        if self._state is not None:
+            return {key: value.shape for key, value in self._state._asdict().items()}
+        if self._shapes is None:
+            rng = self.rng.get_state()
+            try:
+                with torch.no_grad():
+                    start = self.initial_state(None)
+            finally:
+                self.rng.set_state(rng)
+            self._shapes = {key: value.shape for key, value in start._asdict().items()}
+        return self._shapes
+
+    def _check_observation(self, obs: torch.Tensor) -> None:
+        """Refuse an observation of another shape than the spec's (a physics whose
+        ``observe`` disagrees with its ``sizes``)."""
+        spec = self.observation_spec[self.observation_key].shape
+        if obs.shape != spec:
+            raise ValueError(
+                f"{self.env_id}: observe() returned shape {tuple(obs.shape)}, the observation spec says "
+                f"{tuple(spec)} (sizes() gives {self.n_obs} observations)"
+            )
 
     # ------------------------------------------------------------------ the step itself
     # TorchRL's ``reset``/``step`` and the gymnasium and Stable-Baselines3 adapters all
@@ -755,6 +843,7 @@ class FlowEnv(EnvBase):
                 f"{self.env_id}: the initial state of batch member(s) {bad} is not finite; "
                 f"check their parameters ({self.params})"
             )
+        self._check_observation(obs)
         self._state, self._obs = _standard(self._state, obs)
         self.history.reset(self._state, mask)
         return obs
@@ -914,7 +1003,14 @@ class FlowEnv(EnvBase):
         if bool(ok.all()):
             return new, obs, reward, ok
         if not bool(ok.any()):  # nothing to differentiate but the states kept
-            return old, self._obs, torch.full_like(reward.detach(), float(self.blowup_reward)), ok
+            # a reward that still depends, with a zero derivative, on what the step was
+            # given (finite: the action was checked, the state kept is the last finite
+            # one), so that a backward pass through it finds the graph it expects
+            zero = sum((t * 0).reshape(t.shape[0], -1).sum(1) for t in (action, *old) if t.requires_grad)
+            full = torch.full_like(reward.detach(), float(self.blowup_reward))
+            if isinstance(zero, torch.Tensor):
+                full = full + zero.reshape(-1, *(1,) * (full.ndim - 1)).to(full.dtype)
+            return old, self._obs, full, ok
         donor = int(ok.nonzero()[0, 0])
         stand_in = lambda t: select(ok, t, t[donor : donor + 1].detach().expand_as(t))
         per_member = {
@@ -939,6 +1035,12 @@ class FlowEnv(EnvBase):
         return advance
 
     # ------------------------------------------------------------------ TorchRL API
+    def rollout(self, max_steps: int, *args, **kwargs):
+        """TorchRL's rollout of ``max_steps`` steps (a positive integer)."""
+        if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+            raise ValueError(f"{self.env_id}: rollout needs a positive number of steps, got {max_steps!r}")
+        return super().rollout(max_steps, *args, **kwargs)
+
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         self.reset_members(None if tensordict is None else tensordict.get("_reset", None))
         return self.current()

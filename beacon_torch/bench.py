@@ -209,16 +209,33 @@ def measure_in_fresh_process(env_id: str, batch: int, **kwargs) -> Measurement:
             text=True,
         )
         if done.returncode != 0:
-            raise RuntimeError(f"measuring {env_id} at {batch} members failed:\n{done.stderr[-3000:]}")
+            lines = [line for line in done.stderr.splitlines() if line.strip()]
+            said = [line.removeprefix(FAILED) for line in lines if line.startswith(FAILED)]
+            if said:
+                why = said[-1]
+            elif done.returncode < 0:
+                why = f"the process was killed by signal {-done.returncode} (out of memory?)"
+            else:
+                why = lines[-1] if lines else f"exit status {done.returncode}"
+            raise ValueError(f"measuring {env_id} at {batch} members failed: {why}")
         m = Measurement(**json.loads(result.read_text()))
     m.env = env_id
     return m
 
 
+# how a measuring process says why it failed, in one line its parent reports
+FAILED = "beacon-torch bench: failed: "
+
+
 def _measure_job(job: str, result: str) -> None:
     job = json.loads(job)
     torch.set_num_threads(job["threads"])
-    m = measure(job["env_id"], job["batch"], own_process=True, **job["kwargs"])
+    try:
+        m = measure(job["env_id"], job["batch"], own_process=True, **job["kwargs"])
+    except (ValueError, TypeError, RuntimeError, MemoryError, OSError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        print(f"{FAILED}{type(err).__name__}: {first}", file=sys.stderr)
+        sys.exit(2)
     Path(result).write_text(json.dumps(asdict(m)))
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -62,18 +63,28 @@ def cmd_list(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plot_run(path: Path, env_id: str, null_rewards: torch.Tensor, rand_rewards: torch.Tensor) -> None:
+def _cumulative(rollout) -> torch.Tensor:
+    """``[batch, steps]`` cumulative rewards of each member's episode, flat after its
+    end (a member that blew up stops adding)."""
+    rewards = episodes.step_rewards(rollout).cpu()
+    done = rollout["next", "done"][..., 0].cpu().to(torch.int64)
+    before = done.cumsum(-1) - done  # ends before each step
+    return (rewards * (before == 0)).cumsum(-1)
+
+
+def _plot_run(path: Path, env_id: str, null: torch.Tensor, rand: torch.Tensor) -> None:
+    """The cumulative rewards of the uncontrolled member and of the random-policy batch
+    (each over the steps its rollout took), into the new file ``path``."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7, 4), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    steps = torch.arange(1, null_rewards.shape[-1] + 1).numpy()
-    ax.plot(steps, null_rewards[0].cumsum(-1).numpy(), "k--", label="uncontrolled")
-    cum = rand_rewards.cumsum(-1)
-    mean, std = cum.mean(0).numpy(), cum.std(0, unbiased=False).numpy()
-    ax.plot(steps, mean, color="C0", label=f"random policy (mean of {cum.shape[0]})")
+    ax.plot(range(1, null.shape[-1] + 1), null[0].numpy(), "k--", label="uncontrolled")
+    mean, std = rand.mean(0).numpy(), rand.std(0, unbiased=False).numpy()
+    steps = range(1, rand.shape[-1] + 1)
+    ax.plot(steps, mean, color="C0", label=f"random policy (mean of {rand.shape[0]})")
     ax.fill_between(steps, mean - std, mean + std, color="C0", alpha=0.3, lw=0)
     ax.set_xlabel("actions")
     ax.set_ylabel("cumulative reward")
@@ -81,7 +92,7 @@ def _plot_run(path: Path, env_id: str, null_rewards: torch.Tensor, rand_rewards:
     ax.grid(alpha=0.4)
     ax.legend()
     fig.tight_layout()
-    save_figure(fig, path)
+    save_figure(fig, path, new=True)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -89,6 +100,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     env_class(args.env)  # an unknown id fails here, before anything is built
     if args.num_envs < 1:
         raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
+    if args.gif_every < 0:
+        raise CliError(f"--gif-every must be a positive integer (0: about 100 frames), got {args.gif_every}")
+    if args.gif is not None and Path(args.gif).suffix.lower() != ".gif":
+        raise CliError(f"--gif {args.gif}: an animation is a GIF file, named *.gif")
     params = _parse_params(args.param)
     kwargs = dict(device=args.device, dtype=args.dtype, seed=args.seed, params=params)
     plot, scores_file = outputs(args.out, f"runs/{args.env}", "run.png", "scores.json")
@@ -104,7 +119,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         rollout = episodes.episode(env, policy, progress=f"{args.env} {name}")
         elapsed = time.perf_counter() - start
         score = episodes.scores(rollout)
-        rewards[name] = episodes.step_rewards(rollout).cpu()
+        rewards[name] = _cumulative(rollout)
         results[name] = dict(
             num_envs=batch,
             mean=score.mean().item(),
@@ -120,9 +135,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"  [{batch} x {rollout.shape[-1]} steps in {args.dtype}, {r['transitions_per_s']:.0f} transitions/s]"
         )
 
-    _plot_run(plot, args.env, rewards["uncontrolled"], rewards["random"])
     text = json.dumps({"env": args.env, "params": {k: str(v) for k, v in params.items()}, **results}, indent=2)
     create_file(scores_file, lambda tmp: tmp.write_text(text))
+    _plot_run(plot, args.env, rewards["uncontrolled"], rewards["random"])
     print(f"plot: {plot}\nscores: {scores_file}")
 
     if gif is not None:
@@ -157,6 +172,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for name in ("steps", "repeats"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise CliError(f"--{name} must be a positive integer, got {getattr(args, name)}")
+    _as_device(args.device)  # before any measuring process is started
     from beacon_torch.files import dated_name
 
     out = Path(args.out or Path("runs/bench") / dated_name("bench"))
@@ -222,7 +238,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from beacon_torch.training.evaluation import plot_runs
 
-    path = plot_runs(args.runs, outputs(args.out, "learning_curve.png")[0], name=args.scalar)
+    path = plot_runs(args.runs, outputs(args.out, "learning_curve.png")[0], name=args.scalar, new=True)
     print(f"plot: {path}")
     return 0
 
@@ -326,12 +342,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        return _run(args)
+    except BrokenPipeError:
+        # the reader stopped reading (``beacon-torch list | head``): nothing more to say
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
         for module in args.imports:
             try:
                 importlib.import_module(module)
             except ImportError as err:
                 raise CliError(f"--import {module}: {err}") from None
         return args.func(args)
+    except BrokenPipeError:
+        raise
     except (
         CliError,
         ValueError,

@@ -42,20 +42,53 @@ def refuse_links(root: str | Path) -> None:
                 )
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _temporary(path: Path) -> Path:
+    """A new empty file beside ``path`` with the permissions a file created there by
+    ``open`` would have (the umask's, not a temporary file's owner-only ones), under a
+    name short enough for any name ``path`` may have."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=f"-{path.name[:64]}.partial")
+    os.close(fd)
+    os.chmod(tmp, 0o666 & ~_umask())
+    return Path(tmp)
+
+
 def replace_file(path: str | Path, write: Callable[[Path], object]) -> Path:
     """Write ``path`` by ``write(temporary)`` into a new file beside it, then put that
     file in its place in one step: a reader never sees half a file, a stop keeps the
     previous one, and a link at ``path`` is replaced, not followed."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=f"-{path.name}.partial")
-    os.close(fd)
+    tmp = _temporary(path)
     try:
-        write(Path(tmp))
+        write(tmp)
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def save_tensors(obj, path: str | Path) -> Path:
+    """:func:`replace_file` with ``torch.save(obj)``; a write that fails (a full disk)
+    is an :class:`OSError` naming the file and the space left, and leaves the previous
+    file as it was."""
+    import torch
+
+    path = Path(path)
+    try:
+        return replace_file(path, lambda tmp: torch.save(obj, tmp))
+    except (RuntimeError, OSError) as err:  # torch reports a failed write as a RuntimeError
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        try:
+            left = f"{free_bytes(path.parent) / 2**20:,.1f} MiB free there"
+        except OSError:
+            left = "its folder is unreadable"
+        raise OSError(f"{path}: could not be written ({first[:160]}; {left}); the previous file is kept") from None
 
 
 def create_file(path: str | Path, write: Callable[[Path], object], hint: str = "") -> Path:
@@ -64,17 +97,16 @@ def create_file(path: str | Path, write: Callable[[Path], object], hint: str = "
     all, and whatever was there, a file or a link, is left as it was."""
     path = Path(path)
     refuse_existing([path], hint)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".", suffix=f"-{path.name}.partial")
-    os.close(fd)
+    tmp = _temporary(path)
     try:
-        write(Path(tmp))
+        write(tmp)
         try:
             os.link(tmp, path)  # fails if the name was taken meanwhile: never replaces
         except FileExistsError:
             refuse_existing([path], hint)
             raise
     finally:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -119,17 +151,21 @@ def write_text(path: str | Path, text: str) -> Path:
     return replace_file(path, lambda tmp: tmp.write_text(text))
 
 
-def save_figure(fig, path: str | Path) -> Path:
+def save_figure(fig, path: str | Path, *, new: bool = False) -> Path:
     """:func:`replace_file` with a matplotlib figure, in the format of the name's
-    suffix."""
+    suffix; with ``new``, :func:`create_file` (a file that appeared meanwhile is
+    refused, not replaced)."""
     path = Path(path)
-    return replace_file(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or "png"))
+    write = lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or "png")
+    return create_file(path, write) if new else replace_file(path, write)
 
 
 def new_folder(parent: str | Path, name: str) -> Path:
     """A new empty folder in ``parent`` whose name ends with ``name``, created here (so
     that nothing planted under that name is written into)."""
-    return Path(tempfile.mkdtemp(dir=parent, prefix=".", suffix=f"-{name}"))
+    folder = Path(tempfile.mkdtemp(dir=parent, prefix=".", suffix=f"-{name[:64]}"))
+    folder.chmod(0o777 & ~_umask())
+    return folder
 
 
 def remove_partials(folder: str | Path) -> None:

@@ -198,7 +198,13 @@ class BeaconVectorEnv(VectorEnv):
             self.env.reset_members()
             self._autoreset[:] = False
         else:
-            mask = np.asarray(mask, dtype=bool).reshape(self.num_envs)
+            given = np.asarray(mask)
+            if given.dtype != np.bool_ or given.size != self.num_envs:
+                raise ValueError(
+                    f"{self.env.env_id}: options['reset_mask'] must hold one bool per copy ({self.num_envs}), "
+                    f"got {given.size} values of dtype {given.dtype}"
+                )
+            mask = given.reshape(self.num_envs)
             self.env.reset_members(torch.as_tensor(mask))
             self._autoreset[mask] = False
         return self._obs(), {}

@@ -19,6 +19,7 @@ from beacon_torch.envs.rayleigh import RayleighEnv
 from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
 from beacon_torch.envs.sloshing import SloshingEnv
 from beacon_torch.envs.vortex import VortexEnv
+from beacon_torch.params import check_params
 
 ENVS: dict[str, type[FlowEnv]] = {
     cls.env_id: cls
@@ -73,6 +74,17 @@ def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[Flo
     unknown = sorted(set(defaults) - known)
     if unknown:
         raise ValueError(f"{env_id}: unknown default(s) {unknown}; {env_class.__name__} takes {sorted(known)}")
+    # defaults that every make() would refuse are refused here, where they are given
+    physics = {k: v for k, v in defaults.items() if k not in OPTIONS}
+    try:
+        check_params(env_class, physics)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{env_id}: its default parameters: {err}") from None
+    for name in ("differentiable", "grad_checkpoint", "record_history", "check_actions"):
+        if name in defaults and not isinstance(defaults[name], bool):
+            raise TypeError(f"{env_id}: the default {name} must be True or False, got {defaults[name]!r}")
+    if "compile" in defaults and not isinstance(defaults["compile"], (bool, dict)):
+        raise TypeError(f"{env_id}: the default compile must be True, False or a dict of options")
     if env_class.env_id != env_id:
         if ENVS.get(env_class.env_id) is not env_class:
             raise ValueError(

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from beacon_torch.files import replace_file
+from beacon_torch.files import create_file
 
 FRAME_SIZE = (6.4, 4.0)  # inches
 FRAME_DPI = 80
@@ -107,7 +107,7 @@ def vortex_frame(ay: np.ndarray, k: float, phi: float, t: float) -> np.ndarray:
 
 
 def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20) -> Path:
-    """Write RGB frames to an animated GIF."""
+    """Write RGB frames to an animated GIF, a new file."""
     from PIL import Image
 
     images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
@@ -116,8 +116,8 @@ def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     duration = max(1, round(1000 / fps))
-    # under a new name, then in place: a link at ``path`` is replaced, never followed
-    return replace_file(
+    # a new file, refused if the name was taken meanwhile (a link at ``path`` included)
+    return create_file(
         path,
         lambda tmp: images[0].save(
             tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0

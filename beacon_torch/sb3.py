@@ -116,7 +116,9 @@ class BeaconVecEnv(VecEnv):
         return obs, team_reward(self.env, reward).astype(np.float32), ended, infos
 
     def close(self) -> None:
+        """Free the batched env; stepping or resetting afterwards is an error."""
         self._actions = None
+        self.env.close(raise_if_closed=False)
 
     # ------------------------------------------------------------------ attributes
     def _indices(self, indices) -> list[int]:

@@ -100,6 +100,9 @@ def check_flow_env(env: str | type[FlowEnv], checks: list[str] | None = None) ->
             raise
         except AssertionError as err:
             raise ConformanceError(f"{cls.env_id}: {name}: {err}") from err
+        except Exception as err:  # the env itself failed: a conformance failure too, named
+            first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+            raise ConformanceError(f"{cls.env_id}: {name}: the env raised {type(err).__name__}: {first}") from err
     return found
 
 

@@ -58,7 +58,7 @@ def test_set_state_refuses_non_finite_values_and_counts_outside_the_episode():
     with pytest.raises(ValueError, match="count must be in"):
         env.set_state(state, count=-1)
     state["ay"][1, 0] = float("nan")
-    with pytest.raises(ValueError, match="state.ay has non-finite values"):
+    with pytest.raises(ValueError, match="state.ay has values that are not finite in torch.float32"):
         env.set_state(state)
 
 

@@ -25,26 +25,15 @@ from beacon_torch.cli import main as cli
 from beacon_torch.envs import shkadov
 from beacon_torch.training import report
 from beacon_torch.training.config import DQNConfig, PPOConfig, TD3Config, configure
+from beacon_torch.training.evaluation import summarise
 from beacon_torch.training.run import BadRun, Diverged, check_checkpoint, load_checkpoint, read_log
 
-from conftest import recipe, script
+from conftest import PPO, TD3, copy_run, recipe, script
 
 dqn, ppo, td3 = recipe("dqn"), recipe("ppo"), recipe("td3")
 reproduce = script("tools/reproduce.py")
 
 ROOT = Path(__file__).resolve().parents[1]
-PPO = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger="csv")
-TD3 = dict(
-    frames=256,
-    frames_per_batch=64,
-    num_envs=4,
-    updates_per_batch=4,
-    init_random_frames=64,
-    batch_size=32,
-    hidden=32,
-    progress=False,
-    logger="csv",
-)
 
 
 def snapshot(folder: Path) -> dict:
@@ -67,17 +56,11 @@ def outside(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def ppo_run(tmp_path_factory):
-    run = tmp_path_factory.mktemp("ppo") / "run"
-    ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+def ended_run(tmp_path_factory, short_lorenz):
+    """A run whose episodes end: one that can be summarised and published."""
+    run = tmp_path_factory.mktemp("pair") / "ppo" / short_lorenz / "seed0"
+    ppo.main(configure(PPOConfig, short_lorenz, out=str(run), **{**PPO, "num_envs": 1}))
     return run
-
-
-def copy_run(run: Path, to: Path) -> Path:
-    import shutil
-
-    shutil.copytree(run, to)
-    return to
 
 
 # ---------------------------------------------------------------- writes outside, deletes
@@ -170,12 +153,12 @@ def test_eval_pretrained_replaces_no_animation(tmp_path, monkeypatch):
     assert (tmp_path / "ppo" / "lorenz-v0-2.gif").stat().st_size > 1000
 
 
-def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outside):
-    pair = tmp_path / "runs" / "ppo" / "vortex-v0"
-    copy_run(ppo_run, pair / "seed0")
+def test_publish_and_report_take_no_path_from_a_summary(ended_run, tmp_path, outside):
+    pair = tmp_path / "runs" / "ppo" / "short-lorenz-v0"
+    copy_run(ended_run, pair / "seed0")
     summary = {
         "algo": "../../../../outside/owned",
-        "env": "vortex-v0",
+        "env": "short-lorenz-v0",
         "seeds": [{"seed": "seed0", "eval": 1.0, "frames": 400, "uncontrolled": 0.0}],
         "uncontrolled": 0.0,
         "frames": 400,
@@ -187,15 +170,16 @@ def test_publish_and_report_take_no_path_from_a_summary(ppo_run, tmp_path, outsi
     before = snapshot(outside)
     with pytest.raises(ValueError, match="unknown algorithm"):
         reproduce.publish(pair, recorded, images)
-    # a known algorithm, recorded at this budget: the curve is the pair's own, never
-    # the file the summary names
+    # a true summary naming a file outside as its curve: the curve published is drawn
+    # again from the seeds' logs, and the file it names is never touched
     (recorded / "ppo").mkdir(parents=True)
-    (recorded / "ppo" / "vortex-v0.json").write_text(json.dumps({**summary, "algo": "ppo"}))
-    (pair / "summary.json").write_text(json.dumps({**summary, "algo": "ppo"}))
-    with pytest.raises(ValueError, match="curve is missing"):
-        reproduce.publish(pair, recorded, images)
+    (recorded / "ppo" / "short-lorenz-v0.json").write_text(json.dumps({**summary, "algo": "ppo"}))
+    true = summarise(pair, num_envs=1)
+    (pair / "summary.json").write_text(json.dumps({**true, "png": str(outside / "precious.txt")}))
+    reproduce.publish(pair, recorded, images, shipped=tmp_path / "repo" / "shipped")
     assert snapshot(outside) == before and not (tmp_path / "outside" / "owned.json").exists()
-    assert not images.exists() or not list(images.iterdir())
+    assert (images / "ppo" / "short-lorenz-v0.png").stat().st_size > 1000
+    assert json.loads((recorded / "ppo" / "short-lorenz-v0.json").read_text())["png"] != str(outside / "precious.txt")
     # a recorded summary naming an unknown algorithm stops the page, writing nothing
     (recorded / "x").mkdir()
     (recorded / "x" / "y.json").write_text(json.dumps(summary))
@@ -672,7 +656,7 @@ def test_a_replay_buffer_that_cannot_fit_on_the_disk_is_one_clear_error(tmp_path
     ],
 )
 def test_policy_files_are_checked_before_use(tmp_path, record, words):
-    shipped = pretrained._read(pretrained.shipped("ppo/lorenz-v0"))
+    shipped = pretrained._read(pretrained.shipped("ppo/lorenz-v0"))[0]
     forged = dict(shipped)
     for key, value in record.items():
         if value == "nan":
@@ -692,7 +676,7 @@ def test_policy_files_are_checked_before_use(tmp_path, record, words):
 def test_a_tampered_policy_file_is_named_and_a_policy_on_another_env_says_so(tmp_path):
     file = tmp_path / "policy.pt"
     file.write_bytes(pretrained.shipped("ppo/lorenz-v0").read_bytes()[:500])
-    with pytest.raises(ValueError, match=f"{file}: unreadable policy file"):
+    with pytest.raises(ValueError, match=f"{file}: not a policy file"):
         pretrained.load_file(file)
     policy = pretrained.load("ppo/lorenz-v0")
     env = beacon_torch.make("vortex-v0", 2)
@@ -835,3 +819,298 @@ def test_the_cache_ignores_an_empty_path_and_leaves_no_temporary_file(tmp_path, 
         cache.save(shkadov.Film(h=torch.zeros(2), q=torch.zeros(2)), blocked / "x.pt")
     assert sorted(p.name for p in blocked.iterdir()) == ["x.pt"]
     np.testing.assert_equal(len(list(blocked.rglob("*"))), 1)
+
+
+# ---------------------------------------------------------------- resume, casts, one line each
+@pytest.mark.parametrize("planted", ["missing", "directory"])
+def test_a_resume_without_a_checkpoint_is_refused_and_truncates_nothing(ppo_run, tmp_path, planted):
+    run = copy_run(ppo_run, tmp_path / "run")
+    (run / "checkpoint.pt").unlink()
+    if planted == "directory":
+        (run / "checkpoint.pt").mkdir()
+    logs = snapshot(run)
+    words = "no checkpoint to resume \\(" + ("a directory" if planted == "directory" else "missing") + "\\)"
+    with pytest.raises(BadRun, match=f"{words}; a fresh run needs a new --out"):
+        ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), resume=True, seed=7, **{**PPO, "frames": 600}))
+    assert snapshot(run) == logs
+    nowhere = tmp_path / "nowhere"
+    with pytest.raises(BadRun, match="no checkpoint to resume \\(missing\\)"):
+        ppo.main(configure(PPOConfig, "vortex-v0", out=str(nowhere), resume=True, **PPO))
+    assert not nowhere.exists(), "a refused run created its directory"
+
+
+STATE_KEYS = ["state.u", "state.u_prev", "state.a", "count", "rng", "params", "extra"]
+
+
+@settings(max_examples=120, deadline=None)
+@given(
+    key=st.sampled_from(STATE_KEYS),
+    value=st.one_of(
+        JUNK,
+        st.sampled_from([1e300, -1e39, float("nan"), 3.0]).map(lambda v: torch.full((2, 500), v, dtype=torch.float64)),
+        st.lists(st.integers(1, 600), min_size=1, max_size=3).map(lambda shape: torch.zeros(shape)),
+        st.integers(-3, 300).map(lambda n: torch.full((2,), n)),
+        st.fixed_dictionaries({"amp": st.floats(allow_nan=True)}),
+    ),
+    strict=st.booleans(),
+)
+def test_any_forged_state_dict_entry_is_one_clear_error_or_a_sound_env(key, value, strict):
+    env = beacon_torch.make("burgers-v0", 2, seed=1)
+    env.reset()
+    saved = env.state_dict()
+    saved[key] = value
+    fresh = beacon_torch.make("burgers-v0", 2, seed=1)
+    try:
+        fresh.load_state_dict(saved, strict=strict)
+    except (ValueError, TypeError, KeyError) as err:
+        assert "burgers-v0" in str(err) and "\n" not in str(err)
+    else:
+        fresh.reset() if fresh._state is None else None
+        obs, reward, _, _ = fresh.step_members(fresh.null_action())
+        assert torch.isfinite(obs).all() and torch.isfinite(reward).all()
+
+
+def test_a_run_whose_output_appears_while_it_runs_replaces_nothing(tmp_path, monkeypatch, capsys):
+    """Two runs into one --out: the second, refused at the end because the first wrote
+    there meanwhile, leaves the first's files as they were."""
+    from beacon_torch import cli as cli_module
+
+    monkeypatch.chdir(tmp_path)
+    real = cli_module.episodes.episode
+
+    def meanwhile(env, policy, **kwargs):
+        out = tmp_path / "out"
+        if not (out / "run.png").exists():
+            (out / "run.png").write_text("the first run's")
+            (out / "scores.json").write_text("the first run's")
+        return real(env, policy, **kwargs)
+
+    monkeypatch.setattr(cli_module.episodes, "episode", meanwhile)
+    assert cli(["run", "vortex-v0", "--num-envs", "2", "--out", "out"]) == 2
+    assert "exists and is not overwritten" in capsys.readouterr().err
+    assert (tmp_path / "out" / "run.png").read_text() == "the first run's"
+    assert (tmp_path / "out" / "scores.json").read_text() == "the first run's"
+
+
+def test_values_are_checked_after_their_cast_to_the_envs_dtype():
+    env = beacon_torch.make("burgers-v0", 2)  # float32
+    env.reset()
+    saved = env.state_dict()
+    big = {**saved, "state.u": saved["state.u"].double().fill_(1e300)}
+    with pytest.raises(ValueError, match="state.u has values that are not finite in torch.float32"):
+        env.load_state_dict(big)
+    with pytest.raises(ValueError, match="not finite in torch.float32"):
+        env.set_state({k: v.double().fill_(1e39) for k, v in env.state._asdict().items()})
+    assert torch.isfinite(env.observation).all()
+    with pytest.raises(
+        ValueError, match="keeps the dtype it was made with \\(torch.float32\\); make\\(..., dtype='float64'"
+    ):
+        env.to(torch.float64)
+    assert env.to(torch.float32) is env and env.to("cpu", torch.float32) is env
+
+
+def test_state_dicts_and_states_are_checked_for_what_they_claim():
+    env = beacon_torch.make("burgers-v0", 2, seed=1)
+    # never reset: the shapes come from the start it would take, its generator untouched
+    rng = env.rng.get_state()
+    with pytest.raises(ValueError, match="state.u must have shape \\(2, 500\\)"):
+        env.set_state({k: torch.zeros(2, 3) for k in env.state_type._fields})
+    assert torch.equal(env.rng.get_state(), rng)
+    with pytest.raises(KeyError, match="lacks \\['state.u', 'state.u_prev', 'state.a', 'rng', 'params'\\]"):
+        env.load_state_dict({}, strict=True)
+    env.load_state_dict({}, strict=False)  # nothing to load, said so by strict=False
+    env.reset()
+    saved = env.state_dict()
+    other = beacon_torch.make("burgers-v0", 2, amp=0.2)
+    with pytest.raises(ValueError, match="saved by an env with other parameters \\(amp = "):
+        other.load_state_dict(saved)
+    same = beacon_torch.make("burgers-v0", 2, seed=9)
+    same.load_state_dict(saved)
+    assert torch.equal(same.observation, env.observation)
+
+
+def test_an_env_whose_observe_disagrees_with_its_sizes_is_named(tmp_path):
+    from beacon_torch.envs.lorenz import LorenzEnv
+    from beacon_torch.testing import ConformanceError, check_flow_env
+
+    class Short(LorenzEnv):
+        env_id = "short-lorenz-v0"
+
+        def observe(self, state):
+            return super().observe(state)[:, :3]
+
+    beacon_torch.register("short-lorenz-v0", Short)
+    try:
+        with pytest.raises(
+            ValueError, match="observe\\(\\) returned shape \\(2, 3\\), the observation spec says \\(2, 6\\)"
+        ):
+            beacon_torch.make("short-lorenz-v0", 2).reset()
+        with pytest.raises(
+            ConformanceError, match="short-lorenz-v0: specs: the env raised ValueError: short-lorenz-v0"
+        ):
+            check_flow_env("short-lorenz-v0", checks=["specs"])
+        with pytest.raises(ValueError, match="its default parameters: .*'rho'"):
+            beacon_torch.register("bad-lorenz-v0", LorenzEnv, rho=-5.0)
+        with pytest.raises(TypeError, match="default differentiable must be True or False"):
+            beacon_torch.register("bad-lorenz-v1", LorenzEnv, differentiable="yes")
+        assert "bad-lorenz-v0" not in beacon_torch.registry.ENVS
+    finally:
+        beacon_torch.registry.ENVS.pop("short-lorenz-v0", None)
+        beacon_torch.registry.DEFAULTS.pop("short-lorenz-v0", None)
+
+
+def test_small_misuses_are_clear_errors():
+    import gymnasium
+
+    import beacon_torch.gym
+    from beacon_torch.sb3 import BeaconVecEnv
+
+    env = beacon_torch.make("lorenz-v0", 2)
+    with pytest.raises(ValueError, match="rollout needs a positive number of steps, got 0"):
+        env.rollout(0)
+    venv = gymnasium.make_vec("beacon/lorenz-v0", num_envs=3)
+    venv.reset()
+    for mask, words in (([True, False], "2 values of dtype bool"), ([0, 5, 1], "3 values of dtype int64")):
+        with pytest.raises(ValueError, match=f"one bool per copy \\(3\\), got {words}"):
+            venv.reset(options={"reset_mask": mask})
+    sb3 = BeaconVecEnv("lorenz-v0", n_envs=2)
+    sb3.reset()
+    sb3.close()
+    with pytest.raises(RuntimeError, match="closed env"):
+        sb3.step(np.zeros(2, dtype=np.int64))
+    with pytest.raises(ValueError, match="members need about .* at most about"):
+        beacon_torch.make("sloshing-v0", 2**24)
+    # a float32 policy given float64 observations
+    policy = pretrained.load("ppo/lorenz-v0")
+    with pytest.raises(TypeError, match="computes in torch.float32 and was given torch.float64 observations"):
+        policy(beacon_torch.make("lorenz-v0", 2, dtype="float64").reset())
+
+
+def test_a_differentiable_batch_whose_every_member_blows_up_still_backpropagates():
+    env = beacon_torch.make("sloshing-v0", 2, dtype="float64", differentiable=True, amp=[1e6, 1e6])
+    env.reset()
+    w = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
+    total = 0.0
+    for _ in range(5):
+        _, reward, terminated, _ = env.step_members(torch.tanh(w * env.observation[:, :1]))
+        total = total + reward.sum()
+    assert terminated.all()
+    (g,) = torch.autograd.grad(total, w)
+    assert torch.isfinite(g)
+
+
+def test_files_written_through_a_temporary_name_keep_the_umasks_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        files.write_text(tmp_path / "a.txt", "x")
+        files.create_file(tmp_path / "b.txt", lambda tmp: tmp.write_text("x"))
+        assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+        assert (tmp_path / "b.txt").stat().st_mode & 0o777 == 0o644
+        # a name as long as a file system allows still has room for its temporary name
+        long = tmp_path / ("n" * 250)
+        files.write_text(long, "x")
+        assert long.read_text() == "x"
+    finally:
+        os.umask(old)
+
+
+def test_commands_refuse_bad_outputs_and_misuses_in_one_line(ppo_run, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+
+    def one_line(argv, words, progress=False):
+        assert cli(argv) == 2, argv
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()[-1:] if progress else err.strip().splitlines()
+        assert words in lines[-1] and len(lines) == 1 and "Traceback" not in err, err
+
+    one_line(["run", "vortex-v0", "--gif", "x.txt"], "an animation is a GIF file")
+    one_line(["run", "vortex-v0", "--gif", "x.gif", "--gif-every", "-5"], "--gif-every must be a positive")
+    assert not (tmp_path / "x.txt").exists() and not (tmp_path / "runs").exists()
+    one_line(["bench", "--envs", "lorenz-v0", "--device", "meta", "--out", "b"], "device 'meta'")
+    one_line(
+        ["bench", "--envs", "lorenz-v0", "--num-envs", str(2**25), "--mode", "eager", "--out", "b2"],
+        f"measuring lorenz-v0 at {2**25} members failed: ValueError: batch_size",
+        progress=True,  # the line of the measurement started, then the error
+    )
+    run = copy_run(ppo_run, tmp_path / "run")
+    log = run / "ppo" / "scalars" / "reward.csv"
+    log.write_text(log.read_text() + "600,1e400\n")
+    one_line(["plot", str(run), "--scalar", "reward", "--out", "p.png"], "a step and a finite value")
+    for k, (change, words) in enumerate(
+        (
+            (dict(seeds=[{"eval": 10**400}]), "each with a finite 'eval' score"),
+            (dict(uncontrolled=10**400), "'uncontrolled' must be a finite number, got an integer of 401 digits"),
+            (dict(seeds=[{"eval": 1e308}] * 3), "too far from the uncontrolled one"),
+        )
+    ):
+        file = tmp_path / f"summary-{k}.json"
+        file.write_text(json.dumps(summary_of(**change)))
+        one_line(["report", str(file), "--out", f"rep-{k}"], words)
+    # a score as large as a float holds is reported in a few digits
+    file.write_text(json.dumps(summary_of(seeds=[{"eval": 1e308}])))
+    assert cli(["report", str(file), "--out", "rep-big"]) == 0
+    table = capsys.readouterr().out
+    assert "1e+308" in table and max(len(word) for word in table.split()) < 40
+    with pytest.raises(SystemExit) as exit_:
+        reproduce.main(["train", "--envs", "lorenz-v0", "--set", "seed=5"])
+    assert exit_.value.code == 2 and "--set seed: the driver sets it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (dict(env="burgers-v0"), "observation statistics must have burgers-v0's"),
+        ({"modules.actor": "wrong"}, "the actor's weights do not fit a stochastic_actor of width 64 on vortex-v0"),
+        ({"obs_norm.loc": torch.zeros(3)}, "observation statistics must have vortex-v0's 8 observations"),
+    ],
+)
+def test_eval_of_a_relabelled_or_reshaped_checkpoint_is_one_line(ppo_run, tmp_path, change, words, capsys):
+    run = copy_run(ppo_run, tmp_path / "run")
+    if change.get("modules.actor") == "wrong":
+        state = torch.load(run / "checkpoint.pt", weights_only=True)
+        key = next(k for k in state["modules"]["actor"] if k.endswith("weight"))
+        state["modules"]["actor"][key] = torch.zeros(3, 3)
+        torch.save(state, run / "checkpoint.pt")
+    else:
+        rewrite_checkpoint(run, **change)
+    assert cli(["eval", str(run), "--no-gif", "--num-envs", "1"]) == 2
+    err = capsys.readouterr().err
+    assert words in err and "checkpoint.pt" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_run_writes_its_scores_when_every_member_blows_up(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert cli(["run", "burgers-v0", "--num-envs", "2", "--param", "amp=100", "--out", "out"]) == 0
+    scores = json.loads((tmp_path / "out" / "scores.json").read_text())
+    assert scores["random"]["num_envs"] == 2 and (tmp_path / "out" / "run.png").stat().st_size > 1000
+
+
+def test_a_full_disk_while_a_checkpoint_is_written_is_one_line_and_keeps_the_last(ppo_run, tmp_path):
+    """A file-size limit stands for the full disk: torch's failed write is one line,
+    status 2, and the checkpoint of before stays as it was."""
+    run = copy_run(ppo_run, tmp_path / "run")
+    before = (run / "checkpoint.pt").read_bytes()
+    limited = (
+        "import resource, runpy, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))\n"
+        "sys.argv = ['ppo.py'] + sys.argv[1:]\n"
+        f"runpy.run_path({str(ROOT / 'recipes' / 'ppo.py')!r}, run_name='__main__')\n"
+    )
+    args = ["--env", "vortex-v0", "--out", str(run), "--resume", "--frames", "600", "--n-rollout", "200"]
+    args += ["--num-envs", "4", "--epochs", "1", "--no-progress", "--logger", "csv", "--no-compile"]
+    done = subprocess.run([sys.executable, "-c", limited, *args], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert "checkpoint.pt: could not be written" in done.stderr and "the previous file is kept" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert (run / "checkpoint.pt").read_bytes() == before
+
+
+def test_list_into_a_closed_pipe_is_quiet():
+    reader = subprocess.Popen(
+        [sys.executable, "-m", "beacon_torch", "list"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    reader.stdout.readline()
+    reader.stdout.close()
+    err = reader.stderr.read().decode()
+    assert reader.wait(timeout=120) == 0 and "Broken pipe" not in err and "Traceback" not in err, err

@@ -12,12 +12,12 @@ directory without one is summarised first).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
+from beacon_torch import received
 from beacon_torch.files import create_file, refuse_existing, save_figure, write_text
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training.evaluation import summarise
@@ -93,7 +93,7 @@ def check_summary(summary, file: str | Path) -> dict:
     def bad(what: str):
         return ValueError(f"{file}: not a summary of trained seeds ({what})")
 
-    finite = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    finite = received.finite_number
     if not isinstance(summary, dict):
         raise bad("not a JSON object")
     if not isinstance(summary.get("env"), str) or summary["env"] not in ENVS:
@@ -109,21 +109,40 @@ def check_summary(summary, file: str | Path) -> dict:
         raise bad("'seeds' must list at least one seed, each with a finite 'eval' score")
     for key in ("uncontrolled", "frames", "wall_s_per_seed"):
         if not finite(summary.get(key)) or summary[key] < 0 and key != "uncontrolled":
-            raise bad(f"{key!r} must be a finite number, got {summary.get(key)!r}")
+            raise bad(f"{key!r} must be a finite number, got {_short(summary.get(key))}")
+    if not isinstance(summary["frames"], int) or summary["frames"] > MAX_COUNT:
+        raise bad(f"'frames' must be a count of transitions (an integer up to {MAX_COUNT:.0e})")
+    if summary["wall_s_per_seed"] > MAX_SECONDS:
+        raise bad(f"'wall_s_per_seed' must be at most {MAX_SECONDS:.0e} s, got {_short(summary['wall_s_per_seed'])}")
     if "train_mean" in summary and not finite(summary["train_mean"]):
-        raise bad(f"'train_mean' must be finite, got {summary['train_mean']!r}")
+        raise bad(f"'train_mean' must be finite, got {_short(summary['train_mean'])}")
     if summary["uncontrolled"] == reference(summary["env"]):
         raise bad(f"its uncontrolled score equals the reference {reference(summary['env'])}: no scale to normalise by")
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = normalised([s["eval"] for s in seeds], summary["uncontrolled"], summary["env"])
+        if not np.isfinite(norm).all() or not np.isfinite(np.abs(norm).sum()):
+            raise bad("its scores are too far from the uncontrolled one to normalise in floating point")
     return summary
+
+
+# beyond any run (a billion transitions a second for three centuries; a century)
+MAX_COUNT = 10**19
+MAX_SECONDS = 3.2e9
+
+
+def _short(value) -> str:
+    """A value as an error message shows it: numbers in a few digits."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        try:
+            return f"{float(value):.4g}"
+        except OverflowError:
+            return f"an integer of {len(str(abs(value)))} digits"
+    return repr(value)[:60]
 
 
 def read(file: str | Path) -> dict:
     """A ``summary.json`` file, checked (:func:`check_summary`)."""
-    try:
-        summary = json.loads(Path(file).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{file}: unreadable summary ({err})") from None
-    return check_summary(summary, file)
+    return check_summary(received.json_file(file, "summary"), file)
 
 
 def summaries(run_dirs, progress: bool = False) -> list[dict]:
@@ -142,6 +161,11 @@ def summaries(run_dirs, progress: bool = False) -> list[dict]:
     return out
 
 
+def _fixed(x: float) -> str:
+    """Two decimals, or three significant digits for a number too large for them."""
+    return f"{x:.2f}" if abs(x) < 1e6 else f"{x:.3g}"
+
+
 def table(rows: list[dict]) -> str:
     lines = [
         "| env | algorithm | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | "
@@ -151,8 +175,8 @@ def table(rows: list[dict]) -> str:
     for r in sorted(rows, key=lambda r: (r["algo"], r["env"])):
         per_seed = ", ".join(f"{s:.4g}" for s in r["scores"])
         lines.append(
-            f"| {r['env']} | {r['algo']} | {r['seeds']} | **{r['iqm']:.2f}** [{r['ci'][0]:.2f}, "
-            f"{r['ci'][1]:.2f}] | {r['score_iqm']:.4g} ({per_seed}) "
+            f"| {r['env']} | {r['algo']} | {r['seeds']} | **{_fixed(r['iqm'])}** [{_fixed(r['ci'][0])}, "
+            f"{_fixed(r['ci'][1])}] | {r['score_iqm']:.4g} ({per_seed}) "
             f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
         )
     return "\n".join(lines)
