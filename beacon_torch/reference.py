@@ -10,20 +10,22 @@ the published start (batch of one, float64) and measures the differences.
 from __future__ import annotations
 
 import functools
-import json
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 import beacon_torch
+from beacon_torch import received
 from beacon_torch.cache import PACKAGE_DATA
 
 
 @functools.cache
 def _records() -> dict:
-    with open(PACKAGE_DATA / "reference-rollouts.json") as f:
-        return json.load(f)["envs"]
+    records = received.json_file(PACKAGE_DATA / "reference-rollouts.json", "record of published rollouts")
+    if not isinstance(records, dict) or not isinstance(records.get("envs"), dict):
+        raise received.BadFile(f"{PACKAGE_DATA / 'reference-rollouts.json'}: no 'envs' in it")
+    return records["envs"]
 
 
 def env_ids() -> list[str]:

@@ -30,7 +30,7 @@ from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import evaluate_run
 from beacon_torch.training.run import BadRun
 
-from conftest import recipe
+from conftest import TD3, recipe
 from conftest import script as load_script
 
 dqn, grad, ppo, td3 = (recipe(algo) for algo in ("dqn", "grad", "ppo", "td3"))
@@ -320,16 +320,8 @@ def test_plot_draws_a_panel_per_env_and_shows_a_one_point_series(tmp_path, monke
         assert "o" in [line.get_marker() for line in ax.lines]
 
 
-TINY = dict(
-    frames=256,
-    num_envs=4,
-    frames_per_batch=64,
-    init_random_frames=64,
-    batch_size=32,
-    updates_per_batch=4,
-    hidden=32,
-    progress=False,
-)
+# the conftest's TD3 run with the default logger
+TINY = {k: v for k, v in TD3.items() if k != "logger"}
 
 
 @pytest.mark.parametrize("algo, env_id", [("td3", "vortex-v0"), ("dqn", "lorenz-v0")])

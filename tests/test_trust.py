@@ -933,30 +933,30 @@ def test_an_env_whose_observe_disagrees_with_its_sizes_is_named(tmp_path):
     from beacon_torch.envs.lorenz import LorenzEnv
     from beacon_torch.testing import ConformanceError, check_flow_env
 
-    class Short(LorenzEnv):
-        env_id = "short-lorenz-v0"
+    class Narrow(LorenzEnv):
+        env_id = "narrow-lorenz-v0"
 
         def observe(self, state):
             return super().observe(state)[:, :3]
 
-    beacon_torch.register("short-lorenz-v0", Short)
+    beacon_torch.register("narrow-lorenz-v0", Narrow)
     try:
         with pytest.raises(
             ValueError, match="observe\\(\\) returned shape \\(2, 3\\), the observation spec says \\(2, 6\\)"
         ):
-            beacon_torch.make("short-lorenz-v0", 2).reset()
+            beacon_torch.make("narrow-lorenz-v0", 2).reset()
         with pytest.raises(
-            ConformanceError, match="short-lorenz-v0: specs: the env raised ValueError: short-lorenz-v0"
+            ConformanceError, match="narrow-lorenz-v0: specs: the env raised ValueError: narrow-lorenz-v0"
         ):
-            check_flow_env("short-lorenz-v0", checks=["specs"])
+            check_flow_env("narrow-lorenz-v0", checks=["specs"])
         with pytest.raises(ValueError, match="its default parameters: .*'rho'"):
             beacon_torch.register("bad-lorenz-v0", LorenzEnv, rho=-5.0)
         with pytest.raises(TypeError, match="default differentiable must be True or False"):
             beacon_torch.register("bad-lorenz-v1", LorenzEnv, differentiable="yes")
         assert "bad-lorenz-v0" not in beacon_torch.registry.ENVS
     finally:
-        beacon_torch.registry.ENVS.pop("short-lorenz-v0", None)
-        beacon_torch.registry.DEFAULTS.pop("short-lorenz-v0", None)
+        beacon_torch.registry.ENVS.pop("narrow-lorenz-v0", None)
+        beacon_torch.registry.DEFAULTS.pop("narrow-lorenz-v0", None)
 
 
 def test_small_misuses_are_clear_errors():
