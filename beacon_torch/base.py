@@ -142,6 +142,9 @@ def _as_device(device: Any) -> torch.device:
     return device
 
 
+# mixed into the seed of the random actions' generator: a stream apart from the physics'
+ACTION_STREAM = 0x9E3779B97F4A7C15
+
 # a step's temporaries, in states of the batch: what a batch's memory is estimated by
 WORKSPACE = 16
 
@@ -351,6 +354,9 @@ class FlowEnv(EnvBase):
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
         self.rng = torch.Generator(device=device)
+        # TorchRL's random actions (a rollout without a policy), a stream of their own
+        # so that they leave the physics' draws as they are
+        self.action_rng = torch.Generator(device=device)
         self.set_seed(seed)
         self._state: State | None = None
         self._shapes: dict[str, torch.Size] | None = None
@@ -410,15 +416,17 @@ class FlowEnv(EnvBase):
 
     def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
         """Where the env is: the state of every member (``state.<key>``), the actions
-        taken in their episodes (``count``), the generator's state (``rng``) and the
-        parameters it steps with (``params``); :meth:`load_state_dict` continues from
-        there (an env of the same id, batch size and parameters)."""
+        taken in their episodes (``count``), the generators' states (``rng``,
+        ``action_rng``) and the parameters it steps with (``params``);
+        :meth:`load_state_dict` continues from there (an env of the same id, batch size
+        and parameters)."""
         out = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
         if self._state is not None:
             for key, value in self._state._asdict().items():
                 out[f"{prefix}state.{key}"] = value if keep_vars else value.detach()
             out[f"{prefix}count"] = self._count.clone()
         out[f"{prefix}rng"] = self.rng.get_state()
+        out[f"{prefix}action_rng"] = self.action_rng.get_state()
         out[f"{prefix}params"] = {
             f.name: getattr(self.params, f.name).detach().clone()
             if isinstance(getattr(self.params, f.name), torch.Tensor)
@@ -436,9 +444,10 @@ class FlowEnv(EnvBase):
         if not isinstance(state_dict, dict):
             raise TypeError(f"{name}: a state dict is a dict (env.state_dict()), got {type(state_dict).__name__}")
         state = {key.removeprefix("state."): value for key, value in state_dict.items() if key.startswith("state.")}
-        unknown = set(state_dict) - {f"state.{k}" for k in state} - {"count", "rng", "params"}
+        entries = ("count", "rng", "action_rng", "params")
+        unknown = set(state_dict) - {f"state.{k}" for k in state} - set(entries)
         missing = [] if state else [f"state.{k}" for k in self.state_type._fields]
-        missing += [key for key in ("count", "rng", "params") if key not in state_dict and (key != "count" or state)]
+        missing += [key for key in entries if key not in state_dict and (key != "count" or state)]
         if strict and (unknown or missing):
             raise KeyError(
                 f"{name}: the state dict has unknown entries {sorted(unknown)} and lacks {missing}; "
@@ -446,17 +455,18 @@ class FlowEnv(EnvBase):
             )
         if "params" in state_dict:
             self._check_same_params(state_dict["params"])
-        if "rng" in state_dict:
-            rng = state_dict["rng"]
-            if not isinstance(rng, torch.Tensor) or rng.dtype != torch.uint8 or rng.shape != self.rng.get_state().shape:
+        generators = {key: getattr(self, key) for key in ("rng", "action_rng") if key in state_dict}
+        for key, generator in generators.items():
+            saved, own = state_dict[key], generator.get_state()
+            if not isinstance(saved, torch.Tensor) or saved.dtype != torch.uint8 or saved.shape != own.shape:
                 raise ValueError(
-                    f"{name}: 'rng' must be a generator state of this device (a uint8 tensor "
-                    f"of shape {tuple(self.rng.get_state().shape)})"
+                    f"{name}: {key!r} must be a generator state of this device (a uint8 tensor "
+                    f"of shape {tuple(own.shape)})"
                 )
         if state:
             self.set_state(state, state_dict.get("count", 0))
-        if "rng" in state_dict:
-            self.rng.set_state(state_dict["rng"])
+        for key, generator in generators.items():
+            generator.set_state(state_dict[key])
         return torch.nn.modules.module._IncompatibleKeys([], [])
 
     def _check_same_params(self, saved) -> None:
@@ -620,6 +630,17 @@ class FlowEnv(EnvBase):
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
         self.rng.manual_seed(_as_seed(seed))
+        self.action_rng.manual_seed(_as_seed(seed) ^ ACTION_STREAM)
+
+    def rand_action(self, tensordict: TensorDictBase | None = None) -> TensorDictBase:
+        """A uniformly random action of every member, written into ``tensordict`` (what
+        TorchRL's ``rollout`` plays without a policy), drawn from :attr:`action_rng`:
+        reproducible from the env's seed, and leaving the physics' draws from
+        :attr:`rng` as they are."""
+        if tensordict is None:
+            tensordict = TensorDict({}, batch_size=self.batch_size, device=self.device)
+        tensordict.set(self.action_key, self.random_action(self.action_rng))
+        return tensordict
 
     # ------------------------------------------------------------------ actions
     def check_action(self, action: torch.Tensor | None) -> torch.Tensor:
@@ -1041,7 +1062,13 @@ class FlowEnv(EnvBase):
             raise ValueError(f"{self.env_id}: rollout needs a positive number of steps, got {max_steps!r}")
         return super().rollout(max_steps, *args, **kwargs)
 
-    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+    def _reset(self, tensordict: TensorDictBase | None, seed: int | None = None, **kwargs) -> TensorDictBase:
+        # TorchRL passes ``set_state`` to envs that declare it; it means nothing here
+        unknown = sorted(k for k in kwargs if k != "set_state")
+        if unknown:
+            raise TypeError(f"{self.env_id}: reset() takes a tensordict and seed=, got unknown keyword(s) {unknown}")
+        if seed is not None:
+            self.set_seed(seed)  # as set_seed would: the generators, then the episode
         self.reset_members(None if tensordict is None else tensordict.get("_reset", None))
         return self.current()
 

@@ -143,3 +143,25 @@ def test_a_member_stepped_after_its_episode_goes_on_as_documented():
     assert again["truncated"].all() and int(env.step_count[0]) == env.episode_length + 1
     assert torch.isfinite(again["observation"]).all()
     assert again["terminated"][1] and again["reward"][1] == env.blowup_reward
+
+
+def test_reset_takes_a_seed_and_a_rollout_without_a_policy_reproduces():
+    first, second = (beacon_torch.make("burgers-v0", 2, seed=3).rollout(20) for _ in range(2))
+    assert torch.equal(first["action"], second["action"]) and torch.equal(
+        first["next", "reward"], second["next", "reward"]
+    )
+    env = beacon_torch.make("burgers-v0", 2, seed=9)
+    env.reset(seed=3)  # as make(..., seed=3)
+    again = env.rollout(20, auto_reset=False, tensordict=env.current())
+    assert torch.equal(first["next", "reward"], again["next", "reward"])
+    with pytest.raises(TypeError, match="unknown keyword\\(s\\) \\['sed'\\]"):
+        env.reset(sed=5)
+    # the random actions leave the physics' stream as it is: the inlet noise of a
+    # rollout without a policy is that of the same steps under other actions
+    other = beacon_torch.make("burgers-v0", 2, seed=3)
+    other.reset()
+    for _ in range(20):
+        other.step_members(other.null_action())
+    rolled = beacon_torch.make("burgers-v0", 2, seed=3)
+    rolled.rollout(20)
+    assert torch.equal(other.rng.get_state(), rolled.rng.get_state())

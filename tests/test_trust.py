@@ -839,7 +839,7 @@ def test_a_resume_without_a_checkpoint_is_refused_and_truncates_nothing(ppo_run,
     assert not nowhere.exists(), "a refused run created its directory"
 
 
-STATE_KEYS = ["state.u", "state.u_prev", "state.a", "count", "rng", "params", "extra"]
+STATE_KEYS = ["state.u", "state.u_prev", "state.a", "count", "rng", "action_rng", "params", "extra"]
 
 
 @settings(max_examples=120, deadline=None)
@@ -873,10 +873,10 @@ def test_any_forged_state_dict_entry_is_one_clear_error_or_a_sound_env(key, valu
 def test_a_run_whose_output_appears_while_it_runs_replaces_nothing(tmp_path, monkeypatch, capsys):
     """Two runs into one --out: the second, refused at the end because the first wrote
     there meanwhile, leaves the first's files as they were."""
-    from beacon_torch import cli as cli_module
+    from beacon_torch import episodes
 
     monkeypatch.chdir(tmp_path)
-    real = cli_module.episodes.episode
+    real = episodes.episode
 
     def meanwhile(env, policy, **kwargs):
         out = tmp_path / "out"
@@ -885,7 +885,7 @@ def test_a_run_whose_output_appears_while_it_runs_replaces_nothing(tmp_path, mon
             (out / "scores.json").write_text("the first run's")
         return real(env, policy, **kwargs)
 
-    monkeypatch.setattr(cli_module.episodes, "episode", meanwhile)
+    monkeypatch.setattr(episodes, "episode", meanwhile)
     assert cli(["run", "vortex-v0", "--num-envs", "2", "--out", "out"]) == 2
     assert "exists and is not overwritten" in capsys.readouterr().err
     assert (tmp_path / "out" / "run.png").read_text() == "the first run's"
@@ -916,7 +916,9 @@ def test_state_dicts_and_states_are_checked_for_what_they_claim():
     with pytest.raises(ValueError, match="state.u must have shape \\(2, 500\\)"):
         env.set_state({k: torch.zeros(2, 3) for k in env.state_type._fields})
     assert torch.equal(env.rng.get_state(), rng)
-    with pytest.raises(KeyError, match="lacks \\['state.u', 'state.u_prev', 'state.a', 'rng', 'params'\\]"):
+    with pytest.raises(
+        KeyError, match="lacks \\['state.u', 'state.u_prev', 'state.a', 'rng', 'action_rng', 'params'\\]"
+    ):
         env.load_state_dict({}, strict=True)
     env.load_state_dict({}, strict=False)  # nothing to load, said so by strict=False
     env.reset()
