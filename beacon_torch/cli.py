@@ -13,7 +13,8 @@
                                       interval, a table and a figure
 
 An env registered by a module of your own (``beacon_torch.register``) is named
-``module:env-id``, or its module imported first with ``beacon-torch --import module``.
+``module:env-id``, or its module imported first with ``beacon-torch --import module``;
+modules are found from the working directory, as ``python -m`` finds them.
 
 Training is the recipes' (``recipes/ppo.py``, ``td3.py``, ``dqn.py``, ``grad.py`` in the
 repository); ``eval`` and ``plot`` read the run directories they write.
@@ -25,19 +26,24 @@ import argparse
 import importlib
 import json
 import os
+import re
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-
-from beacon_torch import episodes
-from beacon_torch.base import _as_device
 from beacon_torch.files import create_file, outputs, save_figure
-from beacon_torch.params import describe, parse_assignments, plain
-from beacon_torch.registry import ENVS, base_envs, env_class, list_envs, make, resolve_id
+
+if TYPE_CHECKING:
+    import torch
+
+# Nothing here imports torch at the top: `--help` and `list` answer at once, and each
+# command imports what it uses.
+
+# the output of `list` for the package's own envs, written by docs/make_env_tables.py
+# (the suite checks it is current)
+LISTING = Path(__file__).parent / "data" / "envs.txt"
 
 
 class CliError(Exception):
@@ -45,27 +51,46 @@ class CliError(Exception):
 
 
 def _parse_params(items: Sequence[str]) -> dict[str, Any]:
+    from beacon_torch.params import parse_assignments
+
     try:
         return parse_assignments(items)
     except ValueError as err:
         raise CliError(str(err)) from None
 
 
-def cmd_list(args: argparse.Namespace) -> int:
+def listing() -> str:
+    """What `list` prints: every registered env, its action and observation sizes and
+    episode length, and its parameters with their defaults, ranges and meanings."""
+    from beacon_torch.params import describe
+    from beacon_torch.registry import ENVS, list_envs
+
+    lines = []
     for env_id in list_envs():
         cls = ENVS[env_id]
         defaults = cls.Params()  # what the defaults resolve to (start: the published state)
         n_obs, n_actions = cls.sizes(defaults)
         kind = f"{n_actions} discrete actions" if cls.discrete else f"{n_actions}-D continuous action"
-        print(f"{env_id}: {kind}, {n_obs} observations, {cls.episode_length} steps")
+        lines.append(f"{env_id}: {kind}, {n_obs} observations, {cls.episode_length} steps")
         for row in describe(cls.Params):
-            print(f"    {row['name']} = {getattr(defaults, row['name'])!r}  {row['range']}  {row['doc']}")
+            lines.append(f"    {row['name']} = {getattr(defaults, row['name'])!r}  {row['range']}  {row['doc']}")
+    return "\n".join(lines) + "\n"
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    # the package's envs alone: their listing is stored; envs of the user's own modules
+    # are listed from their classes
+    print(listing() if args.imports else LISTING.read_text(), end="")
     return 0
 
 
 def _cumulative(rollout) -> torch.Tensor:
     """``[batch, steps]`` cumulative rewards of each member's episode, flat after its
     end (a member that blew up stops adding)."""
+    import torch
+
+    from beacon_torch import episodes
+
     rewards = episodes.step_rewards(rollout).cpu()
     done = rollout["next", "done"][..., 0].cpu().to(torch.int64)
     before = done.cumsum(-1) - done  # ends before each step
@@ -96,6 +121,9 @@ def _plot_run(path: Path, env_id: str, null: torch.Tensor, rand: torch.Tensor) -
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from beacon_torch import episodes
+    from beacon_torch.registry import env_class, make, resolve_id
+
     args.env = resolve_id(args.env)  # "module:env-id" registers it
     env_class(args.env)  # an unknown id fails here, before anything is built
     if args.num_envs < 1:
@@ -162,6 +190,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from beacon_torch import bench
+    from beacon_torch.base import _as_device
+    from beacon_torch.registry import base_envs, env_class, resolve_id
 
     envs = [resolve_id(env_id) for env_id in args.envs or base_envs()]
     for env_id in envs:
@@ -194,6 +224,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from beacon_torch.base import _as_device
     from beacon_torch.training.evaluation import evaluate_policy, evaluate_run
     from beacon_torch.training.run import seed_dirs
 
@@ -251,6 +282,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     print(result["table"])
     print(f"\ntable: {md}, numbers: {numbers}\nfigure: {png}")
     return 0
+
+
+def plain(doc: str | None) -> str:
+    """A docstring as a command's description: one paragraph, without reStructuredText's
+    markup (``name`` reads as name)."""
+    return re.sub(r"``([^`]+)``", r"\1", " ".join((doc or "").split()))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -338,9 +375,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def find_user_modules() -> None:
+    """Put the working directory first on the import path, as ``python -m`` does (a
+    console script or ``python recipes/ppo.py`` puts its own folder there instead), so
+    that ``--import my_envs`` and ``my_envs.heat:heat-v0`` find the user's modules."""
+    here = os.getcwd()
+    if here not in sys.path and "" not in sys.path:
+        sys.path.insert(0, here)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    find_user_modules()
     try:
         return _run(args)
     except BrokenPipeError:

@@ -30,15 +30,15 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from beacon_torch import gym_ids
 from beacon_torch.base import FlowEnv
-from beacon_torch.registry import _listeners, compiles_by_default, env_class, list_envs, make
+from beacon_torch.registry import compiles_by_default, env_class, list_envs, make
 
-NAMESPACE = "beacon"
+NAMESPACE = gym_ids.NAMESPACE
 RENDER_FPS = 20
 
 
-def gym_id(env_id: str) -> str:
-    return f"{NAMESPACE}/{env_id}"
+gym_id = gym_ids.gym_id
 
 
 def _spaces(env: FlowEnv) -> tuple[spaces.Space, spaces.Space]:
@@ -247,20 +247,9 @@ def _own_id(env_id: str | None, registered_id: str | None) -> str:
 
 def register(env_id: str | None = None) -> None:
     """Register ``env_id`` (by default every env id of the registry) with gymnasium
-    (idempotent); ids registered later with :func:`beacon_torch.register` are
-    registered here too."""
+    (idempotent; ``beacon_torch.register`` registers each new id there too)."""
     for own in [env_id] if env_id else list_envs():
-        name = gym_id(own)
-        if name in gymnasium.registry:
-            continue
-        gymnasium.register(
-            id=name,
-            entry_point="beacon_torch.gym:BeaconGymEnv",
-            vector_entry_point="beacon_torch.gym:BeaconVectorEnv",
-            kwargs={"registered_id": own},
-            max_episode_steps=env_class(own).episode_length,
-        )
+        gym_ids.register(own, env_class(own).episode_length)
 
 
 register()
-_listeners.append(register)

@@ -23,7 +23,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -322,9 +321,3 @@ def resolved(env_class: type, params: dict[str, Any]) -> Any:
     return resolve_params(
         env_class.Params, params, batch_size=members, device=cpu, dtype=torch.float64, env_id=env_class.env_id
     )
-
-
-def plain(doc: str | None) -> str:
-    """A docstring as a command's description: one paragraph, without reStructuredText's
-    markup (``name`` reads as name)."""
-    return re.sub(r"``([^`]+)``", r"\1", " ".join((doc or "").split()))

@@ -7,9 +7,9 @@ import importlib
 import os
 import re
 import sys
-from collections.abc import Callable
 from typing import Any
 
+from beacon_torch import gym_ids
 from beacon_torch.base import FlowEnv
 from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.cylinder import CylinderEnv
@@ -44,8 +44,6 @@ DEFAULTS: dict[str, dict[str, Any]] = {}
 # the module that registered an id from outside the package, so that another process
 # (a collector's worker) can import it again before building the env
 ORIGIN: dict[str, str] = {}
-# called with each id registered after import (the gymnasium adapter registers it too)
-_listeners: list[Callable[[str], None]] = []
 # what make() takes beside an env's physical parameters
 OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "check_actions")
 
@@ -106,8 +104,7 @@ def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[Flo
     caller = sys._getframe(1).f_globals.get("__name__", "")
     if caller.split(".")[0] != "beacon_torch":
         ORIGIN[env_id] = caller
-    for listener in _listeners:
-        listener(env_id)
+    gym_ids.register(env_id, env_class.episode_length)
     return env_class
 
 

@@ -1,9 +1,13 @@
 """Write the parameter table of every env page from the env's declarations
-(``param(doc=...)``): `.venv/bin/python docs/make_env_tables.py`. The test suite checks
-that the pages are current."""
+(``param(doc=...)``), and the listing ``beacon-torch list`` prints of the package's envs
+(``beacon_torch/data/envs.txt``, so that the command answers without importing torch):
+`.venv/bin/python docs/make_env_tables.py`. The test suite checks that both are
+current."""
 
 from pathlib import Path
 
+from beacon_torch.cli import LISTING, listing
+from beacon_torch.files import write_text
 from beacon_torch.params import markdown
 from beacon_torch.registry import ENVS, base_envs
 from beacon_torch.training.report import write_block
@@ -20,3 +24,4 @@ def page(env_id: str) -> Path:
 if __name__ == "__main__":
     for env_id in base_envs():
         print(write_block(page(env_id), BEGIN, END, markdown(ENVS[env_id].Params)))
+    print(write_text(LISTING, listing()))

@@ -100,3 +100,56 @@ def test_eval_and_run_show_progress(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "lorenz-v0 uncontrolled" in captured.err and "lorenz-v0 random" in captured.err
     assert "500 steps in float64" in captured.out  # the default dtype, said
+
+
+def test_help_and_list_answer_without_importing_torch():
+    probe = (
+        "import contextlib, io, sys\n"
+        "from beacon_torch.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    main(['list'])\n"
+        "    try:\n"
+        "        main(['--help'])\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print('torch' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "False", done.stdout + done.stderr
+
+
+def test_the_stored_listing_is_the_envs_own():
+    from beacon_torch import cli
+
+    assert cli.LISTING.read_text() == cli.listing(), "run docs/make_env_tables.py"
+
+
+USER_ENV = """
+import beacon_torch
+from beacon_torch.envs.lorenz import LorenzEnv
+
+
+class Heat(LorenzEnv):
+    env_id = "heat-v0"
+
+
+beacon_torch.register("heat-v0", Heat)
+"""
+
+
+def test_commands_and_recipes_find_the_users_modules_from_the_working_directory(tmp_path):
+    """As ``python -m`` does: the console script and ``python recipes/ppo.py`` run from
+    the project folder that holds ``my_envs/heat.py`` import it without PYTHONPATH."""
+    from pathlib import Path
+
+    (tmp_path / "my_envs").mkdir()
+    (tmp_path / "my_envs" / "__init__.py").write_text("")
+    (tmp_path / "my_envs" / "heat.py").write_text(USER_ENV)
+    command = Path(sys.executable).parent / "beacon-torch"
+    root = Path(__file__).resolve().parents[1]
+    for argv in (
+        [str(command), "--import", "my_envs.heat", "list"],
+        [sys.executable, str(root / "recipes" / "ppo.py"), "--env", "my_envs.heat:heat-v0", "--help"],
+    ):
+        done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0 and "heat-v0" in done.stdout, done.stderr

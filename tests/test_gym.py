@@ -160,10 +160,11 @@ def test_torchrl_gym_env_builds_our_ids():
 
 
 def test_async_vector_env_without_a_main_guard_as_documented(tmp_path):
-    """Importing TorchRL (which we do) sets multiprocessing to spawn; gymnasium's async
-    vector env in a script without a main guard then needs the documented context."""
+    """Making an env imports TorchRL, which sets multiprocessing to spawn; gymnasium's
+    async vector env in a script without a main guard then needs the documented context."""
     code = (
         "import multiprocessing, gymnasium, beacon_torch\n"
+        "beacon_torch.make('lorenz-v0')\n"
         "assert multiprocessing.get_start_method() == 'spawn'\n"
         "venv = gymnasium.make_vec('beacon/lorenz-v0', 2, vectorization_mode='async', "
         "vector_kwargs={'context': 'fork'}, compile=False)\n"
@@ -189,3 +190,11 @@ def test_record_video_writes_an_episode(tmp_path):
     env.close()
     (video,) = (tmp_path / "videos").glob("*.mp4")
     assert video.stat().st_size > 1000
+
+
+def test_the_gymnasium_ids_registered_at_import_are_the_envs():
+    from beacon_torch import gym_ids
+    from beacon_torch.registry import ENVS
+
+    own = {env_id: cls.episode_length for env_id, cls in ENVS.items() if cls.__module__.startswith("beacon_torch.")}
+    assert gym_ids.BUILT_IN == own

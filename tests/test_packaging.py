@@ -94,24 +94,38 @@ def build_api_reference(config: Path, site: Path):
     )
 
 
-def test_the_api_reference_builds_from_the_docstrings(tmp_path):
-    """The README's docs command: every page's references resolve (a module renamed or
-    removed fails here), and the pages hold the documented objects."""
+def test_the_docs_site_builds_the_guides_and_the_api_reference(tmp_path):
+    """The README's docs command: every link and reference resolves (a page or module
+    renamed or removed fails here), the guides and every env page are in the site and
+    its navigation, and the API pages hold the documented objects."""
     proc = build_api_reference(ROOT / "mkdocs.yml", tmp_path / "site")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    envs = (tmp_path / "site" / "envs" / "index.html").read_text()
+    site = tmp_path / "site"
+    envs = (site / "api" / "envs" / "index.html").read_text()
     assert "LorenzParams" in envs and "ShkadovSeparableEnv" in envs
-    assert "step_members" in (tmp_path / "site" / "base" / "index.html").read_text()
+    assert "step_members" in (site / "api" / "base" / "index.html").read_text()
+    start = (site / "quickstart" / "index.html").read_text()
+    for page in (
+        "training",
+        "gradients",
+        "results",
+        "adding-an-env",
+        *(f"envs/{p.stem}" for p in (ROOT / "docs" / "envs").glob("*.md")),
+    ):
+        assert (site / page / "index.html").is_file(), page
+        assert f'href="../{page}/"' in start, f"{page} is not in the navigation"
     assert "mkdocs build --strict" in (ROOT / "README.md").read_text()
 
 
 def test_a_broken_reference_fails_the_api_reference(tmp_path):
     import shutil
 
-    docs = tmp_path / "api"
-    shutil.copytree(ROOT / "docs" / "api", docs)
-    (docs / "tools.md").write_text((docs / "tools.md").read_text() + "\n::: beacon_torch.no_such_module\n")
+    docs = tmp_path / "docs"
+    shutil.copytree(ROOT / "docs", docs)
+    (docs / "api" / "tools.md").write_text(
+        (docs / "api" / "tools.md").read_text() + "\n::: beacon_torch.no_such_module\n"
+    )
     config = tmp_path / "mkdocs.yml"
-    config.write_text((ROOT / "mkdocs.yml").read_text().replace("docs_dir: docs/api", f"docs_dir: {docs}"))
+    config.write_text((ROOT / "mkdocs.yml").read_text().replace("docs_dir: docs", f"docs_dir: {docs}"))
     proc = build_api_reference(config, tmp_path / "site")
     assert proc.returncode != 0 and "no_such_module" in proc.stderr

@@ -32,6 +32,7 @@ from pathlib import Path
 import torch
 
 from beacon_torch import files, pretrained, received
+from beacon_torch.cli import find_user_modules
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
 from beacon_torch.training.config import CONFIGS, configure, paper_frames
@@ -275,6 +276,7 @@ def main(argv: list[str] | None = None) -> None:
     page = sub.add_parser("page", help="write docs/results.md from the recorded summaries (docs/results/)")
     page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
     args = parser.parse_args(argv)
+    find_user_modules()
     try:
         if args.command == "summarise":
             for root in args.pairs:

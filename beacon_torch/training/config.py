@@ -19,7 +19,8 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch.base import FlowEnv, _as_device
-from beacon_torch.params import check_params, parse_assignments, plain, resolved
+from beacon_torch.cli import find_user_modules, plain
+from beacon_torch.params import check_params, parse_assignments, resolved
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.run import CHECKPOINT, fits, load_checkpoint
@@ -448,7 +449,9 @@ def _env_of(argv: list[str] | None) -> str | None:
 def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
     """A run's settings from the command line: ``--env`` and any field as
     ``--name value`` (booleans as ``--name``/``--no-name``); what is not given takes the
-    env's default. ``--help`` after ``--env ENV`` shows the values that env's run uses."""
+    env's default. ``--help`` after ``--env ENV`` shows the values that env's run uses.
+    Modules named in ``--env module:env-id`` are found from the working directory."""
+    find_user_modules()
     env_id = _env_of(argv)
     values = {f.name: f.default for f in fields(cls) if f.default is not MISSING}
     if env_id is not None:
