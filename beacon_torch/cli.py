@@ -133,6 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.gif is not None and Path(args.gif).suffix.lower() != ".gif":
         raise CliError(f"--gif {args.gif}: an animation is a GIF file, named *.gif")
     params = _parse_params(args.param)
+    _threads(args, args.env, args.num_envs)
     kwargs = dict(device=args.device, dtype=args.dtype, seed=args.seed, params=params)
     plot, scores_file = outputs(args.out, f"runs/{args.env}", "run.png", "scores.json")
     gif = outputs(args.gif, None, option="--gif")[0] if args.gif else None
@@ -203,6 +204,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise CliError(f"--{name} must be a positive integer, got {getattr(args, name)}")
     _as_device(args.device)  # before any measuring process is started
+    if args.threads:  # the measuring processes take this one's count
+        _threads(args, None, 1)
     from beacon_torch.files import dated_name
 
     out = Path(args.out or Path("runs/bench") / dated_name("bench"))
@@ -226,7 +229,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from beacon_torch.base import _as_device
     from beacon_torch.training.evaluation import evaluate_policy, evaluate_run
-    from beacon_torch.training.run import seed_dirs
+    from beacon_torch.training.run import load_checkpoint, seed_dirs
 
     if args.num_envs < 1:
         raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
@@ -240,30 +243,66 @@ def cmd_eval(args: argparse.Namespace) -> int:
             algo, env_id = pretrained.split_name(args.pretrained)
         except ValueError as err:
             raise CliError(f"--pretrained: {err}") from None
+        _threads(args, env_id, args.num_envs)
         policy = pretrained.load(args.pretrained, device=args.device)
-        gif = None
-        if not args.no_gif:
-            gif = outputs(args.out, ".", f"{algo}/{env_id}.gif")[0]
-            gif.parent.mkdir(parents=True, exist_ok=True)
+        views = _views(args, args.out, ".", f"{algo}/{env_id}", "-")
         record = pretrained.info(args.pretrained)
         params = record.get("params", {})  # the physics it was trained on
         r = evaluate_policy(
-            env_id, policy, num_envs=args.num_envs, device=args.device, gif=gif, params=params, progress=True
+            env_id, policy, num_envs=args.num_envs, device=args.device, params=params, progress=True, **views
         )
         trained = f"trained on {record['frames']} transitions"
         runs = [(f"pretrained {algo}", r, trained)]
     else:
         runs = []
+        _threads(args, load_checkpoint(seed_dirs(args.run)[0])["env"], args.num_envs)
         for run in seed_dirs(args.run):
-            gif = None if args.no_gif else outputs(None, run, "controlled.gif")[0]
-            r = evaluate_run(run, num_envs=args.num_envs, device=args.device, gif=gif, progress=True)
+            views = _views(args, None, run, "", "")
+            r = evaluate_run(run, num_envs=args.num_envs, device=args.device, progress=True, **views)
             runs.append((str(run), r, f"trained on {r['frames']} transitions"))
     for name, r, trained in runs:
+        written = [f"{what} {r[key]}" for key, what in VIEWS.items() if key in r]
         print(
-            f"{r['env']} {name}: score {r['score_mean']:.6g} +- {r['score_std']:.3g} over {args.num_envs} episodes "
-            f"(uncontrolled {r['uncontrolled']:.6g}; {trained})" + (f"; animation {r['gif']}" if "gif" in r else "")
+            f"{r['env']} {name}: score {r['score_mean']:.6g} {_spread(r['score_std'], args.num_envs)} "
+            f"(uncontrolled {r['uncontrolled']:.6g}; {trained})" + "".join(f"; {w}" for w in written)
         )
     return 0
+
+
+# what eval writes, by evaluate_policy's keyword: how it says so, and its file's name
+VIEWS = {"gif": "animation", "side_by_side": "beside no control", "figure": "diagnostics"}
+NAMES = {"gif": ("controlled", ".gif"), "side_by_side": ("side-by-side", ".gif"), "figure": ("diagnostics", ".png")}
+
+
+def _views(args: argparse.Namespace, given, default, stem: str, sep: str) -> dict:
+    """The new files eval writes for one policy (the animations unless ``--no-gif``),
+    named ``stem`` + ``sep`` + the view's name (``stem`` alone for the controlled
+    animation of a pretrained policy), chosen before any work."""
+    keys = [k for k in NAMES if k == "figure" or not args.no_gif]
+    names = []
+    for key in keys:
+        name, suffix = NAMES[key]
+        names.append(f"{stem}{suffix}" if stem and key == "gif" else f"{stem}{sep}{name}{suffix}")
+    paths = outputs(given, default, *names)
+    paths[0].parent.mkdir(parents=True, exist_ok=True)
+    return dict(zip(keys, paths, strict=True))
+
+
+def _threads(args: argparse.Namespace, env_id: str | None, batch: int) -> None:
+    """Torch's threads for a command's episodes: ``--threads``, else the measured
+    default for the env and batch (``beacon_torch.threads``)."""
+    from beacon_torch import threads
+
+    threads.use(args.threads, env_id, batch)
+
+
+def _spread(std: float, episodes: int) -> str:
+    """How the scores of ``episodes`` episodes spread, in words a reader takes in."""
+    if episodes == 1:
+        return "over 1 episode"
+    if std == 0:  # deterministic physics and policy from one start: one episode, repeated
+        return f"(the same in all {episodes} episodes)"
+    return f"+- {std:.3g} over {episodes} episodes"
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -278,10 +317,18 @@ def cmd_report(args: argparse.Namespace) -> int:
     from beacon_torch.training.report import report
 
     md, numbers, png = outputs(args.out, "runs/report", "report.md", "report.json", "report.png")
+    _threads(args, None, 8)  # the evaluations of runs without a summary
     result = report(args.runs, md, numbers, png, progress=True)
     print(result["table"])
     print(f"\ntable: {md}, numbers: {numbers}\nfigure: {png}")
     return 0
+
+
+def _positive(text: str) -> int:
+    value = int(text) if text.strip().isdigit() else 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}")
+    return value
 
 
 def plain(doc: str | None) -> str:
@@ -299,6 +346,13 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Each command's options: beacon-torch COMMAND --help.",
     )
     parser.add_argument("--version", action="version", version=f"beacon-torch {__version__}")
+    parser.add_argument(
+        "--threads",
+        type=_positive,
+        metavar="N",
+        help="torch threads (default: $BEACON_TORCH_THREADS, else the count measured fastest for the env "
+        "and batch on an idle machine; on a shared machine give 1)",
+    )
     parser.add_argument(
         "--import",
         dest="imports",

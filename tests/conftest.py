@@ -16,6 +16,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # one intra-op thread per worker: two workers with two threads each on two cores
     # slow the matrix-heavy 2-D solvers down several times
     torch.set_num_threads(1)
+    # and the recipes and commands, which would take the measured default
+    os.environ["BEACON_TORCH_THREADS"] = "1"
 
 ENVS = beacon_torch.registry.ENVS
 ALL_ENVS = beacon_torch.list_envs()

@@ -29,8 +29,6 @@ import math
 import os
 from pathlib import Path
 
-import torch
-
 from beacon_torch import files, pretrained, received
 from beacon_torch.cli import find_user_modules
 from beacon_torch.registry import ENVS, env_class
@@ -250,9 +248,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     tr = sub.add_parser("train", help="train, evaluate and plot (algorithm, env) pairs, inside --out")
-    tr.add_argument("--algo", default="ppo", choices=sorted(CONFIGS))
-    tr.add_argument("--envs", nargs="+", required=True, choices=sorted(ENVS), metavar="ENV")
-    tr.add_argument("--seeds", type=positive, default=3)
+    tr.add_argument("--algo", default="ppo", choices=sorted(CONFIGS), help="the recipe (default: ppo)")
+    tr.add_argument("--envs", nargs="+", required=True, choices=sorted(ENVS), metavar="ENV", help="env ids")
+    tr.add_argument("--seeds", type=positive, default=3, help="seeds per env, 0 to N-1 (default: 3)")
     tr.add_argument(
         "--set",
         type=setting,
@@ -261,31 +259,37 @@ def main(argv: list[str] | None = None) -> None:
         metavar="NAME=VALUE",
         help="a recipe setting for every env (e.g. frames=100000)",
     )
-    tr.add_argument("--num-envs", type=positive, default=8, help="evaluation episodes per seed (one batch)")
-    tr.add_argument("--threads", type=positive, help="torch threads (default: torch's)")
-    tr.add_argument("--no-progress", action="store_true")
-    tr.add_argument("--out", default="runs/results")
+    tr.add_argument(
+        "--eval-episodes", type=positive, default=8, help="evaluation episodes per seed, one batch (default: 8)"
+    )
+    tr.add_argument(
+        "--threads", type=positive, help="torch threads of every run (default: each recipe's, see beacon_torch.threads)"
+    )
+    tr.add_argument("--no-progress", action="store_true", help="no progress bars (campaigns in the background)")
+    tr.add_argument("--out", default="runs/results", help="where the runs go (default: runs/results)")
     su = sub.add_parser("summarise", help="evaluate and plot trained pairs again (e.g. after a stopped campaign)")
     su.add_argument("pairs", nargs="+", help="run directories, e.g. runs/results/ppo/burgers-v0")
-    su.add_argument("--num-envs", type=positive, default=8, help="evaluation episodes per seed (one batch)")
+    su.add_argument(
+        "--eval-episodes", type=positive, default=8, help="evaluation episodes per seed, one batch (default: 8)"
+    )
     pu = sub.add_parser(
         "publish", help="record summarised pairs in docs/results/, ship their best policies and write docs/results.md"
     )
     pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo/burgers-v0")
-    pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
+    pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"), help="the results page to write")
     page = sub.add_parser("page", help="write docs/results.md from the recorded summaries (docs/results/)")
-    page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"))
+    page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"), help="the results page to write")
     args = parser.parse_args(argv)
     find_user_modules()
     try:
         if args.command == "summarise":
             for root in args.pairs:
-                summarise(root, num_envs=args.num_envs)
+                summarise(root, num_envs=args.eval_episodes)
             return
         if args.command == "train":
-            if args.threads:
-                torch.set_num_threads(args.threads)
             overrides = {name: text_value(value) for name, value in args.set}
+            if args.threads:  # each seed's run sets it again from its settings
+                overrides["threads"] = args.threads
             taken = sorted(set(overrides) & set(DRIVER_SETTINGS))
             if taken:
                 parser.error(f"--set {taken[0]}: the driver sets it for each seed ({', '.join(DRIVER_SETTINGS)})")
@@ -296,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
                     args.seeds,
                     overrides,
                     out=Path(args.out),
-                    num_envs=args.num_envs,
+                    num_envs=args.eval_episodes,
                     progress=not args.no_progress,
                 )
             return

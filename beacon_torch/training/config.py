@@ -11,6 +11,7 @@ whose ``--help`` lists every field.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import sys
 from dataclasses import MISSING, dataclass, field, fields, replace
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import beacon_torch
+from beacon_torch import threads
 from beacon_torch.base import FlowEnv, _as_device
 from beacon_torch.cli import find_user_modules, plain
 from beacon_torch.params import check_params, parse_assignments, resolved
@@ -65,6 +67,18 @@ TD3 = {
     "burgers-v0": dict(norm_steps=64, exploration_sigma=0.01),
     # a jet's push shows in shkadov's reward tens of actions later: multi-step targets
     "shkadov-v0": dict(n_steps=20),
+}
+# SAC: the budgets at which TD3's results are recorded (docs/results.md), so that the
+# two off-policy recipes compare at equal transitions; burgers normalised as for TD3
+SAC = {
+    "lorenz-v0": dict(frames=100_000),
+    "vortex-v0": dict(frames=100_000),
+    "burgers-v0": dict(frames=100_000, norm_steps=64),
+    "sloshing-v0": dict(frames=100_000),
+    "rayleigh-v0": dict(frames=19_200),
+    "mixing-v0": dict(frames=8_192),
+    # beyond TD3's table: the gradient recipe's budget on the cylinder
+    "cylinder-v0": dict(frames=16_000),
 }
 # gradient-based control, where its settings differ from the defaults
 GRAD = {
@@ -128,7 +142,7 @@ class Config:
         f"agents saw them; {NORM_STEPS} reach past every env's start-up)",
     )
     device: str = setting("cpu", "torch device of the env and the networks")
-    out: str = setting("", "run directory (default runs/ALGO/ENV/seedSEED)")
+    out: str = setting("", "run directory")
     resume: bool = setting(False, "continue the run in OUT from its checkpoint to FRAMES")
     collectors: int = setting(1, "collector processes (or Ray actors), each with a batched env of NUM_ENVS members")
     ray: str = setting(
@@ -138,15 +152,27 @@ class Config:
     )
     logger: str = setting(
         "auto",
-        "'csv', 'tensorboard' (CSV and TensorBoard) or 'auto' (TensorBoard too when installed)",
-        ("auto", "csv", "tensorboard"),
+        "'csv', 'tensorboard' (CSV and TensorBoard), 'wandb' (CSV and Weights & Biases; offline with "
+        "WANDB_MODE=offline), 'mlflow' (CSV and MLflow, to $MLFLOW_TRACKING_URI or OUT/mlflow.db) or 'auto' "
+        "(TensorBoard too when installed)",
+        ("auto", "csv", "tensorboard", "wandb", "mlflow"),
     )
     progress: bool = setting(True, "progress bar")
     checkpoint_every: int = setting(10, "rounds of updates between two checkpoints")
+    threads: int = setting(
+        0,
+        "torch threads (0: $BEACON_TORCH_THREADS, else the count measured fastest for training on the env "
+        "on an idle machine; on a shared machine give 1)",
+    )
 
     @property
     def tensorboard(self) -> bool | None:
-        return {"auto": None, "csv": False, "tensorboard": True}[self.logger]
+        return {"auto": None, "csv": False, "tensorboard": True}.get(self.logger, False)
+
+    @property
+    def tracker(self) -> str:
+        """The experiment tracker beside the CSV logs: "wandb", "mlflow" or ""."""
+        return self.logger if self.logger in ("wandb", "mlflow") else ""
 
     def per_round(self) -> int:
         """The transitions collected per round of updates: a run collects whole rounds."""
@@ -215,6 +241,23 @@ class TD3Config(OffPolicyConfig):
 
 
 @dataclass(frozen=True, kw_only=True)
+class SACConfig(OffPolicyConfig):
+    """SAC (continuous actions): twin critics and their targets, a squashed Gaussian
+    actor, the entropy's weight tuned to a target entropy."""
+
+    algo: ClassVar[str] = "sac"
+    actions: ClassVar[str] = "continuous"
+    table: ClassVar[dict[str, dict]] = SAC
+
+    hidden: int = setting(256, "width of the hidden layers")
+    init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
+    lr: float = setting(3e-4, "learning rate of the actor and the critics (Adam)", domain=POSITIVE)
+    alpha_lr: float = setting(3e-4, "learning rate of the entropy's weight", domain=POSITIVE)
+    alpha_init: float = setting(1.0, "the entropy's weight at the start", domain=POSITIVE)
+    tau: float = setting(0.005, "soft update of the target critics", domain=(0.0, 1.0, True))
+
+
+@dataclass(frozen=True, kw_only=True)
 class DQNConfig(OffPolicyConfig):
     """DQN (discrete actions)."""
 
@@ -255,7 +298,7 @@ class GradConfig(Config):
         return self.num_envs * self.horizon
 
 
-CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, DQNConfig, GradConfig)}
+CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, SACConfig, DQNConfig, GradConfig)}
 
 
 def unfit(cls: type[Config], env: type[FlowEnv]) -> str | None:
@@ -311,6 +354,8 @@ def _typed(name: str, kind: str, value):
 
 
 def _check(cfg: Config) -> Config:
+    if cfg.threads < 0:
+        raise ValueError(f"setting 'threads' must be 0 (the measured default) or a positive integer, got {cfg.threads}")
     if cfg.norm_steps < 0:
         raise ValueError(
             f"setting 'norm_steps' must be 0 (raw observations) or a positive integer, got {cfg.norm_steps}"
@@ -399,7 +444,7 @@ def configure(cls: type[Config], env_id: str, **overrides) -> Config:
 
 
 # how a run is carried out, free to change when it is resumed (with frames, the total)
-RUN_OPTIONS = ("out", "resume", "progress", "logger", "checkpoint_every", "device", "collectors", "ray")
+RUN_OPTIONS = ("out", "resume", "progress", "logger", "checkpoint_every", "device", "collectors", "ray", "threads")
 
 
 def resumed(cfg: Config, given: dict) -> Config:
@@ -467,7 +512,9 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
         flag = "--" + f.name.replace("_", "-")
         default = values.get(f.name)
         shown = default if f.name != "out" or default else "runs/ALGO/ENV/seedSEED"
-        helptext = f"{f.metadata.get('help', '')} (default: {shown})"
+        helptext = f"{f.metadata.get('help', '')} (default: {'none' if shown == '' else shown})"
+        if cls.in_process and f.name in ("collectors", "ray"):
+            helptext = argparse.SUPPRESS  # refused by a run in this process, not offered
         if f.name == "env":
             parser.add_argument(flag, required=True, help=f.metadata.get("help", ""))
         elif f.name == "params":
@@ -510,7 +557,12 @@ def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
     run directory, a diverged training or a full disk end it with one line naming the
     problem (exit status 2), as a bad setting does."""
     cfg = parse(cls, argv)
+    # TorchRL's information lines (storage initialised, ...) with their colour codes
+    # would fill a run's log; its warnings stay
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
     print(settings_text(cfg), flush=True)
+    count, why = threads.choose(cfg.threads or None, cfg.env, cfg.num_envs, training=True)
+    print(f"  torch threads: {count} ({why})", flush=True)
     try:
         main(cfg)
     except (ValueError, OSError) as err:

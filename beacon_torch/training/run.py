@@ -39,7 +39,7 @@ from typing import Any
 import torch
 from torchrl.record.loggers import CSVLogger
 
-from beacon_torch import files, received
+from beacon_torch import files, received, threads
 from beacon_torch.base import available_bytes
 from beacon_torch.params import check_params, resolved
 from beacon_torch.registry import ENVS
@@ -48,7 +48,7 @@ from beacon_torch.training.networks import NETWORKS
 
 CHECKPOINT = "checkpoint.pt"
 # the algorithms whose runs a checkpoint may record (the recipes' names)
-ALGORITHMS = ("ppo", "td3", "dqn", "grad")
+ALGORITHMS = ("ppo", "td3", "sac", "dqn", "grad")
 # the widest hidden layer a checkpoint may ask evaluation to build (the recipes use 32
 # to 128): a forged width cannot make it allocate gigabytes
 MAX_HIDDEN = 4096
@@ -409,10 +409,44 @@ def load_optimiser(optim: torch.optim.Optimizer, saved, where: str) -> None:
                     raise ValueError(f"{where} is corrupt (moments no sequence of gradients gives)")
 
 
+def _tracker(name: str, algo: str, env_id: str, out: Path, settings: dict):
+    """TorchRL's logger of an experiment tracker for a run in ``out``: Weights & Biases
+    (its files where W&B keeps them, ``$WANDB_DIR`` or ``./wandb``, not in the run
+    directory, which holds no symbolic link; ``WANDB_MODE=offline`` logs there only) or
+    MLflow (to ``$MLFLOW_TRACKING_URI``, else a SQLite store ``out/mlflow.db`` with the
+    artifacts in ``out/mlflow``), the run's settings recorded as its configuration."""
+    if name == "wandb":
+        from torchrl.record.loggers import WandbLogger
+
+        logger = WandbLogger(exp_name=f"{algo}-{env_id}", project="beacon-torch", log_env_packages=False)
+    else:
+        from torchrl.record.loggers import MLFlowLogger
+
+        uri = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{(out / 'mlflow.db').resolve()}"
+        artifacts = None if os.environ.get("MLFLOW_TRACKING_URI") else (out / "mlflow").resolve().as_uri()
+        logger = MLFlowLogger(exp_name=f"{algo}-{env_id}", tracking_uri=uri, artifact_location=artifacts)
+    logger.log_hparams({k: v for k, v in settings.items() if isinstance(v, (int, float, str, bool))})
+    return logger
+
+
+def _finish(logger) -> None:
+    """Flush or end a logger beside the CSV ones at the end of a run."""
+    experiment = logger.experiment
+    for name in ("flush", "finish"):
+        if callable(getattr(experiment, name, None)):
+            getattr(experiment, name)()
+            return
+    if type(logger).__name__ == "MLFlowLogger":
+        import mlflow
+
+        mlflow.end_run()
+
+
 class Run:
     """The directory ``out`` of one training of ``algo`` on ``env_id`` towards ``total``
     transitions, new or (``resume``) continued from its checkpoint. ``tensorboard``:
-    True, False, or None for "when the package is installed". ``settings`` (a dict) is
+    True, False, or None for "when the package is installed"; ``tracker``: "wandb" or
+    "mlflow" for TorchRL's logger of that experiment tracker too. ``settings`` (a dict) is
     recorded with every checkpoint, which :meth:`log` writes every ``checkpoint_every``
     rounds and :meth:`close` at the end."""
 
@@ -428,8 +462,15 @@ class Run:
         resume: bool = False,
         progress: bool = True,
         tensorboard: bool | None = None,
+        tracker: str = "",
         checkpoint_every: int = 10,
     ) -> None:
+        if tracker not in ("", "wandb", "mlflow"):
+            raise ValueError(f"tracker must be 'wandb', 'mlflow' or '', got {tracker!r}")
+        if tracker and find_spec(tracker) is None:
+            raise ValueError(
+                f"the {tracker} logger needs the {tracker} package (pip install 'beacon-torch[{tracker}]')"
+            )
         self.out = Path(out)
         self.path = self.out / CHECKPOINT
         self.env_id, self.algo, self.total, self.seed = env_id, algo, total, seed
@@ -462,12 +503,16 @@ class Run:
             from torchrl.record.loggers import TensorboardLogger
 
             self.loggers.append(TensorboardLogger(exp_name=algo, log_dir=str(self.out)))
+        if tracker:
+            self.loggers.append(_tracker(tracker, algo, env_id, self.out, self.settings))
         self.last: dict[str, Any] = {"frames": self.frames}
-        self.bar = None
+        self.bar, self.progress = None, progress
         if progress and total > self.frames:
             from tqdm.auto import tqdm
 
-            self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}")
+            # the time left from the last round's rate alone: the first round, which
+            # compiles the step, would stretch an average over the run for long
+            self.bar = tqdm(total=total, initial=self.frames, unit="frames", desc=f"{algo} {env_id}", smoothing=1.0)
 
     def _refuse(self, resume: bool) -> None:
         """Refuse a new run in a directory that holds one, and a resume without a
@@ -514,9 +559,13 @@ class Run:
     @classmethod
     def of(cls, settings) -> Run:
         """The run of a recipe's settings: a dataclass with ``out``, ``env``, ``algo``,
-        ``frames``, ``seed``, ``resume``, ``progress``, ``tensorboard`` and
-        ``checkpoint_every``, recorded whole with the checkpoints."""
+        ``frames``, ``seed``, ``resume``, ``progress``, ``tensorboard``,
+        ``checkpoint_every`` and ``threads`` (which sets torch's threads), recorded whole
+        with the checkpoints."""
         s = settings
+        # torch's threads for the whole training: the count asked for, else the
+        # measured default for training on the env (beacon_torch.threads)
+        threads.use(s.threads or None, s.env, s.num_envs, training=True)
         return cls(
             s.out,
             s.env,
@@ -527,6 +576,7 @@ class Run:
             resume=s.resume,
             progress=s.progress,
             tensorboard=s.tensorboard,
+            tracker=getattr(s, "tracker", ""),
             checkpoint_every=s.checkpoint_every,
         )
 
@@ -711,9 +761,14 @@ class Run:
         save()
         self.lock.release()
         for logger in self.loggers[1:]:
-            logger.experiment.flush()
+            _finish(logger)
         if self.bar is not None:
             self.bar.close()
         print(f"{self.algo} {self.env_id} seed {self.seed}: {self.last} -> {self.out}")
-        print(learning_curve(self.out))
+        print(learning_curve(self.out, progress=self.progress))
+        # the folders TorchRL's CSV logger makes for texts and videos, empty in a run of ours
+        for name in ("texts", "videos"):
+            folder = self.out / self.algo / name
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
         return self.last
