@@ -216,6 +216,26 @@ def settle(
     return new, obs, reward, ok
 
 
+def _short_params(params) -> str:
+    """Parameters as a repr shows them: a per-member value once when the members share
+    it, else its range over the members (not 64 numbers at 64 members)."""
+    shown = []
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, torch.Tensor) and value.ndim >= 1 and value.numel() > 0:
+            flat = value.detach().flatten()
+            if bool((flat == flat[0]).all()):
+                value = repr(flat[0].item())
+            elif flat.is_complex():
+                value = f"<{flat.numel()} complex values>"
+            else:
+                value = f"<{flat.numel()} values in [{flat.min().item():.4g}, {flat.max().item():.4g}]>"
+        else:
+            value = repr(value)
+        shown.append(f"{f.name}={value}")
+    return f"{type(params).__name__}({', '.join(shown)})"
+
+
 @dataclasses.dataclass(frozen=True)
 class GradCheck:
     """An env's gradient check (``beacon_torch.gradcheck``): the reward summed over
@@ -246,6 +266,10 @@ class FlowEnv(EnvBase):
     reward_key: ClassVar[str | tuple[str, ...]] = "reward"
     # reward of the step on which a member leaves its physical bounds (episode ends)
     blowup_reward: ClassVar[float] = -1.0
+    # the physical quantities a flow-control user reads beside the reward, each one
+    # number per member (name -> meaning), computed by ``diagnose``: in the TensorDict
+    # under "diagnostics", in the adapters' info with "blew_up"
+    diagnostics: ClassVar[dict[str, str]] = {}
     # False where the physics draws from the env's generator (noisy inflows, random
     # starts): members then depend on the seed and on the batch size
     deterministic: ClassVar[bool] = True
@@ -350,6 +374,7 @@ class FlowEnv(EnvBase):
             self.setup()
         self._check_memory()
         self._make_specs()
+        self._add_diagnostics_spec()
         self._closed = False
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
@@ -360,6 +385,7 @@ class FlowEnv(EnvBase):
         self.set_seed(seed)
         self._state: State | None = None
         self._shapes: dict[str, torch.Size] | None = None
+        self._diagnostics: dict[str, torch.Tensor] = {}
         self._count = torch.zeros(batch_size, dtype=torch.int64, device=device)
 
     def compile(self, *, warmup: int | None = None, **kwargs: Any) -> FlowEnv:
@@ -548,6 +574,11 @@ class FlowEnv(EnvBase):
         (what the memory of a batch is estimated from; fields override it)."""
         return 4 * self.n_obs
 
+    def diagnose(self, state: State) -> dict[str, torch.Tensor]:
+        """The :attr:`diagnostics` of ``state``: each a ``[batch]`` tensor in the env's
+        dtype (none by default). Pure, like :meth:`advance`: it runs inside the step."""
+        return {}
+
     def out_of_bounds(self, state: State) -> torch.Tensor:
         """``[batch]`` bool: the members whose state left its physical bounds (beyond
         non-finite values, which are always caught); their episode ends with
@@ -611,6 +642,23 @@ class FlowEnv(EnvBase):
         self.reward_spec = Unbounded(shape=(*B, 1), dtype=self.dtype, device=dev)
         flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)
         self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev)
+
+    def _add_diagnostics_spec(self) -> None:
+        """The diagnostics' entries, one number per member, under "diagnostics" beside
+        the observation (after the env's own specs, which a layout may redefine)."""
+        if not self.diagnostics:
+            return
+        B, dev = self.batch_size, self.device
+        entries = {name: Unbounded(shape=B, dtype=self.dtype, device=dev) for name in self.diagnostics}
+        self.observation_spec["diagnostics"] = Composite(entries, shape=B, device=dev)
+
+    @property
+    def last_diagnostics(self) -> dict[str, torch.Tensor]:
+        """The :attr:`diagnostics` of the current state (``[batch]`` each), as the last
+        reset or step left it."""
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before reading the diagnostics")
+        return self._diagnostics
 
     def _action_leaf_spec(self, shape: tuple[int, ...]):
         if self.discrete:
@@ -776,6 +824,8 @@ class FlowEnv(EnvBase):
             obs = self.observe(state)
         self._check_observation(obs)
         self._state, self._obs = _standard(state, obs)
+        with graph_mode(self.differentiable):
+            self._diagnostics = self.diagnose(self._state)
         self._count = count.expand(self.batch_size).clone()
         self._traced_start = self.differentiable and bool(traced)
         return self._obs
@@ -866,6 +916,8 @@ class FlowEnv(EnvBase):
             )
         self._check_observation(obs)
         self._state, self._obs = _standard(self._state, obs)
+        with graph_mode(self.differentiable):
+            self._diagnostics = self.diagnose(self._state)
         self.history.reset(self._state, mask)
         return obs
 
@@ -914,10 +966,10 @@ class FlowEnv(EnvBase):
                 # compiled, this is one call: the checks of the action's values, the
                 # physics, the blow-up bookkeeping and the counters
                 out = self._whole_step(self._state, self._obs, action, self._count, noise, stepping)
-        new, obs, reward, terminated, truncated, count, valid = out
+        new, obs, reward, terminated, truncated, count, valid, diagnostics = out
         if self.check_actions and not bool(valid):
             self._refuse_values(action)
-        self._state, self._obs, self._count = new, obs, count
+        self._state, self._obs, self._count, self._diagnostics = new, obs, count, diagnostics
         self._traced_start = False
         self.history.append(new)
         return obs, reward, terminated, truncated
@@ -940,7 +992,8 @@ class FlowEnv(EnvBase):
         action, valid = self._action_values(action)
         new, reward = self.advance(old, action, count, noise)
         out = settle(new, old, self.observe(new), old_obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
-        return (*self._bookkept(old, old_obs, count, stepping, *out), valid)
+        kept = self._bookkept(old, old_obs, count, stepping, *out)
+        return (*kept, valid, self.diagnose(kept[0]))
 
     def _graph_step(
         self,
@@ -957,7 +1010,8 @@ class FlowEnv(EnvBase):
         if self.check_actions and not bool(valid):
             self._refuse_values(action)
         out = self._differentiated_step(old, action, noise)
-        return (*self._bookkept(old, old_obs, count, stepping, *out), valid)
+        kept = self._bookkept(old, old_obs, count, stepping, *out)
+        return (*kept, valid, self.diagnose(kept[0]))
 
     def _bookkept(
         self,
@@ -1082,10 +1136,22 @@ class FlowEnv(EnvBase):
         obs = self._obs
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return TensorDict(
-            {**self._pack(obs, None), "done": false, "terminated": false.clone(), "truncated": false.clone()},
+            {
+                **self._pack(obs, None),
+                **self._diagnostics_entry(),
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            },
             batch_size=self.batch_size,
             device=self.device,
         )
+
+    def _diagnostics_entry(self) -> dict:
+        """The "diagnostics" entry of a TensorDict (none for an env without them)."""
+        if not self.diagnostics:
+            return {}
+        return {"diagnostics": TensorDict(self._diagnostics, batch_size=self.batch_size, device=self.device)}
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, reward, terminated, truncated = self.step_members(
@@ -1095,6 +1161,7 @@ class FlowEnv(EnvBase):
         return TensorDict(
             {
                 **self._pack(obs, reward),
+                **self._diagnostics_entry(),
                 "done": terminated | truncated,
                 "terminated": terminated,
                 "truncated": truncated,
@@ -1142,5 +1209,5 @@ class FlowEnv(EnvBase):
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(id={self.env_id!r}, batch_size={tuple(self.batch_size)}, "
-            f"device={self.device}, dtype={self.dtype}, params={self.params})"
+            f"device={self.device}, dtype={self.dtype}, params={_short_params(self.params)})"
         )

@@ -60,6 +60,22 @@ def team_reward(env: FlowEnv, reward: torch.Tensor) -> np.ndarray:
     return reward.detach().to(torch.float64).reshape(env.num_envs, -1).mean(-1).cpu().numpy()
 
 
+def diagnostics(env: FlowEnv, terminated: torch.Tensor | None = None) -> dict[str, np.ndarray]:
+    """What every adapter puts in its info, per member (``[batch]`` arrays): the env's
+    :attr:`~beacon_torch.base.FlowEnv.diagnostics` of the current state (float64) and
+    ``blew_up``, whether the last step ended the member's episode by a blow-up (its
+    termination: an episode of these envs ends otherwise only by its length)."""
+    out = {name: value.detach().to(torch.float64).cpu().numpy() for name, value in env.last_diagnostics.items()}
+    blew = torch.zeros(env.num_envs, dtype=torch.bool) if terminated is None else terminated.detach().cpu()
+    out["blew_up"] = blew.numpy().copy()
+    return out
+
+
+def member_info(values: dict[str, np.ndarray], i: int) -> dict[str, Any]:
+    """Member ``i``'s entries of :func:`diagnostics` as Python numbers."""
+    return {name: (bool if name == "blew_up" else float)(v[i]) for name, v in values.items()}
+
+
 def batched_action(env: FlowEnv, action: Any, batch: int) -> torch.Tensor:
     """numpy/python actions of a gymnasium caller as the env's action batch."""
     a = np.asarray(action)
@@ -109,11 +125,13 @@ class BeaconGymEnv(gymnasium.Env):
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(seed)
-        return self._numpy(self.env.reset_members()), {}
+        obs = self.env.reset_members()
+        return self._numpy(obs), member_info(diagnostics(self.env), 0)
 
     def step(self, action):
         obs, reward, terminated, truncated = self.env.step_members(batched_action(self.env, action, 1))
-        return self._numpy(obs), float(team_reward(self.env, reward)[0]), bool(terminated[0]), bool(truncated[0]), {}
+        info = member_info(diagnostics(self.env, terminated), 0)
+        return self._numpy(obs), float(team_reward(self.env, reward)[0]), bool(terminated[0]), bool(truncated[0]), info
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -207,10 +225,18 @@ class BeaconVectorEnv(VectorEnv):
             mask = given.reshape(self.num_envs)
             self.env.reset_members(torch.as_tensor(mask))
             self._autoreset[mask] = False
-        return self._obs(), {}
+        return self._obs(), self._info(diagnostics(self.env))
+
+    def _info(self, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """gymnasium's vector info: each entry's values and its mask of copies (all)."""
+        info = {}
+        for name, v in values.items():
+            info[name], info[f"_{name}"] = v, np.ones(self.num_envs, dtype=bool)
+        return info
 
     def step(self, actions):
         _, reward, terminated, truncated = self.env.step_members(batched_action(self.env, actions, self.num_envs))
+        values = diagnostics(self.env, terminated)
         obs = self._obs()
         reward = team_reward(self.env, reward)
         terminated = terminated.cpu().numpy().copy()
@@ -221,8 +247,12 @@ class BeaconVectorEnv(VectorEnv):
             reward[self._autoreset] = 0.0
             terminated[self._autoreset] = False
             truncated[self._autoreset] = False
+            # the copies reset here report their first state, as their observation does
+            fresh = diagnostics(self.env)
+            for name, v in values.items():
+                v[self._autoreset] = fresh[name][self._autoreset] if name != "blew_up" else False
         self._autoreset = terminated | truncated
-        return obs, reward, terminated, truncated, {}
+        return obs, reward, terminated, truncated, self._info(values)
 
     def render(self):
         if self.render_mode == "rgb_array":

@@ -28,6 +28,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from beacon_torch.base import FlowEnv
+from beacon_torch.gym import diagnostics, member_info
 from beacon_torch.registry import env_class, list_envs, make
 
 
@@ -87,7 +88,8 @@ class BeaconParallelEnv(ParallelEnv):
             self.env.set_seed(seed)
         obs = self.env.reset_members()
         self.agents = list(self.possible_agents)
-        return self._observations(obs), {agent: {} for agent in self.agents}
+        info = member_info(diagnostics(self.env), 0)
+        return self._observations(obs), {agent: dict(info) for agent in self.agents}
 
     def step(self, actions: dict[str, Any]):
         if not self.agents:
@@ -100,12 +102,13 @@ class BeaconParallelEnv(ParallelEnv):
         rewards = reward[0].detach().cpu().to(torch.float64).numpy()
         ended_by = (bool(terminated[0]), bool(truncated[0]))
         agents = self.agents
+        info = member_info(diagnostics(self.env, terminated), 0)  # the flow's, shared by the agents
         out = (
             self._observations(obs),
             {agent: float(rewards[i]) for i, agent in enumerate(agents)},
             {agent: ended_by[0] for agent in agents},
             {agent: ended_by[1] for agent in agents},
-            {agent: {} for agent in agents},
+            {agent: dict(info) for agent in agents},
         )
         if any(ended_by):
             self.agents = []

@@ -43,7 +43,7 @@ except ImportError as err:  # pragma: no cover - exercised without the extra onl
     raise ImportError("beacon_torch.sb3 needs Stable-Baselines3: pip install 'beacon-torch[sb3]'") from err
 
 from beacon_torch.base import _as_flag, _as_seed
-from beacon_torch.gym import _spaces, batched_action, team_reward
+from beacon_torch.gym import _spaces, batched_action, diagnostics, member_info, team_reward
 from beacon_torch.registry import compiles_by_default, make
 
 # what ``set_attr`` may change on a made env, each with its check
@@ -90,7 +90,8 @@ class BeaconVecEnv(VecEnv):
         if seed is not None:
             self.env.set_seed(int(seed))
         obs = self._numpy(self.env.reset_members())
-        self.reset_infos = [{} for _ in range(self.num_envs)]
+        values = diagnostics(self.env)
+        self.reset_infos = [member_info(values, i) for i in range(self.num_envs)]
         # as in SB3's own vector envs, seeds and options apply to one reset only
         self._reset_seeds()
         self._reset_options()
@@ -107,7 +108,10 @@ class BeaconVecEnv(VecEnv):
         done = terminated | truncated
         obs = self._numpy(obs)
         time_limit = (truncated & ~terminated).cpu().numpy()
-        infos: list[dict[str, Any]] = [{"TimeLimit.truncated": bool(cut)} for cut in time_limit]
+        values = diagnostics(self.env, terminated)  # of the step's last state, before any reset
+        infos: list[dict[str, Any]] = [
+            {**member_info(values, i), "TimeLimit.truncated": bool(cut)} for i, cut in enumerate(time_limit)
+        ]
         ended = done.cpu().numpy()
         if ended.any():
             for i in np.flatnonzero(ended):

@@ -1,5 +1,5 @@
-"""Write the parameter table of every env page from the env's declarations
-(``param(doc=...)``), and the listing ``beacon-torch list`` prints of the package's envs
+"""Write the parameter and diagnostics tables of every env page from the env's
+declarations (``param(doc=...)``, ``diagnostics``), and the listing ``beacon-torch list`` prints of the package's envs
 (``beacon_torch/data/envs.txt``, so that the command answers without importing torch):
 `.venv/bin/python docs/make_env_tables.py`. The test suite checks that both are
 current."""
@@ -21,7 +21,22 @@ def page(env_id: str) -> Path:
     return PAGES / f"{env_id.split('-')[0]}.md"
 
 
+def block(env_id: str) -> str:
+    """The generated part of an env's page: its parameters, then its diagnostics."""
+    cls = ENVS[env_id]
+    rows = [
+        "The diagnostics, one number per member: in the TensorDict under `diagnostics` and in the "
+        "`info` of the gymnasium, Stable-Baselines3 and PettingZoo adapters, beside `blew_up` (the "
+        "step ended the member's episode by a blow-up):",
+        "",
+        "| diagnostic | meaning |",
+        "|---|---|",
+        *(f"| `{name}` | {doc} |" for name, doc in cls.diagnostics.items()),
+    ]
+    return markdown(cls.Params) + "\n\n" + "\n".join(rows)
+
+
 if __name__ == "__main__":
     for env_id in base_envs():
-        print(write_block(page(env_id), BEGIN, END, markdown(ENVS[env_id].Params)))
+        print(write_block(page(env_id), BEGIN, END, block(env_id)))
     print(write_text(LISTING, listing()))

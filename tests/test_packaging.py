@@ -45,10 +45,10 @@ def test_readme_links_the_docs():
         assert page in text and (ROOT / page).is_file()
 
 
-def test_env_pages_list_the_parameters_as_declared():
-    """Each env page's parameter table is written from ``param(doc=...)``
-    (docs/make_env_tables.py): a parameter added, renamed or re-ranged in the code shows
-    on the page, or this fails."""
+def test_env_pages_list_the_parameters_and_diagnostics_as_declared():
+    """Each env page's parameter and diagnostics tables are written from
+    ``param(doc=...)`` and ``diagnostics`` (docs/make_env_tables.py): a parameter or a
+    diagnostic added, renamed or re-ranged in the code shows on the page, or this fails."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("make_env_tables", ROOT / "docs" / "make_env_tables.py")
@@ -56,7 +56,7 @@ def test_env_pages_list_the_parameters_as_declared():
     spec.loader.exec_module(tables)
     for env_id in tables.base_envs():
         text = tables.page(env_id).read_text()
-        block = f"{tables.BEGIN}\n{tables.markdown(tables.ENVS[env_id].Params)}\n{tables.END}"
+        block = f"{tables.BEGIN}\n{tables.block(env_id)}\n{tables.END}"
         assert block in text, f"{tables.page(env_id)} is not current: run docs/make_env_tables.py"
 
 

@@ -82,6 +82,10 @@ class BurgersEnv(FlowEnv):
     episode_length = EPISODE_LENGTH
     deterministic = False
     family = "1-D"
+    diagnostics = {
+        "deviation": "dx sum |u - u_target| downstream of the actuator (minus the reward)",
+        "max_deviation": "the largest |u - u_target| downstream of the actuator",
+    }
     published_speed = 2_670.0
     speed_target = 5.0
     paper_ppo = -1.75
@@ -121,6 +125,10 @@ class BurgersEnv(FlowEnv):
         u, u_prev = self._substeps(SUBSTEPS, (state.u, state.u_prev), inlet, forcing)
         reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
         return BurgersState(u=u, u_prev=u_prev, a=action[:, 0]), reward
+
+    def diagnose(self, state: BurgersState) -> dict[str, torch.Tensor]:
+        gap = (state.u[:, self.ctrl :] - self.member(self.params.u_target)).abs()
+        return {"deviation": DX * gap.sum(-1), "max_deviation": gap.amax(-1)}
 
     def observe(self, state: BurgersState) -> torch.Tensor:
         return state.u[:, self.ctrl - N_OBS : self.ctrl]

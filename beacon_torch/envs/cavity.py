@@ -135,6 +135,12 @@ class CavityEnv(FlowEnv):
         """The flow fields of a state, by name."""
         return {name: getattr(state, name) for name in ("u", "v", "p", self.scalar)}
 
+    def kinetic_energy(self, state: State) -> torch.Tensor:
+        """``[batch]``: half the mean squared speed over the interior faces, per unit
+        mass (the two components on their own faces)."""
+        u, v = state.u[:, 1:-1, 1:-1], state.v[:, 1:-1, 1:-1]
+        return 0.5 * ((u**2).mean((-2, -1)) + (v**2).mean((-2, -1)))
+
     def observe(self, state: State) -> torch.Tensor:
         return state.probes.flatten(1)
 

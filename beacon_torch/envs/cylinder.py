@@ -617,6 +617,11 @@ class CylinderEnv(FlowEnv):
     # every completed action's reward is above -(drag - 0.159) - 0.2 |lift| with the
     # forces of a blown-up flow excluded; a drag force of 10 (C_D 200) is far beyond any
     blowup_reward = -10.0
+    diagnostics = {
+        "drag": "C_D, the drag coefficient averaged over the action",
+        "lift": "C_L, the lift coefficient averaged over the action",
+        "jet": "Q / Q_max, the top jet's flow rate (the bottom jet's is -Q)",
+    }
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -653,6 +658,9 @@ class CylinderEnv(FlowEnv):
         reward = -(drag - DRAG_OFFSET) - LIFT_PENALTY * lift.abs()
         return CylinderState(*flow, drag=drag, lift=lift), reward
 
+    def diagnose(self, state: CylinderState) -> dict[str, torch.Tensor]:
+        return {"drag": coefficient(state.drag), "lift": coefficient(state.lift), "jet": state.q / Q_MAX}
+
     def observe(self, state: CylinderState) -> torch.Tensor:
         return self.channel.pressure_probes(state.p)
 
@@ -671,17 +679,21 @@ class CylinderEnv(FlowEnv):
         dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / c.x.gaps[1:-1, None]
         dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / c.y.gaps[None, 1:-1]
         vorticity = (dvdx - dudy).numpy()
-        fig = new_figure(size=(8.0, 2.6))
-        ax = fig.add_axes((0.05, 0.16, 0.72, 0.72))
+        fig = new_figure(size=(8.0, 2.8))
+        ax = fig.add_axes((0.05, 0.16, 0.66, 0.7))
         x, y = c.x.faces[1:-1].numpy(), c.y.faces[1:-1].numpy()
-        ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
+        field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
         ax.add_patch(Circle(CENTRE, RADIUS, color="0.3"))
         ax.set_xlim(0.0, 1.2)
         ax.set_ylim(0.0, HEIGHT)
         ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        fig.colorbar(field, cax=fig.add_axes((0.725, 0.2, 0.012, 0.62)), label="vorticity")
         t = DT * SUBSTEPS * step
-        ax.set_title(f"cylinder   t = {t:.2f}   C_D = {float(coefficient(last.drag)):.3f}", fontsize=9)
-        bars = fig.add_axes((0.84, 0.2, 0.13, 0.6))
-        q = float(last.q) / Q_MAX
-        action_bars(bars, [q, -q], ["top", "bottom"], [(-1.0, 1.0)] * 2)
+        drag, lift = float(coefficient(last.drag)), float(coefficient(last.lift))
+        ax.set_title(f"cylinder   t = {t:.2f}   C_D = {drag:.3f}   C_L = {lift:+.3f}", fontsize=9)
+        # the bottom jet's rate is always the top's with the other sign: one bar says both
+        bars = fig.add_axes((0.86, 0.2, 0.1, 0.6))
+        action_bars(bars, [float(last.q) / Q_MAX], ["top jet Q"], [(-1.0, 1.0)])
+        bars.set_title("jets (bottom: -Q)", fontsize=8)
         return to_rgb(fig)

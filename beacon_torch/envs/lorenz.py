@@ -71,6 +71,7 @@ class LorenzEnv(FlowEnv):
     episode_length = EPISODE_LENGTH
     discrete = True
     family = "ode"
+    diagnostics = {"x": "the state's x (the reward counts x < 0)", "y": "the state's y", "z": "the state's z"}
     published_speed = 62_300.0
     speed_target = 20.0
     paper_ppo = 400.0
@@ -104,6 +105,10 @@ class LorenzEnv(FlowEnv):
         step = (x < 0).to(self.dtype)
         # a width of 0 keeps the indicator
         return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
+
+    def diagnose(self, state: LorenzState) -> dict[str, torch.Tensor]:
+        x, y, z = state.xyz.unbind(-1)
+        return {"x": x, "y": y, "z": z}
 
     def observe(self, state: LorenzState) -> torch.Tensor:
         # the "time derivatives" are those of the published code: the right-hand side

@@ -81,6 +81,10 @@ class MixingEnv(CavityEnv):
     """Batched mixing-v0 (4 discrete actions: which walls move, which way)."""
 
     env_id = "mixing-v0"
+    diagnostics = {
+        "mixing_deviation": "the mean |c - c_mixed| over the cavity (minus the reward)",
+        "kinetic_energy": "half the mean squared speed in the cavity",
+    }
     Params = MixingParams
     state_type = MixingState
     discrete = True
@@ -156,6 +160,12 @@ class MixingEnv(CavityEnv):
         flow = self.run(self.flow(state), SUBSTEPS, self.nu, self.kappa, walls=self.cavity.walls(*lids, like=lids))
         new = MixingState(**flow, walls=walls, probes=self.probes.push(state.probes, flow))
         return new, -(new.c - self.target).abs().mean((-2, -1))
+
+    def diagnose(self, state: MixingState) -> dict[str, torch.Tensor]:
+        return {
+            "mixing_deviation": (state.c - self.target).abs().mean((-2, -1)),
+            "kinetic_energy": self.kinetic_energy(state),
+        }
 
     def actuation(self, state: MixingState) -> np.ndarray:
         return state.walls.double().numpy()

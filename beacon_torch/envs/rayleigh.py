@@ -167,6 +167,10 @@ class RayleighEnv(CavityEnv):
     Params = RayleighParams
     state_type = RayleighState
     blowup_reward = -1.0
+    diagnostics = {
+        "nusselt": "the Nusselt number at the bottom plate (minus the reward)",
+        "kinetic_energy": "half the mean squared speed in the cavity",
+    }
     published_speed = 13.8
     speed_target = 20.0
     paper_ppo = -130.0
@@ -219,6 +223,9 @@ class RayleighEnv(CavityEnv):
         flow = self.run(self.flow(state), SUBSTEPS, self.nu, self.kappa, offset=offset)
         new = RayleighState(**flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
         return new, -nusselt(new.theta, self.dy)
+
+    def diagnose(self, state: RayleighState) -> dict[str, torch.Tensor]:
+        return {"nusselt": nusselt(state.theta, self.dy), "kinetic_energy": self.kinetic_energy(state)}
 
     def actuation(self, state: RayleighState) -> np.ndarray:
         return (state.bottom.double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C

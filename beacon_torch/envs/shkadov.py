@@ -264,6 +264,10 @@ class ShkadovEnv(FlowEnv):
     blowup_reward = -100.0
     deterministic = False
     family = "1-D"
+    diagnostics = {
+        "film_deviation": "the mean over the jets of dx sum (h - 1)^2 / cells downstream of each (minus the reward)",
+        "max_thickness": "the largest film thickness h",
+    }
     published_speed = 300.0
     speed_target = 5.0
     paper_ppo = -0.8
@@ -367,6 +371,9 @@ class ShkadovEnv(FlowEnv):
     def advance(self, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         new = self._advance_state(state, action, noise)
         return new, self.jet_rewards(new.h).mean(-1)
+
+    def diagnose(self, state: ShkadovState) -> dict[str, torch.Tensor]:
+        return {"film_deviation": -self.jet_rewards(state.h).mean(-1), "max_thickness": state.h.amax(-1)}
 
     def observe(self, state: ShkadovState) -> torch.Tensor:
         return state.q[:, self._obs_index]

@@ -147,6 +147,10 @@ class SloshingEnv(FlowEnv):
     state_type = SloshingState
     episode_length = EPISODE_LENGTH
     family = "1-D"
+    diagnostics = {
+        "surface_deviation": "dx ||h - 1||, the free surface's distance from rest (the reward without actuation)",
+        "max_depth": "the largest depth h in the tank",
+    }
     published_speed = 1_060.0
     speed_target = 5.0
     paper_ppo = -1.1
@@ -215,6 +219,12 @@ class SloshingEnv(FlowEnv):
         h = new.h
         reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
         return new, reward
+
+    def diagnose(self, state: SloshingState) -> dict[str, torch.Tensor]:
+        return {
+            "surface_deviation": self.dx * torch.linalg.vector_norm(state.h - 1.0, dim=-1),
+            "max_depth": state.h.amax(-1),
+        }
 
     def observe(self, state: SloshingState) -> torch.Tensor:
         return state.q[:, ::2]

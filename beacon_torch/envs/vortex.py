@@ -106,6 +106,11 @@ class VortexEnv(FlowEnv):
     state_type = VortexState
     episode_length = EPISODE_LENGTH
     family = "ode"
+    diagnostics = {
+        "flow_amplitude": "|A|, the amplitude of the flow disturbance",
+        "vibration_amplitude": "|Y|, the amplitude of the cylinder's vibration",
+        "displacement": "the cylinder's displacement y at the end of the action",
+    }
     published_speed = 6_560.0
     speed_target = 20.0
     paper_ppo = 38.0
@@ -149,6 +154,14 @@ class VortexEnv(FlowEnv):
         lift = 2.0 * k * torch.cos(phi) * (ar * c - ai * sn) - 2.0 * k * torch.sin(phi) * (ai * c + ar * sn)
         reward = energy - self.params.w * 0.5 * lift**2
         return VortexState(ay=s, rate=rate, k=k, phi=phi, y_prev=y), reward
+
+    def diagnose(self, state: VortexState) -> dict[str, torch.Tensor]:
+        s = state.ay
+        return {
+            "flow_amplitude": torch.hypot(s[:, 0], s[:, 1]),
+            "vibration_amplitude": torch.hypot(s[:, 2], s[:, 3]),
+            "displacement": state.y_prev,
+        }
 
     def observe(self, state: VortexState) -> torch.Tensor:
         # the published "time derivatives": the last LSRK4 stage's right-hand side
