@@ -64,7 +64,8 @@ def action_bars(
 def lorenz_frame(xyz: np.ndarray, u: float, t: float) -> np.ndarray:
     """The attractor trajectory so far (``xyz``: ``[T, 3]``) with the forcing bar."""
     fig = new_figure()
-    ax = fig.add_axes((0.0, 0.0, 0.8, 0.92), projection="3d")
+    # inset from the figure's edges, so that the lowest ticks and labels show whole
+    ax = fig.add_axes((0.03, 0.05, 0.76, 0.85), projection="3d")
     x, y, z = xyz.T
     ax.plot(x, y, z, lw=0.7, color="#1f77b4")
     color = "#2ca02c" if x[-1] < 0 else "#7f7f7f"
@@ -106,6 +107,23 @@ def vortex_frame(ay: np.ndarray, k: float, phi: float, t: float) -> np.ndarray:
     return to_rgb(fig)
 
 
+def side_by_side_frames(left: Sequence[np.ndarray], right: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Frames of two episodes side by side, labelled "controlled" and "uncontrolled"
+    (the shorter one's last frame held while the other goes on)."""
+    from PIL import Image, ImageDraw
+
+    n = max(len(left), len(right))
+    out = []
+    for k in range(n):
+        pair = [frames[min(k, len(frames) - 1)] for frames in (left, right)]
+        image = Image.fromarray(np.concatenate(pair, axis=1))
+        draw = ImageDraw.Draw(image)
+        for j, label in enumerate(("controlled", "uncontrolled")):
+            draw.text((j * pair[0].shape[1] + 6, 4), label, fill=(0, 0, 0))
+        out.append(np.asarray(image))
+    return out
+
+
 def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20) -> Path:
     """Write RGB frames to an animated GIF, a new file."""
     from PIL import Image
@@ -126,7 +144,7 @@ def save_animation(frames: Iterable[np.ndarray], path: str | Path, fps: int = 20
 
 
 def _profile_axes(fig, with_bars_width: float = 0.16):
-    ax = fig.add_axes((0.09, 0.14, 0.86 - with_bars_width, 0.74))
+    ax = fig.add_axes((0.11, 0.14, 0.84 - with_bars_width, 0.74))
     bars = fig.add_axes((0.97 - with_bars_width + 0.04, 0.14, with_bars_width - 0.05, 0.64))
     return ax, bars
 

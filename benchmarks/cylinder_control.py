@@ -16,7 +16,9 @@ measure), each against no control over the same actions. Writes a new dated
 ``cylinder_control-DATE-TIME.json`` to ``--out``. ``--plot`` draws a record's drag
 coefficients and jets' rates into a new figure (the page's,
 docs/img/cylinder-control.png), with ``--base-flow`` the drag of the steady base flow
-(benchmarks/cylinder_base_flow.py) as a line.
+(benchmarks/cylinder_base_flow.py) as a line. The quantities are the env's diagnostics
+and the figure is drawn as ``beacon-torch eval`` draws them (``--figure``): what this
+script adds is the run past an episode's end.
 """
 
 from __future__ import annotations
@@ -47,7 +49,6 @@ def control(name: str, actions: int, compile: bool = True) -> dict:
     import torch
 
     import beacon_torch
-    from beacon_torch.envs import cylinder
 
     policy, params = policy_of(name)
     env = beacon_torch.make("cylinder-v0", 2, compile=compile, params=params)  # the policy's member, no control
@@ -62,13 +63,13 @@ def control(name: str, actions: int, compile: bool = True) -> dict:
             action = policy(td.clone())[env.action_key]
             action[1] = env.null_action()[1]
             td = env.step(td.set(env.action_key, action))["next"]
-            state = env.state
-            drag, lift = cylinder.coefficient(state.drag).tolist(), cylinder.coefficient(state.lift).tolist()
-            rows["drag"].append(drag[0])
-            rows["lift"].append(lift[0])
-            rows["uncontrolled_drag"].append(drag[1])
-            rows["uncontrolled_lift"].append(lift[1])
-            rows["jet"].append(float(state.q[0]) / cylinder.Q_MAX)
+            # the env's own diagnostics, as beacon-torch eval draws them
+            seen = {key: td["diagnostics", key].tolist() for key in ("drag", "lift", "jet")}
+            rows["drag"].append(seen["drag"][0])
+            rows["lift"].append(seen["lift"][0])
+            rows["uncontrolled_drag"].append(seen["drag"][1])
+            rows["uncontrolled_lift"].append(seen["lift"][1])
+            rows["jet"].append(seen["jet"][0])
     drag, free = np.array(rows["drag"]), np.array(rows["uncontrolled_drag"])
     episode, half = slice(0, env.episode_length), slice(actions // 2, actions)
     reduction = lambda part: float(1.0 - drag[part].mean() / free[part].mean())
@@ -102,35 +103,31 @@ def table(rows: list[dict]) -> str:
 
 
 def plot(record: str, figure: str, base_flow: str | None = None) -> None:
+    """A record's drag coefficients and jets' rates over time, drawn as ``beacon-torch
+    eval`` draws an env's diagnostics (``evaluation.draw_diagnostics``)."""
     import json
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import numpy as np
 
     from beacon_torch.envs import cylinder
-    from beacon_torch.files import create_file, refuse_existing
+    from beacon_torch.files import refuse_existing
+    from beacon_torch.training.evaluation import draw_diagnostics
 
     refuse_existing([figure], "give another FIGURE")
     rows = json.loads(open(record).read())["rows"]
-    fig, (drag, jets) = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
-    action_time = cylinder.DT * cylinder.SUBSTEPS
-    for k, r in enumerate(rows):
-        t = [action_time * (i + 1) for i in range(r["actions"])]
-        if k == 0:
-            drag.plot(t, r["per_action"]["uncontrolled_drag"], color="k", lw=0.9, label="no control")
-        drag.plot(t, r["per_action"]["drag"], color=f"C{k}", lw=0.9, label=r["policy"])
-        jets.plot(t, r["per_action"]["jet"], color=f"C{k}", lw=0.9)
+    first = rows[0]["per_action"]
+    series = [("no control", {"drag": first["uncontrolled_drag"], "jet": np.zeros(len(first["jet"]))})]
+    series += [(r["policy"], {"drag": r["per_action"]["drag"], "jet": r["per_action"]["jet"]}) for r in rows]
+    lines = None
     if base_flow:
         cd = json.loads(open(base_flow).read())["rows"][0]["cd_base"]
-        drag.axhline(cd, color="0.5", ls=":", lw=1, label=f"steady base flow ({cd:.3f})")
-    drag.set_ylabel("C_D (mean over each action)")
-    jets.set_ylabel("top jet's rate / 1e-2")
-    jets.set_xlabel("time from the developed start")
-    drag.legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    print("figure:", create_file(figure, lambda tmp: fig.savefig(tmp, dpi=110, format="png")))
+        lines = {"drag": (cd, f"steady base flow ({cd:.3f})")}
+    times = cylinder.DT * cylinder.SUBSTEPS * np.arange(1, rows[0]["actions"] + 1)
+    title = "cylinder-v0 from the developed start: the episode's counter set back every 80 actions"
+    print(
+        "figure:",
+        draw_diagnostics(series, figure, title=title, times=times, xlabel="time from the developed start", lines=lines),
+    )
 
 
 def main() -> None:

@@ -1,9 +1,11 @@
 """The beacon-torch command."""
 
 import json
+import os
 import subprocess
 import sys
 
+import pytest
 from PIL import Image
 
 from beacon_torch.cli import main
@@ -153,3 +155,34 @@ def test_commands_and_recipes_find_the_users_modules_from_the_working_directory(
     ):
         done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=300)
         assert done.returncode == 0 and "heat-v0" in done.stdout, done.stderr
+
+
+def test_threads_default_to_the_measured_fastest_unless_told(monkeypatch, tmp_path):
+    import torch
+
+    from beacon_torch import threads
+
+    monkeypatch.delenv("BEACON_TORCH_THREADS", raising=False)
+    steps, training = threads._table()["steps"], threads._table()["training"]
+    assert threads.choose(3, "lorenz-v0", 1) == (3, "given")
+    # the nearest measured batch, on a log scale; a variant steps its base env's physics
+    assert threads.fastest("lorenz-continuous-v0", 1) == min(steps["lorenz-v0"]["1"], os.cpu_count())
+    assert threads.fastest("cylinder-v0", 8) == min(steps["cylinder-v0"]["16"], os.cpu_count())
+    assert threads.fastest("burgers-v0", 16, training=True) == min(training["burgers-v0"], os.cpu_count())
+    count, why = threads.choose(None, "lorenz-v0", 1)
+    assert count == threads.fastest("lorenz-v0", 1) and "stepping 1 member of lorenz-v0" in why
+    assert "training on lorenz-v0" in threads.choose(None, "lorenz-v0", 16, training=True)[1]
+    monkeypatch.setenv("BEACON_TORCH_THREADS", "1")
+    assert threads.choose(None, "cylinder-v0", 64) == (1, "$BEACON_TORCH_THREADS")
+    monkeypatch.setenv("BEACON_TORCH_THREADS", "two")
+    with pytest.raises(ValueError, match="BEACON_TORCH_THREADS must be a positive integer"):
+        threads.choose(None, "lorenz-v0", 1)
+    with pytest.raises(ValueError, match="threads must be a positive integer"):
+        threads.choose(0)
+    before = torch.get_num_threads()
+    try:
+        assert main(["--threads", "1", "list"]) == 0 and torch.get_num_threads() == before  # list runs nothing
+        assert main(["--threads", "1", "run", "lorenz-v0", "--num-envs", "1", "--out", str(tmp_path)]) == 0
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

@@ -25,6 +25,23 @@ from beacon_torch.training.run import CHECKPOINT, BadRun, load_checkpoint, read_
 EVAL_SEED = 12345
 
 
+def _episode(env, policy, *, frames: bool, title: str | None):
+    """One episode of every member of ``env`` (a TorchRL env, transformed or not) and,
+    with ``frames``, about 100 frames of its render member, the last one at the end."""
+    base = getattr(env, "base_env", env)
+    shots = []
+    every = max(1, base.episode_length // 100)
+
+    def grab(step: int) -> None:
+        if step % every == 0:
+            shots.append(base.render())
+
+    rollout = episodes.episode(env, policy, frame_hook=grab if frames else None, progress=title)
+    if frames:
+        shots.append(base.render())
+    return rollout, shots
+
+
 def evaluate_policy(
     env_id: str,
     policy,
@@ -33,57 +50,131 @@ def evaluate_policy(
     num_envs: int = 8,
     device="cpu",
     gif: str | Path | None = None,
+    side_by_side: str | Path | None = None,
+    figure: str | Path | None = None,
     seed: int = EVAL_SEED,
     params: dict | None = None,
     progress: bool = False,
 ) -> dict:
     """``policy``, deterministic, on ``num_envs`` episodes of ``env_id`` with the physical
     ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
-    ``ObservationNorm`` state; None: raw), next to the uncontrolled score of the same
-    episodes; ``gif``: an animation of member 0's episode; ``progress``: progress bars
-    of the two episodes on stderr."""
+    ``ObservationNorm`` state; None: raw), next to the uncontrolled episodes from the
+    same starts. ``gif``: an animation of member 0's episode; ``side_by_side``: member
+    0's controlled and uncontrolled episodes side by side; ``figure``: the env's
+    diagnostics and the reward per action over the episodes, controlled beside
+    uncontrolled (new files, each); ``progress``: progress bars of the two episodes on
+    stderr."""
     params = params or {}
+    animate = gif is not None or side_by_side is not None
     env = make_env(
-        env_id,
-        num_envs,
-        device=device,
-        seed=seed,
-        norm=norm,
-        norm_steps=0,
-        record_history=gif is not None,
-        params=params,
+        env_id, num_envs, device=device, seed=seed, norm=norm, norm_steps=0, record_history=animate, params=params
     )
-    base = env.base_env
-    frames = []
-    every = max(1, base.episode_length // 100)
-
-    def grab(step: int) -> None:
-        if step % every == 0:
-            frames.append(base.render())
-
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        rollout = episodes.episode(
-            env,
-            policy,
-            frame_hook=grab if gif is not None else None,
-            progress=f"{env_id} controlled" if progress else None,
-        )
-    controlled = episodes.scores(rollout)
-    ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params)  # the same episodes
+        rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
+    # the same episodes without control: the same seed gives the same starts and noise
+    ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params, record_history=animate)
     title = f"{env_id} uncontrolled" if progress else None
-    uncontrolled = episodes.scores(episodes.episode(ref, episodes.null_policy(ref), progress=title))
+    free, free_frames = _episode(ref, episodes.null_policy(ref), frames=side_by_side is not None, title=title)
+    controlled, uncontrolled = episodes.scores(rollout), episodes.scores(free)
     out = {
         "env": env_id,
         "score_mean": controlled.mean().item(),
         "score_std": controlled.std(unbiased=False).item(),
         "uncontrolled": uncontrolled.mean().item(),
     }
-    if gif is not None:
-        from beacon_torch.render import save_animation
+    from beacon_torch.render import save_animation, side_by_side_frames
 
-        frames.append(base.render())
+    if gif is not None:
         out["gif"] = str(save_animation(frames, gif))
+    if side_by_side is not None:
+        out["side_by_side"] = str(save_animation(side_by_side_frames(frames, free_frames), side_by_side))
+    if figure is not None:
+        out["figure"] = str(diagnostics_figure(env_id, rollout, free, figure))
     return out
+
+
+def diagnostics_figure(env_id: str, controlled, uncontrolled, path: str | Path) -> Path:
+    """The env's diagnostics and the reward per action (one panel each) over two
+    rollouts of the same starts, a new file: the mean over the members of the
+    controlled episodes with their range, and of the uncontrolled ones dashed. A
+    member's values stop where its episode ended."""
+    panels = [*beacon_torch.registry.ENVS[env_id].diagnostics, "reward"]
+    series = [
+        (label, {name: _per_action(rollout, name) for name in panels})
+        for label, rollout in (("controlled", controlled), ("uncontrolled", uncontrolled))
+    ]
+    return draw_diagnostics(series, path, title=f"{env_id}: controlled against uncontrolled, from the same starts")
+
+
+def draw_diagnostics(
+    series: list[tuple[str, dict[str, np.ndarray]]],
+    path: str | Path,
+    *,
+    title: str,
+    times: np.ndarray | None = None,
+    xlabel: str = "actions",
+    lines: dict[str, tuple[float, str]] | None = None,
+) -> Path:
+    """Quantities over time, one panel each, as a new figure: ``series`` holds
+    ``(label, {name: [members, actions] values})``, NaN where a member's episode has
+    ended; each series is drawn as the mean over its members (with their range where
+    there are several), the one labelled "uncontrolled" or "no control" dashed in
+    black. ``times``: the horizontal axis (the action counts by default); ``lines``:
+    ``{name: (value, label)}``, a reference value drawn across a panel."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    panels = list(series[0][1])
+    fig = Figure(figsize=(7, 1.9 * len(panels) + 0.6), dpi=100)
+    FigureCanvasAgg(fig)
+    for k, name in enumerate(panels):
+        ax = fig.add_subplot(len(panels), 1, k + 1)
+        colors = iter(f"C{i}" for i in range(10))
+        for label, values in series:
+            values = np.atleast_2d(np.asarray(values[name], dtype=np.float64))
+            steps = np.arange(1, values.shape[1] + 1) if times is None else np.asarray(times)
+            free = label in ("uncontrolled", "no control")
+            color, style = ("k", "--") if free else (next(colors), "-")
+            many = values.shape[0] > 1
+            with np.errstate(all="ignore"):
+                mean = np.nanmean(values, 0)
+                ax.plot(
+                    steps,
+                    mean,
+                    style,
+                    color=color,
+                    lw=1.2 if many else 0.9,
+                    label=label + (f" (mean of {values.shape[0]})" if many else ""),
+                )
+                if many and not free:
+                    ax.fill_between(steps, np.nanmin(values, 0), np.nanmax(values, 0), color=color, alpha=0.2, lw=0)
+        if lines and name in lines:
+            value, label = lines[name]
+            ax.axhline(value, color="0.5", ls=":", lw=1, label=label)
+        ax.set_ylabel(name.replace("_", " "), fontsize=9)
+        ax.grid(alpha=0.3)
+        if k == 0:
+            ax.set_title(title, fontsize=10)
+        if k == 0 or (lines and name in lines):
+            ax.legend(fontsize=7)
+    ax.set_xlabel(xlabel)
+    fig.tight_layout()
+    save_figure(fig, path, new=True)
+    return Path(path)
+
+
+def _per_action(rollout, name: str) -> np.ndarray:
+    """``[members, actions]`` float64 values of a diagnostic (or the team's reward) after
+    each action, NaN after each member's first end."""
+    if name == "reward":
+        values = episodes.step_rewards(rollout)
+    else:
+        values = rollout["next", "diagnostics", name].to(torch.float64)
+    values = values.detach().cpu().numpy().copy()
+    done = rollout["next", "done"][..., 0].cpu().numpy()
+    after = np.cumsum(done, -1) - done > 0  # steps after a member's first end
+    values[after] = np.nan
+    return values
 
 
 def evaluate_run(
@@ -92,6 +183,8 @@ def evaluate_run(
     num_envs: int = 8,
     device="cpu",
     gif: str | Path | None = None,
+    side_by_side: str | Path | None = None,
+    figure: str | Path | None = None,
     seed: int = EVAL_SEED,
     progress: bool = False,
 ) -> dict:
@@ -114,6 +207,8 @@ def evaluate_run(
         num_envs=num_envs,
         device=device,
         gif=gif,
+        side_by_side=side_by_side,
+        figure=figure,
         seed=seed,
         params=params,
         progress=progress,
@@ -130,12 +225,15 @@ def read_scalar(run: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
 
 
-def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_score", new: bool = False) -> Path:
+def plot_runs(
+    runs: list[str | Path], path: str | Path, *, name: str = "episode_score", new: bool = False, progress: bool = True
+) -> Path:
     """The paper-style figure, one panel per env: per run directory, the mean and
     standard deviation over its seeds of ``name`` against transitions (each seed
     interpolated on a common grid), with the env's uncontrolled score dashed. A series
     of one logged point is drawn as a point with its spread. ``new``: ``path`` must not
-    exist when it is written (else it is replaced)."""
+    exist when it is written (else it is replaced); ``progress``: a bar for the
+    uncontrolled episode."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -163,7 +261,7 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
                 ax.plot(grid, mean, color=f"C{k}", label=label)
                 ax.fill_between(grid, mean - std, mean + std, color=f"C{k}", alpha=0.25, lw=0)
             k += 1
-        ax.axhline(_uncontrolled(env_id), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled (float32)")
+        ax.axhline(_uncontrolled(env_id, progress), color="k", ls="--", lw=1, label=f"{env_id} uncontrolled (float32)")
         ax.set_xlabel("transitions")
         ax.set_ylabel(name.replace("_", " "))
         ax.set_title(env_id)
@@ -174,13 +272,14 @@ def plot_runs(runs: list[str | Path], path: str | Path, *, name: str = "episode_
     return Path(path)
 
 
-def _uncontrolled(env_id: str) -> float:
+def _uncontrolled(env_id: str, progress: bool = True) -> float:
     """The uncontrolled score drawn beside curves: in the recipes' float32 (chaotic
     lorenz-v0 scores 238 there, 207 in float64); one episode where the physics is
     deterministic, else the mean of 16."""
     num_envs = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
     ref = beacon_torch.make(env_id, num_envs, seed=0)
-    rollout = episodes.episode(ref, episodes.null_policy(ref), progress=f"{env_id} uncontrolled")
+    title = f"{env_id} uncontrolled" if progress else None
+    rollout = episodes.episode(ref, episodes.null_policy(ref), progress=title)
     return episodes.scores(rollout).mean().item()
 
 
@@ -242,16 +341,18 @@ def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None 
     write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
         f"{summary['algo']}/{summary['env']}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, "
-        f"training tail {summary['train_mean']:.4g} over {len(summary['seeds'])} seeds, {summary['frames']} "
+        f"training tail {summary['train_mean']:.4g} over {len(summary['seeds'])} "
+        f"seed{'s' if len(summary['seeds']) > 1 else ''}, {summary['frames']} "
         f"transitions, {summary['wall_s_per_seed']:.0f} s per seed"
     )
     return summary
 
 
-def learning_curve(run: str | Path) -> str:
+def learning_curve(run: str | Path, progress: bool = True) -> str:
     """Draw ``run/learning_curve.png`` (as ``beacon-torch plot`` would) and say where,
-    or why not (no episode ended yet)."""
+    or why not (no episode ended yet); ``progress``: a bar for its uncontrolled
+    episode."""
     try:
-        return f"learning curve: {plot_runs([run], Path(run) / 'learning_curve.png')}"
+        return f"learning curve: {plot_runs([run], Path(run) / 'learning_curve.png', progress=progress)}"
     except ValueError as err:
         return f"no learning curve: {err}"
