@@ -21,6 +21,7 @@ from beacon_torch.training.config import (
     DQNConfig,
     GradConfig,
     PPOConfig,
+    SACConfig,
     TD3Config,
     configure,
     paper_algorithms,
@@ -169,7 +170,7 @@ def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
         (["--env", "nope-v0"], "nope-v0"),
         (["--env", "lorenz-v0", "--frames", "-1"], "frames"),
         (["--env", "lorenz-v0", "--resume", "--out", str(tmp_path / "missing")], None),
-        (["--env", "lorenz-v0", "--logger", "wandb"], "logger"),
+        (["--env", "lorenz-v0", "--logger", "neptune"], "logger"),
         (["--epochs", "3"], "--env"),
     ):
         capsys.readouterr()
@@ -188,6 +189,7 @@ def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
     for name, setting in (
         ("ppo", "--n-rollout"),
         ("td3", "--policy-noise"),
+        ("sac", "--alpha-lr"),
         ("dqn", "--eps-frames"),
         ("grad", "--horizon"),
     ):
@@ -717,7 +719,7 @@ def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
 
 
 def test_config_module_is_the_one_place_of_the_algorithms():
-    assert set(CONFIGS) == {"ppo", "td3", "dqn", "grad"}
+    assert set(CONFIGS) == {"ppo", "td3", "sac", "dqn", "grad"}
     # the algorithms a checkpoint may name, which the package checks without the recipes
     from beacon_torch.training.run import ALGORITHMS as RECORDED
 
@@ -926,3 +928,46 @@ def test_the_env_parameters_a_run_trains_on_are_settings_recorded_with_it(tmp_pa
     pretrained.load_file(exported, "vortex-v0")
     with pytest.raises(ValueError, match="'params'"):
         configure(PPOConfig, "vortex-v0", params={"re": 70.0}, resume=True, **{**tiny, "frames": 400})
+
+
+def test_sac_trains_resumes_with_its_buffer_and_evaluates_deterministically(tmp_path, capsys):
+    sac = recipe("sac")
+    cfg = dict(TINY, hidden=32)
+    last = sac.main(configure(SACConfig, "vortex-v0", out=str(tmp_path), **cfg))
+    state = checkpoint(tmp_path)
+    assert state["algo"] == "sac" and state["frames"] == 256 and torch.isfinite(torch.tensor(last["loss"]))
+    assert state["policy"] == {"network": "squashed_gaussian_actor", "hidden": 32}
+    first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
+    sac.main(configure(SACConfig, "vortex-v0", out=str(tmp_path), resume=True, **{**cfg, "frames": 384}))
+    state = checkpoint(tmp_path)
+    assert state["frames"] == 384 and state["modules"]["loss"]["log_alpha"] != 0.0  # the entropy's weight tuned
+    assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first)
+    # the deterministic policy (the squashed location) scores the same twice
+    scores = [evaluate_run(tmp_path, num_envs=2)["score_mean"] for _ in range(2)]
+    assert scores[0] == scores[1]
+    capsys.readouterr()
+    assert cli(["eval", str(tmp_path), "--num-envs", "2", "--no-gif"]) == 0
+
+
+@pytest.mark.parametrize("tracker", ["wandb", "mlflow"])
+def test_experiment_trackers_log_beside_the_csv_logs(tracker, tmp_path, monkeypatch):
+    """TorchRL's W&B and MLflow loggers in their offline modes: the run's scalars reach
+    the tracker as they reach the CSV logs, and the run resumes."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path))
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    out = tmp_path / "run"
+    settings = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger=tracker)
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(out), **settings))
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(out), resume=True, **{**settings, "frames": 600}))
+    assert len((out / "ppo" / "scalars" / "reward.csv").read_text().splitlines()) == 3
+    if tracker == "wandb":
+        assert len(list((tmp_path / "wandb").glob("offline-run-*"))) == 2  # one for each run of the process
+    else:
+        import mlflow
+
+        client = mlflow.tracking.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
+        runs = client.search_runs([client.get_experiment_by_name("ppo-vortex-v0").experiment_id])
+        assert len(runs) == 2 and "reward" in runs[0].data.metrics and runs[0].data.params["env"] == "vortex-v0"

@@ -161,6 +161,33 @@ def deterministic_actor(env: TransformedEnv, hidden: int, paper_init: bool = Tru
     )
 
 
+def squashed_gaussian_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
+    """SAC's actor: an MLP giving the location and scale of a normal distribution
+    squashed by tanh into the action box (deterministic: the squashed location)."""
+    from tensordict.nn.distributions import NormalParamExtractor
+    from torchrl.modules import TanhNormal
+
+    low, high = action_bounds(env)
+    net = MLP(
+        in_features=n_observations(env),
+        out_features=2 * env.action_spec.shape[-1],
+        num_cells=[hidden, hidden],
+        activation_class=nn.ReLU,
+    )
+    module = TensorDictModule(
+        nn.Sequential(net, NormalParamExtractor()), in_keys=["observation"], out_keys=["loc", "scale"]
+    )
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": low, "high": high},
+        return_log_prob=False,
+        spec=env.action_spec,
+    )
+
+
 def action_value(env: TransformedEnv, hidden: int) -> ValueOperator:
     """TD3's critic: the value of an (observation, action) pair."""
     n_in = n_observations(env) + env.action_spec.shape[-1]
@@ -183,6 +210,7 @@ def qvalue_actor(env: TransformedEnv, hidden: int) -> QValueActor:
 NETWORKS = {
     "stochastic_actor": stochastic_actor,
     "deterministic_actor": deterministic_actor,
+    "squashed_gaussian_actor": squashed_gaussian_actor,
     "qvalue_actor": qvalue_actor,
 }
 

@@ -188,7 +188,7 @@ def figure(rows: list[dict], path: str | Path) -> Path:
     from matplotlib.figure import Figure
 
     rows = sorted(rows, key=lambda r: (r["env"], r["algo"]))
-    fig = Figure(figsize=(7, 0.4 * len(rows) + 1.2), dpi=100)
+    fig = Figure(figsize=(9, 0.4 * len(rows) + 1.2), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     algos = sorted({r["algo"] for r in rows})
@@ -203,7 +203,8 @@ def figure(rows: list[dict], path: str | Path) -> Path:
     ax.set_yticks(range(len(rows)), [f"{r['algo']} {r['env']}" for r in rows], fontsize=8)
     ax.set_xlabel("normalised score (IQM over seeds, 95 % bootstrap interval; dots: seeds)")
     ax.grid(alpha=0.3, axis="x")
-    ax.legend(fontsize=8, loc="lower right")
+    # beside the axes, where it covers no point
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     save_figure(fig, path)
     return Path(path)

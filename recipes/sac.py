@@ -1,0 +1,97 @@
+"""SAC on a BEACON env with continuous actions, from TorchRL's pieces: ``SACLoss``
+(twin critics, their targets updated by ``SoftUpdate``, the entropy's weight tuned to
+the target entropy -dim(action)), a squashed Gaussian actor that explores by sampling,
+a ``Collector`` over the batched env and a ``ReplayBuffer`` saved with each checkpoint.
+
+    .venv/bin/python recipes/sac.py --env cylinder-v0
+"""
+
+from __future__ import annotations
+
+import torch
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.objectives import SACLoss, SoftUpdate
+
+from beacon_torch.training import networks
+from beacon_torch.training.config import SACConfig, script
+from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.run import Run, episode_values
+
+
+def main(cfg: SACConfig) -> dict:
+    """Train SAC; returns the last logged values and the transitions collected."""
+    run = Run.of(cfg)
+    torch.manual_seed(cfg.seed)
+
+    # the env, with the saved normalisation when resuming
+    env = make_env(
+        cfg.env,
+        cfg.num_envs,
+        device=cfg.device,
+        seed=cfg.seed,
+        norm=run.obs_norm,
+        norm_steps=cfg.norm_steps,
+        compile=cfg.compile,
+        params=cfg.params,
+    )
+
+    # the actor, the twin critics (inside the loss), the entropy's weight, their optimisers
+    actor = networks.squashed_gaussian_actor(env, cfg.hidden).to(cfg.device)
+    qvalue = networks.action_value(env, cfg.hidden).to(cfg.device)
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=cfg.alpha_init)
+    loss.make_value_estimator(gamma=cfg.gamma)
+    target = SoftUpdate(loss, tau=cfg.tau)
+    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.lr)
+    critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr)
+    alpha_optim = torch.optim.Adam([loss.log_alpha], lr=cfg.alpha_lr)
+
+    # the replay buffer; the actor samples its actions while collecting
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(cfg.buffer_size or cfg.frames, device=cfg.device), batch_size=cfg.batch_size
+    )
+    optims = dict(actor_optim=actor_optim, critic_optim=critic_optim, alpha_optim=alpha_optim)
+    run.restore(buffer, actor=actor, loss=loss, **optims)
+    if run.remaining <= 0:
+        return run.last
+
+    def save() -> None:
+        run.save(env, policy=("squashed_gaussian_actor", cfg.hidden, actor), buffer=buffer, loss=loss, **optims)
+
+    collector = make_collector(
+        cfg.env,
+        env,
+        actor,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=run.remaining,
+        init_random_frames=max(0, cfg.init_random_frames - run.frames),
+        collectors=cfg.collectors,
+        ray=cfg.ray or None,
+        seed=cfg.seed,
+        device=cfg.device,
+        params=cfg.params,
+    )
+
+    for data in collector:
+        buffer.extend(data.reshape(-1))
+        values = episode_values(data)
+        if run.frames + data.numel() > cfg.init_random_frames:
+            for _ in range(cfg.updates_per_batch):
+                losses = loss(buffer.sample())
+                # each loss reaches its own parameters only (the actor's loss reads the
+                # critics detached, the entropy's loss the log-probabilities): one
+                # backward of their sum gives each optimiser its own gradient
+                for optim in optims.values():
+                    optim.zero_grad()
+                (losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]).backward()
+                for optim in optims.values():
+                    optim.step()
+                target.step()
+            values.update(loss=losses["loss_qvalue"].item(), alpha=losses["alpha"].item())
+            collector.update_policy_weights_()
+        run.log(data.numel(), values, save)
+    collector.shutdown()
+    return run.close(save)
+
+
+if __name__ == "__main__":
+    script(main, SACConfig)
