@@ -230,15 +230,19 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
     row = control.control(str(tmp_path / "policy.pt"), 160, compile=False)
     assert row["params"] == params and len(row["per_action"]["drag"]) == 160
 
-    free = CylinderEnv(1, cells_per_diameter=10)
+    # a separate env of the run's shape, both members uncontrolled: the run's second
+    # member does the same arithmetic in the same batched operations, so it agrees to
+    # the last bit on any processor (an env of one member would agree to float32's
+    # rounding only, which 160 actions of shedding grow)
+    free = CylinderEnv(2, cells_per_diameter=10)
     free.reset()
     drag = []
     for _ in range(2):
         for _ in range(free.episode_length):
             free.step_members(free.null_action())
-            drag.append(float(cylinder.coefficient(free.state.drag)[0]))
+            drag.append(float(cylinder.coefficient(free.state.drag)[1]))
         free.set_state(free.state, 0)
-    assert row["per_action"]["uncontrolled_drag"] == pytest.approx(drag, rel=1e-5)
+    assert row["per_action"]["uncontrolled_drag"] == drag
     jets = np.array(row["per_action"]["jet"])
     assert np.abs(jets).max() <= 1.0 and np.abs(jets).max() > 0.05
     # the reductions are against the run's own uncontrolled member (which matches the
