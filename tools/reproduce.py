@@ -33,7 +33,7 @@ from beacon_torch import files, pretrained, received
 from beacon_torch.cli import find_user_modules
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
-from beacon_torch.training.config import CONFIGS, configure, paper_frames
+from beacon_torch.training.config import CONFIGS, configure, paper_frames, quiet_torchrl
 from beacon_torch.training.evaluation import plot_runs, summarise, summary_of
 from beacon_torch.training.run import CHECKPOINT, holds_run, load_checkpoint, seed_dirs
 
@@ -281,6 +281,7 @@ def main(argv: list[str] | None = None) -> None:
     page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"), help="the results page to write")
     args = parser.parse_args(argv)
     find_user_modules()
+    quiet_torchrl()
     try:
         if args.command == "summarise":
             for root in args.pairs:

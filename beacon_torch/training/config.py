@@ -552,14 +552,18 @@ def settings_text(cfg: Config) -> str:
     return "\n".join(lines)
 
 
+def quiet_torchrl() -> None:
+    """TorchRL's information lines (storage initialised, ...) with their colour codes
+    would fill a run's log; its warnings stay."""
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+
+
 def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
     """A recipe run from the command line: its settings parsed, then ``main``; a bad
     run directory, a diverged training or a full disk end it with one line naming the
     problem (exit status 2), as a bad setting does."""
     cfg = parse(cls, argv)
-    # TorchRL's information lines (storage initialised, ...) with their colour codes
-    # would fill a run's log; its warnings stay
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    quiet_torchrl()
     print(settings_text(cfg), flush=True)
     count, why = threads.choose(cfg.threads or None, cfg.env, cfg.num_envs, training=True)
     print(f"  torch threads: {count} ({why})", flush=True)
