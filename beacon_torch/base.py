@@ -59,6 +59,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from beacon_torch import starts as start_sets
 from beacon_torch.autograd import checkpointed, graph_mode
 from beacon_torch.compiled import Kernels, standard
 from beacon_torch.history import History
@@ -316,6 +317,7 @@ class FlowEnv(EnvBase):
         record_history: bool = False,
         differentiable: bool = False,
         grad_checkpoint: bool = False,
+        starts: str | None = None,
         **params: Any,
     ) -> None:
         batch_size = _as_batch_size(batch_size)
@@ -349,6 +351,8 @@ class FlowEnv(EnvBase):
         if grad_checkpoint and not differentiable:
             raise ValueError(f"{self.env_id}: grad_checkpoint=True needs differentiable=True")
         self.differentiable = differentiable
+        # a named set of developed start states instead of the env's own start
+        self.starts = start_sets.check(starts)
         # recompute each action's substeps in the backward pass instead of keeping them
         self.grad_checkpoint = grad_checkpoint
         self._warned_grad = False
@@ -893,6 +897,8 @@ class FlowEnv(EnvBase):
                 f"{self.env_id}: initial_state returned a {type(init).__name__}, not the env's "
                 f"state type {self.state_type.__name__}"
             )
+        if self.starts is not None:
+            init = self._from_start_set()
         # in differentiable mode the members that go on keep their graph through a
         # partial reset; the new starts are data
         with graph_mode(self.differentiable):
@@ -920,6 +926,18 @@ class FlowEnv(EnvBase):
             self._diagnostics = self.diagnose(self._state)
         self.history.reset(self._state, mask)
         return obs
+
+    def _from_start_set(self) -> State:
+        """A start for every member from the env's start set: member ``i`` takes state
+        ``i`` (modulo the set's size) of a validation or test set, a state drawn from
+        the env's generator of the train set."""
+        pool = start_sets.states(self, self.starts)
+        size = pool[0].shape[0]
+        if self.starts == "train":
+            index = torch.randint(size, self.batch_size, generator=self.rng, device=self.device)
+        else:
+            index = torch.arange(self.num_envs, device=self.device) % size
+        return self.state_type(*(value[index] for value in pool))
 
     def step_members(
         self, action: Any, stepping: torch.Tensor | None = None

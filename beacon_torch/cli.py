@@ -249,7 +249,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
         record = pretrained.info(args.pretrained)
         params = record.get("params", {})  # the physics it was trained on
         r = evaluate_policy(
-            env_id, policy, num_envs=args.num_envs, device=args.device, params=params, progress=True, **views
+            env_id,
+            policy,
+            num_envs=args.num_envs,
+            device=args.device,
+            params=params,
+            starts=args.starts,
+            progress=True,
+            **views,
         )
         trained = f"trained on {record['frames']} transitions"
         runs = [(f"pretrained {algo}", r, trained)]
@@ -258,13 +265,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
         _threads(args, load_checkpoint(seed_dirs(args.run)[0])["env"], args.num_envs)
         for run in seed_dirs(args.run):
             views = _views(args, None, run, "", "")
-            r = evaluate_run(run, num_envs=args.num_envs, device=args.device, progress=True, **views)
+            r = evaluate_run(
+                run, num_envs=args.num_envs, device=args.device, starts=args.starts, progress=True, **views
+            )
             runs.append((str(run), r, f"trained on {r['frames']} transitions"))
     for name, r, trained in runs:
         written = [f"{what} {r[key]}" for key, what in VIEWS.items() if key in r]
         print(
             f"{r['env']} {name}: score {r['score_mean']:.6g} {_spread(r['score_std'], args.num_envs)} "
-            f"(uncontrolled {r['uncontrolled']:.6g}; {trained})" + "".join(f"; {w}" for w in written)
+            f"(uncontrolled {r['uncontrolled']:.6g}; {trained}"
+            + (f"; the {r['starts']} starts" if r["starts"] else "")
+            + ")"
+            + "".join(f"; {w}" for w in written)
         )
     return 0
 
@@ -406,6 +418,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", help="where --pretrained writes ALGO/ENV.gif (default: here, under a new name if it is taken)"
     )
     ev.add_argument("--num-envs", type=int, default=8, help="evaluation episodes (one batch)")
+    ev.add_argument(
+        "--starts",
+        choices=("train", "validation", "test"),
+        help="start the episodes from this set of developed states (beacon_torch.starts; default: the env's own start)",
+    )
     ev.add_argument("--device", default="cpu")
     ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")
     ev.set_defaults(func=cmd_eval)

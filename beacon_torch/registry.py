@@ -45,7 +45,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {}
 # (a collector's worker) can import it again before building the env
 ORIGIN: dict[str, str] = {}
 # what make() takes beside an env's physical parameters
-OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "check_actions")
+OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "check_actions", "starts")
 
 
 def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[FlowEnv]:
@@ -199,6 +199,10 @@ def make(
     ``check_actions``
         False skips the check of action values (NaN, range), which synchronises with
         an accelerator on every step; default True.
+    ``starts``
+        ``"train"``, ``"validation"`` or ``"test"``: every episode starts from a state
+        of that set of developed, uncontrolled states (:mod:`beacon_torch.starts`)
+        instead of the env's own start; default None (the env's own, the paper's).
     """
     env_id = resolve_id(env_id)
     cls = env_class(env_id)

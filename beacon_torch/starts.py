@@ -11,6 +11,25 @@ each parsed once per process. Each of these envs has a ``start`` parameter:
 - ``"generated"``: the env's own public generator, run from the equations, cached (the
   default when a parameter that shapes the start differs from the published value,
   since the stored state belongs to the published grid and physics).
+
+Start sets (:data:`SETS`, the ``starts`` option of ``make``): train, validation and test
+episodes that begin from different points of the uncontrolled flow. The published envs
+start every episode from one state (the paper's), so a policy is only ever judged from
+where it was trained. A start set holds states of the developed,
+uncontrolled dynamics instead, as FluidGym draws its episodes from snapshots of the
+developed flow: state ``k`` of a set is where member ``k`` of the env, made with the
+set's seed (its start and noise drawn from that seed, as ``make(..., seed=)`` draws
+them) and left uncontrolled, stands after ``offsets[k]`` actions. The offsets lie in
+``[0, episode_length)``, drawn from the same seed, and those of one set are all of one
+residue modulo 3 (train 0, validation 1, test 2), so the three sets never share a
+start even on an env without noise (lorenz-v0, vortex-v0), whose uncontrolled path from
+the published start is one and the same.
+
+``make(env_id, n, starts="test")`` starts member ``i`` of every reset from state
+``i mod size`` of the test set (the same episodes for every evaluation), and with
+``starts="train"`` from a state drawn from the env's own generator at each reset. The
+states are computed on first use, in the env's dtype and with its parameters (shared
+by its members), and kept for the process.
 """
 
 from __future__ import annotations
@@ -113,3 +132,71 @@ def published_table(env: str, rows: int, columns: int) -> torch.Tensor:
     ``rows`` rows and ``columns`` columns, the shape the env's grid gives it (another
     shape is a damaged file, refused); the text is parsed at the first call only."""
     return torch.from_numpy(_table(env, rows, columns).copy())
+
+
+# ---------------------------------------------------------------- start sets
+# name -> (seed, number of states, residue of the offsets modulo 3)
+SETS = {
+    "train": (202_611, 64, 0),
+    "validation": (202_612, 8, 1),
+    "test": (202_613, 8, 2),
+}
+
+
+def check(name):
+    """``name`` if it names a start set (None: the env's own start)."""
+    if name is not None and name not in SETS:
+        raise ValueError(f"starts must be one of {', '.join(SETS)} (or None, the env's own start), got {name!r}")
+    return name
+
+
+def offsets(name: str, episode_length: int) -> torch.Tensor:
+    """The actions after which each state of the set ``name`` is taken."""
+    seed, size, residue = SETS[name]
+    slots = max(1, (episode_length - residue + 2) // 3)  # values residue, residue + 3, ... below the length
+    drawn = torch.randint(slots, (size,), generator=torch.Generator().manual_seed(seed))
+    return torch.clamp(residue + 3 * drawn, max=episode_length - 1)
+
+
+def shared_params(env) -> dict:
+    """The env's parameters as values its members share; refused when they differ."""
+    shared = {}
+    for f in fields(env.params):
+        value = getattr(env.params, f.name)
+        if isinstance(value, torch.Tensor) and value.ndim >= 1:
+            flat = value.detach().flatten()
+            if flat.numel() and not bool((flat == flat[0]).all()):
+                raise ValueError(
+                    f"{env.env_id}: start sets need parameters shared by the members; {f.name} differs between them"
+                )
+            value = flat[0].item() if flat.numel() else value
+        shared[f.name] = value
+    return shared
+
+
+def states(env, name: str):
+    """The states of the set ``name`` for ``env`` (its id, dtype, device and
+    parameters): the env's state type with the set's size as its batch."""
+    params = tuple(sorted(shared_params(env).items()))
+    return _computed(type(env), name, str(env.dtype).removeprefix("torch."), str(env.device), params)
+
+
+@functools.lru_cache(maxsize=32)
+def _computed(cls, name: str, dtype: str, device: str, params: tuple):
+    seed, size, _ = SETS[name]
+    env = cls(size, device=device, dtype=getattr(torch, dtype), seed=seed, **dict(params))
+    at = offsets(name, env.episode_length).to(env.device)
+    kept = None
+    with torch.no_grad():
+        env.reset_members()
+        for step in range(int(at.max()) + 1):
+            if step:
+                env.step_members(env.null_action())
+            taken = at == step
+            state = env.state
+            if kept is None:
+                kept = [torch.zeros_like(v) for v in state]
+            for into, value in zip(kept, state, strict=True):
+                into[taken] = value[taken]
+    env.close()
+    return env.state_type(*kept)

@@ -54,30 +54,42 @@ def evaluate_policy(
     figure: str | Path | None = None,
     seed: int = EVAL_SEED,
     params: dict | None = None,
+    starts: str | None = None,
     progress: bool = False,
 ) -> dict:
     """``policy``, deterministic, on ``num_envs`` episodes of ``env_id`` with the physical
     ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
     ``ObservationNorm`` state; None: raw), next to the uncontrolled episodes from the
-    same starts. ``gif``: an animation of member 0's episode; ``side_by_side``: member
-    0's controlled and uncontrolled episodes side by side; ``figure``: the env's
-    diagnostics and the reward per action over the episodes, controlled beside
-    uncontrolled (new files, each); ``progress``: progress bars of the two episodes on
-    stderr."""
+    same starts: the env's own, or those of the start set ``starts`` ("train",
+    "validation", "test": :mod:`beacon_torch.starts`). ``gif``: an animation of member
+    0's episode; ``side_by_side``: member 0's controlled and uncontrolled episodes side
+    by side; ``figure``: the env's diagnostics and the reward per action over the
+    episodes, controlled beside uncontrolled (new files, each); ``progress``: progress
+    bars of the two episodes on stderr."""
     params = params or {}
     animate = gif is not None or side_by_side is not None
+    sets = {} if starts is None else {"starts": starts}
     env = make_env(
-        env_id, num_envs, device=device, seed=seed, norm=norm, norm_steps=0, record_history=animate, params=params
+        env_id,
+        num_envs,
+        device=device,
+        seed=seed,
+        norm=norm,
+        norm_steps=0,
+        record_history=animate,
+        params=params,
+        **sets,
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
     # the same episodes without control: the same seed gives the same starts and noise
-    ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params, record_history=animate)
+    ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params, record_history=animate, **sets)
     title = f"{env_id} uncontrolled" if progress else None
     free, free_frames = _episode(ref, episodes.null_policy(ref), frames=side_by_side is not None, title=title)
     controlled, uncontrolled = episodes.scores(rollout), episodes.scores(free)
     out = {
         "env": env_id,
+        "starts": starts,
         "score_mean": controlled.mean().item(),
         "score_std": controlled.std(unbiased=False).item(),
         "uncontrolled": uncontrolled.mean().item(),
@@ -186,6 +198,7 @@ def evaluate_run(
     side_by_side: str | Path | None = None,
     figure: str | Path | None = None,
     seed: int = EVAL_SEED,
+    starts: str | None = None,
     progress: bool = False,
 ) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
@@ -211,6 +224,7 @@ def evaluate_run(
         figure=figure,
         seed=seed,
         params=params,
+        starts=starts,
         progress=progress,
     )
     return {**result, "frames": state["frames"]}
