@@ -95,7 +95,7 @@ def test_the_package_declares_its_type_hints():
 
 def test_eval_and_run_show_progress(tmp_path, capsys):
     """Episodes of a slow env take minutes: eval and run show a bar per episode."""
-    assert main(["eval", "--pretrained", "ppo/vortex-v0", "--num-envs", "1", "--no-gif"]) == 0
+    assert main(["eval", "--pretrained", "ppo/vortex-v0", "--num-envs", "1", "--no-gif", "--out", str(tmp_path)]) == 0
     err = capsys.readouterr().err
     assert "vortex-v0 controlled" in err and "vortex-v0 uncontrolled" in err and "actions" in err
     assert main(["run", "lorenz-v0", "--num-envs", "2", "--out", str(tmp_path)]) == 0
