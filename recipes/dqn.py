@@ -17,7 +17,7 @@ from torchrl.objectives import DQNLoss, HardUpdate
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import DQNConfig, script
-from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.env import make_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 
@@ -27,16 +27,7 @@ def main(cfg: DQNConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(
-        cfg.env,
-        cfg.num_envs,
-        device=cfg.device,
-        seed=cfg.seed,
-        norm=run.obs_norm,
-        norm_steps=cfg.norm_steps,
-        compile=cfg.compile,
-        params=cfg.params,
-    )
+    env = recipe_env(cfg, run.obs_norm)
 
     # the action values (the greedy policy), the DQN loss with its target network
     qvalue = networks.qvalue_actor(env, cfg.hidden).to(cfg.device)

@@ -23,7 +23,7 @@ import torch
 from beacon_torch.autograd import horizon_bytes
 from beacon_torch.training import networks
 from beacon_torch.training.config import GradConfig, script
-from beacon_torch.training.env import make_env
+from beacon_torch.training.env import recipe_env
 from beacon_torch.training.run import Run, fits
 
 
@@ -36,18 +36,7 @@ def main(cfg: GradConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the differentiable env, with the saved normalisation when resuming
-    env = make_env(
-        cfg.env,
-        cfg.num_envs,
-        device=cfg.device,
-        seed=cfg.seed,
-        norm=run.obs_norm,
-        norm_steps=cfg.norm_steps,
-        compile=cfg.compile,
-        params=cfg.params,
-        differentiable=True,
-        grad_checkpoint=cfg.grad_checkpoint,
-    )
+    env = recipe_env(cfg, run.obs_norm, differentiable=True, grad_checkpoint=cfg.grad_checkpoint)
     base = env.base_env
 
     # the policy and its optimiser; the count of updates dropped for a non-finite gradient

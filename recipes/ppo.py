@@ -22,7 +22,7 @@ from torchrl.objectives.value import GAE
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import PPOConfig, script
-from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.env import make_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 
@@ -32,16 +32,7 @@ def main(cfg: PPOConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(
-        cfg.env,
-        cfg.num_envs,
-        device=cfg.device,
-        seed=cfg.seed,
-        norm=run.obs_norm,
-        norm_steps=cfg.norm_steps,
-        compile=cfg.compile,
-        params=cfg.params,
-    )
+    env = recipe_env(cfg, run.obs_norm)
     keys = networks.Keys.of(env)
 
     # the paper's networks

@@ -14,7 +14,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import SACConfig, script
-from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.env import make_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 
@@ -24,16 +24,7 @@ def main(cfg: SACConfig) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(
-        cfg.env,
-        cfg.num_envs,
-        device=cfg.device,
-        seed=cfg.seed,
-        norm=run.obs_norm,
-        norm_steps=cfg.norm_steps,
-        compile=cfg.compile,
-        params=cfg.params,
-    )
+    env = recipe_env(cfg, run.obs_norm)
 
     # the actor, the twin critics (inside the loss), the entropy's weight, their optimisers
     actor = networks.squashed_gaussian_actor(env, cfg.hidden).to(cfg.device)

@@ -18,7 +18,7 @@ from torchrl.objectives import SoftUpdate, TD3Loss
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import TD3Config, script
-from beacon_torch.training.env import make_collector, make_env
+from beacon_torch.training.env import make_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 ACTOR_DELAY = 2  # critic updates per actor update
@@ -49,16 +49,7 @@ def main(cfg: TD3Config) -> dict:
     torch.manual_seed(cfg.seed)
 
     # the env, with the saved normalisation when resuming
-    env = make_env(
-        cfg.env,
-        cfg.num_envs,
-        device=cfg.device,
-        seed=cfg.seed,
-        norm=run.obs_norm,
-        norm_steps=cfg.norm_steps,
-        compile=cfg.compile,
-        params=cfg.params,
-    )
+    env = recipe_env(cfg, run.obs_norm)
 
     # a deterministic actor, twin critics (inside the loss) and their optimisers
     actor = networks.deterministic_actor(env, cfg.hidden).to(cfg.device)

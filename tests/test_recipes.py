@@ -459,7 +459,7 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
         # the small cavity (the observation is the same probe grid): a default-size
         # eager step costs about a second here, this one a tenth
         monkeypatch.setattr(
-            recipe,
+            training_env,
             "make_env",
             functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].test_settings),
         )

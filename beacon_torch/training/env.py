@@ -75,6 +75,23 @@ def make_env(
     return env
 
 
+def recipe_env(cfg, norm: dict | None, **options) -> TransformedEnv:
+    """A recipe's training env from its settings ``cfg``: :func:`make_env` with the
+    run's saved normalisation ``norm`` (None: measured anew) and ``options`` of the
+    env (``differentiable=True``, ...)."""
+    return make_env(
+        cfg.env,
+        cfg.num_envs,
+        device=cfg.device,
+        seed=cfg.seed,
+        norm=norm,
+        norm_steps=cfg.norm_steps,
+        compile=cfg.compile,
+        params=cfg.params,
+        **options,
+    )
+
+
 def make_collector(
     env_id: str,
     env: TransformedEnv,
