@@ -82,3 +82,24 @@ def test_eval_runs_a_shipped_policy_from_the_test_starts(tmp_path, capsys):
     assert cli(["eval", "--pretrained", "ppo/lorenz-v0", "--starts", "test", "--out", str(tmp_path), "--no-gif"]) == 0
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert "the test starts" in line and (tmp_path / "ppo" / "lorenz-v0-diagnostics.png").is_file()
+
+
+def test_a_recipe_trains_from_the_train_starts_and_refuses_the_held_out_ones(tmp_path, capsys):
+    from beacon_torch.training.config import PPOConfig, configure, parse
+    from beacon_torch.training.env import recipe_env
+    from beacon_torch.training.run import load_checkpoint
+    from recipes import ppo
+
+    tiny = dict(frames=200, n_rollout=200, num_envs=4, epochs=1, progress=False, out=str(tmp_path))
+    cfg = configure(PPOConfig, "lorenz-v0", starts="train", **tiny)
+    env = recipe_env(cfg, None)
+    pool = starts.states(env.base_env, "train")
+    env.reset()
+    assert env.base_env.starts == "train"
+    assert all(bool((pool.xyz == row).all(-1).any()) for row in env.base_env.state.xyz)
+    ppo.main(cfg)
+    assert load_checkpoint(tmp_path)["config"]["starts"] == "train"
+    for held_out in ("validation", "test"):
+        with pytest.raises(SystemExit):
+            parse(PPOConfig, ["--env", "lorenz-v0", "--starts", held_out])
+        assert "--starts" in capsys.readouterr().err

@@ -141,6 +141,12 @@ class Config:
         f"random steps whose observations set a normalisation (0: raw observations, as the paper's "
         f"agents saw them; {NORM_STEPS} reach past every env's start-up)",
     )
+    starts: str = setting(
+        "",
+        "start the training episodes from the train set of developed states (beacon_torch.starts; "
+        "'': the env's own start, the paper's)",
+        ("", "train"),
+    )
     device: str = setting("cpu", "torch device of the env and the networks")
     out: str = setting("", "run directory")
     resume: bool = setting(False, "continue the run in OUT from its checkpoint to FRAMES")

@@ -88,6 +88,7 @@ def recipe_env(cfg, norm: dict | None, **options) -> TransformedEnv:
         norm_steps=cfg.norm_steps,
         compile=cfg.compile,
         params=cfg.params,
+        starts=cfg.starts or None,
         **options,
     )
 
@@ -138,6 +139,7 @@ def make_collector(
             norm=env.transform[0].state_dict(),
             dtype=base.dtype,
             compile=base.kernels.options or False,
+            starts=base.starts,
             **(params or {}),
         )
         for k in range(collectors)
