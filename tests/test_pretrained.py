@@ -139,6 +139,11 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     assert row["uncontrolled"] == checkpoint["uncontrolled"]
     assert abs(row["score"] - checkpoint["score_mean"]) <= 1e-4 * max(1.0, abs(checkpoint["score_mean"]))
     assert row["normalised"] == pytest.approx((row["score"] - row["uncontrolled"]) / (38 - row["uncontrolled"]))
+    # and from the test set's developed starts, beside no control from the same states
+    held_out = evaluate_run(shipped, num_envs=8, starts="test")
+    assert row["test_uncontrolled"] == held_out["uncontrolled"] != row["uncontrolled"]
+    assert abs(row["test_score"] - held_out["score_mean"]) <= 1e-4 * max(1.0, abs(held_out["score_mean"]))
+    assert "test starts" in text
     # --changed keeps the row of a policy shipped as it was, and evaluates it again once
     # it is shipped anew
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
