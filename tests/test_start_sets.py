@@ -11,7 +11,7 @@ from beacon_torch import starts
 from beacon_torch.cli import main as cli
 
 
-@pytest.mark.parametrize("env_id", ["lorenz-v0", "burgers-v0"])
+@pytest.mark.parametrize("env_id", ["lorenz-v0", "vortex-v0", "burgers-v0", "sloshing-v0"])
 def test_a_start_is_where_the_uncontrolled_env_of_the_sets_seed_stands_after_its_offset(env_id):
     seed, size, _ = starts.SETS["test"]
     env = beacon_torch.make(env_id, size, dtype="float64", starts="test")
