@@ -350,7 +350,7 @@ def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None 
     summary = summary_of(root, num_envs=num_envs, progress=progress)
     images = Path(images) if images is not None else root
     images.mkdir(parents=True, exist_ok=True)
-    png = plot_runs([root], images / f"{root.name}.png")
+    png = plot_runs([root], images / f"{root.name}.png", progress=progress)
     summary["png"] = str(png.resolve())
     write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
