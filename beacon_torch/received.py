@@ -98,7 +98,11 @@ def _entries(path: Path, size: int, what: str) -> dict[str, int]:
                 if end > size:
                     raise BadFile(f"{path}: its entry {name!r} reaches past the end of the file ({end:,} > {size:,})")
                 sizes[name] = info.file_size
-    except zipfile.BadZipFile as err:
+    except BadFile:
+        raise
+    # zipfile's own errors on a damaged directory: a bad archive, an entry name that is
+    # not UTF-8, a method it cannot read, a field out of range
+    except (zipfile.BadZipFile, UnicodeDecodeError, NotImplementedError, struct.error, ValueError, EOFError) as err:
         raise BadFile(f"{path}: not a {what} (not the archive torch.save writes: {_first_line(err)})") from None
     pickles = [name for name in sizes if name.endswith("/data.pkl") or name == "data.pkl"]
     if len(pickles) != 1:
