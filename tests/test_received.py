@@ -166,8 +166,6 @@ def test_any_damage_to_a_policy_file_is_one_clear_error_or_a_sound_policy(tmp_pa
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-# an entry name made invalid UTF-8 (zipfile's UnicodeDecodeError named no file)
-@example(edits=[(22615, 128)], cut=None)
 @given(
     shapes=st.dictionaries(
         st.sampled_from(["h", "q", "x"]), st.lists(st.integers(0, 3000), min_size=0, max_size=2), max_size=3
