@@ -236,6 +236,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     _as_device(args.device)  # before a policy is moved there
     if (args.run is None) == (args.pretrained is None):
         raise CliError("eval takes a run directory or --pretrained ALGO/ENV, one of the two")
+    starts = None if args.starts == "own" else args.starts
     if args.pretrained is not None:
         from beacon_torch import pretrained
 
@@ -254,7 +255,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             num_envs=args.num_envs,
             device=args.device,
             params=params,
-            starts=args.starts,
+            starts=starts,
             progress=True,
             **views,
         )
@@ -265,16 +266,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
         _threads(args, load_checkpoint(seed_dirs(args.run)[0])["env"], args.num_envs)
         for run in seed_dirs(args.run):
             views = _views(args, None, run, "", "")
-            r = evaluate_run(
-                run, num_envs=args.num_envs, device=args.device, starts=args.starts, progress=True, **views
-            )
+            r = evaluate_run(run, num_envs=args.num_envs, device=args.device, starts=starts, progress=True, **views)
             runs.append((str(run), r, f"trained on {r['frames']} transitions"))
     for name, r, trained in runs:
         written = [f"{what} {r[key]}" for key, what in VIEWS.items() if key in r]
         print(
             f"{r['env']} {name}: score {r['score_mean']:.6g} {_spread(r['score_std'], args.num_envs)} "
             f"(uncontrolled {r['uncontrolled']:.6g}; {trained}"
-            + (f"; the {r['starts']} starts" if r["starts"] else "")
+            + (f"; the {r['starts']} set's starts" if r["starts"] else "; the env's own start")
             + ")"
             + "".join(f"; {w}" for w in written)
         )
@@ -330,7 +329,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     md, numbers, png = outputs(args.out, "runs/report", "report.md", "report.json", "report.png")
     _threads(args, None, 8)  # the evaluations of runs without a summary
-    result = report(args.runs, md, numbers, png, progress=True)
+    result = report(args.runs, md, numbers, png, starts=args.starts, progress=True)
     print(result["table"])
     print(f"\ntable: {md}, numbers: {numbers}\nfigure: {png}")
     return 0
@@ -420,8 +419,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--num-envs", type=int, default=8, help="evaluation episodes (one batch)")
     ev.add_argument(
         "--starts",
-        choices=("train", "validation", "test"),
-        help="start the episodes from this set of developed states (beacon_torch.starts; default: the env's own start)",
+        choices=("test", "validation", "train", "own"),
+        default="test",
+        help="the episodes: from a set of developed states (beacon_torch.starts), one per episode, or 'own': "
+        "the env's own start, the paper's episodes (default: test, states no training started from)",
     )
     ev.add_argument("--device", default="cpu")
     ev.add_argument("--no-gif", action="store_true", help="no animation of the controlled episode")
@@ -441,6 +442,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rp.add_argument(
         "--out", help="where report.md, report.json and report.png go, new files (default runs/report, free names)"
+    )
+    rp.add_argument(
+        "--starts",
+        choices=("test", "own"),
+        default="test",
+        help="score the seeds on the test set's developed starts or on the env's own start (default: test; "
+        "summaries recorded without test-set scores give their own start's, marked)",
     )
     rp.set_defaults(func=cmd_report)
     return parser

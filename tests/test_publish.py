@@ -66,6 +66,9 @@ def forged(pair, tmp_path, change) -> tuple:
         (lambda s: s["seeds"][1].update(frames=10**9), "seed1's frames 1000000000 is not what its checkpoint"),
         (lambda s: s["seeds"].pop(), "its seeds \\['seed0'\\] are not the run's"),
         (lambda s: s.update(eval_mean=5.0), "its eval_mean 5.0 is not what its seeds give"),
+        (lambda s: s["seeds"][1].update(test=1e6), "seed1's test 1000000.0 is not what its checkpoint gives"),
+        (lambda s: s["seeds"][0].pop("test"), "not a summary of trained seeds \\(test-set scores must be finite"),
+        (lambda s: s.update(test_uncontrolled=0.0), "its test_uncontrolled 0.0 is not what its seeds give"),
     ],
 )
 def test_a_forged_summary_is_refused_and_the_repository_left_alone(pair, repo, tmp_path, change, words):
@@ -107,13 +110,28 @@ TRUE = {
     "train_mean": -1.7,
     "wall_s_per_seed": 12.0,
     "uncontrolled": -2.1,
+    "test_mean": -1.8,
+    "test_uncontrolled": -2.4,
     "seeds": [
         {"seed": "seed0", "frames": 400, "eval": -1.4, "train_tail": -1.6, "uncontrolled": -2.1, "wall_s": 11.0},
         {"seed": "seed1", "frames": 400, "eval": -1.6, "train_tail": -1.8, "uncontrolled": -2.1, "wall_s": 13.0},
     ],
 }
-FIELDS = ["algo", "env", "frames", "eval_mean", "train_mean", "wall_s_per_seed", "uncontrolled", "seeds"]
-SEED_FIELDS = ["seed", "frames", "eval", "train_tail", "uncontrolled", "wall_s"]
+for seed, test in zip(TRUE["seeds"], (-1.7, -1.9), strict=True):
+    seed.update(test=test, test_uncontrolled=-2.4)
+FIELDS = [
+    "algo",
+    "env",
+    "frames",
+    "eval_mean",
+    "train_mean",
+    "wall_s_per_seed",
+    "uncontrolled",
+    "test_mean",
+    "test_uncontrolled",
+    "seeds",
+]
+SEED_FIELDS = ["seed", "frames", "eval", "train_tail", "uncontrolled", "wall_s", "test", "test_uncontrolled"]
 VALUES = st.one_of(
     st.none(),
     st.booleans(),

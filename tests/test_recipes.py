@@ -813,8 +813,10 @@ def test_the_protocol_is_rliables_from_scipy_on_the_recorded_runs():
     from beacon_torch.training import report
 
     files = sorted((ROOT / "docs" / "results").glob("*/*.json"))
-    rows = [report.row(s) for s in report.summaries(files)]
-    for r in rows:
+    summaries = report.summaries(files)
+    rows = [report.row(s, "own") for s in summaries]  # every pair on the paper's episodes
+    held = [report.row(s, "test") for s in summaries if report.held_out(s)]
+    for r in rows + held:
         x = np.array(r["normalised"])
         assert r["iqm"] == stats.trim_mean(x, 0.25)
         ci = stats.bootstrap(
@@ -825,7 +827,9 @@ def test_the_protocol_is_rliables_from_scipy_on_the_recorded_runs():
             rng=np.random.default_rng(0),
         ).confidence_interval
         assert r["ci"] == (ci.low, ci.high)
-    assert report.table(rows) in (ROOT / "docs" / "results.md").read_text()
+    page = (ROOT / "docs" / "results.md").read_text()
+    assert report.table(rows) in page and (not held or report.table(held) in page)
+    assert all(r["episodes"] == "test" for r in held)
 
 
 def test_report_normalises_scores_and_bounds_their_interquartile_mean(tmp_path, capsys):
@@ -851,9 +855,24 @@ def test_report_normalises_scores_and_bounds_their_interquartile_mean(tmp_path, 
     file.write_text(__import__("json").dumps(summary))
     assert cli(["report", str(file), "--out", str(tmp_path / "report")]) == 0
     text = capsys.readouterr().out
+    # recorded without test-set scores: its own start, and the row says so
     assert (
-        "| sloshing-v0 | ppo | 3 | **0.50** [" in text and (tmp_path / "report" / "report.png").stat().st_size > 5_000
+        "| sloshing-v0 | ppo | own start | 3 | **0.50** [" in text
+        and (tmp_path / "report" / "report.png").stat().st_size > 5_000
     )
+    # with them, the test set by default: 0 at no control from the same states
+    # (-2.6), 1 at the paper's PPO (-1.1); --starts own gives the paper's episodes
+    held = dict(summary, test_uncontrolled=-2.6)
+    held["seeds"] = [{"eval": e, "test": t} for e, t in ((-1.1, -1.9), (-1.6, -2.3), (-2.1, -2.0))]
+    file.write_text(__import__("json").dumps(held))
+    assert cli(["report", str(file), "--out", str(tmp_path / "test")]) == 0
+    assert "| sloshing-v0 | ppo | test set | 3 | **0.36** [0.20, 0.47] | -2.067 (-1.9, -2.3, -2) | -2.6 |" in (
+        capsys.readouterr().out
+    )
+    assert cli(["report", str(file), "--starts", "own", "--out", str(tmp_path / "own")]) == 0
+    assert "| sloshing-v0 | ppo | own start | 3 | **0.50** [" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="starts must be one of test, own"):
+        report.row(held, "validation")
 
 
 def test_a_checkpoint_whose_pickle_runs_code_is_refused_unrun(tmp_path, capsys):

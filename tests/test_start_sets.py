@@ -78,10 +78,22 @@ def test_start_sets_refuse_what_they_cannot_hold():
         env.reset()
 
 
-def test_eval_runs_a_shipped_policy_from_the_test_starts(tmp_path, capsys):
-    assert cli(["eval", "--pretrained", "ppo/lorenz-v0", "--starts", "test", "--out", str(tmp_path), "--no-gif"]) == 0
+def test_eval_runs_a_shipped_policy_from_the_test_starts_by_default(tmp_path, capsys):
+    from beacon_torch import pretrained
+    from beacon_torch.training.evaluation import evaluate_policy
+
+    assert cli(["eval", "--pretrained", "ppo/lorenz-v0", "--out", str(tmp_path), "--no-gif"]) == 0
     line = capsys.readouterr().out.strip().splitlines()[-1]
-    assert "the test starts" in line and (tmp_path / "ppo" / "lorenz-v0-diagnostics.png").is_file()
+    assert "the test set's starts" in line and (tmp_path / "ppo" / "lorenz-v0-diagnostics.png").is_file()
+    held_out = evaluate_policy("lorenz-v0", pretrained.load("ppo/lorenz-v0"), starts="test")
+    assert f"score {held_out['score_mean']:.6g}" in line and f"uncontrolled {held_out['uncontrolled']:.6g}" in line
+    assert (
+        cli(["eval", "--pretrained", "ppo/lorenz-v0", "--starts", "own", "--out", str(tmp_path / "own"), "--no-gif"])
+        == 0
+    )
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    own = evaluate_policy("lorenz-v0", pretrained.load("ppo/lorenz-v0"))
+    assert "the env's own start" in line and f"score {own['score_mean']:.6g}" in line
 
 
 def test_a_recipe_trains_from_the_train_starts_and_refuses_the_held_out_ones(tmp_path, capsys):

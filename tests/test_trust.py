@@ -444,23 +444,29 @@ def test_a_tampered_replay_buffer_is_named(tmp_path):
         td3.main(configure(TD3Config, "vortex-v0", out=str(run), resume=True, **{**TD3, "frames": 384}))
 
 
-SUMMARY_KEYS = ["env", "algo", "seeds", "uncontrolled", "frames", "wall_s_per_seed", "train_mean"]
+SUMMARY_KEYS = ["env", "algo", "seeds", "uncontrolled", "frames", "wall_s_per_seed", "train_mean", "test_uncontrolled"]
 
 
 @settings(max_examples=150, deadline=None)
 @given(
     key=st.sampled_from(SUMMARY_KEYS),
-    value=st.one_of(JUNK, st.lists(st.fixed_dictionaries({"eval": JUNK}), max_size=2)),
+    value=st.one_of(
+        JUNK,
+        st.lists(st.fixed_dictionaries({"eval": JUNK}), max_size=2),
+        st.lists(st.fixed_dictionaries({"eval": JUNK, "test": JUNK}), max_size=2),
+    ),
+    held_out=st.booleans(),
 )
-def test_any_forged_summary_field_is_one_clear_error(key, value):
-    summary = {**summary_of(train_mean=-1.5), key: value}
+def test_any_forged_summary_field_is_one_clear_error(key, value, held_out):
+    summary = {**summary_of(train_mean=-1.5, **(TEST_SCORES if held_out else {})), key: value}
     try:
         report.check_summary(summary, "forged.json")
     except ValueError as err:
         assert str(err).startswith("forged.json: not a summary of trained seeds (")
-    else:  # what passes is scored without error or NaN
-        norm = report.normalised([s["eval"] for s in summary["seeds"]], summary["uncontrolled"], summary["env"])
-        assert np.isfinite(report.iqm(norm))
+    else:  # what passes is scored without error or NaN, on either set of episodes
+        for starts in report.EPISODES:
+            row = report.row(summary, starts)
+            assert np.isfinite(row["iqm"]) and np.isfinite(row["ci"]).all()
 
 
 # ---------------------------------------------------------------- no NaN as a result
@@ -535,10 +541,20 @@ def summary_of(**changes):
     return {**summary, **changes}
 
 
+# a summary's scores on the test set's starts, as summarise records them
+TEST_SCORES = dict(
+    seeds=[{"eval": e, "test": t} for e, t in ((-1.1, -1.9), (-1.6, -2.3), (-2.1, -2.0))], test_uncontrolled=-2.6
+)
+
+
 @pytest.mark.parametrize(
     "change, words",
     [
         (dict(seeds=[]), "at least one seed"),
+        (dict(TEST_SCORES, test_uncontrolled=float("nan")), "test-set scores must be finite"),
+        (dict(seeds=TEST_SCORES["seeds"]), "test-set scores must be finite"),
+        (dict(TEST_SCORES, seeds=[{"eval": -1.1, "test": None}]), "test-set scores must be finite"),
+        (dict(TEST_SCORES, test_uncontrolled=-1.1), "test-set uncontrolled score equals the reference"),
         (dict(seeds=None), "at least one seed"),
         (dict(seeds=[{"eval": float("nan")}]), "finite 'eval'"),
         (dict(seeds=[{"eval": float("inf")}]), "finite 'eval'"),

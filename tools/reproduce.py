@@ -29,7 +29,7 @@ import math
 import os
 from pathlib import Path
 
-from beacon_torch import files, pretrained, received
+from beacon_torch import files, pretrained, received, threads
 from beacon_torch.cli import find_user_modules
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
@@ -125,9 +125,9 @@ def recorded_budget(algo: str, env_id: str, recorded: Path = RECORDED) -> int:
 # what publish compares between a summary and its re-evaluation: the pair, the seeds
 # and their transitions exactly, scores and times to float rounding
 EXACT = ("algo", "env", "frames")
-CLOSE = ("eval_mean", "train_mean", "wall_s_per_seed", "uncontrolled")
+CLOSE = ("eval_mean", "train_mean", "wall_s_per_seed", "uncontrolled", "test_mean", "test_uncontrolled")
 PER_SEED_EXACT = ("seed", "frames")
-PER_SEED_CLOSE = ("eval", "train_tail", "uncontrolled", "wall_s")
+PER_SEED_CLOSE = ("eval", "train_tail", "uncontrolled", "wall_s", "test", "test_uncontrolled")
 
 
 def _same(a, b) -> bool:
@@ -217,7 +217,15 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     recorded summary, the PPO floors, and the curves."""
     summaries = [read_summary(f) for f in sorted(recorded.glob("*/*.json"))]
     names = [images / f"report.{suffix}" for suffix in ("md", "json", "png")]
-    rows = report.report(sorted(recorded.glob("*/*.json")), *names, replace=True)
+    # every pair on the paper's episodes, where all are recorded and comparable
+    rows = report.report(sorted(recorded.glob("*/*.json")), *names, starts="own", replace=True)
+    held = [report.row(s, "test") for s in summaries if report.held_out(s)]
+    test_table = (
+        "On the held-out test set's 8 developed starts (one episode each; 0 = no control from "
+        "the same states, 1 = the paper's PPO on its own start), the pairs recorded with them:\n\n" + report.table(held)
+        if held
+        else "No recorded pair has test-set scores yet."
+    )
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = [
         "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "
@@ -234,7 +242,13 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
             )
     curves = ", ".join(f"[{s['algo']}/{s['env']}]({rel(images / s['algo'] / (s['env'] + '.png'))})" for s in summaries)
     return "\n\n".join(
-        [f"![normalised scores]({rel(rows['png'])})", rows["table"], "\n".join(floors), f"Curves: {curves}."]
+        [
+            f"![normalised scores]({rel(rows['png'])})",
+            rows["table"],
+            test_table,
+            "\n".join(floors),
+            f"Curves: {curves}.",
+        ]
     )
 
 
@@ -242,6 +256,12 @@ def write_results_page(recorded: Path, page: Path, images: Path) -> Path:
     """Write the generated part between the markers of the results page (appended when
     they are missing)."""
     return report.write_block(page, BEGIN, END, results_block(recorded, page, images))
+
+
+def evaluation_threads(given: int | None, root: str | Path, batch: int) -> None:
+    """Torch's threads for evaluating the pair ``root``: ``given``, else the count
+    measured fastest for its env at the evaluation's batch."""
+    threads.use(given, load_checkpoint(seed_dirs(root)[0])["env"], batch)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -277,6 +297,10 @@ def main(argv: list[str] | None = None) -> None:
     )
     pu.add_argument("pairs", nargs="+", help="summarised run directories, e.g. runs/results/ppo/burgers-v0")
     pu.add_argument("--doc", default=str(ROOT / "docs" / "results.md"), help="the results page to write")
+    for evaluating in (su, pu):
+        evaluating.add_argument(
+            "--threads", type=positive, help="torch threads of the evaluations (default: the env's measured fastest)"
+        )
     page = sub.add_parser("page", help="write docs/results.md from the recorded summaries (docs/results/)")
     page.add_argument("--doc", default=str(ROOT / "docs" / "results.md"), help="the results page to write")
     args = parser.parse_args(argv)
@@ -285,6 +309,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if args.command == "summarise":
             for root in args.pairs:
+                evaluation_threads(args.threads, root, args.eval_episodes)
                 summarise(root, num_envs=args.eval_episodes)
             return
         if args.command == "train":
@@ -307,6 +332,7 @@ def main(argv: list[str] | None = None) -> None:
             return
         if args.command == "publish":
             for root in args.pairs:
+                evaluation_threads(args.threads, root, 8)
                 print(f"published {root}: {publish(Path(root))}")
         print(write_results_page(RECORDED, Path(args.doc), IMAGES))
     except (ValueError, OSError) as err:

@@ -17,12 +17,16 @@ import beacon_torch
 from beacon_torch import episodes, received
 from beacon_torch.base import _as_device
 from beacon_torch.files import save_figure, write_text
+from beacon_torch.starts import SETS
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import CHECKPOINT, BadRun, load_checkpoint, read_log, seed_dirs
 
 # the seed of the evaluation episodes: every evaluation of an env sees the same episodes
 EVAL_SEED = 12345
+# the start set a summary and the commands judge a policy on by default: developed
+# states the policy never started from in training (beacon_torch.starts)
+HELD_OUT = "test"
 
 
 def _episode(env, policy, *, frames: bool, title: str | None):
@@ -299,10 +303,13 @@ def _uncontrolled(env_id: str, progress: bool = True) -> float:
 
 def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -> dict:
     """A run directory's results, from its checkpoints and logs alone: per seed, the
-    deterministic policy's score on ``num_envs`` fresh episodes and the mean score of
-    the training episodes that ended in the last tenth of the transitions; their mean
-    and spread over the seeds; transitions and wall time (what the checkpoints
-    record). Every seed must be a run of the same algorithm on the same env."""
+    deterministic policy's score on ``num_envs`` episodes from the env's own start (the
+    paper's episodes, ``eval``), on the held-out test set's developed starts (``test``,
+    one episode per state) and the mean score of the training episodes that ended in
+    the last tenth of the transitions, each beside no control on the same episodes;
+    their mean and spread over the seeds; transitions and wall time (what the
+    checkpoints record). Every seed must be a run of the same algorithm on the same
+    env."""
     root = Path(root)
     seeds = seed_dirs(root)
     per_seed, pairs = [], set()
@@ -310,6 +317,7 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
         state = load_checkpoint(run)
         pairs.add((state["algo"], state["env"]))
         ev = evaluate_run(run, num_envs=num_envs, gif=None, progress=progress)
+        held = evaluate_run(run, num_envs=SETS[HELD_OUT][1], starts=HELD_OUT, progress=progress)
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
         per_seed.append(
@@ -320,12 +328,15 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
                 "eval": ev["score_mean"],
                 "train_tail": float(tail.mean()) if len(tail) else float("nan"),
                 "uncontrolled": ev["uncontrolled"],
+                "test": held["score_mean"],
+                "test_uncontrolled": held["uncontrolled"],
             }
         )
     if len(pairs) > 1:
         raise ValueError(f"{root}: its seeds are runs of several pairs ({', '.join(sorted(map('/'.join, pairs)))})")
     evals = np.array([s["eval"] for s in per_seed])
     tails = np.array([s["train_tail"] for s in per_seed])
+    tests = np.array([s["test"] for s in per_seed])
     return {
         "algo": state["algo"],
         "env": state["env"],
@@ -338,6 +349,9 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
         "frames": int(min(s["frames"] for s in per_seed)),
         "wall_s_per_seed": float(np.mean([s["wall_s"] for s in per_seed])),
         "uncontrolled": per_seed[0]["uncontrolled"],
+        "test_mean": float(tests.mean()),
+        "test_std": float(tests.std()),
+        "test_uncontrolled": per_seed[0]["test_uncontrolled"],
         "num_envs": num_envs,
         "threads": torch.get_num_threads(),
     }
@@ -355,6 +369,8 @@ def summarise(root: str | Path, *, num_envs: int = 8, images: str | Path | None 
     write_text(root / "summary.json", json.dumps(summary, indent=1))
     print(
         f"{summary['algo']}/{summary['env']}: eval {summary['eval_mean']:.4g} +- {summary['eval_std']:.3g}, "
+        f"test starts {summary['test_mean']:.4g} +- {summary['test_std']:.3g} "
+        f"(uncontrolled {summary['test_uncontrolled']:.4g}), "
         f"training tail {summary['train_mean']:.4g} over {len(summary['seeds'])} "
         f"seed{'s' if len(summary['seeds']) > 1 else ''}, {summary['frames']} "
         f"transitions, {summary['wall_s_per_seed']:.0f} s per seed"

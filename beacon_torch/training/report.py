@@ -3,10 +3,14 @@ seed's deterministic policy (0 = no control on the same episodes, 1 = the score 
 paper's PPO reaches), their interquartile mean over the seeds and its bootstrap 95 %
 confidence interval, as a table and a figure.
 
-The evaluation episodes are fixed: ``evaluation.EVAL_SEED`` seeds the env, 8 members
-by default, float32 as in training. ``beacon-torch report RUN_DIRS...`` reads the
-``summary.json`` of each run directory (``evaluation.summarise`` writes it; a
-directory without one is summarised first).
+The evaluation episodes are fixed: by default the 8 developed states of the held-out
+test set (``beacon_torch.starts``), one episode each, beside no control from the same
+states; with ``starts="own"`` the env's own start (the paper's episodes),
+``evaluation.EVAL_SEED`` seeding 8 members; float32 as in training. 1 stays the paper's
+PPO score, measured on its own start. A summary recorded before its seeds were scored
+on the test set gives a row on its own start, marked so. ``beacon-torch report
+RUN_DIRS...`` reads the ``summary.json`` of each run directory
+(``evaluation.summarise`` writes it; a directory without one is summarised first).
 """
 
 from __future__ import annotations
@@ -62,16 +66,32 @@ def bootstrap_interval(values, resamples: int = BOOTSTRAP, seed: int = 0) -> tup
     return float(result.confidence_interval.low), float(result.confidence_interval.high)
 
 
-def row(summary: dict) -> dict:
-    """The protocol's numbers of one (env, algorithm) summary."""
+# which episodes a row scores: the held-out test set's developed starts, or the env's own
+# start (the paper's episodes, where its PPO reference was measured)
+EPISODES = {"test": "test set", "own": "own start"}
+
+
+def held_out(summary: dict) -> bool:
+    """Whether ``summary`` records its seeds' scores on the test set."""
+    return "test_uncontrolled" in summary and all("test" in s for s in summary["seeds"])
+
+
+def row(summary: dict, starts: str = "test") -> dict:
+    """The protocol's numbers of one (env, algorithm) summary, on the episodes
+    ``starts`` names (:data:`EPISODES`); a summary recorded before its seeds were
+    scored on the test set is scored on its own start, and the row says so."""
+    if starts not in EPISODES:
+        raise ValueError(f"starts must be one of {', '.join(EPISODES)}, got {starts!r}")
     env_id = summary["env"]
-    scores = [s["eval"] for s in summary["seeds"]]
-    uncontrolled = summary["uncontrolled"]
+    test = starts == "test" and held_out(summary)
+    scores = [s["test"] if test else s["eval"] for s in summary["seeds"]]
+    uncontrolled = summary["test_uncontrolled"] if test else summary["uncontrolled"]
     norm = normalised(scores, uncontrolled, env_id)
     low, high = bootstrap_interval(norm)
     return {
         "env": env_id,
         "algo": summary["algo"],
+        "episodes": "test" if test else "own",
         "seeds": len(scores),
         "scores": scores,
         "uncontrolled": uncontrolled,
@@ -107,6 +127,10 @@ def check_summary(summary, file: str | Path) -> dict:
         or not all(isinstance(s, dict) and finite(s.get("eval")) for s in seeds)
     ):
         raise bad("'seeds' must list at least one seed, each with a finite 'eval' score")
+    if ("test_uncontrolled" in summary or any("test" in s for s in seeds)) and not (
+        finite(summary.get("test_uncontrolled")) and all(finite(s.get("test")) for s in seeds)
+    ):
+        raise bad("test-set scores must be finite numbers, one per seed, with a finite 'test_uncontrolled'")
     for key in ("uncontrolled", "frames", "wall_s_per_seed"):
         if not finite(summary.get(key)) or summary[key] < 0 and key != "uncontrolled":
             raise bad(f"{key!r} must be a finite number, got {_short(summary.get(key))}")
@@ -118,10 +142,16 @@ def check_summary(summary, file: str | Path) -> dict:
         raise bad(f"'train_mean' must be finite, got {_short(summary['train_mean'])}")
     if summary["uncontrolled"] == reference(summary["env"]):
         raise bad(f"its uncontrolled score equals the reference {reference(summary['env'])}: no scale to normalise by")
+    pairs = [([s["eval"] for s in seeds], summary["uncontrolled"])]
+    if held_out(summary):
+        if summary["test_uncontrolled"] == reference(summary["env"]):
+            raise bad("its test-set uncontrolled score equals the reference: no scale to normalise by")
+        pairs.append(([s["test"] for s in seeds], summary["test_uncontrolled"]))
     with np.errstate(over="ignore", invalid="ignore"):
-        norm = normalised([s["eval"] for s in seeds], summary["uncontrolled"], summary["env"])
-        if not np.isfinite(norm).all() or not np.isfinite(np.abs(norm).sum()):
-            raise bad("its scores are too far from the uncontrolled one to normalise in floating point")
+        for scores, uncontrolled in pairs:
+            norm = normalised(scores, uncontrolled, summary["env"])
+            if not np.isfinite(norm).all() or not np.isfinite(np.abs(norm).sum()):
+                raise bad("its scores are too far from the uncontrolled one to normalise in floating point")
     return summary
 
 
@@ -168,15 +198,15 @@ def _fixed(x: float) -> str:
 
 def table(rows: list[dict]) -> str:
     lines = [
-        "| env | algorithm | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | "
+        "| env | algorithm | episodes | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | "
         "uncontrolled | paper's PPO (= 1) | transitions | wall time per seed |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: (r["algo"], r["env"])):
         per_seed = ", ".join(f"{s:.4g}" for s in r["scores"])
         lines.append(
-            f"| {r['env']} | {r['algo']} | {r['seeds']} | **{_fixed(r['iqm'])}** [{_fixed(r['ci'][0])}, "
-            f"{_fixed(r['ci'][1])}] | {r['score_iqm']:.4g} ({per_seed}) "
+            f"| {r['env']} | {r['algo']} | {EPISODES[r['episodes']]} | {r['seeds']} | "
+            f"**{_fixed(r['iqm'])}** [{_fixed(r['ci'][0])}, {_fixed(r['ci'][1])}] | {r['score_iqm']:.4g} ({per_seed}) "
             f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
         )
     return "\n".join(lines)
@@ -200,7 +230,8 @@ def figure(rows: list[dict], path: str | Path) -> Path:
         ax.scatter(r["normalised"], [k] * len(r["normalised"]), s=8, color=color, alpha=0.4)
     ax.axvline(0.0, color="k", ls="--", lw=1, label="uncontrolled")
     ax.axvline(1.0, color="k", ls=":", lw=1, label="the paper's PPO")
-    ax.set_yticks(range(len(rows)), [f"{r['algo']} {r['env']}" for r in rows], fontsize=8)
+    labels = [f"{r['algo']} {r['env']}" + (" (own start)" if r["episodes"] == "own" else "") for r in rows]
+    ax.set_yticks(range(len(rows)), labels, fontsize=8)
     ax.set_xlabel("normalised score (IQM over seeds, 95 % bootstrap interval; dots: seeds)")
     ax.grid(alpha=0.3, axis="x")
     # beside the axes, where it covers no point
@@ -211,12 +242,20 @@ def figure(rows: list[dict], path: str | Path) -> Path:
 
 
 def report(
-    run_dirs, md: str | Path, numbers: str | Path, png: str | Path, *, replace: bool = False, progress: bool = False
+    run_dirs,
+    md: str | Path,
+    numbers: str | Path,
+    png: str | Path,
+    *,
+    starts: str = "test",
+    replace: bool = False,
+    progress: bool = False,
 ) -> dict:
     """The protocol's table (``md``), numbers (``numbers``, JSON) and figure (``png``)
-    of the run directories: new files, or with ``replace`` (the results page's own
-    generated files) in place of earlier ones."""
-    rows = [row(s) for s in summaries(run_dirs, progress)]
+    of the run directories, on the episodes ``starts`` names (:func:`row`): new files,
+    or with ``replace`` (the results page's own generated files) in place of earlier
+    ones."""
+    rows = [row(s, starts) for s in summaries(run_dirs, progress)]
     text = table(rows)
     for path in (md, numbers, png):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
