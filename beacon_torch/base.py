@@ -29,9 +29,9 @@ of one action, drawn from the env's generator: a dict of tensors, empty for
 deterministic physics) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
 
 Besides its physics a subclass declares its card, class attributes that say what the
-library knows of it (family, the published code's speed, the paper's PPO score, its
-gradient check, cheap settings for tests; see ``FlowEnv``), which benchmarks, reports
-and tests read instead of keeping lists of envs.
+library knows of it (family, cost, the published code's speed, the paper's PPO score,
+its gradient check, cheap settings for tests; see ``FlowEnv``), which benchmarks,
+reports and tests read instead of keeping lists of envs.
 
 Compiled, a whole step (the action's substeps, the reward, the observation and the
 blow-up bookkeeping) is one graph and one call, its substep loop a ``while_loop``
@@ -277,17 +277,21 @@ class FlowEnv(EnvBase):
     # The env's card: what the library knows of it beyond its equations, declared in its
     # module (a variant subclasses its base env and inherits it). Benchmarks, reports
     # and the test suite read it; nothing keeps a list of envs of its own.
-    # "ode", "1-D" or "cavity" (the 2-D cavities, whose actions cost seconds: tests and
-    # benchmarks run fewer of their steps)
+    # Facts an env does not have stay None: a user's env registers without them.
+    # what the env solves: "ode", "1-D" or "2-D" (a flow in one or two space dimensions)
     family: ClassVar[str]
+    # whether an action costs seconds rather than milliseconds: tests and benchmarks
+    # run fewer of its steps
+    costly: ClassVar[bool] = False
     # transitions per second of the published single-env NumPy/Numba code on one core
-    # of this project's Intel Xeon machine kind
-    published_speed: ClassVar[float]
+    # of this project's Intel Xeon machine kind (None: no published code is run here)
+    published_speed: ClassVar[float | None] = None
     # the speed-up over it aimed at, at the best batch size, float32, 2 CPU cores
-    speed_target: ClassVar[float]
+    speed_target: ClassVar[float | None] = None
     # the score the paper's PPO reaches, read from its curves as the mean of the last
-    # tenth of its training episodes (the 1 of the reports' normalised scores)
-    paper_ppo: ClassVar[float]
+    # tenth of its training episodes (the 1 of the reports' normalised scores; None:
+    # no paper score, and the protocol has nothing to normalise by)
+    paper_ppo: ClassVar[float | None] = None
     # the gradient check on the published settings (None where the actions are discrete)
     gradcheck: ClassVar[GradCheck | None] = None
     # parameters that make an episode cheap, for the behaviour tests run on every env

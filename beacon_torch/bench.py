@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import platform
 import resource
 import statistics
@@ -37,17 +36,17 @@ from beacon_torch.files import create_file, dated_name, refuse_existing, save_fi
 from beacon_torch.registry import env_class, make, qualified_id
 
 BATCH_SIZES = (1, 16, 64, 256, 1024)
-CAVITY_BATCH_SIZES = (1, 16, 32, 64)
+COSTLY_BATCH_SIZES = (1, 16, 32, 64)
 MAX_WARM_UP = 20  # steps; a step that still compiles after these shows in ``recompiles``
 
 
 def default_batch_sizes(env_id: str) -> tuple[int, ...]:
-    return CAVITY_BATCH_SIZES if env_class(env_id).family == "cavity" else BATCH_SIZES
+    return COSTLY_BATCH_SIZES if env_class(env_id).costly else BATCH_SIZES
 
 
 def default_steps(env_id: str) -> int:
-    """Timed steps per repeat: enough to dwarf the timer, few for the costly cavities."""
-    return 2 if env_class(env_id).family == "cavity" else 20
+    """Timed steps per repeat: enough to dwarf the timer, few for a costly env."""
+    return 2 if env_class(env_id).costly else 20
 
 
 @dataclass
@@ -167,7 +166,7 @@ def measure(
     peak = None
     if own_process:
         peak = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else _resident_mb()
-    published = known(env_class(env_id).published_speed)
+    published = env_class(env_id).published_speed
     return Measurement(
         env=env_id,
         batch=batch,
@@ -185,11 +184,6 @@ def measure(
         published_per_s=published,
         speedup=rate / published if published else None,
     )
-
-
-def known(value: float) -> float | None:
-    """A card's published speed or target, or None for an env beyond BEACON (NaN)."""
-    return value if value and math.isfinite(value) else None
 
 
 def measure_in_fresh_process(env_id: str, batch: int, **kwargs) -> Measurement:
@@ -407,7 +401,7 @@ def markdown(results: Sequence[Measurement]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for env_id, m in best(results).items():
-        target = known(env_class(env_id).speed_target)
+        target = env_class(env_id).speed_target
         # the target is for the best of the default batch sizes: judged only over them
         measured = {r.batch for r in results if r.env == env_id and r.dtype == "float32"}
         judged = set(default_batch_sizes(env_id)) <= measured

@@ -125,13 +125,9 @@ def _make(cls: type[FlowEnv], batch: int, **kwargs: Any) -> FlowEnv:
     return cls(batch, **{**cls.test_settings, **kwargs})
 
 
-def _cavity(cls: type[FlowEnv]) -> bool:
-    return cls.family == "cavity"
-
-
 def _steps(cls: type[FlowEnv]) -> int:
-    """Actions a check runs: a few of a cavity (seconds each), more elsewhere."""
-    return 3 if _cavity(cls) else 12
+    """Actions a check runs: a few of a costly env (seconds each), more elsewhere."""
+    return 3 if cls.costly else 12
 
 
 def _rollout(env: FlowEnv, actions: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -164,7 +160,7 @@ def check_specs(cls: type[FlowEnv]) -> None:
     from torchrl.data import Bounded, Categorical, Unbounded
     from torchrl.envs.utils import check_env_specs
 
-    for dtype in (torch.float32,) if _cavity(cls) else (torch.float32, F64):
+    for dtype in (torch.float32,) if cls.costly else (torch.float32, F64):
         for batch in (1, 4):
             with quiet_torchrl():  # its "check_env_specs succeeded!", once per call
                 check_env_specs(_make(cls, batch, dtype=dtype, seed=0), break_when_any_done="both")
@@ -219,7 +215,7 @@ def check_batch_invariance(cls: type[FlowEnv]) -> str | None:
     actions = _actions(three, _steps(cls), seed=5)
     alone = _rollout(one, [a[1:2] for a in actions])
     member = tuple(x[:, 1:2] for x in _rollout(three, actions))
-    if not _cavity(cls):
+    if not cls.costly:
         _same("member 1 of 3 and the same member alone", alone, member)
         return None
     for part, x, y in zip(("observations", "rewards", "terminations"), alone, member, strict=True):
@@ -289,7 +285,7 @@ def check_gradients(cls: type[FlowEnv]) -> str | None:
     case = dataclasses.replace(
         cls.gradcheck,
         params={**cls.test_settings, **cls.gradcheck.params},
-        steps=1 if _cavity(cls) else cls.gradcheck.steps,
+        steps=1 if cls.costly else cls.gradcheck.steps,
     )
     derivatives = dict(check_env(cls.env_id, case))
     defaults = {f.name: f for f in dataclasses.fields(cls.Params)}
@@ -326,7 +322,7 @@ def check_compile(cls: type[FlowEnv]) -> None:
     eager = _make(cls, 2, dtype=F64, seed=3)
     compiled = _make(cls, 2, dtype=F64, seed=3, compile=True)
     # a whole episode, but for the cavities (an eager cavity episode takes minutes)
-    actions = _actions(eager, 3 if _cavity(cls) else cls.episode_length, seed=1)
+    actions = _actions(eager, 3 if cls.costly else cls.episode_length, seed=1)
     for what, c, e in zip(
         ("observations", "rewards", "terminations"), _rollout(compiled, actions), _rollout(eager, actions), strict=True
     ):

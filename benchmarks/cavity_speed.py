@@ -24,7 +24,7 @@ from beacon_torch import episodes
 from beacon_torch.files import create_file, refuse_existing
 from beacon_torch.registry import ENVS, base_envs
 
-CAVITIES = [env_id for env_id in base_envs() if ENVS[env_id].family == "cavity"]
+CAVITIES = [env_id for env_id in base_envs() if ENVS[env_id].family == "2-D"]
 
 
 def substep_breakdown(env, repeats: int = 50) -> dict:
@@ -74,7 +74,7 @@ def main() -> None:
             "compile_s": compile_s,
             "episode_s": elapsed,
             "transitions_per_s": rate,
-            "vs_published": rate / published if published == published else None,
+            "vs_published": rate / published if published is not None else None,
             "substep_ms": 1e3 * elapsed / (env.episode_length * substeps),
             **substep_breakdown(env),
         }

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import fields
 
 import torch
 
@@ -38,7 +39,9 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for env_id in args.env_ids:
-        for solver in ("direct", "jacobi") if env_class(env_id).family == "cavity" else (None,):
+        # the envs with a choice of Poisson solver replay with each
+        solvers = ("direct", "jacobi") if "solver" in {f.name for f in fields(env_class(env_id).Params)} else (None,)
+        for solver in solvers:
             start = time.perf_counter()
             agreement = reference.replay(env_id, **({"solver": solver} if solver else {}))
             wall = time.perf_counter() - start

@@ -57,7 +57,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
-        seconds = args.seconds * (4 if env_class(env_id).family == "cavity" else 1)
+        seconds = args.seconds * (4 if env_class(env_id).costly else 1)
         for copies in args.copies:
             batched = rate(BeaconVecEnv(env_id, copies, seed=0), seconds)
             dummy = rate(

@@ -125,7 +125,7 @@ def main() -> None:
     rows = []
     for env_id in args.envs:
         for mode in args.modes:
-            seconds = args.seconds * (3 if env_class(env_id).family == "cavity" else 1)
+            seconds = args.seconds * (3 if env_class(env_id).costly else 1)
             r = measure(env_id, mode == "compiled", seconds, args.repeats)
             rows.append(r)
             print(

@@ -26,7 +26,7 @@ DISCRETE_ENVS = [e for e in ALL_ENVS if ENVS[e].discrete]
 DETERMINISTIC_ENVS = [e for e in ALL_ENVS if ENVS[e].deterministic]
 # the 2-D cavities take tens of seconds an episode: their whole episodes are run by
 # test_scores.py, the behaviour tests that need whole episodes run on the others
-EXPENSIVE_ENVS = {e for e in ALL_ENVS if ENVS[e].family == "cavity"}
+EXPENSIVE_ENVS = {e for e in ALL_ENVS if ENVS[e].costly}
 CHEAP_ENVS = [e for e in ALL_ENVS if e not in EXPENSIVE_ENVS]
 # the cheaper settings each env declares for the behaviour tests run on every env (the
 # published numbers are checked with the defaults in test_scores.py)

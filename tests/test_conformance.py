@@ -71,6 +71,27 @@ def test_the_worked_example_passes_every_check(example):
     assert env.reset(seed=0)[0].shape == (4,)
 
 
+def test_an_env_without_published_facts_registers_benches_and_is_refused_by_the_protocol(example, tmp_path):
+    """The example has no published code and no paper: its card says so (None), the
+    benchmark gives its rate without a factor over published code, and the protocol,
+    which normalises by a paper score, refuses it in one line instead of inventing one."""
+    import json
+
+    from beacon_torch import bench
+    from beacon_torch.training import report
+
+    cls = example.HeatEnv
+    assert (cls.published_speed, cls.speed_target, cls.paper_ppo, cls.costly) == (None, None, None, False)
+    measured = bench.measure("heat-v0", 4, steps=2, repeats=1)
+    assert measured.transitions_per_s > 0 and measured.published_per_s is None and measured.speedup is None
+    assert "| heat-v0 |" in bench.markdown([measured]) and "| - | - |  |" in bench.markdown([measured])
+    summary = {"env": "heat-v0", "algo": "ppo", "uncontrolled": -1.0, "frames": 10, "wall_s_per_seed": 1.0}
+    file = tmp_path / "summary.json"
+    file.write_text(json.dumps({**summary, "seeds": [{"eval": -0.5}]}))
+    with pytest.raises(ValueError, match="heat-v0 has no paper score on its card \\(paper_ppo\\) to normalise by"):
+        report.read(file)
+
+
 def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
     import beacon_torch.gym  # gymnasium's ids, registered as envs are
 

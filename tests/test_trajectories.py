@@ -34,7 +34,7 @@ def rollout(env_id: str) -> dict[str, list]:
     g = torch.Generator().manual_seed(SEED)
     obs = [env.reset_members().tolist()]
     rewards = []
-    for _ in range(2 if cls.family == "cavity" else 10):
+    for _ in range(2 if cls.costly else 10):
         o, r, _, _ = env.step_members(env.random_action(g))
         obs.append(o.tolist())
         rewards.append(r.tolist())

@@ -90,7 +90,8 @@ class CavityEnv(FlowEnv):
     ``solver``, probes of the scalar and the velocities, their history as observation."""
 
     episode_length: ClassVar[int] = 100
-    family = "cavity"
+    family = "2-D"
+    costly = True  # an action is tens of substeps of a 2-D projection
 
     scalar: ClassVar[str]  # the transported scalar's name in the state
     cells_per_unit: ClassVar[int]

@@ -32,7 +32,12 @@ CONFIDENCE = 0.95
 
 def reference(env_id: str) -> float:
     """The paper's PPO score of ``env_id`` (its base env's for a variant)."""
-    return env_class(env_id).paper_ppo
+    value = env_class(env_id).paper_ppo
+    if value is None:
+        raise ValueError(
+            f"{env_id} has no paper score on its card (paper_ppo): the protocol has nothing to normalise by"
+        )
+    return value
 
 
 def normalised(score, uncontrolled, env_id: str):
@@ -118,6 +123,8 @@ def check_summary(summary, file: str | Path) -> dict:
         raise bad("not a JSON object")
     if not isinstance(summary.get("env"), str) or summary["env"] not in ENVS:
         raise bad(f"unknown env {summary.get('env')!r}")
+    if env_class(summary["env"]).paper_ppo is None:
+        raise bad(f"{summary['env']} has no paper score on its card (paper_ppo) to normalise by")
     if not isinstance(summary.get("algo"), str):
         raise bad("no algorithm")
     seeds = summary.get("seeds")

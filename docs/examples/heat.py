@@ -62,9 +62,6 @@ class HeatEnv(FlowEnv):
     deterministic = False  # the hot spot of a start is drawn from the env's generator
     # the card
     family = "1-D"
-    published_speed = 10_000.0  # no published code: a made-up reference for the benchmarks
-    speed_target = 5.0
-    paper_ppo = -0.01
     gradcheck = GradCheck("power", 20.0, warmup=5, steps=3)
     # a rod that overheats: every reward is at least -(T - target)^2 with T <= 1e3
     blowup_reward = -1e6
