@@ -83,28 +83,3 @@ def saved_storages():
 
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
         yield storages
-
-
-def horizon_bytes(
-    env_id: str, horizon: int, members: int, *, params: dict | None = None, grad_checkpoint: bool = False
-) -> int:
-    """About the memory the graph of ``horizon`` differentiated actions of ``members``
-    members keeps (float32), from one action of one member measured here: that
-    action's graph per action and member, or with ``grad_checkpoint`` what each action
-    saves plus one action's whole graph, recomputed in the backward pass."""
-    from beacon_torch.registry import make
-
-    def one_action(checkpoint: bool) -> int:
-        env = make(env_id, 1, differentiable=True, grad_checkpoint=checkpoint, params=params or {})
-        env.reset()
-        action = env.null_action()
-        if action.is_floating_point():
-            action.requires_grad_()
-        with saved_storages() as saved:
-            env.step_members(action)
-        return max(sum(saved.values()), env.member_floats() * env.dtype.itemsize)
-
-    whole = one_action(False)
-    if not grad_checkpoint:
-        return horizon * members * whole
-    return horizon * members * one_action(True) + members * whole

@@ -26,13 +26,13 @@ import argparse
 import importlib
 import json
 import os
-import re
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from beacon_torch.arguments import find_user_modules, plain, positive
 from beacon_torch.files import create_file, outputs, save_figure
 
 if TYPE_CHECKING:
@@ -335,19 +335,6 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive(text: str) -> int:
-    value = int(text) if text.strip().isdigit() else 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}")
-    return value
-
-
-def plain(doc: str | None) -> str:
-    """A docstring as a command's description: one paragraph, without reStructuredText's
-    markup (``name`` reads as name)."""
-    return re.sub(r"``([^`]+)``", r"\1", " ".join((doc or "").split()))
-
-
 def build_parser() -> argparse.ArgumentParser:
     from beacon_torch import __version__
 
@@ -359,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"beacon-torch {__version__}")
     parser.add_argument(
         "--threads",
-        type=_positive,
+        type=positive,
         metavar="N",
         help="torch threads (default: $BEACON_TORCH_THREADS, else the count measured fastest for the env "
         "and batch on an idle machine; on a shared machine give 1)",
@@ -452,15 +439,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rp.set_defaults(func=cmd_report)
     return parser
-
-
-def find_user_modules() -> None:
-    """Put the working directory first on the import path, as ``python -m`` does (a
-    console script or ``python recipes/ppo.py`` puts its own folder there instead), so
-    that ``--import my_envs`` and ``my_envs.heat:heat-v0`` find the user's modules."""
-    here = os.getcwd()
-    if here not in sys.path and "" not in sys.path:
-        sys.path.insert(0, here)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

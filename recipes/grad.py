@@ -20,10 +20,9 @@ from __future__ import annotations
 
 import torch
 
-from beacon_torch.autograd import horizon_bytes
 from beacon_torch.training import networks
 from beacon_torch.training.config import GradConfig, script
-from beacon_torch.training.env import recipe_env
+from beacon_torch.training.env import horizon_bytes, recipe_env
 from beacon_torch.training.run import Run, fits
 
 

@@ -265,7 +265,8 @@ def test_a_horizon_or_a_buffer_beyond_memory_is_refused_with_its_estimate(tmp_pa
 
 
 def test_the_graph_estimate_is_what_a_differentiated_horizon_keeps():
-    from beacon_torch.autograd import horizon_bytes, saved_storages
+    from beacon_torch.autograd import saved_storages
+    from beacon_torch.training.env import horizon_bytes
 
     env = beacon_torch.make("burgers-v0", 4, differentiable=True)
     env.reset()

@@ -30,7 +30,7 @@ import os
 from pathlib import Path
 
 from beacon_torch import files, pretrained, received, threads
-from beacon_torch.cli import find_user_modules
+from beacon_torch.arguments import find_user_modules, positive
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
 from beacon_torch.training.config import CONFIGS, configure, paper_frames, quiet_torchrl
@@ -60,16 +60,6 @@ def setting(item: str) -> tuple[str, str]:
     if not sep or not name:
         raise argparse.ArgumentTypeError(f"--set expects NAME=VALUE, got {item!r}")
     return name.strip(), value.strip()
-
-
-def positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}")
-    return value
 
 
 def text_value(text: str):
@@ -233,7 +223,11 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
         "|---|---|---|---|---|---|",
     ]
     for s in summaries:
-        if s["algo"] == "ppo" and env_class(s["env"]).base_id() == s["env"]:
+        if (
+            s["algo"] == "ppo"
+            and env_class(s["env"]).base_id() == s["env"]
+            and env_class(s["env"]).paper_ppo is not None
+        ):
             floor, best = env_class(s["env"]).paper_ppo, max(seed["eval"] for seed in s["seeds"])
             met = "met" if s["train_mean"] >= floor and best >= floor else "**missed**"
             floors.append(

@@ -20,11 +20,12 @@ from typing import ClassVar
 
 import beacon_torch
 from beacon_torch import threads
+from beacon_torch.arguments import find_user_modules, plain
 from beacon_torch.base import FlowEnv, _as_device
-from beacon_torch.cli import find_user_modules, plain
 from beacon_torch.params import check_params, parse_assignments, resolved
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
+from beacon_torch.training.evaluation import learning_curve
 from beacon_torch.training.run import CHECKPOINT, fits, load_checkpoint
 
 # The per-env settings of the recipes: data of the library, read by ``configure``. Each
@@ -565,9 +566,10 @@ def quiet_torchrl() -> None:
 
 
 def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
-    """A recipe run from the command line: its settings parsed, then ``main``; a bad
-    run directory, a diverged training or a full disk end it with one line naming the
-    problem (exit status 2), as a bad setting does."""
+    """A recipe run from the command line: its settings parsed, then ``main``, then its
+    learning curve drawn into ``OUT/learning_curve.png``; a bad run directory, a
+    diverged training or a full disk end it with one line naming the problem (exit
+    status 2), as a bad setting does."""
     cfg = parse(cls, argv)
     quiet_torchrl()
     print(settings_text(cfg), flush=True)
@@ -575,6 +577,7 @@ def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
     print(f"  torch threads: {count} ({why})", flush=True)
     try:
         main(cfg)
+        print(learning_curve(cfg.out, progress=cfg.progress))
     except (ValueError, OSError) as err:
         print(f"{cls.algo}: error: {err}", file=sys.stderr)
         sys.exit(2)

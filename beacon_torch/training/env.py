@@ -10,6 +10,7 @@ import torch
 from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, TransformedEnv
 
 import beacon_torch
+from beacon_torch.autograd import saved_storages
 from beacon_torch.registry import qualified_id
 
 # random steps whose observations set the normalisation: 64 reach past the start-up of
@@ -196,3 +197,27 @@ def check_ray_fits(resources: dict, collectors: int) -> None:
             f"the Ray cluster has {memory / 2**30:.1f} GiB for tasks and each of the {collectors} collectors "
             f"asks {RAY_ACTOR_MEMORY / 2**30:g} GiB: give fewer --collectors, or a larger cluster"
         )
+
+
+def horizon_bytes(
+    env_id: str, horizon: int, members: int, *, params: dict | None = None, grad_checkpoint: bool = False
+) -> int:
+    """About the memory the graph of ``horizon`` differentiated actions of ``members``
+    members keeps (float32), from one action of one member measured here: that
+    action's graph per action and member, or with ``grad_checkpoint`` what each action
+    saves plus one action's whole graph, recomputed in the backward pass."""
+
+    def one_action(checkpoint: bool) -> int:
+        env = beacon_torch.make(env_id, 1, differentiable=True, grad_checkpoint=checkpoint, params=params or {})
+        env.reset()
+        action = env.null_action()
+        if action.is_floating_point():
+            action.requires_grad_()
+        with saved_storages() as saved:
+            env.step_members(action)
+        return max(sum(saved.values()), env.member_floats() * env.dtype.itemsize)
+
+    whole = one_action(False)
+    if not grad_checkpoint:
+        return horizon * members * whole
+    return horizon * members * one_action(True) + members * whole

@@ -753,11 +753,8 @@ class Run:
 
     def close(self, save) -> dict[str, Any]:
         """End the run: the last checkpoint (``save()``), the loggers flushed, the lock
-        released, the progress bar closed, the last values printed and the learning
-        curve drawn into ``learning_curve.png``. Returns the last logged values and the
-        transitions collected."""
-        from beacon_torch.training.evaluation import learning_curve
-
+        released, the progress bar closed and the last values printed. Returns the last
+        logged values and the transitions collected."""
         save()
         self.lock.release()
         for logger in self.loggers[1:]:
@@ -765,7 +762,6 @@ class Run:
         if self.bar is not None:
             self.bar.close()
         print(f"{self.algo} {self.env_id} seed {self.seed}: {self.last} -> {self.out}")
-        print(learning_curve(self.out, progress=self.progress))
         # the folders TorchRL's CSV logger makes for texts and videos, empty in a run of ours
         for name in ("texts", "videos"):
             folder = self.out / self.algo / name
