@@ -5,7 +5,7 @@ import torch
 
 import beacon_torch
 from beacon_torch.envs.rayleigh import C, normalise
-from beacon_torch.numerics.projection import divergence
+from beacon_torch.numerics.staggered import divergence
 
 from conftest import run_actions
 

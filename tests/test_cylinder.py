@@ -14,7 +14,8 @@ import torch
 
 from beacon_torch.envs import cylinder
 from beacon_torch.envs.cylinder import Channel, CylinderEnv, jet_target, rest, run
-from beacon_torch.numerics.projection import NEUMANN, ZERO_FACE, PoissonSolver, laplacian_1d
+from beacon_torch.numerics.grid import NEUMANN, ZERO_FACE
+from beacon_torch.numerics.poisson import PoissonSolver, laplacian_1d
 
 from conftest import script
 

@@ -9,17 +9,10 @@ import pytest
 import torch
 
 from beacon_torch.numerics import native
-from beacon_torch.numerics.projection import (
-    GRADIENT,
-    NEUMANN,
-    ZERO_GHOST,
-    Cavity,
-    Ghosts,
-    JacobiSolver,
-    PoissonSolver,
-    divergence,
-    project,
-)
+from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
+from beacon_torch.numerics.poisson import JacobiSolver, PoissonSolver
+from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.staggered import divergence, project
 
 BCS = [(NEUMANN,) * 4, (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST), (ZERO_GHOST, NEUMANN, ZERO_GHOST, NEUMANN)]
 F64 = dict(dtype=torch.float64, device="cpu")

@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from beacon_torch.base import FlowEnv, State
-from beacon_torch.numerics.projection import NEUMANN, Cavity, Ghosts
+from beacon_torch.numerics.grid import NEUMANN, Ghosts
+from beacon_torch.numerics.projection import Cavity
 
 N_PROBES = 4
 HISTORY = 4  # the 3 previous probe vectors and the current one, oldest first

@@ -58,7 +58,8 @@ import torch
 
 from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state
 from beacon_torch.cache import cached
-from beacon_torch.numerics.projection import NEUMANN, VALUE, ZERO_FACE, Ghosts, PoissonSolver
+from beacon_torch.numerics.grid import NEUMANN, VALUE, ZERO_FACE, Ghosts
+from beacon_torch.numerics.poisson import PoissonSolver
 from beacon_torch.params import number, param
 
 LENGTH, HEIGHT = 2.2, 0.41
@@ -323,7 +324,7 @@ class Channel:
     def tendency(self, u: torch.Tensor, v: torch.Tensor, nu) -> tuple[torch.Tensor, torch.Tensor]:
         """-(u.grad)u + nu lap u on the interior faces of the stretched grid, from the
         ghosted ``u`` (``[nx + 1, ny + 2, B]``) and ``v`` (``[nx + 2, ny + 1, B]``): the
-        cavities' centred scheme (:func:`~beacon_torch.numerics.projection.tendency`)
+        cavities' centred scheme (:func:`~beacon_torch.numerics.staggered.tendency`)
         with each difference over its own distance. Velocities are carried to a
         control volume's faces by plain averages, exact where the grid is uniform (around
         the cylinder) and first order where it stretches by 5 %."""

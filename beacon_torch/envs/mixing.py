@@ -24,7 +24,9 @@ import torch
 
 from beacon_torch.base import GradCheck, Noise
 from beacon_torch.envs.cavity import N_OBS, CavityEnv, Fields, transport
-from beacon_torch.numerics.projection import GRADIENT, NEUMANN, ZERO_GHOST, Cavity, Ghosts, project
+from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
+from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.staggered import project
 from beacon_torch.params import param
 
 DT = 0.002

@@ -28,7 +28,9 @@ import torch
 from beacon_torch.base import GradCheck, Noise, map_state
 from beacon_torch.cache import cached
 from beacon_torch.envs.cavity import N_OBS, CavityEnv, Fields, transport
-from beacon_torch.numerics.projection import GRADIENT, VALUE, Cavity, Ghosts, edge_offset, project
+from beacon_torch.numerics.grid import GRADIENT, VALUE, Ghosts, edge_offset
+from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.staggered import project
 from beacon_torch.params import number, param
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 

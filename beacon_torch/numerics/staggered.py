@@ -1,0 +1,93 @@
+"""Operators of the staggered grid, batch last: the explicit momentum terms, the
+predictor, the divergence and the projection that removes it. Velocities come with
+their ghosts (:class:`~beacon_torch.numerics.grid.Ghosts`); everything is out of place,
+so the graph survives when gradients are wanted."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def tendency(u: torch.Tensor, v: torch.Tensor, nu, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The explicit terms -(u.grad)u + nu lap u on the interior faces, with centred
+    fluxes of face-averaged velocities: ``[nx - 1, ny, B]`` on the x-faces 1..nx-1 and
+    ``[nx, ny - 1, B]`` on the y-faces 1..ny-1. ``u`` (``[nx + 1, ny + 2, B]``) and
+    ``v`` (``[nx + 2, ny + 1, B]``) carry their ghosts (:class:`Ghosts`)."""
+    # u on the interior x-faces 1..nx-1, cells 0..ny-1 (ghost rows 0 and ny + 1 in y)
+    uf = u[1:-1, 1:-1]
+    ue = 0.5 * (uf + u[2:, 1:-1])  # the cell centre east of the face
+    uw = 0.5 * (u[:-2, 1:-1] + uf)
+    duu = (ue * ue - uw * uw) / dx
+    un = 0.5 * (uf + u[1:-1, 2:])
+    vn = 0.5 * (v[1:-2, 1:] + v[2:-1, 1:])
+    us = 0.5 * (u[1:-1, :-2] + uf)
+    vs = 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
+    duv = (un * vn - us * vs) / dy
+    lap_u = (u[2:, 1:-1] - 2.0 * uf + u[:-2, 1:-1]) / dx**2 + (u[1:-1, 2:] - 2.0 * uf + u[1:-1, :-2]) / dy**2
+    hu = -duu - duv + nu * lap_u
+
+    # v on the interior y-faces 1..ny-1, cells 0..nx-1 (ghost columns 0 and nx + 1 in x)
+    vf = v[1:-1, 1:-1]
+    vn_c = 0.5 * (vf + v[1:-1, 2:])
+    vs_c = 0.5 * (v[1:-1, :-2] + vf)
+    dvv = (vn_c * vn_c - vs_c * vs_c) / dy
+    ve = 0.5 * (vf + v[2:, 1:-1])
+    ue_c = 0.5 * (u[1:, 1:-2] + u[1:, 2:-1])
+    vw = 0.5 * (v[:-2, 1:-1] + vf)
+    uw_c = 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
+    duv_x = (ue_c * ve - uw_c * vw) / dx
+    lap_v = (v[2:, 1:-1] - 2.0 * vf + v[:-2, 1:-1]) / dx**2 + (v[1:-1, 2:] - 2.0 * vf + v[1:-1, :-2]) / dy**2
+    return hu, -dvv - duv_x + nu * lap_v
+
+
+def predict(
+    u: torch.Tensor,
+    v: torch.Tensor,
+    p: torch.Tensor,
+    nu,
+    dt: float,
+    dx: float,
+    dy: float,
+    v_source: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Explicit predictor u* = u + dt (:func:`tendency` - grad p [+ source]) on the
+    interior faces of a closed cavity. ``u`` (``[nx + 1, ny + 2, B]``) and ``v``
+    (``[nx + 2, ny + 1, B]``) carry their wall ghosts (:class:`Ghosts`); ``v_source``
+    (``[nx, ny - 1, B]``) is added on the interior v faces (buoyancy). Returns u*
+    ``[nx + 1, ny, B]`` and v* ``[nx, ny + 1, B]`` with zero normal velocity on the
+    walls. (Computing every face and zeroing the walls instead, to save the padding
+    pass, is slower compiled: the wider ghosted inputs cost more than the pad;
+    docs/performance.md.)"""
+    hu, hv = tendency(u, v, nu, dx, dy)
+    gpx = (p[1:] - p[:-1]) / dx
+    u_star = u[1:-1, 1:-1] + dt * (hu - gpx)
+    gpy = (p[:, 1:] - p[:, :-1]) / dy
+    dv = hv - gpy
+    if v_source is not None:
+        dv = dv + v_source
+    v_star = v[1:-1, 1:-1] + dt * dv
+    return F.pad(u_star, (0, 0, 0, 0, 1, 1)), F.pad(v_star, (0, 0, 1, 1))
+
+
+def divergence(u: torch.Tensor, v: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
+    """Discrete divergence in the cells, ``[nx, ny, B]``, of face velocities
+    ``[nx + 1, ny, B]`` and ``[nx, ny + 1, B]``."""
+    return (u[1:] - u[:-1]) / dx + (v[:, 1:] - v[:, :-1]) / dy
+
+
+def project(
+    u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver, dt: float, dx: float, dy: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Incremental projection: L phi = div(u*) / dt, u = u* - dt grad phi on the interior
+    faces, p += phi (``solver``: :class:`PoissonSolver` or :class:`JacobiSolver`).
+
+    The walls keep zero normal velocity, as in the published corrector. Where the
+    increment has zero normal gradient that is also what the correction would give;
+    on a zero-ghost wall (mixing's top) the cells next to it keep the divergence the
+    increment's condition leaves there, as published."""
+    phi = solver.solve(divergence(u, v, dx, dy) / dt)
+    ext = solver.ghosts(phi)
+    gx = F.pad((ext[2:-1, 1:-1] - ext[1:-2, 1:-1]) / dx, (0, 0, 0, 0, 1, 1))
+    gy = F.pad((ext[1:-1, 2:-1] - ext[1:-1, 1:-2]) / dy, (0, 0, 1, 1))
+    return u - dt * gx, v - dt * gy, p + phi
