@@ -1,68 +1,21 @@
-"""cylinder-v0: reduce the drag of a cylinder in a channel with two synthetic jets
-(Rabault, Kuchta, Jensen, Reglade & Cerardi, J. Fluid Mech. 865, 2019), on the
-geometry of the Schaefer & Turek (1996) benchmark 2D-2.
-
-Incompressible flow past a cylinder of diameter D = 0.1 centred at (0.2, 0.2) in the
-channel [0, 2.2] x [0, 0.41]:
-
-    div u = 0
-    u_t + (u.grad) u = -grad p + nu lap u + f
-
-with nu = 1e-3 (Re = U D / nu = 100 on the mean inflow U = 1), the parabolic inflow
-u(0, y) = 4 Um y (H - y) / H^2 (Um = 1.5), no-slip walls, an open outlet (p = 0, the
-velocity carried out at U).
-
-The grid is the cavities' staggered grid, stretched: square cells of D /
-``cells_per_diameter`` in a box around the cylinder and its near wake, growing by 5 %
-a cell outside it. The cylinder is immersed by direct forcing (:class:`ImmersedBoundary`):
-after the explicit predictor, the faces inside the circle take the body's velocity and
-the first fluid faces around it the value of a quadratic in the wall distance through
-the wall's velocity and the flow one and two cells further out along the normal, a
-boundary of second order in the cell size. The projection that follows is the
-rectangle's own, so a direct Poisson solve still applies (tensor products of the 1-D
-operators' eigenvectors across the channel, tridiagonal solves along it); mass is
-conserved in every cell whose centre lies in the fluid, and in the body's cells
-together (:meth:`Channel.continuity`). The force on the cylinder is the momentum the
-forcing removes, plus the rate of change of the momentum the body's faces hold (the
-jets' stream through it): the method's equivalent of the stress integrated on the
-surface.
-
-Time stepping: Adams-Bashforth 2 for advection and diffusion (the forward Euler of
-the cavities is unstable at this cell Reynolds number), the incremental projection of
-the cavities, dt = 5e-4 (stable up to 40 cells across the diameter: :func:`stable`),
-50 steps per action, 80 actions per episode.
-
-Control: two jets at 90 and 270 degrees, 10 degrees wide, with opposite mass flow
-rates. The two actions in [-1, 1] are flow rates of at most 1e-2; as published, the
-jets' rates relax each step by a tenth of the way to the action and their mean is
-removed, which leaves the top jet's rate Q relaxing to (a_0 - a_1) / 2 * 1e-2 and the
-bottom's at -Q. The jets' velocity on the wall is the published cosine across each jet
-(:func:`wall_velocity`); inside the body their fluid crosses it as a vertical stream,
-face-averaged and scaled so that the grid's faces carry exactly Q.
-
-Observation: the pressure at the published 151 probes (bilinear in the cells).
-Reward per action: -(mean drag force - 0.159) - 0.2 |mean lift force| over the action's
-steps (0.159: the uncontrolled mean drag force of the published mesh). Every episode
-starts from the developed uncontrolled shedding (:func:`developed_shedding`).
-"""
+"""The flow of cylinder-v0: the stretched staggered channel, the immersed cylinder
+with its jets, one time step and the developed shedding every episode starts from
+(the case and its numerics: :mod:`beacon_torch.envs.cylinder`)."""
 
 from __future__ import annotations
 
-import functools
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state
-from beacon_torch.cache import cached
+from beacon_torch.base import map_state
 from beacon_torch.numerics.grid import NEUMANN, VALUE, ZERO_FACE, Ghosts
 from beacon_torch.numerics.poisson import PoissonSolver
-from beacon_torch.params import number, param
 
 LENGTH, HEIGHT = 2.2, 0.41
+
 CENTRE = (0.2, 0.2)
 DIAMETER = 0.1
 RADIUS = 0.5 * DIAMETER
@@ -116,50 +69,11 @@ class Flow(NamedTuple):
     q: torch.Tensor  # [batch]
 
 
-class CylinderState(NamedTuple):
-    """The flow and the forces on the cylinder, averaged over the last action."""
-
-    u: torch.Tensor  # [batch, nx + 1, ny]
-    v: torch.Tensor  # [batch, nx, ny + 1]
-    p: torch.Tensor  # [batch, nx, ny]
-    hu: torch.Tensor  # [batch, nx, ny]
-    hv: torch.Tensor  # [batch, nx, ny - 1]
-    q: torch.Tensor  # [batch] the top jet's flow rate (the bottom one's is -q)
-    drag: torch.Tensor  # [batch] the mean drag force of the last action
-    lift: torch.Tensor  # [batch]
-
-
 def _resolution(value: int) -> None:
     if value % 10:
         raise ValueError(
             f"parameter 'cells_per_diameter' = {value} must be a multiple of 10 (the fine box fits whole cells)"
         )
-
-
-@dataclass(frozen=True)
-class CylinderParams:
-    cells_per_diameter: int = param(
-        40,
-        low=10,
-        high=40,
-        kind="int",
-        per_member=False,
-        doc="grid cells across the cylinder's diameter, a multiple of 10 (validated in docs/envs/cylinder.md; "
-        "finer grids need a smaller dt than the published one)",
-    )
-    nu: float = param(
-        NU, low=5e-4, high=2e-3, per_member=False, differentiable=True, doc="kinematic viscosity (Re 50 to 200)"
-    )
-
-    def __post_init__(self):
-        _resolution(int(self.cells_per_diameter))
-        h, nu = DIAMETER / int(self.cells_per_diameter), number(self.nu)
-        if not stable(h, nu, DT):
-            raise ValueError(
-                f"parameters 'nu' = {nu:g} and 'cells_per_diameter' = {self.cells_per_diameter}: the explicit "
-                f"diffusion is unstable at dt = {DT:g} (8 nu dt / h^2 = {8 * nu * DT / h**2:.2f} must stay below "
-                f"{DIFFUSION_LIMIT}); take fewer cells or a smaller nu"
-            )
 
 
 # Adams-Bashforth 2 is stable on the negative real axis up to 1 (forward Euler: 2); the
@@ -545,28 +459,6 @@ def coefficient(force: torch.Tensor) -> torch.Tensor:
     return 2.0 * force / (U_MEAN**2 * DIAMETER)
 
 
-# the benchmark's intervals (Schaefer & Turek 1996, unsteady case 2D-2)
-SCHAEFER_TUREK = {"cd_max": (3.22, 3.24), "cl_max": (0.99, 1.01), "strouhal": (0.295, 0.305)}
-
-
-def shedding_figures(time: np.ndarray, drag: np.ndarray, lift: np.ndarray, window: float = 2.0) -> dict[str, float]:
-    """The benchmark's figures over the last ``window`` time units of drag and lift
-    coefficient histories: ``cd_max``, ``cl_max``, ``cd_mean`` and ``strouhal`` (D f / U,
-    the period from the lift's upward crossings of its mean, linearly interpolated)."""
-    last = time > time[-1] - window
-    t, cd, cl = time[last], drag[last], lift[last]
-    s = cl - cl.mean()
-    up = np.nonzero((s[:-1] < 0) & (s[1:] >= 0))[0]
-    crossings = t[up] - s[up] * (t[up + 1] - t[up]) / (s[up + 1] - s[up])
-    period = float(np.diff(crossings).mean()) if len(crossings) > 1 else float("nan")
-    return {
-        "cd_max": float(cd.max()),
-        "cl_max": float(cl.max()),
-        "cd_mean": float(cd.mean()),
-        "strouhal": DIAMETER / (U_MEAN * period),
-    }
-
-
 def developed_shedding(
     cells_per_diameter: int = 20, *, time: float = DEVELOP_TIME, nu: float = NU, dt: float = DT
 ) -> tuple[Flow, dict[str, np.ndarray]]:
@@ -588,112 +480,3 @@ def developed_shedding(
     history = {"time": dt * np.arange(1, steps + 1), "drag": coefficient(torch.from_numpy(drag)).numpy()}
     history["lift"] = coefficient(torch.from_numpy(lift)).numpy()
     return map_state(lambda f: f[0], flow), history
-
-
-def jet_target(action: torch.Tensor) -> torch.Tensor:
-    """The top jet's flow rate the actions ask for (``[B]``): the published jets' rates
-    ``Q_MAX * action`` with their mean removed (zero net mass flux)."""
-    return Q_MAX * 0.5 * (action[:, 0] - action[:, 1])
-
-
-class CylinderEnv(FlowEnv):
-    """Batched cylinder-v0 (2 continuous actions: the two jets' flow rates)."""
-
-    env_id = "cylinder-v0"
-    Params = CylinderParams
-    state_type = CylinderState
-    episode_length = EPISODE_LENGTH
-    substeps = SUBSTEPS
-    family = "2-D"
-    costly = True  # an action is 50 substeps of the 2-D flow
-    # beyond BEACON: the published solver (FEniCS) is not run here, so the card has no
-    # published speed or target (the case's own: an episode of 16 members in 90 s,
-    # benchmarks/RESULTS.md)
-    # Rabault et al.'s outcome in this reward: the drag force 8 % below the published
-    # mesh's uncontrolled 0.159 over every action, the lift's penalty aside
-    paper_ppo = EPISODE_LENGTH * PUBLISHED_REDUCTION * DRAG_OFFSET
-    gradcheck = GradCheck("nu", NU, warmup=1, steps=1)
-    test_settings = {"cells_per_diameter": 10}
-    # every completed action's reward is above -(drag - 0.159) - 0.2 |lift| with the
-    # forces of a blown-up flow excluded; a drag force of 10 (C_D 200) is far beyond any
-    blowup_reward = -10.0
-    diagnostics = {
-        "drag": "C_D, the drag coefficient averaged over the action",
-        "lift": "C_L, the lift coefficient averaged over the action",
-        "jet": "Q / Q_max, the top jet's flow rate (the bottom jet's is -Q)",
-    }
-
-    @classmethod
-    def sizes(cls, p) -> tuple[int, int]:
-        return N_PROBES, 2
-
-    def member_floats(self) -> int:
-        # u, v, p, the two tendencies, and the step's work on as many again
-        return 10 * (self.channel.nx + 1) * (self.channel.ny + 1)
-
-    def setup(self) -> None:
-        self.channel = Channel(int(self.params.cells_per_diameter), dtype=self.dtype, device=self.device)
-        # what the speed benchmark of the 2-D envs reads, as the cavities have it
-        self.nx, self.ny, self.solver = self.channel.nx, self.channel.ny, self.channel
-        self._steps = self.kernels.loop(step)
-
-    @functools.cached_property
-    def _start(self) -> Flow:
-        cells, nu = int(self.params.cells_per_diameter), number(self.params.nu)
-        key = dict(version=START_VERSION, cells=cells, nu=nu, time=DEVELOP_TIME)
-        at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
-        like = map_state(lambda v: v[0], at_rest)
-        start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like)
-        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
-
-    def initial_state(self, mask: torch.Tensor | None) -> CylinderState:
-        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start._asdict().items()}
-        zeros = torch.zeros(self.num_envs, dtype=self.dtype, device=self.device)
-        return CylinderState(**flow, drag=zeros, lift=zeros.clone())
-
-    def advance(self, state: CylinderState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        flow = Flow(*state[: len(Flow._fields)])
-        nu = self.params.nu  # [B]: the batch is the steps' last axis
-        flow, drag, lift = run(flow, SUBSTEPS, jet_target(action), self.channel, nu, DT, self._steps)
-        reward = -(drag - DRAG_OFFSET) - LIFT_PENALTY * lift.abs()
-        return CylinderState(*flow, drag=drag, lift=lift), reward
-
-    def diagnose(self, state: CylinderState) -> dict[str, torch.Tensor]:
-        return {"drag": coefficient(state.drag), "lift": coefficient(state.lift), "jet": state.q / Q_MAX}
-
-    def observe(self, state: CylinderState) -> torch.Tensor:
-        return self.channel.pressure_probes(state.p)
-
-    def out_of_bounds(self, state: CylinderState) -> torch.Tensor:
-        # a flow faster than ten times the inflow's has left the scheme's stable range
-        return state.u.abs().flatten(1).amax(1) > 10.0 * U_MAX
-
-    def render_frame(self, history: list[CylinderState], step: int) -> np.ndarray:
-        from matplotlib.patches import Circle
-
-        from beacon_torch.render import action_bars, new_figure, to_rgb
-
-        last, c = history[-1], self.channel
-        u, v = last.u.double(), last.v.double()
-        # vorticity at the cells' corners inside the channel
-        dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / c.x.gaps[1:-1, None]
-        dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / c.y.gaps[None, 1:-1]
-        vorticity = (dvdx - dudy).numpy()
-        fig = new_figure(size=(8.0, 2.8))
-        ax = fig.add_axes((0.05, 0.16, 0.66, 0.7))
-        x, y = c.x.faces[1:-1].numpy(), c.y.faces[1:-1].numpy()
-        field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
-        ax.add_patch(Circle(CENTRE, RADIUS, color="0.3"))
-        ax.set_xlim(0.0, 1.2)
-        ax.set_ylim(0.0, HEIGHT)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-        fig.colorbar(field, cax=fig.add_axes((0.725, 0.2, 0.012, 0.62)), label="vorticity")
-        t = DT * SUBSTEPS * step
-        drag, lift = float(coefficient(last.drag)), float(coefficient(last.lift))
-        ax.set_title(f"cylinder   t = {t:.2f}   C_D = {drag:.3f}   C_L = {lift:+.3f}", fontsize=9)
-        # the bottom jet's rate is always the top's with the other sign: one bar says both
-        bars = fig.add_axes((0.86, 0.2, 0.1, 0.6))
-        action_bars(bars, [float(last.q) / Q_MAX], ["top jet Q"], [(-1.0, 1.0)])
-        bars.set_title("jets (bottom: -Q)", fontsize=8)
-        return to_rgb(fig)
