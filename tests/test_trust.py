@@ -1068,7 +1068,8 @@ def test_commands_refuse_bad_outputs_and_misuses_in_one_line(ppo_run, tmp_path, 
     file.write_text(json.dumps(summary_of(seeds=[{"eval": 1e308}])))
     assert cli(["report", str(file), "--out", "rep-big"]) == 0
     table = capsys.readouterr().out
-    assert "1e+308" in table and max(len(word) for word in table.split()) < 40
+    words = [word for word in table.split() if set(word) - set("|-")]  # not the header's rule
+    assert "1e+308" in table and max(len(word) for word in words) < 40
     with pytest.raises(SystemExit) as exit_:
         reproduce.main(["train", "--envs", "lorenz-v0", "--set", "seed=5"])
     assert exit_.value.code == 2 and "--set seed: the driver sets it" in capsys.readouterr().err
