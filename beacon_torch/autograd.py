@@ -83,3 +83,16 @@ def saved_storages():
 
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
         yield storages
+
+
+# names that moved to another layer: (module, name) of each, said by the error
+MOVED = {"horizon_bytes": "beacon_torch.training.env"}
+
+
+def __getattr__(name: str):
+    if name in MOVED:
+        raise AttributeError(
+            f"beacon_torch.autograd.{name} has moved: import it from {MOVED[name]} "
+            f"(it builds envs, which the core does not)"
+        )
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

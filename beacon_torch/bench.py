@@ -37,6 +37,7 @@ from beacon_torch.registry import env_class, make, qualified_id
 
 BATCH_SIZES = (1, 16, 64, 256, 1024)
 COSTLY_BATCH_SIZES = (1, 16, 32, 64)
+CAVITY_BATCH_SIZES = COSTLY_BATCH_SIZES  # its earlier name
 MAX_WARM_UP = 20  # steps; a step that still compiles after these shows in ``recompiles``
 
 

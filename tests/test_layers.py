@@ -132,3 +132,14 @@ def test_the_graph_is_read_as_python_reads_it():
     assert "beacon_torch.training.evaluation" in edges["beacon_torch.cli"]  # imported inside a function
     assert "beacon_torch.base" not in edges["beacon_torch.history"]  # under TYPE_CHECKING only
     assert "beacon_torch.numerics.projection" in edges["beacon_torch.envs.cavity"]
+
+
+def test_a_name_moved_to_another_layer_says_where_it_went():
+    import pytest
+
+    import beacon_torch.autograd
+    from beacon_torch.training.env import horizon_bytes
+
+    with pytest.raises(AttributeError, match="import it from beacon_torch.training.env"):
+        beacon_torch.autograd.horizon_bytes  # noqa: B018
+    assert callable(horizon_bytes)
