@@ -16,6 +16,9 @@ __version__ = "0.1.0"
 # what the package offers at its top, and the module each comes from
 _TOP = {
     "FlowEnv": "beacon_torch.base",
+    "Physics": "beacon_torch.core.physics",
+    "functional": "beacon_torch.registry",
+    "step": "beacon_torch.core.step",
     "list_envs": "beacon_torch.registry",
     "make": "beacon_torch.registry",
     "register": "beacon_torch.registry",

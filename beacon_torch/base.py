@@ -1,54 +1,31 @@
-"""``FlowEnv``: the batched TorchRL environment every BEACON env derives from.
+"""``FlowEnv``: the batched TorchRL environment every BEACON env is.
 
-The base owns the env's core, everything that is not physics: batch size, device and
-dtype, the seeded generator, specs, action checking, step counting and truncation,
-partial resets, blow-up handling and the state. The compiled path (``compiled``), the
-autograd plumbing (``autograd``) and the history kept for rendering (``history``) live in
-modules of their own. A subclass supplies the physics through four abstract methods on a
-dict of state tensors (each with a leading batch dimension; their contracts are in
-their docstrings):
+The env is a shell around a case's physics (:class:`~beacon_torch.core.physics.Physics`,
+declared as the env class's ``physics_type``): it holds the batch size, device and
+dtype, the parameters, the seeded generators, the specs, the current state and its
+counters, and steps them with the one step function
+(:func:`~beacon_torch.core.step.step`), eagerly, compiled as one call, or keeping the
+autograd graph. What a case knows of its equations (the hooks ``initial_state``,
+``advance``, ``observe``, ...) lives on its physics and takes the parameters as an
+argument; the env's class mirrors the physics' facts (``Params``, ``state_type``,
+``episode_length``, ``discrete``, ...) and adds its card, rendering and, for layouts of
+several agents, its specs. What the physics set up (a grid, the kernels) reads through
+the env as well (``env.n_cells`` is ``env.physics.n_cells``).
 
-``sizes(params)`` (a class method)
-    the observation size and the action size (continuous) or number of actions
-    (discrete) that the parameters give;
-
-``initial_state(mask)``
-    the state at the start of an episode for the whole batch (``mask`` says which members
-    are being reset, so that costly starts can restrict their work);
-``advance(state, action, count, noise)``
-    the state after one action and the reward earned by it (``[batch]``, or
-    ``[batch, n_agents]`` for multi-agent variants); ``count`` is the number of actions
-    already taken in the episode, per member, and ``noise`` what ``noise()`` drew;
-``observe(state)``
-    the observation tensor ``[batch, n_obs]`` (``[batch, n_agents, n_obs]``);
-
-and optionally ``null_action()`` (the benchmark's "no control" action, zeros unless
-said otherwise), ``setup()`` (grid and kernels derived from the parameters, before the
-specs are built; substeps go through ``self.kernels``), ``noise()`` (the random numbers
-of one action, drawn from the env's generator: a dict of tensors, empty for
-deterministic physics) and ``out_of_bounds(state)`` (physical bounds beyond finiteness).
-
-Besides its physics a subclass declares its card, class attributes that say what the
+Besides its physics an env class declares its card, class attributes that say what the
 library knows of it (family, cost, the published code's speed, the paper's PPO score,
 its gradient check, cheap settings for tests; see ``FlowEnv``), which benchmarks,
 reports and tests read instead of keeping lists of envs.
-
-Compiled, a whole step (the action's substeps, the reward, the observation and the
-blow-up bookkeeping) is one graph and one call, its substep loop a ``while_loop``
-(``Kernels.loop``); the random numbers are drawn before it, which is why they come
-from ``noise()`` rather than from inside ``advance``.
 
 With ``differentiable=True`` the steps keep the autograd graph through the state, so the
 rewards can be differentiated with respect to the actions, to parameters given as
 tensors that require grad and to a state set by :meth:`FlowEnv.set_state`. Resets are
 not differentiated: an episode starts from data (the published starts are developed by
-long uncontrolled runs). ``setup()`` runs without a graph, so a subclass computes what
-depends on differentiable parameters in ``advance``, not there.
+long uncontrolled runs).
 """
 
 from __future__ import annotations
 
-import abc
 import dataclasses
 import warnings
 from typing import Any, ClassVar
@@ -60,24 +37,15 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from beacon_torch import starts as start_sets
-from beacon_torch.autograd import checkpointed, graph_mode
-from beacon_torch.compiled import Kernels, standard
+from beacon_torch.autograd import graph_mode
+from beacon_torch.compiled import standard
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise, State, finite_members, map_state, select, where_members
+from beacon_torch.core.step import settle, step
 from beacon_torch.history import History
 from beacon_torch.params import resolve_params
 
-# An env's state: a NamedTuple of tensors, batch first, declared at the top of its module
-# as its ``state_type`` (NamedTuples are pytrees: torch.compile, while_loop and
-# torch.utils.checkpoint carry them as they carry tuples, with no conversion).
-State = tuple
-
-
-# the random numbers of one action, by name (none for deterministic physics)
-Noise = dict[str, torch.Tensor]
-
-
-def map_state(fn, state: State) -> State:
-    """``fn`` applied to every tensor of ``state``, in a state of the same type."""
-    return type(state)(*(fn(value) for value in state))
+__all__ = ["FlowEnv", "GradCheck", "Noise", "Physics", "State", "map_state", "select", "settle", "where_members"]
 
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -164,16 +132,6 @@ def available_bytes(device: torch.device) -> int | None:
     return None
 
 
-def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per batch member (leading dimension), ``a`` where ``mask`` is true, else ``b``."""
-    return torch.where(mask.view(mask.shape + (1,) * (a.ndim - 1)), a, b)
-
-
-def where_members(mask: torch.Tensor, a: State, b: State) -> State:
-    """Per batch member, take the state ``a`` where ``mask`` is true and ``b`` elsewhere."""
-    return type(a)(*(select(mask, va, vb) for va, vb in zip(a, b, strict=True)))
-
-
 def _standard(state: State, obs: torch.Tensor) -> tuple[State, torch.Tensor]:
     """``state`` and ``obs`` as a step leaves them: standard strides, and no two
     tensors sharing memory. A compiled step is specialised on its inputs' strides and
@@ -187,34 +145,6 @@ def _standard(state: State, obs: torch.Tensor) -> tuple[State, torch.Tensor]:
         storages.add(storage)
     *fields, obs = out
     return type(state)(*fields), obs
-
-
-def _finite_members(t: torch.Tensor) -> torch.Tensor:
-    return torch.isfinite(t).flatten(1).all(1) if t.ndim > 1 else torch.isfinite(t)
-
-
-def settle(
-    new: State,
-    old: State,
-    obs: torch.Tensor,
-    old_obs: torch.Tensor,
-    reward: torch.Tensor,
-    inside: torch.Tensor,
-    blowup_reward: float,
-):
-    """The outcome of a step for every member: where the new state, observation and
-    reward are finite and ``inside`` the physical bounds, they stand; elsewhere the
-    member keeps its last state and observation and gets ``blowup_reward``. Returns
-    ``(state, observation, reward, ok)``. A kernel of its own: compiled, its few dozen
-    small operations are one call, which at small batches costs less than they do."""
-    ok = _finite_members(obs) & _finite_members(reward) & inside
-    for value in new:
-        if value.is_floating_point() or value.is_complex():
-            ok = ok & _finite_members(value)
-    new = where_members(ok, new, old)
-    obs = select(ok, obs, old_obs)
-    reward = select(ok, reward, torch.full_like(reward, blowup_reward))
-    return new, obs, reward, ok
 
 
 def _short_params(params) -> str:
@@ -251,29 +181,38 @@ class GradCheck:
     params: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
+# what a physics defines; an env class defining one would not be read
+PHYSICS_HOOKS = {
+    "setup",
+    "initial_state",
+    "advance",
+    "observe",
+    "noise",
+    "null_action",
+    "out_of_bounds",
+    "diagnose",
+    "member_floats",
+}
+
+
 class FlowEnv(EnvBase):
     """Base of the batched BEACON environments (see the module docstring)."""
 
     env_id: ClassVar[str] = ""
+    # the case's equations; its facts below are mirrored on the env class
+    physics_type: ClassVar[type[Physics]]
     Params: ClassVar[type]
     episode_length: ClassVar[int]
     discrete: ClassVar[bool] = False
-    # the type of the env's state: a NamedTuple of tensors, batch first
     state_type: ClassVar[type]
+    blowup_reward: ClassVar[float] = -1.0
+    diagnostics: ClassVar[dict[str, str]] = {}
+    deterministic: ClassVar[bool] = True
     # where the action is read from and the observation and reward written to
     # (nested keys for multi-agent variants)
     action_key: ClassVar[str | tuple[str, ...]] = "action"
     observation_key: ClassVar[str | tuple[str, ...]] = "observation"
     reward_key: ClassVar[str | tuple[str, ...]] = "reward"
-    # reward of the step on which a member leaves its physical bounds (episode ends)
-    blowup_reward: ClassVar[float] = -1.0
-    # the physical quantities a flow-control user reads beside the reward, each one
-    # number per member (name -> meaning), computed by ``diagnose``: in the TensorDict
-    # under "diagnostics", in the adapters' info with "blew_up"
-    diagnostics: ClassVar[dict[str, str]] = {}
-    # False where the physics draws from the env's generator (noisy inflows, random
-    # starts): members then depend on the seed and on the batch size
-    deterministic: ClassVar[bool] = True
     # The env's card: what the library knows of it beyond its equations, declared in its
     # module (a variant subclasses its base env and inherits it). Benchmarks, reports
     # and the test suite read it; nothing keeps a list of envs of its own.
@@ -296,10 +235,51 @@ class FlowEnv(EnvBase):
     gradcheck: ClassVar[GradCheck | None] = None
     # parameters that make an episode cheap, for the behaviour tests run on every env
     test_settings: ClassVar[dict[str, Any]] = {}
-    # inductor options of the compiled path (compile()): with the C++ wrapper a compiled
-    # call costs a few microseconds instead of tens, and a while_loop's iteration runs
-    # in C++ rather than in the generated Python wrapper
-    inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
+
+    # the physics' facts an env class shows as its own
+    MIRRORED: ClassVar[tuple[str, ...]] = (
+        "Params",
+        "state_type",
+        "episode_length",
+        "discrete",
+        "blowup_reward",
+        "diagnostics",
+        "deterministic",
+        "sizes",
+        "inductor_options",
+    )
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        hooks = sorted(set(vars(cls)) & PHYSICS_HOOKS)
+        if hooks:
+            raise TypeError(
+                f"{cls.__name__} defines the physics hook(s) {hooks} on the env: they belong to a "
+                f"beacon_torch.Physics subclass, named by the env class's physics_type, and take the "
+                f"parameters as their first argument (docs/adding-an-env.md)"
+            )
+        physics = vars(cls).get("physics_type")
+        # a variant's own episode length or blow-up reward (an env class that says
+        # ``episode_length = 25``) makes a physics of its own with them
+        overrides = {name: vars(cls)[name] for name in ("episode_length", "blowup_reward") if name in vars(cls)}
+        if overrides and getattr(cls, "physics_type", None) is not None:
+            base = physics or cls.physics_type
+            physics = type(base.__name__, (base,), {**overrides, "__module__": cls.__module__})
+            cls.physics_type = physics
+        if physics is not None:
+            for name in cls.MIRRORED:
+                if hasattr(physics, name):
+                    setattr(cls, name, getattr(physics, name))
+
+    def __getattr__(self, name: str) -> Any:
+        # what the physics set up (a grid, its kernels) and its hooks read through the env
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            physics = self.__dict__.get("physics")
+            if physics is None or name.startswith("__"):
+                raise
+            return getattr(physics, name)
 
     @classmethod
     def base_id(cls) -> str:
@@ -348,7 +328,6 @@ class FlowEnv(EnvBase):
         )
         # the observation size; continuous: the action dimension, discrete: the number
         # of choices
-        self.n_obs, self.n_actions = self.sizes(self.params)
         # Checking action values needs a host-device synchronisation on accelerators;
         # a trusted training loop may switch it off there.
         self.check_actions = check_actions
@@ -360,12 +339,9 @@ class FlowEnv(EnvBase):
         # recompute each action's substeps in the backward pass instead of keeping them
         self.grad_checkpoint = grad_checkpoint
         self._warned_grad = False
-        self.kernels = Kernels(self.inductor_options)
         self.history = History(record_history)
         # a state given to set_state with a graph, not stepped yet: a reset would drop it
         self._traced_start = False
-        self._settle = self.kernels(settle)
-        self._whole_step = self.kernels(self._step_core)
         if not differentiable:
             traced = [
                 name
@@ -378,8 +354,12 @@ class FlowEnv(EnvBase):
                     f"{self.env_id}: parameter(s) {traced} require grad but the env is not differentiable; {why}",
                     stacklevel=3,
                 )
-        with torch.no_grad():
-            self.setup()
+        self.physics = self.physics_type(self.params, self.num_envs, dtype=self.dtype, device=device)
+        # the observation size; continuous: the action dimension, discrete: the number
+        # of choices
+        self.n_obs, self.n_actions = self.physics.n_obs, self.physics.n_actions
+        # compiled, a whole step is this one call
+        self._whole_step = self.physics.kernels(step)
         self._check_memory()
         self._make_specs()
         self._add_diagnostics_spec()
@@ -405,7 +385,7 @@ class FlowEnv(EnvBase):
         transport sweep outside the graphs), so that the TorchRL step around them stays
         eager and flexible. ``warmup`` is accepted for TorchRL's signature and has
         nothing to do here."""
-        self.kernels.compile(**kwargs)
+        self.physics.kernels.compile(**kwargs)
         return self
 
     def _check_memory(self) -> None:
@@ -528,95 +508,6 @@ class FlowEnv(EnvBase):
                     f"parameters to continue it"
                 )
 
-    # ------------------------------------------------------------------ physics hooks
-    @classmethod
-    @abc.abstractmethod
-    def sizes(cls, params) -> tuple[int, int]:
-        """``(n_obs, n_actions)`` of an env with the parameters ``params`` (an instance
-        of ``Params``): the observation size per member (per agent for multi-agent
-        layouts) and the action size (continuous) or number of actions (discrete)."""
-
-    def setup(self) -> None:
-        """Derive what the parameters fix (grid, kernels, masks, the substep loops
-        through ``self.kernels``) before the specs are built. Runs without autograd:
-        what depends on a differentiable parameter is computed in :meth:`advance`."""
-
-    @abc.abstractmethod
-    def initial_state(self, mask: torch.Tensor | None) -> State:
-        """The state at the start of an episode, for the whole batch: a
-        :attr:`state_type` of tensors whose first dimension is the batch, in the env's dtype (counters excepted) and
-        on its device. ``mask`` (``[batch]`` bool, or None for all) says which members
-        are being reset; the others' entries are discarded, so a costly start may
-        compute only the masked members. Random starts draw from ``self.rng``."""
-
-    @abc.abstractmethod
-    def advance(
-        self, state: State, action: torch.Tensor, count: torch.Tensor, noise: Noise
-    ) -> tuple[State, torch.Tensor]:
-        """``(new_state, reward)`` after one action of the whole batch: ``action`` is
-        checked and in range (``[batch, *action_shape]``; int64 indices if discrete),
-        ``count`` the actions already taken in each member's episode (``[batch]``
-        int64), ``noise`` what :meth:`noise` drew for this action. The reward is
-        ``[batch]`` (``[batch, n_agents]`` for multi-agent layouts). Pure: no random
-        draws and no host reads (``.item()``, Python branches on values), so that a
-        compiled step is one graph; the state given is not modified in place."""
-
-    @abc.abstractmethod
-    def observe(self, state: State) -> torch.Tensor:
-        """The observation of ``state``: ``[batch, n_obs]`` (``[batch, n_agents,
-        n_obs]`` for multi-agent layouts), in the env's dtype."""
-
-    def null_action(self) -> torch.Tensor:
-        """The benchmark's "no control" action, for the whole batch: zeros (action 0
-        if discrete) unless the env says otherwise."""
-        dtype = torch.int64 if self.discrete else self.dtype
-        return torch.zeros((*self.batch_size, *self.action_shape), dtype=dtype, device=self.device)
-
-    def noise(self) -> Noise:
-        """The random numbers one action of the whole batch uses, drawn from
-        ``self.rng`` (none for deterministic physics)."""
-        return {}
-
-    def member_floats(self) -> int:
-        """About how many numbers one member's state holds, once ``setup()`` has run
-        (what the memory of a batch is estimated from; fields override it)."""
-        return 4 * self.n_obs
-
-    def diagnose(self, state: State) -> dict[str, torch.Tensor]:
-        """The :attr:`diagnostics` of ``state``: each a ``[batch]`` tensor in the env's
-        dtype (none by default). Pure, like :meth:`advance`: it runs inside the step."""
-        return {}
-
-    def out_of_bounds(self, state: State) -> torch.Tensor:
-        """``[batch]`` bool: the members whose state left its physical bounds (beyond
-        non-finite values, which are always caught); their episode ends with
-        ``blowup_reward``."""
-        return torch.zeros(self.batch_size, dtype=torch.bool, device=self.device)
-
-    # ------------------------------------------------------------------ helpers
-    def random_action(self, generator: torch.Generator | None = None) -> torch.Tensor:
-        """A uniformly random action batch (from ``generator``, not the env's own, so
-        that a random policy does not shift the env's random stream)."""
-        shape = (*self.batch_size, *self.action_shape)
-        if self.discrete:
-            return torch.randint(self.n_actions, shape, generator=generator, device=self.device)
-        u = torch.rand(shape, generator=generator, dtype=self.dtype, device=self.device)
-        return 2.0 * u - 1.0
-
-    @property
-    def action_shape(self) -> tuple[int, ...]:
-        """Per-member shape of the action: ``()`` for discrete, ``(n_actions,)`` else."""
-        return () if self.discrete else (self.n_actions,)
-
-    def member(self, value: torch.Tensor, dims: int = 1) -> torch.Tensor:
-        """A per-member parameter ``[batch]`` shaped to broadcast against fields with
-        ``dims`` dimensions after the batch: ``[batch, 1, ...]``."""
-        return value.reshape(-1, *(1,) * dims)
-
-    def tensor(self, value: Any) -> torch.Tensor:
-        """A tensor on the env's device and dtype."""
-        return torch.as_tensor(value, dtype=self.dtype, device=self.device)
-
     @property
     def state(self) -> State:
         """The current state tensors (read-only view; reset first)."""
@@ -706,19 +597,10 @@ class FlowEnv(EnvBase):
         non-floating dtype raise. Discrete actions must be integers in [0, n).
         """
         action = self._action_form(action)
-        taken, valid = self._action_values(action)
+        taken, valid = self.physics.action_values(action)
         if self.check_actions and not bool(valid):
             self._refuse_values(action)
         return taken
-
-    def _action_values(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The action as the physics takes it (continuous: clipped to the spec, as
-        exploration noise leaves the box and the actuators saturate; discrete: kept in
-        range, so that no table is indexed out of it) and whether all its values are
-        admissible (a 0-dim bool tensor: read once, after a compiled step)."""
-        if self.discrete:
-            return action.clamp(0, self.n_actions - 1), ((action >= 0) & (action < self.n_actions)).all()
-        return action.clamp(-1.0, 1.0), torch.isfinite(action).all()
 
     def _refuse_values(self, action: torch.Tensor) -> None:
         name = self.env_id or type(self).__name__
@@ -829,11 +711,11 @@ class FlowEnv(EnvBase):
             if not bool(torch.isfinite(value.detach()).all()):
                 raise ValueError(f"{name}: state.{key} has values that are not finite in {self.dtype}")
         with graph_mode(self.differentiable):
-            obs = self.observe(state)
+            obs = self.physics.observe(self.params, state)
         self._check_observation(obs)
         self._state, self._obs = _standard(state, obs)
         with graph_mode(self.differentiable):
-            self._diagnostics = self.diagnose(self._state)
+            self._diagnostics = self.physics.diagnose(self.params, self._state)
         self._count = count.expand(self.batch_size).clone()
         self._traced_start = self.differentiable and bool(traced)
         return self._obs
@@ -848,7 +730,7 @@ class FlowEnv(EnvBase):
             rng = self.rng.get_state()
             try:
                 with torch.no_grad():
-                    start = self.initial_state(None)
+                    start = self.physics.initial_state(self.params, self.rng)
             finally:
                 self.rng.set_state(rng)
             self._shapes = {key: value.shape for key, value in start._asdict().items()}
@@ -895,7 +777,7 @@ class FlowEnv(EnvBase):
             )
             self._traced_start = False
         with torch.no_grad():
-            init = self.initial_state(mask)
+            init = self.physics.initial_state(self.params, self.rng, mask)
         if type(init) is not self.state_type:
             raise TypeError(
                 f"{self.env_id}: initial_state returned a {type(init).__name__}, not the env's "
@@ -912,12 +794,12 @@ class FlowEnv(EnvBase):
             else:
                 self._state = where_members(mask, init, self._state)
                 self._count = torch.where(mask, torch.zeros_like(self._count), self._count)
-            obs = self.observe(self._state)
+            obs = self.physics.observe(self.params, self._state)
         with torch.no_grad():
-            started = _finite_members(obs)
+            started = finite_members(obs)
             for value in self._state:
                 if value.is_floating_point():
-                    started = started & _finite_members(value)
+                    started = started & finite_members(value)
         if not bool(started.all()):
             bad = (~started).nonzero()[:, 0].tolist()
             raise ValueError(
@@ -927,7 +809,7 @@ class FlowEnv(EnvBase):
         self._check_observation(obs)
         self._state, self._obs = _standard(self._state, obs)
         with graph_mode(self.differentiable):
-            self._diagnostics = self.diagnose(self._state)
+            self._diagnostics = self.physics.diagnose(self.params, self._state)
         self.history.reset(self._state, mask)
         return obs
 
@@ -980,156 +862,21 @@ class FlowEnv(EnvBase):
                 )
             stepping = stepping.reshape(self.batch_size).to(self.device)
         with torch.no_grad():
-            noise = self.noise()
+            noise = self.physics.noise(self.params, self.rng)
+        inputs = (self.physics, self.params, self._state, action, noise, self._count, self._obs, stepping)
         with graph_mode(self.differentiable):
             if self.differentiable and torch.is_grad_enabled():
-                out = self._graph_step(self._state, self._obs, action, self._count, noise, stepping)
+                out = step(*inputs, keep_graph=True, checkpoint=self.grad_checkpoint)
             else:
-                # compiled, this is one call: the checks of the action's values, the
-                # physics, the blow-up bookkeeping and the counters
-                out = self._whole_step(self._state, self._obs, action, self._count, noise, stepping)
-        new, obs, reward, terminated, truncated, count, valid, diagnostics = out
-        if self.check_actions and not bool(valid):
+                # compiled, this is one call: the action's values, the physics, the
+                # blow-up bookkeeping and the counters
+                out = self._whole_step(*inputs)
+        if self.check_actions and not bool(out.valid):
             self._refuse_values(action)
-        self._state, self._obs, self._count, self._diagnostics = new, obs, count, diagnostics
+        self._state, self._obs, self._count, self._diagnostics = out.state, out.observation, out.count, out.diagnostics
         self._traced_start = False
-        self.history.append(new)
-        return obs, reward, terminated, truncated
-
-    def _step_core(
-        self,
-        old: State,
-        old_obs: torch.Tensor,
-        action: torch.Tensor,
-        count: torch.Tensor,
-        noise: Noise,
-        stepping: torch.Tensor | None,
-    ):
-        """A whole step as one function of tensors, what the compiled path runs as one
-        graph (the env's own kernels and substep loops run inline): the action's
-        values, the physics, :func:`settle` and the counters. Returns ``(state,
-        observation, reward, terminated, truncated, count, valid)``, ``valid`` whether
-        the action's values were admissible (the caller refuses them otherwise, before
-        anything is kept)."""
-        action, valid = self._action_values(action)
-        new, reward = self.advance(old, action, count, noise)
-        out = settle(new, old, self.observe(new), old_obs, reward, ~self.out_of_bounds(new), float(self.blowup_reward))
-        kept = self._bookkept(old, old_obs, count, stepping, *out)
-        return (*kept, valid, self.diagnose(kept[0]))
-
-    def _graph_step(
-        self,
-        old: State,
-        old_obs: torch.Tensor,
-        action: torch.Tensor,
-        count: torch.Tensor,
-        noise: Noise,
-        stepping: torch.Tensor | None,
-    ):
-        """:meth:`_step_core` keeping the autograd graph (differentiable mode), its
-        action checked first: a blow-up must not reach the other members' gradients."""
-        action, valid = self._action_values(action)
-        if self.check_actions and not bool(valid):
-            self._refuse_values(action)
-        out = self._differentiated_step(old, action, noise)
-        kept = self._bookkept(old, old_obs, count, stepping, *out)
-        return (*kept, valid, self.diagnose(kept[0]))
-
-    def _bookkept(
-        self,
-        old: State,
-        old_obs: torch.Tensor,
-        count: torch.Tensor,
-        stepping: torch.Tensor | None,
-        new: State,
-        obs: torch.Tensor,
-        reward: torch.Tensor,
-        ok: torch.Tensor,
-    ):
-        """A settled step's results with the members outside ``stepping`` left as they
-        were: ``(state, observation, reward, terminated, truncated, count)``."""
-        after = count + 1
-        if stepping is not None:
-            new = where_members(stepping, new, old)
-            obs = select(stepping, obs, old_obs)
-            reward = select(stepping, reward, torch.zeros_like(reward))
-            ok = ok | ~stepping
-            after = torch.where(stepping, after, count)
-        # in standard strides, as the next step's inputs were compiled for (a cavity's
-        # fields come out of its batch-last solver permuted)
-        new = map_state(standard, new)
-        return new, standard(obs), reward, ~ok, after >= self.episode_length, after
-
-    def _settled_step(
-        self,
-        advance,
-        old: State,
-        action: torch.Tensor,
-        noise: Noise,
-        inside: torch.Tensor | None = None,
-        start: State | None = None,
-    ):
-        """``advance`` from ``start`` (default ``old``) and :func:`settle`: a member
-        that left its bounds (or is not ``inside``) keeps its last finite state ``old``
-        and observation and ends its episode; the others are untouched."""
-        start = old if start is None else start
-        if self.grad_checkpoint and torch.is_grad_enabled():
-            new, reward = checkpointed(advance, start, action, self._count, noise)
-        else:
-            new, reward = advance(start, action, self._count, noise)
-        bounds = ~self.out_of_bounds(new)
-        return self._settle(
-            new,
-            old,
-            self.observe(new),
-            self._obs,
-            reward,
-            bounds if inside is None else bounds & inside,
-            float(self.blowup_reward),
-        )
-
-    def _differentiated_step(self, old: State, action: torch.Tensor, noise: Noise):
-        """A step that keeps its graph. A member that blows up keeps its last state, but
-        its own backward pass would still multiply a zero gradient by an infinite
-        derivative (0 * inf = NaN), which would reach the gradients of every other
-        member through whatever they share (a policy, a shared parameter). So such a
-        step is taken again, with the same noise, from inputs where the members that
-        blew up are given a copy of a sound member's (detached) state, action and
-        parameters: their discarded result is then finite, and they contribute zero."""
-        new, obs, reward, ok = self._settled_step(self.advance, old, action, noise)
-        if bool(ok.all()):
-            return new, obs, reward, ok
-        if not bool(ok.any()):  # nothing to differentiate but the states kept
-            # a reward that still depends, with a zero derivative, on what the step was
-            # given (finite: the action was checked, the state kept is the last finite
-            # one), so that a backward pass through it finds the graph it expects
-            zero = sum((t * 0).reshape(t.shape[0], -1).sum(1) for t in (action, *old) if t.requires_grad)
-            full = torch.full_like(reward.detach(), float(self.blowup_reward))
-            if isinstance(zero, torch.Tensor):
-                full = full + zero.reshape(-1, *(1,) * (full.ndim - 1)).to(full.dtype)
-            return old, self._obs, full, ok
-        donor = int(ok.nonzero()[0, 0])
-        stand_in = lambda t: select(ok, t, t[donor : donor + 1].detach().expand_as(t))
-        per_member = {
-            name: stand_in(v)
-            for name, v in vars(self.params).items()
-            if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == self.num_envs
-        }
-        params = dataclasses.replace(self.params, **per_member)
-        return self._settled_step(self._with_params(params), old, stand_in(action), noise, ok, map_state(stand_in, old))
-
-    def _with_params(self, params):
-        """``advance`` run with ``params`` in place of the env's own (in the backward
-        pass's recomputation too)."""
-
-        def advance(state, action, count, noise):
-            own, self.params = self.params, params
-            try:
-                return self.advance(state, action, count, noise)
-            finally:
-                self.params = own
-
-        return advance
+        self.history.append(out.state)
+        return out.observation, out.reward, out.terminated, out.truncated
 
     # ------------------------------------------------------------------ TorchRL API
     def rollout(self, max_steps: int, *args, **kwargs):

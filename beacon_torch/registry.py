@@ -10,7 +10,8 @@ import sys
 from typing import Any
 
 from beacon_torch import gym_ids
-from beacon_torch.base import FlowEnv
+from beacon_torch.base import FlowEnv, _as_batch_size, _as_device, _as_dtype
+from beacon_torch.core.physics import Physics
 from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.cylinder import CylinderEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
@@ -19,7 +20,7 @@ from beacon_torch.envs.rayleigh import RayleighEnv
 from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
 from beacon_torch.envs.sloshing import SloshingEnv
 from beacon_torch.envs.vortex import VortexEnv
-from beacon_torch.params import check_params
+from beacon_torch.params import check_params, resolve_params
 
 ENVS: dict[str, type[FlowEnv]] = {
     cls.env_id: cls
@@ -219,6 +220,50 @@ def make(
     return cls(
         1 if num_envs is None else num_envs, device=device, dtype=dtype, seed=seed, **{**defaults, **physics, **options}
     )
+
+
+def functional(
+    env_id: str,
+    num_envs: int | None = None,
+    *,
+    device: Any = "cpu",
+    dtype: Any = "float32",
+    params: Any = None,
+    **given: Any,
+) -> tuple[Physics, Any]:
+    """The physics of a registered id as functions, with no env around it:
+    ``(physics, params)``, the case's :class:`~beacon_torch.core.physics.Physics` for
+    ``num_envs`` members (default 1) on ``device`` in ``dtype``, and its parameters
+    resolved as :func:`make` resolves them (``params`` or keywords; a variant's
+    defaults), per-member values ``[num_envs]``.
+
+    A rollout is then a loop of pure calls, as in gymnax::
+
+        physics, params = beacon_torch.functional("burgers-v0", 8, dtype="float64")
+        state = physics.initial_state(params, generator)
+        obs = physics.observe(params, state)
+        out = beacon_torch.step(physics, params, state, action, physics.noise(params, generator))
+
+    and ``torch.func`` maps or differentiates it over parameter values
+    (``dataclasses.replace(params, re=value)`` inside the mapped function). The grid
+    and kernels are those of the parameters given here: a mapped value may change a
+    per-member parameter, not the grid's size."""
+    env_id = resolve_id(env_id)
+    cls = env_class(env_id)
+    physical = params_dict(cls, params)
+    twice = sorted(set(given) & set(physical))
+    if twice:
+        raise TypeError(f"{env_id}: parameter {twice[0]!r} given twice, in params and as a keyword")
+    options = sorted(set(given) & set(OPTIONS))
+    if options:
+        raise TypeError(f"{env_id}: {options[0]!r} is an option of the env (make), not of its physics")
+    defaults = {k: v for k, v in DEFAULTS.get(env_id, {}).items() if k not in OPTIONS}
+    members = _as_batch_size(1 if num_envs is None else num_envs)[0]
+    device, dtype = _as_device(device), _as_dtype(dtype)
+    resolved = resolve_params(
+        cls.Params, {**defaults, **physical, **given}, batch_size=members, device=device, dtype=dtype, env_id=env_id
+    )
+    return cls.physics_type(resolved, members, dtype=dtype, device=device), resolved
 
 
 def params_dict(cls: type[FlowEnv], params: Any) -> dict[str, Any]:

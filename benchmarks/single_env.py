@@ -7,7 +7,7 @@ For every env, random actions (fixed seed) through
   and out), eager and compiled;
 - a batch-of-one TorchRL env's ``step`` (TensorDicts and TorchRL's step wrappers), for
   comparison;
-- the step call alone (``FlowEnv._step_core`` from a frozen state: the physics, the
+- the step call alone (``beacon_torch.core.step.step`` from a frozen state: the physics, the
   action's checks and the bookkeeping; compiled, the one compiled call), the floor of
   any wrapper: what the lean step costs beyond it is the adapter's share.
 
@@ -89,10 +89,11 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
                 obs=env.observation,
                 action=env.check_action(batch[0][env.action_key]),
                 count=env.step_count,
-                noise=env.noise(),
+                noise=env.physics.noise(env.params, env.rng),
             )
         with torch.no_grad():
-            env._whole_step(frozen["state"], frozen["obs"], frozen["action"], frozen["count"], frozen["noise"], None)
+            inputs = frozen["state"], frozen["action"], frozen["noise"], frozen["count"], frozen["obs"]
+            env._whole_step(env.physics, env.params, *inputs)
 
     measured, recompiles = rates({"gymnasium": lean, "torchrl": torchrl_step, "physics": physics}, seconds, repeats)
     return {

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch.envs.burgers import BurgersEnv
+from beacon_torch.envs.burgers import BurgersEnv, BurgersPhysics
 from beacon_torch.registry import DEFAULTS, ENVS
 from beacon_torch.testing import CHECKS, ConformanceError, check_flow_env
 
@@ -112,7 +112,7 @@ def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
 
 CALM = """
 import beacon_torch
-from beacon_torch.envs.burgers import BurgersEnv
+from beacon_torch.envs.burgers import BurgersEnv, BurgersPhysics
 
 beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0)
 """
@@ -184,14 +184,15 @@ def test_the_state_is_the_envs_declared_type(monkeypatch):
     assert type(env.state) is env.state_type
     env.set_state(env.state._asdict())  # a dict of its fields is taken too
     assert type(env.state) is env.state_type
-    monkeypatch.setattr(BurgersEnv, "initial_state", lambda self, mask: {"u": torch.zeros(2, 500)})
+    not_a_state = lambda self, p, generator, mask=None: {"u": torch.zeros(2, 500)}
+    monkeypatch.setattr(BurgersPhysics, "initial_state", not_a_state)
     with pytest.raises(TypeError, match="burgers-v0: initial_state returned a dict, not the env's state type"):
         beacon_torch.make("burgers-v0", 2).reset()
 
 
 def test_the_kit_names_the_env_the_check_and_the_fault(monkeypatch):
     """An env that breaks a promise fails the kit with a message that says which."""
-    monkeypatch.setattr(BurgersEnv, "observe", lambda self, state: state.u[:, :5] * torch.rand(()))
+    monkeypatch.setattr(BurgersPhysics, "observe", lambda self, p, state: state.u[:, :5] * torch.rand(()))
     with pytest.raises(ConformanceError, match="burgers-v0: seeding: two envs of seed 123: observations differ"):
         check_flow_env("burgers-v0", ["seeding"])
     with pytest.raises(ValueError, match="unknown check"):

@@ -289,18 +289,55 @@ def test_every_env_declares_its_card():
         cls.Params(**cls.test_settings)  # parameters the env knows, in range
 
 
-def test_an_env_missing_a_physics_hook_is_refused_when_built():
-    """The hooks an env must supply are abstract: a class without one cannot be built,
-    and the error names what is missing (rather than failing at the first step)."""
-    from beacon_torch.envs.burgers import BurgersEnv
+def test_a_physics_missing_a_hook_is_refused_when_built():
+    """The hooks a physics must supply are abstract: an env of a physics without one
+    cannot be built, and the error names what is missing (rather than failing at the
+    first step)."""
+    from beacon_torch.envs.burgers import BurgersPhysics
 
-    class Incomplete(beacon_torch.base.FlowEnv):
-        env_id = "incomplete-v0"
-        Params = BurgersEnv.Params
+    class Incomplete(beacon_torch.Physics):
+        Params = BurgersPhysics.Params
         episode_length = 10
-        sizes = BurgersEnv.sizes
-        initial_state = BurgersEnv.initial_state
-        observe = BurgersEnv.observe
+        sizes = BurgersPhysics.sizes
+        initial_state = BurgersPhysics.initial_state
+        observe = BurgersPhysics.observe
+
+    class IncompleteEnv(beacon_torch.base.FlowEnv):
+        env_id = "incomplete-v0"
+        physics_type = Incomplete
 
     with pytest.raises(TypeError, match="advance"):
-        Incomplete(1)
+        IncompleteEnv(1)
+
+
+def test_an_env_class_spelling_a_physics_hook_is_told_where_it_goes():
+    """An env written the old way (its hooks on the env, reading self.params) is
+    refused when its class is defined, in one line naming the new place."""
+    expected = "Old defines the physics hook\\(s\\) \\['advance', 'observe'\\] on the env: they belong to a "
+    expected += "beacon_torch.Physics subclass"
+    with pytest.raises(TypeError, match=expected):
+
+        class Old(beacon_torch.base.FlowEnv):
+            def advance(self, state, action, count, noise):
+                return state, action
+
+            def observe(self, state):
+                return state
+
+
+def test_a_variant_class_may_shorten_the_episode_of_its_physics():
+    """An env class that says ``episode_length = 3`` steps a physics of its own with
+    it (truncated after 3 actions), and leaves its base env's physics as it was."""
+    from beacon_torch.envs.lorenz import LorenzEnv, LorenzPhysics
+
+    class Short(LorenzEnv):
+        env_id = "three-lorenz-v0"
+        episode_length = 3
+        blowup_reward = -7.0
+
+    assert issubclass(Short.physics_type, LorenzPhysics) and Short.physics_type.episode_length == 3
+    assert LorenzEnv.physics_type.episode_length == 500 and LorenzEnv.episode_length == 500
+    env = Short(2)
+    env.reset()
+    flags = [env.step_members(env.null_action())[3].tolist() for _ in range(3)]
+    assert flags == [[False, False], [False, False], [True, True]] and env.physics.blowup_reward == -7.0

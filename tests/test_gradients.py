@@ -169,8 +169,9 @@ def test_per_member_parameter_gets_per_member_gradients():
 def test_lorenz_smooth_reward_tends_to_the_indicator():
     x = torch.tensor([-1.0, -0.1, 0.1, 1.0], dtype=F64)
     sharp = beacon_torch.make("lorenz-continuous-v0", dtype=F64, reward_width=1e-3)
-    assert torch.allclose(sharp.reward(x), torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=F64))
-    assert torch.equal(beacon_torch.make("lorenz-continuous-v0").reward(x.float()), torch.tensor([1.0, 1.0, 0.0, 0.0]))
+    assert torch.allclose(sharp.physics.reward(sharp.params, x), torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=F64))
+    indicator = beacon_torch.make("lorenz-continuous-v0")
+    assert torch.equal(indicator.physics.reward(indicator.params, x.float()), torch.tensor([1.0, 1.0, 0.0, 0.0]))
 
 
 def test_errors_name_the_problem():

@@ -17,7 +17,7 @@ LAYERS = [
     # the compiled-call helpers, figures, argument types, the numerics
     {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics"},
     # the core: the env machinery and its caches, starts and bookkeeping
-    {"cache", "starts", "history", "autograd", "base", "episodes"},
+    {"cache", "starts", "history", "autograd", "core", "base", "episodes"},
     # the physics of each case
     {"envs"},
     # the registry and what works on any registered env

@@ -52,7 +52,7 @@ def test_history_follows_each_member_through_partial_resets():
         assert torch.equal(last.xyz, env.state.xyz[index])
     assert lengths == {0: 9, 1: 4, 2: 9}
     env.render_index = 1
-    assert torch.equal(env.history.frames(env.state)[0].xyz, env.initial_state(None).xyz[1])
+    assert torch.equal(env.history.frames(env.state)[0].xyz, env.physics.initial_state(env.params, None).xyz[1])
     env.reset_members(torch.tensor([True, False, True]))
     assert len(env.history.states) == 4  # what member 1 still draws; older states dropped
 

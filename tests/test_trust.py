@@ -948,14 +948,16 @@ def test_state_dicts_and_states_are_checked_for_what_they_claim():
 
 
 def test_an_env_whose_observe_disagrees_with_its_sizes_is_named(tmp_path):
-    from beacon_torch.envs.lorenz import LorenzEnv
+    from beacon_torch.envs.lorenz import LorenzEnv, LorenzPhysics
     from beacon_torch.testing import ConformanceError, check_flow_env
+
+    class NarrowPhysics(LorenzPhysics):
+        def observe(self, p, state):
+            return super().observe(p, state)[:, :3]
 
     class Narrow(LorenzEnv):
         env_id = "narrow-lorenz-v0"
-
-        def observe(self, state):
-            return super().observe(state)[:, :3]
+        physics_type = NarrowPhysics
 
     beacon_torch.register("narrow-lorenz-v0", Narrow)
     try:

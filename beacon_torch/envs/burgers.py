@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
 from beacon_torch.numerics import bdf2_explicit_step, tvd_derivative, van_leer
 from beacon_torch.params import param
 
@@ -73,25 +73,17 @@ def burgers_substep(
     return torch.cat((inlet, interior, interior[:, -1:]), -1), u
 
 
-class BurgersEnv(FlowEnv):
-    """Batched burgers-v0 (1 continuous action: the point forcing)."""
+class BurgersPhysics(Physics):
+    """The noisy inviscid Burgers flow with a point actuator."""
 
-    env_id = "burgers-v0"
     Params = BurgersParams
     state_type = BurgersState
     episode_length = EPISODE_LENGTH
     deterministic = False
-    family = "1-D"
     diagnostics = {
         "deviation": "dx sum |u - u_target| downstream of the actuator (minus the reward)",
         "max_deviation": "the largest |u - u_target| downstream of the actuator",
     }
-    published_speed = 2_670.0
-    speed_target = 5.0
-    paper_ppo = -1.75
-    # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
-    # sits on its kink everywhere there)
-    gradcheck = GradCheck("u_target", 0.5, warmup=60, steps=4)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -100,8 +92,7 @@ class BurgersEnv(FlowEnv):
     def member_floats(self) -> int:
         return 2 * self.n_cells  # u and its previous value
 
-    def setup(self) -> None:
-        p = self.params
+    def setup(self, p) -> None:
         self.n_cells = int(round(p.L / DX))
         self.ctrl = int(p.ctrl_pos / DX)
         source = torch.zeros(self.n_cells - 2, dtype=self.dtype, device=self.device)
@@ -109,29 +100,42 @@ class BurgersEnv(FlowEnv):
         self._source = source
         self._substeps = self.kernels.loop(burgers_substep)
 
-    def initial_state(self, mask: torch.Tensor | None) -> BurgersState:
+    def initial_state(self, p, generator, mask=None) -> BurgersState:
         u = torch.ones((self.num_envs, self.n_cells), dtype=self.dtype, device=self.device)
-        u = u * self.member(self.params.u_target)
+        u = u * self.member(p.u_target)
         return BurgersState(u=u, u_prev=u.clone(), a=torch.zeros_like(u[:, 0]))
 
-    def noise(self) -> Noise:
+    def noise(self, p, generator) -> Noise:
         # one inlet value per action
-        return {"inlet": torch.rand(self.num_envs, generator=self.rng, dtype=self.dtype, device=self.device)}
+        return {"inlet": torch.rand(self.num_envs, generator=generator, dtype=self.dtype, device=self.device)}
 
-    def advance(self, state: BurgersState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        p = self.params
+    def advance(self, p, state: BurgersState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         inlet = (p.u_target + p.sigma * (2.0 * noise["inlet"] - 1.0))[:, None]
         forcing = (self.member(p.amp) * action) * self._source  # [B, n-2]
         u, u_prev = self._substeps(SUBSTEPS, (state.u, state.u_prev), inlet, forcing)
         reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
         return BurgersState(u=u, u_prev=u_prev, a=action[:, 0]), reward
 
-    def diagnose(self, state: BurgersState) -> dict[str, torch.Tensor]:
-        gap = (state.u[:, self.ctrl :] - self.member(self.params.u_target)).abs()
+    def diagnose(self, p, state: BurgersState) -> dict[str, torch.Tensor]:
+        gap = (state.u[:, self.ctrl :] - self.member(p.u_target)).abs()
         return {"deviation": DX * gap.sum(-1), "max_deviation": gap.amax(-1)}
 
-    def observe(self, state: BurgersState) -> torch.Tensor:
+    def observe(self, p, state: BurgersState) -> torch.Tensor:
         return state.u[:, self.ctrl - N_OBS : self.ctrl]
+
+
+class BurgersEnv(FlowEnv):
+    """Batched burgers-v0 (1 continuous action: the point forcing)."""
+
+    env_id = "burgers-v0"
+    physics_type = BurgersPhysics
+    family = "1-D"
+    published_speed = 2_670.0
+    speed_target = 5.0
+    paper_ppo = -1.75
+    # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
+    # sits on its kink everywhere there)
+    gradcheck = GradCheck("u_target", 0.5, warmup=60, steps=4)
 
     def render_frame(self, history: list[BurgersState], step: int) -> np.ndarray:
         from beacon_torch.render import burgers_frame

@@ -17,7 +17,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, State
+from beacon_torch.base import FlowEnv, Physics, State
 from beacon_torch.numerics.grid import NEUMANN, Ghosts
 from beacon_torch.numerics.projection import Cavity
 
@@ -86,13 +86,12 @@ def _any_substep(substep: Callable, i, fields: Fields, *inputs) -> Fields:
     return substep(fields, *inputs)
 
 
-class CavityEnv(FlowEnv):
-    """Base of the cavity envs: the solver set up from the parameters ``L``, ``H`` and
-    ``solver``, probes of the scalar and the velocities, their history as observation."""
+class CavityPhysics(Physics):
+    """Base of the cavities' physics: the solver set up from the parameters ``L``,
+    ``H`` and ``solver``, probes of the scalar and the velocities, their history as
+    observation."""
 
     episode_length: ClassVar[int] = 100
-    family = "2-D"
-    costly = True  # an action is tens of substeps of a 2-D projection
 
     scalar: ClassVar[str]  # the transported scalar's name in the state
     cells_per_unit: ClassVar[int]
@@ -103,14 +102,11 @@ class CavityEnv(FlowEnv):
     # (fields, walls, offset, cavity, ghosts, nu, kappa) -> fields: one substep on the
     # solver's batch-last fields, a staticmethod of the env class
     substep: ClassVar[Callable]
-    # the names of the actuation bars of a frame (None: numbered)
-    action_labels: ClassVar[Sequence[str] | None] = None
 
     def member_floats(self) -> int:
         return 5 * (self.nx + 2) * (self.ny + 2)  # u, v, p, the scalar and a projection's work
 
-    def setup(self) -> None:
-        p = self.params
+    def setup(self, p) -> None:
         self.nx, self.ny, self.dx, self.dy = grid(p.L, p.H, self.cells_per_unit)
         tol = self.jacobi_tol if p.solver == "jacobi" else None
         self.cavity = Cavity(
@@ -143,8 +139,17 @@ class CavityEnv(FlowEnv):
         u, v = state.u[:, 1:-1, 1:-1], state.v[:, 1:-1, 1:-1]
         return 0.5 * ((u**2).mean((-2, -1)) + (v**2).mean((-2, -1)))
 
-    def observe(self, state: State) -> torch.Tensor:
+    def observe(self, p, state: State) -> torch.Tensor:
         return state.probes.flatten(1)
+
+
+class CavityEnv(FlowEnv):
+    """Base of the cavity envs: their card and their frames."""
+
+    family = "2-D"
+    costly = True  # an action is tens of substeps of a 2-D projection
+    # the names of the actuation bars of a frame (None: numbered)
+    action_labels: ClassVar[Sequence[str] | None] = None
 
     def actuation(self, state: State) -> np.ndarray:
         """The actuation bars of a frame of one member's ``state``."""

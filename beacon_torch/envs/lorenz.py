@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -62,25 +62,20 @@ def lorenz_step(xyz: torch.Tensor, u: torch.Tensor, p: LorenzParams) -> tuple[to
     return lsrk4_step(lambda s, t: lorenz_rhs(s, u, p), xyz, 0.0, DT)
 
 
-class LorenzEnv(FlowEnv):
-    """Batched lorenz-v0 (discrete forcing in {-1, 0, +1})."""
+class LorenzPhysics(Physics):
+    """The forced Lorenz system with discrete forcing in {-1, 0, +1}."""
 
-    env_id = "lorenz-v0"
     Params = LorenzParams
     state_type = LorenzState
     episode_length = EPISODE_LENGTH
     discrete = True
-    family = "ode"
     diagnostics = {"x": "the state's x (the reward counts x < 0)", "y": "the state's y", "z": "the state's z"}
-    published_speed = 62_300.0
-    speed_target = 20.0
-    paper_ppo = 400.0
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
         return 6, 3  # push down, none, up
 
-    def setup(self) -> None:
+    def setup(self, p) -> None:
         self._lorenz = self.kernels(lorenz_step)
 
     def forcing(self, action: torch.Tensor) -> torch.Tensor:
@@ -89,31 +84,58 @@ class LorenzEnv(FlowEnv):
     def null_action(self) -> torch.Tensor:
         return torch.ones(self.batch_size, dtype=torch.int64, device=self.device)
 
-    def initial_state(self, mask: torch.Tensor | None) -> LorenzState:
+    def initial_state(self, p, generator, mask=None) -> LorenzState:
         xyz = self.tensor(START).expand(self.num_envs, 3).clone()
         # the published reset observes zero time derivatives
         return LorenzState(xyz=xyz, rate=torch.zeros_like(xyz), u=torch.zeros_like(xyz[:, 0]))
 
-    def advance(self, state: LorenzState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+    def advance(self, p, state: LorenzState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         u = self.forcing(action)
-        xyz, rate = self._lorenz(state.xyz, u, self.params)
-        reward = self.reward(xyz[:, 0])
+        xyz, rate = self._lorenz(state.xyz, u, p)
+        reward = self.reward(p, xyz[:, 0])
         return LorenzState(xyz=xyz, rate=rate, u=u), reward
 
-    def reward(self, x: torch.Tensor) -> torch.Tensor:
-        width = self.params.reward_width
+    def reward(self, p, x: torch.Tensor) -> torch.Tensor:
+        width = p.reward_width
         step = (x < 0).to(self.dtype)
         # a width of 0 keeps the indicator
         return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
 
-    def diagnose(self, state: LorenzState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: LorenzState) -> dict[str, torch.Tensor]:
         x, y, z = state.xyz.unbind(-1)
         return {"x": x, "y": y, "z": z}
 
-    def observe(self, state: LorenzState) -> torch.Tensor:
+    def observe(self, p, state: LorenzState) -> torch.Tensor:
         # the "time derivatives" are those of the published code: the right-hand side
         # of the last LSRK4 stage, not the one at the new state
         return torch.cat((state.xyz, state.rate), -1)
+
+
+class LorenzContinuousPhysics(LorenzPhysics):
+    """The same system with a forcing u = action in [-1, 1]."""
+
+    discrete = False
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return 6, 1
+
+    def forcing(self, action: torch.Tensor) -> torch.Tensor:
+        return action[:, 0]
+
+    # zero forcing (the discrete env's "no control" is its action 1)
+    null_action = Physics.null_action
+
+
+class LorenzEnv(FlowEnv):
+    """Batched lorenz-v0 (discrete forcing in {-1, 0, +1})."""
+
+    env_id = "lorenz-v0"
+    physics_type = LorenzPhysics
+    family = "ode"
+    published_speed = 62_300.0
+    speed_target = 20.0
+    paper_ppo = 400.0
 
     def render_frame(self, history: list[LorenzState], step: int) -> np.ndarray:
         from beacon_torch.render import lorenz_frame
@@ -126,16 +148,6 @@ class LorenzContinuousEnv(LorenzEnv):
     """lorenz-continuous-v0: the same system with a forcing u = action in [-1, 1]."""
 
     env_id = "lorenz-continuous-v0"
-    discrete = False
+    physics_type = LorenzContinuousPhysics
     # the indicator reward has no gradient: its smooth version (docs/gradients.md)
     gradcheck = GradCheck("rho", 28.0, warmup=10, steps=20, params={"reward_width": 1.0})
-
-    @classmethod
-    def sizes(cls, p) -> tuple[int, int]:
-        return 6, 1
-
-    def forcing(self, action: torch.Tensor) -> torch.Tensor:
-        return action[:, 0]
-
-    # zero forcing (the discrete env's "no control" is its action 1)
-    null_action = FlowEnv.null_action

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from beacon_torch.base import GradCheck, Noise
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, Fields, transport
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, Fields, transport
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
 from beacon_torch.numerics.projection import Cavity
 from beacon_torch.numerics.staggered import project
@@ -79,10 +79,10 @@ def substep(fields: Fields, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, n
     return {"u": u, "v": v, "p": p, "c": transport(fields["c"], u, v, c_ghosts, c_offset, cavity, kappa, DT)}
 
 
-class MixingEnv(CavityEnv):
-    """Batched mixing-v0 (4 discrete actions: which walls move, which way)."""
+class MixingPhysics(CavityPhysics):
+    """The lid-driven cavity mixing a scalar (4 discrete actions: which walls move,
+    which way)."""
 
-    env_id = "mixing-v0"
     diagnostics = {
         "mixing_deviation": "the mean |c - c_mixed| over the cavity (minus the reward)",
         "kinetic_energy": "half the mean squared speed in the cavity",
@@ -90,12 +90,6 @@ class MixingEnv(CavityEnv):
     Params = MixingParams
     state_type = MixingState
     discrete = True
-    published_speed = 3.7
-    speed_target = 30.0
-    paper_ppo = -12.0
-    # a 30 x 30 cavity of the same scheme and the same probes, a tenth of the published
-    # grid's cost
-    test_settings = {"L": 0.3, "H": 0.3, "side": 0.2}
     scalar = "c"
     cells_per_unit = 100
     dt = DT
@@ -104,14 +98,13 @@ class MixingEnv(CavityEnv):
     poisson_bc = (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST)
     jacobi_tol = 1e-4
     substep = staticmethod(substep)
-    action_labels = ("u_b", "u_t", "v_l", "v_r")
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
         return N_OBS, 4
 
-    def setup(self) -> None:
-        super().setup()
+    def setup(self, p) -> None:
+        super().setup(p)
         self._lids = torch.tensor(LIDS, dtype=self.dtype, device=self.device)
 
     def scalar_ghosts(self) -> Ghosts:
@@ -120,21 +113,16 @@ class MixingEnv(CavityEnv):
 
     # derived from the parameters at each use, so that every differentiated step has
     # its own graph to them
-    @property
-    def u_max(self):
-        return self.member(self.params.re) * 0.01 / self.params.L  # the published scaling: 1 at the defaults
+    def u_max(self, p):
+        return self.member(p.re) * 0.01 / p.L  # the published scaling: 1 at the defaults
 
-    @property
-    def nu(self):
-        return 1.0 / self.member(self.params.re, 0)  # per member, against the batch-last fields
+    def nu(self, p):
+        return 1.0 / self.member(p.re, 0)  # per member, against the batch-last fields
 
-    @property
-    def kappa(self):
-        return 1.0 / self.member(self.params.pe, 0)
+    def kappa(self, p):
+        return 1.0 / self.member(p.pe, 0)
 
-    @property
-    def target(self):
-        p = self.params
+    def target(self, p):
         return p.side**2 * self.member(p.c0, 2) / (p.L * p.H)
 
     def walls(self, action: torch.Tensor) -> torch.Tensor:
@@ -142,8 +130,7 @@ class MixingEnv(CavityEnv):
         in units of u_max."""
         return self._lids[action]
 
-    def initial_state(self, mask: torch.Tensor | None) -> MixingState:
-        p = self.params
+    def initial_state(self, p, generator, mask=None) -> MixingState:
         B, nx, ny = self.num_envs, self.nx, self.ny
         zeros = lambda *shape: torch.zeros((B, *shape), dtype=self.dtype, device=self.device)
         c = zeros(nx + 2, ny + 2)
@@ -156,33 +143,26 @@ class MixingEnv(CavityEnv):
         flow = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c}
         return MixingState(**flow, walls=zeros(4), probes=self.probes.start(flow))
 
-    def advance(self, state: MixingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+    def advance(self, p, state: MixingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         walls = self.walls(action)
-        lids = (walls * self.u_max).T
-        flow = self.run(self.flow(state), SUBSTEPS, self.nu, self.kappa, walls=self.cavity.walls(*lids, like=lids))
+        lids = (walls * self.u_max(p)).T
+        walls_moving = self.cavity.walls(*lids, like=lids)
+        flow = self.run(self.flow(state), SUBSTEPS, self.nu(p), self.kappa(p), walls=walls_moving)
         new = MixingState(**flow, walls=walls, probes=self.probes.push(state.probes, flow))
-        return new, -(new.c - self.target).abs().mean((-2, -1))
+        return new, -(new.c - self.target(p)).abs().mean((-2, -1))
 
-    def diagnose(self, state: MixingState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: MixingState) -> dict[str, torch.Tensor]:
         return {
-            "mixing_deviation": (state.c - self.target).abs().mean((-2, -1)),
+            "mixing_deviation": (state.c - self.target(p)).abs().mean((-2, -1)),
             "kinetic_energy": self.kinetic_energy(state),
         }
 
-    def actuation(self, state: MixingState) -> np.ndarray:
-        return state.walls.double().numpy()
 
-    def scalar_range(self) -> tuple[float, float]:
-        return 0.0, float(self.params.c0[self.render_index])
+class MixingContinuousPhysics(MixingPhysics):
+    """a in [-1, 1]^2 drives the bottom/top walls at (+a0, -a0) u_max and the
+    right/left walls at (+a1, -a1) u_max."""
 
-
-class MixingContinuousEnv(MixingEnv):
-    """mixing-continuous-v0: a in [-1, 1]^2 drives the bottom/top walls at
-    (+a0, -a0) u_max and the right/left walls at (+a1, -a1) u_max."""
-
-    env_id = "mixing-continuous-v0"
     discrete = False
-    gradcheck = GradCheck("re", 100.0, warmup=1, steps=1)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -197,3 +177,32 @@ class MixingContinuousEnv(MixingEnv):
         a = torch.zeros((self.num_envs, 2), dtype=self.dtype, device=self.device)
         a[:, 0] = 1.0
         return a
+
+
+class MixingEnv(CavityEnv):
+    """Batched mixing-v0 (4 discrete actions: which walls move, which way)."""
+
+    env_id = "mixing-v0"
+    physics_type = MixingPhysics
+    published_speed = 3.7
+    speed_target = 30.0
+    paper_ppo = -12.0
+    # a 30 x 30 cavity of the same scheme and the same probes, a tenth of the published
+    # grid's cost
+    test_settings = {"L": 0.3, "H": 0.3, "side": 0.2}
+    action_labels = ("u_b", "u_t", "v_l", "v_r")
+
+    def actuation(self, state: MixingState) -> np.ndarray:
+        return state.walls.double().numpy()
+
+    def scalar_range(self) -> tuple[float, float]:
+        return 0.0, float(self.params.c0[self.render_index])
+
+
+class MixingContinuousEnv(MixingEnv):
+    """mixing-continuous-v0: a in [-1, 1]^2 drives the bottom/top walls at
+    (+a0, -a0) u_max and the right/left walls at (+a1, -a1) u_max."""
+
+    env_id = "mixing-continuous-v0"
+    physics_type = MixingContinuousPhysics
+    gradcheck = GradCheck("re", 100.0, warmup=1, steps=1)

@@ -18,7 +18,6 @@ Nusselt number. Every episode starts from the developed single convection roll
 from __future__ import annotations
 
 import dataclasses
-import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -27,7 +26,7 @@ import torch
 
 from beacon_torch.base import GradCheck, Noise, map_state
 from beacon_torch.cache import cached
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, Fields, transport
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, Fields, transport
 from beacon_torch.numerics.grid import GRADIENT, VALUE, Ghosts, edge_offset
 from beacon_torch.numerics.projection import Cavity
 from beacon_torch.numerics.staggered import project
@@ -162,10 +161,9 @@ def normalise(action: torch.Tensor) -> torch.Tensor:
     return a / torch.clamp(a.abs().amax(-1, keepdim=True) / C, min=1.0)
 
 
-class RayleighEnv(CavityEnv):
-    """Batched rayleigh-v0 (one continuous action per bottom segment)."""
+class RayleighPhysics(CavityPhysics):
+    """The convection cell heated by bottom segments (one action per segment)."""
 
-    env_id = "rayleigh-v0"
     Params = RayleighParams
     state_type = RayleighState
     blowup_reward = -1.0
@@ -173,10 +171,6 @@ class RayleighEnv(CavityEnv):
         "nusselt": "the Nusselt number at the bottom plate (minus the reward)",
         "kinetic_energy": "half the mean squared speed in the cavity",
     }
-    published_speed = 13.8
-    speed_target = 20.0
-    paper_ppo = -130.0
-    gradcheck = GradCheck("ra", 1e4, warmup=0, steps=2)
     scalar = "theta"
     cells_per_unit = CELLS_PER_UNIT
     dt = DT
@@ -188,46 +182,64 @@ class RayleighEnv(CavityEnv):
     def sizes(cls, p) -> tuple[int, int]:
         return N_OBS, p.n_sgts  # one temperature per bottom segment
 
+    def setup(self, p) -> None:
+        super().setup(p)
+        self._starts: dict[tuple, Convection] = {}
+
     def scalar_ghosts(self) -> Ghosts:
         # adiabatic sides; the plates' temperatures through the ghost offset
         return Ghosts.cells(self.nx, self.ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=self.dtype, device=self.device)
 
     # derived from ra at each use, so that every differentiated step has its own graph
-    @property
-    def nu(self):
-        return (PR / self.params.ra) ** 0.5
+    def nu(self, p):
+        return (PR / p.ra) ** 0.5
 
-    @property
-    def kappa(self):
-        return 1.0 / (PR * self.params.ra) ** 0.5
+    def kappa(self, p):
+        return 1.0 / (PR * p.ra) ** 0.5
 
-    @functools.cached_property
-    def _start(self) -> Convection:
+    def _start(self, p) -> Convection:
         # loaded at the first reset: an env started by set_state never develops its roll
-        if self.params.start == PUBLISHED:
+        key = (p.start, number(p.ra))
+        if key not in self._starts:
+            self._starts[key] = self._developed(p)
+        return self._starts[key]
+
+    def _developed(self, p) -> Convection:
+        if p.start == PUBLISHED:
             start = published_convection(self.nx, self.ny)
         else:
-            p = dataclasses.replace(self.params, ra=number(self.params.ra))
+            p = dataclasses.replace(p, ra=number(p.ra))
             key = dict(version=3, L=p.L, H=p.H, ra=p.ra)
             like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
             start = cached("rayleigh-convection", key, lambda: developed_convection(p), like)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
-    def initial_state(self, mask: torch.Tensor | None) -> RayleighState:
-        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start._asdict().items()}
+    def initial_state(self, p, generator, mask=None) -> RayleighState:
+        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start(p)._asdict().items()}
         bottom = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
         return RayleighState(**flow, bottom=bottom, probes=self.probes.start(flow))
 
-    def advance(self, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+    def advance(self, p, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
         offset = temperature_offset(bottom, self.ghosts, self.ny)
-        flow = self.run(self.flow(state), SUBSTEPS, self.nu, self.kappa, offset=offset)
+        flow = self.run(self.flow(state), SUBSTEPS, self.nu(p), self.kappa(p), offset=offset)
         new = RayleighState(**flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
         return new, -nusselt(new.theta, self.dy)
 
-    def diagnose(self, state: RayleighState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: RayleighState) -> dict[str, torch.Tensor]:
         return {"nusselt": nusselt(state.theta, self.dy), "kinetic_energy": self.kinetic_energy(state)}
+
+
+class RayleighEnv(CavityEnv):
+    """Batched rayleigh-v0 (one continuous action per bottom segment)."""
+
+    env_id = "rayleigh-v0"
+    physics_type = RayleighPhysics
+    published_speed = 13.8
+    speed_target = 20.0
+    paper_ppo = -130.0
+    gradcheck = GradCheck("ra", 1e4, warmup=0, steps=2)
 
     def actuation(self, state: RayleighState) -> np.ndarray:
         return (state.bottom.double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C

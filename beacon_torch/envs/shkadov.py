@@ -23,7 +23,6 @@ multi-agent convention): per-jet observation, action and reward under ``"agents"
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -32,7 +31,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Composite, Unbounded
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state, where_members
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.numerics import (
@@ -252,10 +251,9 @@ def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float 
     return Film(h=state.h[0], q=state.q[0])
 
 
-class ShkadovEnv(FlowEnv):
-    """Batched shkadov-v0 (one continuous action per jet)."""
+class ShkadovPhysics(Physics):
+    """The falling liquid film with jets (one continuous action per jet)."""
 
-    env_id = "shkadov-v0"
     Params = ShkadovParams
     state_type = ShkadovState
     episode_length = EPISODE_LENGTH
@@ -263,17 +261,10 @@ class ShkadovEnv(FlowEnv):
     # reward is negative, so a blown-up episode scores below this whenever it happens
     blowup_reward = -100.0
     deterministic = False
-    family = "1-D"
     diagnostics = {
         "film_deviation": "the mean over the jets of dx sum (h - 1)^2 / cells downstream of each (minus the reward)",
         "max_thickness": "the largest film thickness h",
     }
-    published_speed = 300.0
-    speed_target = 5.0
-    paper_ppo = -0.8
-    gradcheck = GradCheck("delta", 0.1, warmup=3, steps=3)
-    # a reset runs up to 3 uncontrolled actions instead of 400
-    test_settings = {"random_start": 3}
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
@@ -282,8 +273,7 @@ class ShkadovEnv(FlowEnv):
     def member_floats(self) -> int:
         return 4 * self.n_cells  # h, q and their previous slopes
 
-    def setup(self) -> None:
-        p = self.params
+    def setup(self, p) -> None:
         self.n_cells = int(round(p.length / DX))
         self.n_jets = p.n_jets
         step = int(round(p.jet_space / DX))
@@ -299,46 +289,45 @@ class ShkadovEnv(FlowEnv):
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))
         self._reward_index = torch.tensor([[c + m for m in range(width)] for c in self.jet_centres], device=self.device)
-
-    @functools.cached_property
-    def _film(self) -> Film:
         # loaded at the first reset: an env started by set_state never develops its film
-        if self.params.start == PUBLISHED:
+        self._films: dict[tuple, Film] = {}
+
+    def _film(self, p) -> Film:
+        key = (p.start, number(p.delta))
+        if key not in self._films:
+            self._films[key] = self._developed_film(p)
+        return self._films[key]
+
+    def _developed_film(self, p) -> Film:
+        if p.start == PUBLISHED:
             table = published_table(
                 "shkadov", int(round(DEVELOP_LENGTH / DX)), 3
             )  # rows: x, h, q on the development domain
             film = Film(h=table[:, 1], q=table[:, 2])
         else:
-            delta = number(self.params.delta)
+            delta = number(p.delta)
             n = int(round(DEVELOP_LENGTH / DX))
             like = Film(h=torch.ones(n, dtype=torch.float64), q=torch.ones(n, dtype=torch.float64))
             film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), like)
         return map_state(lambda v: v[: self.n_cells].to(device=self.device, dtype=self.dtype), film)
 
-    def noise(self) -> Noise:
-        return {"inlet": inlet_noise(self.rng, self.num_envs, self.dtype, self.device)}
+    def noise(self, p, generator) -> Noise:
+        return {"inlet": inlet_noise(generator, self.num_envs, self.dtype, self.device)}
 
-    def _advance_state(self, state: ShkadovState, action: torch.Tensor, noise: Noise) -> ShkadovState:
-        return run_action(
-            state,
-            action,
-            self._profiles,
-            self.params.delta,
-            DX,
-            noise["inlet"],
-            self.member(self.params.amp),
-            self._substeps,
-        )
+    def _advance_state(self, p, state: ShkadovState, action: torch.Tensor, noise: Noise) -> ShkadovState:
+        amp = self.member(p.amp)
+        return run_action(state, action, self._profiles, p.delta, DX, noise["inlet"], amp, self._substeps)
 
-    def initial_state(self, mask: torch.Tensor | None) -> ShkadovState:
+    def initial_state(self, p, generator, mask=None) -> ShkadovState:
+        film = self._film(p)
         state = flat_state(self.num_envs, self.n_cells, self.n_jets, self.dtype, self.device)._replace(
-            h=self._film.h.expand(self.num_envs, -1).clone(), q=self._film.q.expand(self.num_envs, -1).clone()
+            h=film.h.expand(self.num_envs, -1).clone(), q=film.q.expand(self.num_envs, -1).clone()
         )
-        if self.params.random_start == 0:
+        if p.random_start == 0:
             return state
         # each member being reset runs its own random number of uncontrolled actions;
         # only those members are computed, and each stops at its own count
-        n_run = torch.randint(0, self.params.random_start + 1, (self.num_envs,), generator=self.rng, device=self.device)
+        n_run = torch.randint(0, p.random_start + 1, (self.num_envs,), generator=generator, device=self.device)
         if mask is not None:
             n_run = torch.where(mask, n_run, torch.zeros_like(n_run))
         idx = (n_run > 0).nonzero()[:, 0]
@@ -356,9 +345,9 @@ class ShkadovEnv(FlowEnv):
         for a in range(int(n_run.max())):
             # uncontrolled: no jet forcing, whatever the (per-member) amplitude; the
             # padding draws nothing from the generator
-            noise = inlet_noise(self.rng, n, self.dtype, self.device)
+            noise = inlet_noise(generator, n, self.dtype, self.device)
             noise = torch.cat((noise, noise.new_zeros((SUBSTEPS, size - n, 1))), 1)
-            new = run_action(sub, zero, self._profiles, self.params.delta, DX, noise, 0.0, self._substeps)
+            new = run_action(sub, zero, self._profiles, p.delta, DX, noise, 0.0, self._substeps)
             sub = where_members(runs > a, new, sub)
         return type(state)(*(v.index_copy(0, idx, w[:n]) for v, w in zip(state, sub, strict=True)))
 
@@ -368,18 +357,48 @@ class ShkadovEnv(FlowEnv):
         region = h[:, self._reward_index]  # [B, n_jets, cells]
         return -DX * ((region - 1.0) ** 2).sum(-1) / region.shape[-1]
 
-    def advance(self, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        new = self._advance_state(state, action, noise)
+    def advance(self, p, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+        new = self._advance_state(p, state, action, noise)
         return new, self.jet_rewards(new.h).mean(-1)
 
-    def diagnose(self, state: ShkadovState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: ShkadovState) -> dict[str, torch.Tensor]:
         return {"film_deviation": -self.jet_rewards(state.h).mean(-1), "max_thickness": state.h.amax(-1)}
 
-    def observe(self, state: ShkadovState) -> torch.Tensor:
+    def observe(self, p, state: ShkadovState) -> torch.Tensor:
         return state.q[:, self._obs_index]
 
-    def out_of_bounds(self, state: ShkadovState) -> torch.Tensor:
+    def out_of_bounds(self, p, state: ShkadovState) -> torch.Tensor:
         return (state.h.abs() > H_MAX).any(-1)
+
+
+class ShkadovSeparablePhysics(ShkadovPhysics):
+    """The film with each jet an agent: actions ``[B, n_jets, 1]``, observations
+    ``[B, n_jets, 10]`` and one reward per jet ``[B, n_jets]``."""
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        return (self.n_jets, 1)
+
+    def advance(self, p, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+        new = self._advance_state(p, state, action[..., 0], noise)
+        return new, self.jet_rewards(new.h)
+
+    def observe(self, p, state: ShkadovState) -> torch.Tensor:
+        return super().observe(p, state).reshape(self.num_envs, self.n_jets, -1)
+
+
+class ShkadovEnv(FlowEnv):
+    """Batched shkadov-v0 (one continuous action per jet)."""
+
+    env_id = "shkadov-v0"
+    physics_type = ShkadovPhysics
+    family = "1-D"
+    published_speed = 300.0
+    speed_target = 5.0
+    paper_ppo = -0.8
+    gradcheck = GradCheck("delta", 0.1, warmup=3, steps=3)
+    # a reset runs up to 3 uncontrolled actions instead of 400
+    test_settings = {"random_start": 3}
 
     def render_frame(self, history: list[ShkadovState], step: int) -> np.ndarray:
         from beacon_torch import render
@@ -404,13 +423,10 @@ class ShkadovSeparableEnv(ShkadovEnv):
     """
 
     env_id = "shkadov-separable-v0"
+    physics_type = ShkadovSeparablePhysics
     action_key = ("agents", "action")
     observation_key = ("agents", "observation")
     reward_key = ("agents", "reward")
-
-    @property
-    def action_shape(self) -> tuple[int, ...]:
-        return (self.n_jets, 1)
 
     def _make_specs(self) -> None:
         super()._make_specs()
@@ -444,10 +460,3 @@ class ShkadovSeparableEnv(ShkadovEnv):
         if reward is not None:
             agents["reward"] = reward[..., None]
         return {"agents": TensorDict(agents, batch_size=(*self.batch_size, self.n_jets), device=self.device)}
-
-    def advance(self, state: ShkadovState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        new = self._advance_state(state, action[..., 0], noise)
-        return new, self.jet_rewards(new.h)
-
-    def observe(self, state: ShkadovState) -> torch.Tensor:
-        return super().observe(state).reshape(self.num_envs, self.n_jets, -1)

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state, where_members
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
@@ -139,22 +139,16 @@ def excited_state(L: float, g, num_envs: int, dtype: torch.dtype, device) -> Slo
     return run_actions(state, actions, EXCITATION_AMP, g, dx)
 
 
-class SloshingEnv(FlowEnv):
-    """Batched sloshing-v0 (1 continuous action: the tank acceleration)."""
+class SloshingPhysics(Physics):
+    """The shallow water in a tank driven by its acceleration."""
 
-    env_id = "sloshing-v0"
     Params = SloshingParams
     state_type = SloshingState
     episode_length = EPISODE_LENGTH
-    family = "1-D"
     diagnostics = {
         "surface_deviation": "dx ||h - 1||, the free surface's distance from rest (the reward without actuation)",
         "max_depth": "the largest depth h in the tank",
     }
-    published_speed = 1_060.0
-    speed_target = 5.0
-    paper_ppo = -1.1
-    gradcheck = GradCheck("g", 9.81, warmup=5, steps=4)
     # Below every episode that completes: it keeps 0 <= h <= 2 (a negative depth makes
     # the wave speed non-finite, which ends the episode too), so each step earns at least
     # -(dx sqrt(n_cells) + alpha amp) = -0.179 and 200 steps at least -35.9 at the
@@ -169,15 +163,15 @@ class SloshingEnv(FlowEnv):
     def member_floats(self) -> int:
         return 5 * self.n_cells  # h, q and their previous slopes
 
-    def setup(self) -> None:
-        self.n_cells = int(round(self.params.L * CELLS_PER_UNIT))
-        self.dx = self.params.L / self.n_cells
+    def setup(self, p) -> None:
+        self.n_cells = int(round(p.L * CELLS_PER_UNIT))
+        self.dx = p.L / self.n_cells
         self._substeps = self.kernels.loop(sloshing_substep)
-        # made at the first reset, after the base has checked that the batch fits
-        self._start: SloshingState | None = None
+        # made at the first reset, after the env has checked that the batch fits, for
+        # the parameters it was made for
+        self._start: tuple[object, SloshingState] | None = None
 
-    def _start_state(self) -> SloshingState:
-        p = self.params
+    def _start_state(self, p) -> SloshingState:
 
         def published() -> SloshingState:
             table = published_table("sloshing", self.n_cells, 3)  # rows: x, h, q of the interior cells
@@ -204,34 +198,46 @@ class SloshingEnv(FlowEnv):
         # generated in float64 like the published code, then cast
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype).clone(), start)
 
-    def initial_state(self, mask: torch.Tensor | None) -> SloshingState:
-        if self._start is None:
-            self._start = self._start_state()
-        zero = torch.zeros_like(self._start.h)
+    def initial_state(self, p, generator, mask=None) -> SloshingState:
+        if self._start is None or self._start[0] is not p:
+            self._start = p, self._start_state(p)
+        start = self._start[1]
+        zero = torch.zeros_like(start.h)
         # the published reset reloads h and q only: the AB2 history and the previous
         # action start from zero
-        return SloshingState(h=self._start.h, q=self._start.q, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
+        return SloshingState(h=start.h, q=start.q, fh_prev=zero, fq_prev=zero, u_prev=zero[:, 0])
 
-    def advance(self, state: SloshingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        p = self.params
+    def advance(self, p, state: SloshingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         u = action[:, 0]
         new = run_actions(state, [u], p.amp, self.member(p.g), self.dx, self._substeps)
         h = new.h
         reward = -self.dx * torch.linalg.vector_norm(h - 1.0, dim=-1) - p.alpha * (p.amp * u).abs()
         return new, reward
 
-    def diagnose(self, state: SloshingState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: SloshingState) -> dict[str, torch.Tensor]:
         return {
             "surface_deviation": self.dx * torch.linalg.vector_norm(state.h - 1.0, dim=-1),
             "max_depth": state.h.amax(-1),
         }
 
-    def observe(self, state: SloshingState) -> torch.Tensor:
+    def observe(self, p, state: SloshingState) -> torch.Tensor:
         return state.q[:, ::2]
 
-    def out_of_bounds(self, state: SloshingState) -> torch.Tensor:
+    def out_of_bounds(self, p, state: SloshingState) -> torch.Tensor:
         h = state.h
         return ((h < H_MIN) | (h > H_MAX)).any(-1)
+
+
+class SloshingEnv(FlowEnv):
+    """Batched sloshing-v0 (1 continuous action: the tank acceleration)."""
+
+    env_id = "sloshing-v0"
+    physics_type = SloshingPhysics
+    family = "1-D"
+    published_speed = 1_060.0
+    speed_target = 5.0
+    paper_ppo = -1.1
+    gradcheck = GradCheck("g", 9.81, warmup=5, steps=4)
 
     def render_frame(self, history: list[SloshingState], step: int) -> np.ndarray:
         from beacon_torch.render import sloshing_frame

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -98,29 +98,23 @@ def vortex_substep(
     return lsrk4_step(lambda u, t: vortex_rhs(u, k, phi, re), carry[0], 0.0, DT)
 
 
-class VortexEnv(FlowEnv):
-    """Batched vortex-v0 (2 continuous actions: gain and phase of the feedback)."""
+class VortexPhysics(Physics):
+    """The vortex-induced vibration model with a feedback of gain and phase."""
 
-    env_id = "vortex-v0"
     Params = VortexParams
     state_type = VortexState
     episode_length = EPISODE_LENGTH
-    family = "ode"
     diagnostics = {
         "flow_amplitude": "|A|, the amplitude of the flow disturbance",
         "vibration_amplitude": "|Y|, the amplitude of the cylinder's vibration",
         "displacement": "the cylinder's displacement y at the end of the action",
     }
-    published_speed = 6_560.0
-    speed_target = 20.0
-    paper_ppo = 38.0
-    gradcheck = GradCheck("re", 50.0, warmup=20, steps=20)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:
         return 8, 2
 
-    def setup(self) -> None:
+    def setup(self, p) -> None:
         self._substeps = self.kernels.loop(vortex_substep)
 
     def null_action(self) -> torch.Tensor:
@@ -128,8 +122,7 @@ class VortexEnv(FlowEnv):
         a[:, 0] = -1.0
         return a
 
-    def initial_state(self, mask: torch.Tensor | None) -> VortexState:
-        p = self.params
+    def initial_state(self, p, generator, mask=None) -> VortexState:
         # complex128 for float64: a Python complex would become complex64 and round the
         # start to float32
         cdtype = torch.complex128 if self.dtype == torch.float64 else torch.complex64
@@ -140,10 +133,10 @@ class VortexEnv(FlowEnv):
         # the published reset observes zero time derivatives
         return VortexState(ay=s, rate=torch.zeros_like(s), k=zero, phi=zero.clone(), y_prev=displacement(s, zero))
 
-    def advance(self, state: VortexState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+    def advance(self, p, state: VortexState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         k = 0.5 * K_MAX * (action[:, 0] + 1.0)
         phi = math.pi * action[:, 1]
-        s, rate = self._substeps(SUBSTEPS, (state.ay, state.rate), k, phi, self.params.re)
+        s, rate = self._substeps(SUBSTEPS, (state.ay, state.rate), k, phi, p.re)
         t = DT_ACT * (count + 1).to(self.dtype)
         y = displacement(s, t)
         # The published scores divide by the numerical step (0.1), not by the 0.5
@@ -152,10 +145,10 @@ class VortexEnv(FlowEnv):
         c, sn = torch.cos(OMEGA_STAR * t), torch.sin(OMEGA_STAR * t)
         ar, ai = s[:, 0], s[:, 1]
         lift = 2.0 * k * torch.cos(phi) * (ar * c - ai * sn) - 2.0 * k * torch.sin(phi) * (ai * c + ar * sn)
-        reward = energy - self.params.w * 0.5 * lift**2
+        reward = energy - p.w * 0.5 * lift**2
         return VortexState(ay=s, rate=rate, k=k, phi=phi, y_prev=y), reward
 
-    def diagnose(self, state: VortexState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: VortexState) -> dict[str, torch.Tensor]:
         s = state.ay
         return {
             "flow_amplitude": torch.hypot(s[:, 0], s[:, 1]),
@@ -163,9 +156,21 @@ class VortexEnv(FlowEnv):
             "displacement": state.y_prev,
         }
 
-    def observe(self, state: VortexState) -> torch.Tensor:
+    def observe(self, p, state: VortexState) -> torch.Tensor:
         # the published "time derivatives": the last LSRK4 stage's right-hand side
         return torch.cat((state.ay, state.rate), -1)
+
+
+class VortexEnv(FlowEnv):
+    """Batched vortex-v0 (2 continuous actions: gain and phase of the feedback)."""
+
+    env_id = "vortex-v0"
+    physics_type = VortexPhysics
+    family = "ode"
+    published_speed = 6_560.0
+    speed_target = 20.0
+    paper_ppo = 38.0
+    gradcheck = GradCheck("re", 50.0, warmup=20, steps=20)
 
     def render_frame(self, history: list[VortexState], step: int) -> np.ndarray:
         from beacon_torch.render import vortex_frame

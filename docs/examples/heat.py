@@ -9,7 +9,8 @@ dt = 0.4 dx^2 / kappa per action, 100 actions. The agent sees 4 thermometers and
 rewarded by minus the mean squared distance of the rod to T = 1 - 4 (x - 1/2)^2.
 
 Written as a user of beacon-torch would write a new case (docs/adding-an-env.md): one
-module, registered with ``beacon_torch.register`` and checked by the conformance kit.
+module (its physics and the env that shows it), registered with
+``beacon_torch.register`` and checked by the conformance kit.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 
 import beacon_torch
-from beacon_torch.base import FlowEnv, GradCheck, Noise
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
 from beacon_torch.params import param
 
 N_CELLS = 32
@@ -52,17 +53,13 @@ def heat_substep(i, T: torch.Tensor, heating: torch.Tensor, kappa: float, dt: fl
     return torch.nn.functional.pad(interior, (1, 1))
 
 
-class HeatEnv(FlowEnv):
-    """Batched heat-v0 (1 continuous action: the heater's power)."""
+class HeatPhysics(Physics):
+    """The heated rod: every hook takes the parameters first."""
 
-    env_id = "heat-v0"
     Params = HeatParams
     state_type = HeatState
     episode_length = EPISODE_LENGTH
-    deterministic = False  # the hot spot of a start is drawn from the env's generator
-    # the card
-    family = "1-D"
-    gradcheck = GradCheck("power", 20.0, warmup=5, steps=3)
+    deterministic = False  # the hot spot of a start is drawn from the generator
     # a rod that overheats: every reward is at least -(T - target)^2 with T <= 1e3
     blowup_reward = -1e6
 
@@ -70,31 +67,42 @@ class HeatEnv(FlowEnv):
     def sizes(cls, p) -> tuple[int, int]:
         return len(PROBES), 1
 
-    def setup(self) -> None:
+    def setup(self, p) -> None:
         x = (torch.arange(N_CELLS + 2, dtype=self.dtype, device=self.device) - 0.5) * DX
         self._x = x
         self._target = 1.0 - 4.0 * (x - 0.5) ** 2
         self._heater = torch.exp(-(((x[1:-1] - 0.3) / 0.05) ** 2))
-        self._kappa = float(self.params.kappa)
+        # kappa is one number for the batch (per_member=False): it fixes the time step
+        self._kappa = float(p.kappa)
         self._dt = 0.4 * DX**2 / self._kappa  # within the explicit scheme's limit, 0.5
         self._substeps = self.kernels.loop(heat_substep)
 
-    def initial_state(self, mask: torch.Tensor | None) -> HeatState:
-        where = torch.rand((self.num_envs, 1), generator=self.rng, dtype=self.dtype, device=self.device)
-        bump = self.member(self.params.spot) * torch.exp(-(((self._x - where) / 0.1) ** 2))
+    def initial_state(self, p, generator, mask=None) -> HeatState:
+        where = torch.rand((self.num_envs, 1), generator=generator, dtype=self.dtype, device=self.device)
+        bump = self.member(p.spot) * torch.exp(-(((self._x - where) / 0.1) ** 2))
         return HeatState(T=torch.nn.functional.pad(bump[:, 1:-1], (1, 1)))
 
-    def advance(self, state: HeatState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        heating = self.member(self.params.power) * action * self._heater
+    def advance(self, p, state: HeatState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+        heating = self.member(p.power) * action * self._heater
         T = self._substeps(SUBSTEPS, state.T, heating, self._kappa, self._dt)
         reward = -((T - self._target) ** 2).mean(-1)
         return HeatState(T=T), reward
 
-    def observe(self, state: HeatState) -> torch.Tensor:
+    def observe(self, p, state: HeatState) -> torch.Tensor:
         return state.T[:, list(PROBES)]
 
-    def out_of_bounds(self, state: HeatState) -> torch.Tensor:
+    def out_of_bounds(self, p, state: HeatState) -> torch.Tensor:
         return state.T.abs().amax(-1) > 1e3
+
+
+class HeatEnv(FlowEnv):
+    """Batched heat-v0 (1 continuous action: the heater's power)."""
+
+    env_id = "heat-v0"
+    physics_type = HeatPhysics
+    # the card
+    family = "1-D"
+    gradcheck = GradCheck("power", 20.0, warmup=5, steps=3)
 
     def render_frame(self, history: list[HeatState], step: int) -> np.ndarray:
         from beacon_torch.render import new_figure, to_rgb

@@ -3,14 +3,13 @@ reward (the case: :mod:`beacon_torch.envs.cylinder`)."""
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, map_state
+from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state
 from beacon_torch.cache import cached
 from beacon_torch.envs.cylinder.channel import (
     CENTRE,
@@ -88,24 +87,14 @@ def jet_target(action: torch.Tensor) -> torch.Tensor:
     return Q_MAX * 0.5 * (action[:, 0] - action[:, 1])
 
 
-class CylinderEnv(FlowEnv):
-    """Batched cylinder-v0 (2 continuous actions: the two jets' flow rates)."""
+class CylinderPhysics(Physics):
+    """The channel flow past a cylinder with two jets (2 continuous actions: the jets'
+    flow rates)."""
 
-    env_id = "cylinder-v0"
     Params = CylinderParams
     state_type = CylinderState
     episode_length = EPISODE_LENGTH
     substeps = SUBSTEPS
-    family = "2-D"
-    costly = True  # an action is 50 substeps of the 2-D flow
-    # beyond BEACON: the published solver (FEniCS) is not run here, so the card has no
-    # published speed or target (the case's own: an episode of 16 members in 90 s,
-    # benchmarks/RESULTS.md)
-    # Rabault et al.'s outcome in this reward: the drag force 8 % below the published
-    # mesh's uncontrolled 0.159 over every action, the lift's penalty aside
-    paper_ppo = EPISODE_LENGTH * PUBLISHED_REDUCTION * DRAG_OFFSET
-    gradcheck = GradCheck("nu", NU, warmup=1, steps=1)
-    test_settings = {"cells_per_diameter": 10}
     # every completed action's reward is above -(drag - 0.159) - 0.2 |lift| with the
     # forces of a blown-up flow excluded; a drag force of 10 (C_D 200) is far beyond any
     blowup_reward = -10.0
@@ -123,42 +112,65 @@ class CylinderEnv(FlowEnv):
         # u, v, p, the two tendencies, and the step's work on as many again
         return 10 * (self.channel.nx + 1) * (self.channel.ny + 1)
 
-    def setup(self) -> None:
-        self.channel = Channel(int(self.params.cells_per_diameter), dtype=self.dtype, device=self.device)
+    def setup(self, p) -> None:
+        self.channel = Channel(int(p.cells_per_diameter), dtype=self.dtype, device=self.device)
         # what the speed benchmark of the 2-D envs reads, as the cavities have it
         self.nx, self.ny, self.solver = self.channel.nx, self.channel.ny, self.channel
         self._steps = self.kernels.loop(step)
+        self._starts: dict[tuple, Flow] = {}
 
-    @functools.cached_property
-    def _start(self) -> Flow:
-        cells, nu = int(self.params.cells_per_diameter), number(self.params.nu)
+    def _start(self, p) -> Flow:
+        # loaded at the first reset: an env started by set_state never develops its wake
+        cells, nu = int(p.cells_per_diameter), number(p.nu)
+        if (cells, nu) not in self._starts:
+            self._starts[cells, nu] = self._developed(cells, nu)
+        return self._starts[cells, nu]
+
+    def _developed(self, cells: int, nu: float) -> Flow:
         key = dict(version=START_VERSION, cells=cells, nu=nu, time=DEVELOP_TIME)
         at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
         like = map_state(lambda v: v[0], at_rest)
         start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
-    def initial_state(self, mask: torch.Tensor | None) -> CylinderState:
-        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start._asdict().items()}
+    def initial_state(self, p, generator, mask=None) -> CylinderState:
+        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start(p)._asdict().items()}
         zeros = torch.zeros(self.num_envs, dtype=self.dtype, device=self.device)
         return CylinderState(**flow, drag=zeros, lift=zeros.clone())
 
-    def advance(self, state: CylinderState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+    def advance(self, p, state: CylinderState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         flow = Flow(*state[: len(Flow._fields)])
-        nu = self.params.nu  # [B]: the batch is the steps' last axis
-        flow, drag, lift = run(flow, SUBSTEPS, jet_target(action), self.channel, nu, DT, self._steps)
+        # nu [B]: the batch is the steps' last axis
+        flow, drag, lift = run(flow, SUBSTEPS, jet_target(action), self.channel, p.nu, DT, self._steps)
         reward = -(drag - DRAG_OFFSET) - LIFT_PENALTY * lift.abs()
         return CylinderState(*flow, drag=drag, lift=lift), reward
 
-    def diagnose(self, state: CylinderState) -> dict[str, torch.Tensor]:
+    def diagnose(self, p, state: CylinderState) -> dict[str, torch.Tensor]:
         return {"drag": coefficient(state.drag), "lift": coefficient(state.lift), "jet": state.q / Q_MAX}
 
-    def observe(self, state: CylinderState) -> torch.Tensor:
+    def observe(self, p, state: CylinderState) -> torch.Tensor:
         return self.channel.pressure_probes(state.p)
 
-    def out_of_bounds(self, state: CylinderState) -> torch.Tensor:
+    def out_of_bounds(self, p, state: CylinderState) -> torch.Tensor:
         # a flow faster than ten times the inflow's has left the scheme's stable range
         return state.u.abs().flatten(1).amax(1) > 10.0 * U_MAX
+
+
+class CylinderEnv(FlowEnv):
+    """Batched cylinder-v0 (2 continuous actions: the two jets' flow rates)."""
+
+    env_id = "cylinder-v0"
+    physics_type = CylinderPhysics
+    family = "2-D"
+    costly = True  # an action is 50 substeps of the 2-D flow
+    # beyond BEACON: the published solver (FEniCS) is not run here, so the card has no
+    # published speed or target (the case's own: an episode of 16 members in 90 s,
+    # benchmarks/RESULTS.md)
+    # Rabault et al.'s outcome in this reward: the drag force 8 % below the published
+    # mesh's uncontrolled 0.159 over every action, the lift's penalty aside
+    paper_ppo = EPISODE_LENGTH * PUBLISHED_REDUCTION * DRAG_OFFSET
+    gradcheck = GradCheck("nu", NU, warmup=1, steps=1)
+    test_settings = {"cells_per_diameter": 10}
 
     def render_frame(self, history: list[CylinderState], step: int) -> np.ndarray:
         from matplotlib.patches import Circle
