@@ -191,7 +191,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from beacon_torch import bench
-    from beacon_torch.base import _as_device
+    from beacon_torch.core.checks import as_device
     from beacon_torch.registry import base_envs, env_class, resolve_id
 
     envs = [resolve_id(env_id) for env_id in args.envs or base_envs()]
@@ -203,7 +203,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for name in ("steps", "repeats"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise CliError(f"--{name} must be a positive integer, got {getattr(args, name)}")
-    _as_device(args.device)  # before any measuring process is started
+    as_device(args.device)  # before any measuring process is started
     if args.threads:  # the measuring processes take this one's count
         _threads(args, None, 1)
     from beacon_torch.files import dated_name
@@ -227,13 +227,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from beacon_torch.base import _as_device
+    from beacon_torch.core.checks import as_device
     from beacon_torch.training.evaluation import evaluate_policy, evaluate_run
     from beacon_torch.training.run import load_checkpoint, seed_dirs
 
     if args.num_envs < 1:
         raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
-    _as_device(args.device)  # before a policy is moved there
+    as_device(args.device)  # before a policy is moved there
     if (args.run is None) == (args.pretrained is None):
         raise CliError("eval takes a run directory or --pretrained ALGO/ENV, one of the two")
     starts = None if args.starts == "own" else args.starts

@@ -1,5 +1,5 @@
 """The compiled path of an env's physics: which functions run through ``torch.compile``
-and the cache of their compiled versions.
+and the cache of their compiled versions, and what its inputs must be.
 
 An env hands its substep loops to :meth:`Kernels.loop` (and any other function of
 tensors to :meth:`Kernels.__call__`) once, at set-up, and calls what it gets back;
@@ -8,6 +8,18 @@ that ``make(..., compile=True)`` needs nothing of the env's code. Compiled, the 
 runs a whole step as one graph: the loops in it become ``while_loop``s, so that an
 action of tens or hundreds of substeps is one compiled call whose code does not grow
 with the number of substeps, and whose per-call cost (guards, wrapper) is paid once.
+
+The invariants of the compiled inputs live here, with why:
+
+- the recompile budget (:data:`RECOMPILE_LIMIT`): every env runs the one step function,
+  so every env, batch size and dtype is an entry of that one function's compiled code;
+- standard strides (:func:`standard`) and no aliasing (:func:`step_inputs`): compiled
+  code is specialised on its inputs' strides and on which of them share memory, so a
+  state that came out permuted (a cavity's batch-last solver) or as a view would
+  compile the step again; a step's outputs are made standard inside the step, a state
+  given from outside by :func:`step_inputs`;
+- a loop's carried values are standard and distinct too (:func:`_unaliased`):
+  ``while_loop`` refuses a body that returns its own input.
 """
 
 from __future__ import annotations
@@ -17,9 +29,9 @@ from typing import Any
 
 import torch
 
-# each env, shape and dtype is one entry of the step's compiled code (all env classes
-# share its code object); past torch's default limit (8 entries) the step would
-# silently run eagerly
+# each env, shape and dtype is one entry of the step's compiled code (every env runs
+# the one step function, and so shares its code object); past torch's default limit
+# (8 entries) the step would silently run eagerly
 RECOMPILE_LIMIT = 64
 
 
@@ -216,3 +228,18 @@ class _Kernel:
             compiled = kernels._cache[fn] = torch.compile(fn, **kernels.options)
         with _SETTINGS:
             return compiled(*args, **kwargs)
+
+
+def step_inputs(state: tuple, obs: torch.Tensor) -> tuple[tuple, torch.Tensor]:
+    """``state`` (a NamedTuple of tensors) and ``obs`` as a step leaves them: standard
+    strides, and no two tensors sharing memory. A compiled step is specialised on its
+    inputs' strides and on which of them alias, and a start's views (a slice, a member
+    of size one, an observation that is a view of the state) or shared zeros would
+    otherwise compile it again on the second step."""
+    out, storages = [], set()
+    for value in (*state, obs):
+        storage = value.untyped_storage().data_ptr()
+        out.append(standard(value) if storage not in storages else value.clone(memory_format=torch.contiguous_format))
+        storages.add(storage)
+    *fields, obs = out
+    return type(state)(*fields), obs

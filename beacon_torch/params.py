@@ -321,3 +321,23 @@ def resolved(env_class: type, params: dict[str, Any]) -> Any:
     return resolve_params(
         env_class.Params, params, batch_size=members, device=cpu, dtype=torch.float64, env_id=env_class.env_id
     )
+
+
+def short_repr(params) -> str:
+    """Parameters as a repr shows them: a per-member value once when the members share
+    it, else its range over the members (not 64 numbers at 64 members)."""
+    shown = []
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, torch.Tensor) and value.ndim >= 1 and value.numel() > 0:
+            flat = value.detach().flatten()
+            if bool((flat == flat[0]).all()):
+                value = repr(flat[0].item())
+            elif flat.is_complex():
+                value = f"<{flat.numel()} complex values>"
+            else:
+                value = f"<{flat.numel()} values in [{flat.min().item():.4g}, {flat.max().item():.4g}]>"
+        else:
+            value = repr(value)
+        shown.append(f"{f.name}={value}")
+    return f"{type(params).__name__}({', '.join(shown)})"

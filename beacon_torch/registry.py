@@ -10,7 +10,8 @@ import sys
 from typing import Any
 
 from beacon_torch import gym_ids
-from beacon_torch.base import FlowEnv, _as_batch_size, _as_device, _as_dtype
+from beacon_torch.base import FlowEnv
+from beacon_torch.core.checks import as_batch_size, as_device, as_dtype
 from beacon_torch.core.physics import Physics
 from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.cylinder import CylinderEnv
@@ -258,8 +259,8 @@ def functional(
     if options:
         raise TypeError(f"{env_id}: {options[0]!r} is an option of the env (make), not of its physics")
     defaults = {k: v for k, v in DEFAULTS.get(env_id, {}).items() if k not in OPTIONS}
-    members = _as_batch_size(1 if num_envs is None else num_envs)[0]
-    device, dtype = _as_device(device), _as_dtype(dtype)
+    members = as_batch_size(1 if num_envs is None else num_envs)[0]
+    device, dtype = as_device(device), as_dtype(dtype)
     resolved = resolve_params(
         cls.Params, {**defaults, **physical, **given}, batch_size=members, device=device, dtype=dtype, env_id=env_id
     )

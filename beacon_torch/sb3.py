@@ -42,12 +42,12 @@ try:
 except ImportError as err:  # pragma: no cover - exercised without the extra only
     raise ImportError("beacon_torch.sb3 needs Stable-Baselines3: pip install 'beacon-torch[sb3]'") from err
 
-from beacon_torch.base import _as_flag, _as_seed
+from beacon_torch.core.checks import as_flag, as_seed
 from beacon_torch.gym import _spaces, batched_action, diagnostics, member_info, team_reward
 from beacon_torch.registry import compiles_by_default, make
 
 # what ``set_attr`` may change on a made env, each with its check
-SETTABLE = {"render_index": lambda index: index, "check_actions": lambda flag: _as_flag("check_actions", flag)}
+SETTABLE = {"render_index": lambda index: index, "check_actions": lambda flag: as_flag("check_actions", flag)}
 
 
 class BeaconVecEnv(VecEnv):
@@ -168,7 +168,7 @@ class BeaconVecEnv(VecEnv):
 
     def seed(self, seed: int | None = None) -> Sequence[int | None]:
         # an integer of the generator's range (not 1.5, not "a"), or None for a random one
-        return super().seed(None if seed is None else _as_seed(seed))
+        return super().seed(None if seed is None else as_seed(seed))
 
     def env_method(
         self, method_name: str, *method_args, indices: Iterable[int] | int | None = None, **method_kwargs

@@ -36,7 +36,7 @@ def main() -> None:
     torch.set_num_threads(1)
     env = cylinder.CylinderEnv(1, dtype=torch.float64)
     channel, dt = env.channel, cylinder.DT
-    flow = cylinder.Flow(*(f[None] for f in env._start))
+    flow = cylinder.Flow(*(f[None] for f in env.physics._start(env.params)))
     mean, steps = [], int(round(1.0 / dt))
     zero = torch.zeros(1, dtype=torch.float64)
     with torch.no_grad():

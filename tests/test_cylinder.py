@@ -196,7 +196,7 @@ def test_validation_figures_of_the_default_grid_are_the_recorded_ones():
     2.4 more shedding periods in float64 give the recorded figures."""
     record = recorded(CylinderEnv.Params().cells_per_diameter, cylinder.DT)
     env = CylinderEnv(1, dtype=torch.float64)
-    channel, flow = env.channel, cylinder.Flow(*(f[None] for f in env._start))
+    channel, flow = env.channel, cylinder.Flow(*(f[None] for f in env.physics._start(env.params)))
     zero = torch.zeros(1, dtype=torch.float64)
     steps = 1600
     drag, lift = np.empty(steps), np.empty(steps)

@@ -15,8 +15,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "beacon_torch"
 LAYERS = [
     # what needs nothing of the library: files, checks of received data, parameters,
     # the compiled-call helpers, figures, argument types, the numerics
-    {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics"},
-    # the core: the env machinery and its caches, starts and bookkeeping
+    {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics", "card"},
+    # the core: the physics' interface and the step function, the env machinery and
+    # its caches, starts and bookkeeping
     {"cache", "starts", "history", "autograd", "core", "base", "episodes"},
     # the physics of each case
     {"envs"},

@@ -21,7 +21,8 @@ from typing import ClassVar
 import beacon_torch
 from beacon_torch import threads
 from beacon_torch.arguments import find_user_modules, plain
-from beacon_torch.base import FlowEnv, _as_device
+from beacon_torch.base import FlowEnv
+from beacon_torch.core.checks import as_device
 from beacon_torch.params import check_params, parse_assignments, resolved
 from beacon_torch.registry import compiles_by_default, env_class
 from beacon_torch.training.env import NORM_STEPS
@@ -403,7 +404,7 @@ def _check(cfg: Config) -> Config:
         check_params(env, cfg.params)
     except TypeError as err:
         raise ValueError(f"setting 'params': {err}") from None
-    _as_device(cfg.device)
+    as_device(cfg.device)
     reason = unfit(type(cfg), env)
     if reason:
         raise ValueError(reason)

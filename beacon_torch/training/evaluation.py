@@ -15,7 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
 from beacon_torch import episodes, received
-from beacon_torch.base import _as_device
+from beacon_torch.core.checks import as_device
 from beacon_torch.files import save_figure, write_text
 from beacon_torch.starts import SETS
 from beacon_torch.training import networks
@@ -206,7 +206,7 @@ def evaluate_run(
     progress: bool = False,
 ) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
-    device = _as_device(device)  # before the policy is moved there
+    device = as_device(device)  # before the policy is moved there
     state = load_checkpoint(run)
     params = state["config"].get("params", {})  # the physics it was trained on
     env = make_env(state["env"], 1, norm=state["obs_norm"], params=params)

@@ -40,7 +40,7 @@ import torch
 from torchrl.record.loggers import CSVLogger
 
 from beacon_torch import files, received, threads
-from beacon_torch.base import available_bytes
+from beacon_torch.core.checks import available_bytes
 from beacon_torch.params import check_params, resolved
 from beacon_torch.registry import ENVS
 from beacon_torch.training.env import sibling
