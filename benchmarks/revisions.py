@@ -38,14 +38,15 @@ def worker(envs: list[str], batches: list[int], seconds: float) -> None:
 
     torch.set_num_threads(1)
     for env_id in envs:
-        modes = ["eager"] if env_class(env_id).costly else ["eager", "compiled"]
-        for mode in modes:
+        costly = env_class(env_id).costly
+        for mode in ["eager"] if costly else ["eager", "compiled"]:
             for batch in batches:
                 env = beacon_torch.make(env_id, batch, seed=0, compile=mode == "compiled")
                 env.reset()
-                timed(env, 3, torch.Generator().manual_seed(1))  # warm-up: compilation, caches
                 gen = torch.Generator().manual_seed(2)
-                n = max(2, min(env.episode_length // 2, int(seconds / max(timed(env, 2, gen) / 2, 1e-6))))
+                # warm-up: compilation, caches; an action of seconds is timed twice a block
+                warm = timed(env, 1 if costly else 3, torch.Generator().manual_seed(1))
+                n = 2 if costly else max(2, min(env.episode_length // 2, int(seconds / max(warm / 3, 1e-6))))
                 times = [timed(env, n, gen) / n for _ in range(3)]
                 case = dict(env=env_id, mode=mode, batch=batch, steps=3 * n, cpu_s=statistics.median(times))
                 print(json.dumps(case), flush=True)

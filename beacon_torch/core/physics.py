@@ -32,6 +32,7 @@ quantities named in ``diagnostics``). Their contracts are in their docstrings.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import torch
@@ -152,6 +153,15 @@ class Physics(abc.ABC):
         return 4 * self.n_obs
 
     # ------------------------------------------------------------------ helpers
+    def remembered(self, key: Any, compute: Callable[[], Any]) -> Any:
+        """``compute()`` the first time ``key`` is asked for, what it gave after: a start
+        developed for some parameters (a physics' hooks may be called with other
+        parameters than the first ones, e.g. mapped by ``torch.func``)."""
+        kept = self.__dict__.setdefault("_remembered", {})
+        if key not in kept:
+            kept[key] = compute()
+        return kept[key]
+
     @property
     def action_shape(self) -> tuple[int, ...]:
         """Per-member shape of the action: ``()`` for discrete, ``(n_actions,)`` else."""

@@ -182,10 +182,6 @@ class RayleighPhysics(CavityPhysics):
     def sizes(cls, p) -> tuple[int, int]:
         return N_OBS, p.n_sgts  # one temperature per bottom segment
 
-    def setup(self, p) -> None:
-        super().setup(p)
-        self._starts: dict[tuple, Convection] = {}
-
     def scalar_ghosts(self) -> Ghosts:
         # adiabatic sides; the plates' temperatures through the ghost offset
         return Ghosts.cells(self.nx, self.ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=self.dtype, device=self.device)
@@ -199,10 +195,7 @@ class RayleighPhysics(CavityPhysics):
 
     def _start(self, p) -> Convection:
         # loaded at the first reset: an env started by set_state never develops its roll
-        key = (p.start, number(p.ra))
-        if key not in self._starts:
-            self._starts[key] = self._developed(p)
-        return self._starts[key]
+        return self.remembered(("convection", p.start, number(p.ra)), lambda: self._developed(p))
 
     def _developed(self, p) -> Convection:
         if p.start == PUBLISHED:

@@ -289,14 +289,10 @@ class ShkadovPhysics(Physics):
         self._obs_index = torch.tensor(obs, device=self.device)
         width = int(round(REWARD_LENGTH / DX))
         self._reward_index = torch.tensor([[c + m for m in range(width)] for c in self.jet_centres], device=self.device)
-        # loaded at the first reset: an env started by set_state never develops its film
-        self._films: dict[tuple, Film] = {}
 
     def _film(self, p) -> Film:
-        key = (p.start, number(p.delta))
-        if key not in self._films:
-            self._films[key] = self._developed_film(p)
-        return self._films[key]
+        # loaded at the first reset: an env started by set_state never develops its film
+        return self.remembered(("film", p.start, number(p.delta)), lambda: self._developed_film(p))
 
     def _developed_film(self, p) -> Film:
         if p.start == PUBLISHED:

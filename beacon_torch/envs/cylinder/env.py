@@ -117,14 +117,11 @@ class CylinderPhysics(Physics):
         # what the speed benchmark of the 2-D envs reads, as the cavities have it
         self.nx, self.ny, self.solver = self.channel.nx, self.channel.ny, self.channel
         self._steps = self.kernels.loop(step)
-        self._starts: dict[tuple, Flow] = {}
 
     def _start(self, p) -> Flow:
         # loaded at the first reset: an env started by set_state never develops its wake
         cells, nu = int(p.cells_per_diameter), number(p.nu)
-        if (cells, nu) not in self._starts:
-            self._starts[cells, nu] = self._developed(cells, nu)
-        return self._starts[cells, nu]
+        return self.remembered(("shedding", cells, nu), lambda: self._developed(cells, nu))
 
     def _developed(self, cells: int, nu: float) -> Flow:
         key = dict(version=START_VERSION, cells=cells, nu=nu, time=DEVELOP_TIME)
