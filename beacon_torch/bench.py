@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import json
-import platform
 import resource
 import statistics
 import sys
@@ -32,7 +31,7 @@ from pathlib import Path
 import torch
 import torch.utils.benchmark as benchmark
 
-from beacon_torch.files import create_file, dated_name, refuse_existing, save_figure
+from beacon_torch.files import create_file, machine, refuse_existing, save_figure
 from beacon_torch.registry import env_class, make, qualified_id
 
 BATCH_SIZES = (1, 16, 64, 256, 1024)
@@ -232,31 +231,6 @@ def _measure_job(job: str, result: str) -> None:
         print(f"{FAILED}{type(err).__name__}: {first}", file=sys.stderr)
         sys.exit(2)
     Path(result).write_text(json.dumps(asdict(m)))
-
-
-def machine() -> str:
-    """A one-line description of where the numbers come from."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    text = f"{cpu}, {torch.get_num_threads()} threads, torch {torch.__version__}, Python {platform.python_version()}"
-    if torch.cuda.is_available():
-        text += f", GPU {torch.cuda.get_device_name()}"
-    return text
-
-
-def save_rows(rows: list[dict], out: str | Path, name: str) -> Path:
-    """``rows`` with the machine they were measured on, as a new dated file
-    ``out/name-YYYYmmdd-HHMMSS.json`` (an earlier record is never replaced)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps({"machine": machine(), "rows": rows}, indent=1)
-    return create_file(out / dated_name(name, ".json"), lambda tmp: tmp.write_text(text))
 
 
 def run(

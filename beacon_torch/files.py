@@ -10,7 +10,9 @@ itself, not what it pointed to.
 
 from __future__ import annotations
 
+import json
 import os
+import platform
 import shutil
 import tempfile
 import time
@@ -225,3 +227,30 @@ class Lock:
 
     def __del__(self) -> None:
         self.release()
+
+
+def machine() -> str:
+    """A one-line description of where the numbers come from."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import torch
+
+    text = f"{cpu}, {torch.get_num_threads()} threads, torch {torch.__version__}, Python {platform.python_version()}"
+    if torch.cuda.is_available():
+        text += f", GPU {torch.cuda.get_device_name()}"
+    return text
+
+
+def save_rows(rows: list[dict], out: str | Path, name: str) -> Path:
+    """``rows`` with the machine they were measured on, as a new dated file
+    ``out/name-YYYYmmdd-HHMMSS.json`` (an earlier record is never replaced)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    text = json.dumps({"machine": machine(), "rows": rows}, indent=1)
+    return create_file(out / dated_name(name, ".json"), lambda tmp: tmp.write_text(text))

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import tempfile
 
-from beacon_torch.bench import machine, save_rows
+from beacon_torch.files import machine, save_rows
 from beacon_torch.registry import base_envs
 
 ENVS = base_envs()

@@ -16,7 +16,7 @@ measure), each against no control over the same actions. Writes a new dated
 ``cylinder_control-DATE-TIME.json`` to ``--out``. ``--plot`` draws a record's drag
 coefficients and jets' rates into a new figure (the page's,
 docs/img/cylinder-control.png), with ``--base-flow`` the drag of the steady base flow
-(benchmarks/cylinder_base_flow.py) as a line. The quantities are the env's diagnostics
+(`python -m beacon_torch.envs.cylinder.base_flow`) as a line. The quantities are the env's diagnostics
 and the figure is drawn as ``beacon-torch eval`` draws them (``--figure``): what this
 script adds is the run past an episode's end.
 """
@@ -131,7 +131,7 @@ def plot(record: str, figure: str, base_flow: str | None = None) -> None:
 
 
 def main() -> None:
-    from beacon_torch.bench import save_rows
+    from beacon_torch.files import save_rows
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("policies", nargs="*", help="run directories or shipped pairs (ALGO/cylinder-v0)")
@@ -139,7 +139,7 @@ def main() -> None:
     parser.add_argument("--no-compile", action="store_true", help="eager physics")
     parser.add_argument("--out", default="runs/cylinder_control")
     parser.add_argument("--plot", nargs=2, metavar=("RECORD", "FIGURE"), help="draw a record's drag and jets")
-    parser.add_argument("--base-flow", help="with --plot: a record of benchmarks/cylinder_base_flow.py (a line)")
+    parser.add_argument("--base-flow", help="with --plot: a record of beacon_torch.envs.cylinder.base_flow (a line)")
     args = parser.parse_args()
     if args.plot:
         return plot(*args.plot, base_flow=args.base_flow)

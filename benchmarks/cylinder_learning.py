@@ -73,8 +73,7 @@ def main() -> None:
 
     import beacon_torch
     from beacon_torch import episodes
-    from beacon_torch.bench import save_rows
-    from beacon_torch.files import create_file, refuse_existing
+    from beacon_torch.files import create_file, refuse_existing, save_rows
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", help="folders of seeds, the first one setting the levels")

@@ -93,7 +93,7 @@ def main() -> None:
         return
     if len(args.trees) != 2 or not all((t / "beacon_torch").is_dir() for t in args.trees):
         parser.error("give two source trees of the package, BEFORE and AFTER")
-    from beacon_torch.bench import save_rows
+    from beacon_torch.files import save_rows
 
     rounds = {"before": [], "after": []}
     for r in range(args.rounds):

@@ -21,7 +21,7 @@ import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import beacon_torch  # noqa: F401  (registers the gymnasium ids)
-from beacon_torch.bench import machine, save_rows
+from beacon_torch.files import machine, save_rows
 from beacon_torch.registry import base_envs, env_class
 from beacon_torch.sb3 import BeaconVecEnv
 

@@ -28,7 +28,8 @@ import torch
 import torch.utils.benchmark as benchmark
 from tensordict import TensorDict
 
-from beacon_torch.bench import compiled_graphs, machine, save_rows, warm_up
+from beacon_torch.bench import compiled_graphs, warm_up
+from beacon_torch.files import machine, save_rows
 from beacon_torch.registry import base_envs, env_class
 
 ENVS = base_envs()  # the seven benchmark envs

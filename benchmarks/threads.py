@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 
 from beacon_torch import threads
-from beacon_torch.bench import machine, measure_in_fresh_process, save_rows
-from beacon_torch.files import write_text
+from beacon_torch.bench import measure_in_fresh_process
+from beacon_torch.files import machine, save_rows, write_text
 from beacon_torch.registry import base_envs
 
 OUT = Path(__file__).parent / "results" / "threads"

@@ -180,9 +180,9 @@ def recorded(cells: int, dt: float) -> dict:
 
 
 def test_page_shows_the_recorded_validation_and_the_parameters():
+    from beacon_torch.envs.cylinder import schaefer_turek as validation
     from beacon_torch.params import markdown
 
-    validation = script("benchmarks/cylinder_validation.py")
     paths = sorted((ROOT / "benchmarks" / "results" / "cylinder").glob("cylinder_validation-*.json"))
     page = (ROOT / "docs" / "envs" / "cylinder.md").read_text()
     assert validation.table(json.loads(paths[-1].read_text())["rows"]) in page

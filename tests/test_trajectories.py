@@ -18,7 +18,7 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch.bench import machine  # what the bits depend on beyond the code
+from beacon_torch.files import machine  # what the bits depend on beyond the code
 
 RECORDED = Path(__file__).parent / "data" / "trajectories.json"
 ENVS = beacon_torch.registry.ENVS

@@ -1,6 +1,6 @@
 """The steady base flow of cylinder-v0: the drag left when the shedding is gone.
 
-    .venv/bin/python benchmarks/cylinder_base_flow.py [--time 12] [--chi 5] [--delta 0.1] [--out DIR]
+    .venv/bin/python -m beacon_torch.envs.cylinder.base_flow [--time 12] [--chi 5] [--delta 0.1] [--out DIR]
 
 Above Re of about 47 the steady flow past the cylinder is unstable and the wake sheds;
 suppressing the shedding brings the flow towards that steady state, whose drag is what
@@ -24,8 +24,8 @@ def main() -> None:
     import numpy as np
     import torch
 
-    from beacon_torch.bench import save_rows
     from beacon_torch.envs import cylinder
+    from beacon_torch.files import save_rows
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--time", type=float, default=12.0, help="time units of damping")

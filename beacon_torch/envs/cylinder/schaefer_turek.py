@@ -1,7 +1,7 @@
 """The uncontrolled cylinder wake against the Schaefer-Turek benchmark 2D-2.
 
-    .venv/bin/python benchmarks/cylinder_validation.py [--cells 20 40 ...] [--dt ...] [--time 8] [--out DIR]
-    .venv/bin/python benchmarks/cylinder_validation.py --plot RECORD.json FIGURE.png
+    .venv/bin/python -m beacon_torch.envs.cylinder.schaefer_turek [--cells 20 40 ...] [--dt ...] [--time 8] [--out DIR]
+    .venv/bin/python -m beacon_torch.envs.cylinder.schaefer_turek --plot RECORD.json FIGURE.png
 
 For each resolution (cells across the diameter), the channel starts at rest with its
 inflow on and runs ``--time`` time units in float64 without control
@@ -12,7 +12,8 @@ benchmark's intervals with the relative distance to the nearer end. Writes a new
 ``cylinder_validation-DATE-TIME.json`` (rows and the coefficient histories of the
 window) to ``--out``. Each resolution runs in its own process (one core each).
 ``--plot`` draws a record's drag and lift histories, one line per resolution, into a
-new figure (the page's, docs/img/cylinder-validation.png).
+new figure (the page's, docs/img/cylinder-validation.png). The records on the page are
+in ``benchmarks/results/cylinder/``.
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ def plot(record: str, figure: str) -> None:
 
 
 def main() -> None:
-    from beacon_torch.bench import save_rows
+    from beacon_torch.files import save_rows
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cells", type=int, nargs="+", default=[10, 20], help="cells across the diameter")
