@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from beacon_torch import bench
+from beacon_torch import bench, files
 from beacon_torch.cli import main
 
 
@@ -108,7 +108,7 @@ def test_bench_replaces_no_earlier_results(tmp_path, capsys):
     assert main(["bench", "--envs", "lorenz-v0", "--num-envs", "1", "--out", str(tmp_path)]) == 2
     assert "results.csv exists" in capsys.readouterr().err
     assert (tmp_path / "results.csv").read_text() == "mine"
-    first = bench.save_rows([{"a": 1}], tmp_path, "single_env")
+    first = files.save_rows([{"a": 1}], tmp_path, "single_env")
     (tmp_path / "single_env.json").write_text("mine")
     assert first.name.startswith("single_env-") and first.read_text().count('"a"') == 1
     assert (tmp_path / "single_env.json").read_text() == "mine"
