@@ -39,7 +39,17 @@ from beacon_torch import starts as start_sets
 from beacon_torch.autograd import graph_mode
 from beacon_torch.card import Card, GradCheck
 from beacon_torch.compiled import step_inputs
-from beacon_torch.core.checks import Checks, as_batch_size, as_device, as_dtype, as_flag, as_seed
+from beacon_torch.core.checks import (
+    MAX_MEMBERS,
+    WORKSPACE,
+    Checks,
+    as_batch_size,
+    as_device,
+    as_dtype,
+    as_flag,
+    as_seed,
+    available_bytes,
+)
 from beacon_torch.core.physics import Physics
 from beacon_torch.core.saving import Saving
 from beacon_torch.core.state import Noise, State, map_state, select, where_members
@@ -50,7 +60,21 @@ from beacon_torch.params import resolve_params, short_repr
 # mixed into the seed of the random actions' generator: a stream apart from the physics'
 ACTION_STREAM = 0x9E3779B97F4A7C15
 
-__all__ = ["FlowEnv", "GradCheck", "Noise", "Physics", "State", "map_state", "select", "settle", "where_members"]
+# what the module has offered (some of it now lives in the core's modules)
+__all__ = [
+    "MAX_MEMBERS",
+    "WORKSPACE",
+    "FlowEnv",
+    "GradCheck",
+    "Noise",
+    "Physics",
+    "State",
+    "available_bytes",
+    "map_state",
+    "select",
+    "settle",
+    "where_members",
+]
 
 
 # what a physics defines; an env class defining one would not be read

@@ -32,6 +32,7 @@ import torch
 import torch.utils.benchmark as benchmark
 
 from beacon_torch.files import create_file, machine, refuse_existing, save_figure
+from beacon_torch.files import save_rows as save_rows  # where the benchmark scripts found it
 from beacon_torch.registry import env_class, make, qualified_id
 
 BATCH_SIZES = (1, 16, 64, 256, 1024)
