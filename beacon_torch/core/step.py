@@ -55,6 +55,26 @@ def settle(
     return new, obs, reward, ok
 
 
+def _settled(physics, params, state, observation, action, count, noise, start, checkpoint, inside=None):
+    """The physics from ``start`` and :func:`settle` against ``state``: a member whose
+    result is not finite, leaves its bounds or is not ``inside`` keeps ``state`` and
+    ``observation``. Returns ``(state, observation, reward, ok)``."""
+    if checkpoint and torch.is_grad_enabled():
+        new, reward = checkpointed(physics.advance, params, start, action, count, noise)
+    else:
+        new, reward = physics.advance(params, start, action, count, noise)
+    bounds = ~physics.out_of_bounds(params, new)
+    return physics.settle(
+        new,
+        state,
+        physics.observe(params, new),
+        observation,
+        reward,
+        bounds if inside is None else bounds & inside,
+        float(physics.blowup_reward),
+    )
+
+
 def step(
     physics: Physics,
     params: Any,
@@ -99,15 +119,7 @@ def step(
     action, valid = physics.action_values(action)
 
     # the physics, and the blow-ups contained: the members that blew up keep their state
-    advance = physics.advance
-    if checkpoint and torch.is_grad_enabled():
-        new, reward = checkpointed(advance, params, state, action, count, noise)
-    else:
-        new, reward = advance(params, state, action, count, noise)
-    inside = ~physics.out_of_bounds(params, new)
-    new, obs, reward, ok = physics.settle(
-        new, state, physics.observe(params, new), observation, reward, inside, float(physics.blowup_reward)
-    )
+    new, obs, reward, ok = _settled(physics, params, state, observation, action, count, noise, state, checkpoint)
 
     # A member that blew up keeps its last state, but its own backward pass would still
     # multiply a zero gradient by an infinite derivative (0 * inf = NaN), which would
@@ -130,13 +142,8 @@ def step(
             }
             sound = dataclasses.replace(params, **per_member)
             start, taken = map_state(stand_in, state), stand_in(action)
-            if checkpoint and torch.is_grad_enabled():
-                new, reward = checkpointed(advance, sound, start, taken, count, noise)
-            else:
-                new, reward = advance(sound, start, taken, count, noise)
-            inside = ~physics.out_of_bounds(sound, new) & ok
-            new, obs, reward, ok = physics.settle(
-                new, state, physics.observe(sound, new), observation, reward, inside, float(physics.blowup_reward)
+            new, obs, reward, ok = _settled(
+                physics, sound, state, observation, taken, count, noise, start, checkpoint, inside=ok
             )
         else:
             # nothing to differentiate but the states kept: a reward that still depends,
