@@ -46,10 +46,12 @@ steps (0.159: the uncontrolled mean drag force of the published mesh). Every epi
 starts from the developed uncontrolled shedding (:func:`developed_shedding`).
 
 The package: the flow (:mod:`~beacon_torch.envs.cylinder.channel`: the grid, the body,
-one time step, the developed start), the env (:mod:`~beacon_torch.envs.cylinder.env`)
-and the validation against the benchmark (:mod:`~beacon_torch.envs.cylinder.validation`,
-its command ``python -m beacon_torch.envs.cylinder.validation``). Their names are given
-here too.
+one time step, the developed start), its physics and env
+(:mod:`~beacon_torch.envs.cylinder.env`), the benchmark's figures
+(:mod:`~beacon_torch.envs.cylinder.validation`) and the validation runs:
+``python -m beacon_torch.envs.cylinder.schaefer_turek`` (the benchmark 2D-2) and
+``python -m beacon_torch.envs.cylinder.base_flow`` (the steady base flow). Their
+names are given here too.
 """
 
 from beacon_torch.envs.cylinder.channel import (
@@ -94,7 +96,7 @@ from beacon_torch.envs.cylinder.channel import (
     step,
     wall_velocity,
 )
-from beacon_torch.envs.cylinder.env import CylinderEnv, CylinderParams, CylinderState, jet_target
+from beacon_torch.envs.cylinder.env import CylinderEnv, CylinderParams, CylinderPhysics, CylinderState, jet_target
 from beacon_torch.envs.cylinder.validation import SCHAEFER_TUREK, shedding_figures
 
 __all__ = [
@@ -143,5 +145,6 @@ __all__ = [
     "shedding_figures",
     "developed_shedding",
     "jet_target",
+    "CylinderPhysics",
     "CylinderEnv",
 ]
