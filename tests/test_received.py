@@ -309,16 +309,19 @@ def test_a_summary_larger_than_any_summary_is_refused_unread(tmp_path):
         st.lists(st.floats(-1e6, 1e6, allow_subnormal=True), min_size=3, max_size=3), min_size=1, max_size=40
     ),
     nadam=st.booleans(),
+    scalar=st.booleans(),
 )
-def test_an_optimiser_state_that_gradients_reach_is_never_called_corrupt(grads, nadam):
+def test_an_optimiser_state_that_gradients_reach_is_never_called_corrupt(grads, nadam, scalar):
     """The bound the check holds Adam's moments to holds for any sequence of
-    gradients, however small or large."""
+    gradients, however small or large, on a vector or on a scalar parameter (SAC's
+    entropy weight, whose moments are 0-dim tensors of either sign)."""
     from beacon_torch.training.run import load_optimiser
 
     kind = torch.optim.NAdam if nadam else torch.optim.Adam
-    p = torch.nn.Parameter(torch.zeros(3))
+    shape = () if scalar else (3,)
+    p = torch.nn.Parameter(torch.zeros(shape))
     optim = kind([p], lr=1e-3)
     for g in grads:
-        p.grad = torch.tensor(g)
+        p.grad = torch.tensor(g[0] if scalar else g)
         optim.step()
-    load_optimiser(kind([torch.nn.Parameter(torch.zeros(3))], lr=1e-3), optim.state_dict(), "the state")
+    load_optimiser(kind([torch.nn.Parameter(torch.zeros(shape))], lr=1e-3), optim.state_dict(), "the state")

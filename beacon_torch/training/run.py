@@ -396,7 +396,9 @@ def load_optimiser(optim: torch.optim.Optimizer, saved, where: str) -> None:
                     raise ValueError(f"{where} is corrupt ({shapes})")
                 if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                     raise ValueError(f"{where} is corrupt (non-finite {key})")
-                if not value.ndim and bool(value < 0):  # a step count, NAdam's product of momenta
+                # a step count, NAdam's product of momenta (a scalar parameter's first
+                # moment, SAC's entropy weight's, is a 0-dim tensor of either sign)
+                if key in ("step", "mu_product") and bool((value < 0).any()):
                     raise ValueError(f"{where} is corrupt (a negative {key})")
             m, v = state.get("exp_avg"), state.get("exp_avg_sq")
             if v is not None and bool((v < 0).any()):
