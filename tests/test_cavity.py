@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch.envs.rayleigh import C, normalise
+from beacon_torch.envs.rayleigh import C, RayleighParams, developed_convection, normalise
 from beacon_torch.numerics.staggered import divergence
 
 from conftest import run_actions
@@ -28,8 +28,8 @@ def test_flow_stays_divergence_free(env_id):
     env = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0)
     g = torch.Generator().manual_seed(0)
     run_actions(env, [env.random_action(g)])
-    fields = env.cavity.fields(env.flow(env.state), {})
-    div = divergence(fields["u"], fields["v"], env.dx, env.dy)
+    flow = env.cavity.to_solver(env.flow(env.state), env.ghosts)
+    div = divergence(flow.u, flow.v, env.dx, env.dy)
     if env_id == "mixing-v0":
         # the increment's zero ghost on the lid leaves, as published, the top cells
         # their own divergence
@@ -65,3 +65,28 @@ def test_mixing_initial_patch_and_reward():
     _, rew = run_actions(env, [env.null_action()])
     expected = -(2500 * 0.75 + (102 * 102 - 2500) * 0.25) / (102 * 102)
     assert rew.item() == pytest.approx(expected, rel=0.05)
+
+
+def test_a_start_is_developed_for_parameters_without_a_stored_one():
+    # the first moments of what start="generated" develops for a smaller cavity: the
+    # plates' temperatures diffuse in from the ghosts, the flow stays finite
+    params = RayleighParams(L=0.4, H=0.3, n_sgts=2, start="generated")
+    flow = developed_convection(params, time=0.1)
+    assert flow.theta.shape == (22, 17) and flow.u.shape == (22, 17) and flow.p.shape == (20, 15)
+    assert all(bool(torch.isfinite(f).all()) for f in flow)
+    assert flow.theta[1:-1, 1].min() > 0.05 and flow.theta[1:-1, -2].max() < -0.05
+
+
+def test_a_cavity_state_begins_with_its_flow():
+    from typing import NamedTuple
+
+    from beacon_torch.envs.rayleigh import RayleighPhysics
+
+    class Swapped(NamedTuple):
+        v: torch.Tensor
+        u: torch.Tensor
+        p: torch.Tensor
+        theta: torch.Tensor
+
+    with pytest.raises(TypeError, match=r"state_type must begin with the flow's fields \('u', 'v', 'p', 'theta'\)"):
+        type("SwappedPhysics", (RayleighPhysics,), {"state_type": Swapped})

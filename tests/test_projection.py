@@ -11,8 +11,8 @@ import torch
 from beacon_torch.numerics import native
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
 from beacon_torch.numerics.poisson import JacobiSolver, PoissonSolver
-from beacon_torch.numerics.projection import Cavity
-from beacon_torch.numerics.staggered import divergence, project
+from beacon_torch.numerics.projection import Cavity, Flow
+from beacon_torch.numerics.staggered import Stretched, divergence, project, tendency
 
 BCS = [(NEUMANN,) * 4, (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST), (ZERO_GHOST, NEUMANN, ZERO_GHOST, NEUMANN)]
 F64 = dict(dtype=torch.float64, device="cpu")
@@ -164,38 +164,86 @@ def test_wall_ghosts_impose_the_wall_velocities_per_member():
     assert (ue[0, 1:-1] == 0).all() and (ue[-1, 1:-1] == 0).all() and (ve[1:-1, 0] == 0).all()
 
 
-def test_fields_and_stored_round_trip_the_batch_first_state():
+def stretched(widths, dim: int) -> Stretched:
+    """An axis of the given cell widths along ``dim`` (0: x, 1: y), ghost centres
+    mirrored beyond its ends."""
+    w = torch.as_tensor(widths, dtype=torch.float64)
+    gaps = torch.cat((w[:1], 0.5 * (w[1:] + w[:-1]), w[-1:]))
+    shaped = lambda t: t.reshape((-1, 1, 1) if dim == 0 else (1, -1, 1))
+    return Stretched(shaped(w), shaped(gaps), dim)
+
+
+def test_the_explicit_terms_on_equal_stretched_cells_are_the_uniform_ones():
+    nx, ny, members = 7, 5, 2
+    u, v = random((nx + 1, ny + 2, members), 1), random((nx + 2, ny + 1, members), 2)
+    uniform = tendency(u, v, 0.01, 0.2, 0.3)
+    on_stretched = tendency(u, v, 0.01, stretched([0.2] * nx, 0), stretched([0.3] * ny, 1))
+    for a, b in zip(uniform, on_stretched, strict=True):
+        assert a.shape == b.shape
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("dim", [0, 1])
+def test_stretched_differences_are_exact_where_the_scheme_is_second_order(dim):
+    widths = 0.1 * 1.05 ** torch.arange(8, dtype=torch.float64)
+    axis = stretched(widths, dim)
+    along = lambda t: t.reshape((-1, 1, 1) if dim == 0 else (1, -1, 1))
+    faces = torch.cat((widths.new_zeros(1), widths.cumsum(0)))
+    centres = faces[:-1] + 0.5 * widths
+    ghosted = torch.cat((centres[:1] - widths[:1], centres, centres[-1:] + widths[-1:]))
+    part = lambda t, a, b: t.narrow(dim, a, t.shape[dim] + b - a)
+    # a quadratic on the faces: its second derivative at the interior faces, exactly
+    f = along(faces**2)
+    torch.testing.assert_close(
+        axis.second(part(f, 0, -2), part(f, 1, -1), part(f, 2, 0), faces=True), torch.full_like(part(f, 1, -1), 2.0)
+    )
+    # a linear field on the ghosted cells has none
+    g = along(3.0 * ghosted + 1.0)
+    assert axis.second(part(g, 0, -2), part(g, 1, -1), part(g, 2, 0), faces=False).abs().max() < 1e-12
+    # a linear flux: its difference over the control volumes of the interior faces
+    # (from the cells) and of the cells (from the faces) is its slope
+    flux_cells, flux_faces = along(3.0 * centres), along(3.0 * faces)
+    torch.testing.assert_close(
+        axis.difference(part(flux_cells, 1, 0) - part(flux_cells, 0, -1), faces=True),
+        torch.full_like(part(flux_cells, 1, 0), 3.0),
+    )
+    torch.testing.assert_close(
+        axis.difference(part(flux_faces, 1, 0) - part(flux_faces, 0, -1), faces=False),
+        torch.full_like(part(flux_faces, 1, 0), 3.0),
+    )
+
+
+def test_a_flow_goes_to_the_solver_and_back_to_the_batch_first_state():
     cavity = Cavity(8, 6, 0.125, 1 / 6, **F64)
     B = 3
     u = torch.zeros(B, 10, 8, dtype=torch.float64)
     v = torch.zeros(B, 10, 8, dtype=torch.float64)
     u[:, 2:-1, 1:-1] = random((B, 7, 6), 4)
     v[:, 1:-1, 2:-1] = random((B, 8, 5), 5)
-    c = random((B, 10, 8), 6)
-    state = {"u": u, "v": v, "p": random((B, 8, 6), 7), "c": c}
+    flow = Flow(u=u, v=v, p=random((B, 8, 6), 7), scalar=random((B, 10, 8), 6))
     ghosts = Ghosts.cells(8, 6, *(GRADIENT,) * 4, **F64)
-    fields = cavity.fields(state, {"c": (ghosts, None)})
-    assert fields["u"].shape == (9, 6, B) and fields["v"].shape == (8, 7, B) and fields["c"].shape == (10, 8, B)
-    back = cavity.stored(fields, cavity.walls(like=fields["u"]))
-    for name in ("u", "v", "c"):
-        torch.testing.assert_close(back[name][:, 1:-1, 1:-1], state[name][:, 1:-1, 1:-1], rtol=0, atol=0)
-    torch.testing.assert_close(back["p"], state["p"], rtol=0, atol=0)
+    solver = cavity.to_solver(flow, ghosts)
+    assert isinstance(solver, Flow)
+    assert solver.u.shape == (9, 6, B) and solver.v.shape == (8, 7, B) and solver.scalar.shape == (10, 8, B)
+    back = cavity.to_state(solver, cavity.walls(like=solver.u))
+    assert isinstance(back, Flow)
+    for name in ("u", "v", "scalar"):
+        expected = getattr(flow, name)[:, 1:-1, 1:-1]
+        torch.testing.assert_close(getattr(back, name)[:, 1:-1, 1:-1], expected, rtol=0, atol=0)
+    torch.testing.assert_close(back.p, flow.p, rtol=0, atol=0)
     # zero-gradient ghosts of the scalar
-    torch.testing.assert_close(back["c"][:, 0, 1:-1], back["c"][:, 1, 1:-1])
+    torch.testing.assert_close(back.scalar[:, 0, 1:-1], back.scalar[:, 1, 1:-1])
 
 
 def test_fluid_at_rest_stays_at_rest_and_hydrostatic_balance_holds():
     n, h = 10, 0.1
     cavity = Cavity(n, n, h, h, **F64)
-    fields = {
-        "u": torch.zeros(n + 1, n, 1, dtype=torch.float64),
-        "v": torch.zeros(n, n + 1, 1, dtype=torch.float64),
-        "p": torch.zeros(n, n, 1, dtype=torch.float64),
-    }
+    zeros = lambda *shape: torch.zeros(*shape, 1, dtype=torch.float64)
+    flow = Flow(u=zeros(n + 1, n), v=zeros(n, n + 1), p=zeros(n, n), scalar=zeros(n + 2, n + 2))
     # a uniform upward force is balanced by the pressure after one projection
     source = torch.ones(n, n - 1, 1, dtype=torch.float64)
-    us, vs = cavity.predict(fields, None, 0.01, 0.01, source)
-    u2, v2, p2 = project(us, vs, fields["p"], cavity.solver, 0.01, h, h)
+    us, vs = cavity.predict(flow, None, 0.01, 0.01, source)
+    u2, v2, p2 = project(us, vs, flow.p, cavity.solver, 0.01, h, h)
     assert u2.abs().max() < 1e-13 and v2.abs().max() < 1e-13
     assert (p2[:, 1:] - p2[:, :-1]).sub(h).abs().max() < 1e-12  # dp/dy = 1
 

@@ -5,7 +5,10 @@ scalar's transport step, the observation and the render call.
 A cavity env declares its numbers (cells per unit length, time step, substeps per
 action, the pressure increment's boundary conditions, the
 published Jacobi tolerance), its transported scalar (``theta``, ``c``) with its ghost
-conditions, and one substep of its physics; :meth:`CavityEnv.run` advances a state.
+conditions, and one substep of its physics; :meth:`CavityPhysics.run` advances a flow.
+A state's first four fields are its flow (:class:`~beacon_torch.numerics.projection.Flow`:
+``u``, ``v``, ``p`` and the scalar), which travels as one typed value to the substeps
+and back.
 """
 
 from __future__ import annotations
@@ -19,17 +22,12 @@ import torch
 
 from beacon_torch.base import FlowEnv, Physics, State
 from beacon_torch.numerics.grid import NEUMANN, Ghosts
-from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.projection import Cavity, Flow
 
 N_PROBES = 4
 HISTORY = 4  # the 3 previous probe vectors and the current one, oldest first
-FIELDS = 3  # the scalar, u and v at every probe
-N_OBS = FIELDS * N_PROBES**2 * HISTORY
-
-# The flow by name, as the solver takes and gives it: u, v, p and the scalar, ghosted
-# ``[B, nx + 2, ny + 2]`` batch first (p ``[B, nx, ny]``) outside the substeps, batch
-# last inside them. A cavity env's state holds these fields and what it adds.
-Fields = dict[str, torch.Tensor]
+PROBED = ("scalar", "u", "v")  # the fields sampled at every probe, in this order
+N_OBS = len(PROBED) * N_PROBES**2 * HISTORY
 
 
 def grid(L: float, H: float, cells_per_unit: int) -> tuple[int, int, float, float]:
@@ -45,25 +43,25 @@ def probe_indices(n: int, device=None) -> torch.Tensor:
 
 
 class Probes:
-    """Samples fields of a state at a ``N_PROBES x N_PROBES`` grid and keeps the history."""
+    """Samples the fields ``PROBED`` of a batch-first flow at a ``N_PROBES x N_PROBES``
+    grid and keeps the history."""
 
-    def __init__(self, keys: tuple[str, ...], nx: int, ny: int, device=None) -> None:
-        self.keys = keys
+    def __init__(self, nx: int, ny: int, device=None) -> None:
         self.ix = probe_indices(nx, device)[:, None]
         self.iy = probe_indices(ny, device)[None, :]
-        self.size = len(keys) * N_PROBES**2
+        self.size = len(PROBED) * N_PROBES**2
 
-    def sample(self, flow: Fields) -> torch.Tensor:
-        """``[B, len(keys) * N_PROBES^2]``, field by field."""
-        return torch.cat([flow[k][:, self.ix, self.iy].flatten(1) for k in self.keys], -1)
+    def sample(self, flow: Flow) -> torch.Tensor:
+        """``[B, len(PROBED) * N_PROBES^2]``, field by field."""
+        return torch.cat([getattr(flow, k)[:, self.ix, self.iy].flatten(1) for k in PROBED], -1)
 
-    def start(self, flow: Fields) -> torch.Tensor:
+    def start(self, flow: Flow) -> torch.Tensor:
         """``[B, HISTORY, size]``: zeros for the steps before, the current sample last
         (the published order: oldest first)."""
         current = self.sample(flow)[:, None]
         return torch.cat((current.new_zeros((current.shape[0], HISTORY - 1, self.size)), current), 1)
 
-    def push(self, history: torch.Tensor, flow: Fields) -> torch.Tensor:
+    def push(self, history: torch.Tensor, flow: Flow) -> torch.Tensor:
         """The history with the oldest sample dropped and the current one appended."""
         return torch.cat((history[:, 1:], self.sample(flow)[:, None]), 1)
 
@@ -80,10 +78,10 @@ def transport(
     return torch.cat((s[:1], torch.cat((s[1:-1, :1], interior, s[1:-1, -1:]), 1), s[-1:]), 0)
 
 
-def _any_substep(substep: Callable, i, fields: Fields, *inputs) -> Fields:
+def _any_substep(substep: Callable, i, flow: Flow, *inputs) -> Flow:
     """A cavity's substep as the loop over an action's substeps calls it (every
     substep of an action is the same)."""
-    return substep(fields, *inputs)
+    return substep(flow, *inputs)
 
 
 class CavityPhysics(Physics):
@@ -99,9 +97,18 @@ class CavityPhysics(Physics):
     substeps: ClassVar[int]  # per action
     poisson_bc: ClassVar[Sequence[str]] = (NEUMANN,) * 4
     jacobi_tol: ClassVar[float]  # the published solve's stopping tolerance (solver="jacobi")
-    # (fields, walls, offset, cavity, ghosts, nu, kappa) -> fields: one substep on the
-    # solver's batch-last fields, a staticmethod of the env class
+    # (flow, walls, offset, cavity, ghosts, nu, kappa) -> flow: one substep of the
+    # solver's batch-last flow, a staticmethod of the physics class
     substep: ClassVar[Callable]
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        fields = getattr(cls, "state_type", None) and cls.state_type._fields[:4]
+        if fields and fields != ("u", "v", "p", cls.scalar):
+            raise TypeError(
+                f"{cls.__name__}.state_type must begin with the flow's fields ('u', 'v', 'p', {cls.scalar!r}),"
+                f" not {fields}"
+            )
 
     def member_floats(self) -> int:
         return 5 * (self.nx + 2) * (self.ny + 2)  # u, v, p, the scalar and a projection's work
@@ -115,23 +122,23 @@ class CavityPhysics(Physics):
         self.solver = self.cavity.solver
         self.ghosts = self.scalar_ghosts()
         self._substeps = self.kernels.loop(functools.partial(_any_substep, self.substep))
-        self.probes = Probes((self.scalar, "u", "v"), self.nx, self.ny, self.device)
+        self.probes = Probes(self.nx, self.ny, self.device)
 
     def scalar_ghosts(self) -> Ghosts:
         """The ghost map of the scalar (its wall conditions)."""
         raise NotImplementedError
 
-    def run(self, flow: Fields, n: int, nu, kappa, *, walls=None, offset: torch.Tensor | None = None) -> Fields:
-        """``n`` substeps from a batch-first ghosted flow
-        (``u``, ``v``, ``p`` and the scalar) with the wall-velocity offsets ``walls``
-        (``Cavity.walls``; None for walls at rest) and the scalar's ghost offset."""
-        fields = self.cavity.fields(flow, {self.scalar: (self.ghosts, offset)})
-        fields = self._substeps(n, fields, walls, offset, self.cavity, self.ghosts, nu, kappa)
-        return self.cavity.stored(fields, walls if walls is not None else self.cavity.walls(like=fields["u"]))
+    def run(self, flow: Flow, n: int, nu, kappa, *, walls=None, offset: torch.Tensor | None = None) -> Flow:
+        """``n`` substeps from a batch-first ghosted flow with the wall-velocity offsets
+        ``walls`` (``Cavity.walls``; None for walls at rest) and the scalar's ghost
+        offset: the layout converted once each way."""
+        flow = self.cavity.to_solver(flow, self.ghosts, offset)
+        flow = self._substeps(n, flow, walls, offset, self.cavity, self.ghosts, nu, kappa)
+        return self.cavity.to_state(flow, walls if walls is not None else self.cavity.walls(like=flow.u))
 
-    def flow(self, state: State) -> Fields:
-        """The flow fields of a state, by name."""
-        return {name: getattr(state, name) for name in ("u", "v", "p", self.scalar)}
+    def flow(self, state: State) -> Flow:
+        """The flow of a state: its first four fields."""
+        return Flow(*state[:4])
 
     def kinetic_energy(self, state: State) -> torch.Tensor:
         """``[batch]``: half the mean squared speed over the interior faces, per unit

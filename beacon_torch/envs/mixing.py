@@ -23,9 +23,9 @@ import numpy as np
 import torch
 
 from beacon_torch.base import GradCheck, Noise
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, Fields, transport
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, transport
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
-from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.projection import Cavity, Flow
 from beacon_torch.numerics.staggered import project
 from beacon_torch.params import param
 
@@ -36,7 +36,8 @@ LIDS = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, -1.0, 1.0), (0.
 
 
 class MixingState(NamedTuple):
-    """The flow, batch first, and what the env adds."""
+    """The flow (a :class:`~beacon_torch.numerics.projection.Flow`'s fields, batch
+    first) and what the env adds."""
 
     u: torch.Tensor  # [batch, nx + 2, ny + 2] the x-velocity on the faces, ghosted
     v: torch.Tensor  # [batch, nx + 2, ny + 2] the y-velocity on the faces, ghosted
@@ -70,13 +71,13 @@ class MixingParams:
             raise ValueError(f"parameter 'side' = {self.side:g} must fit in the cavity ({self.L:g} x {self.H:g})")
 
 
-def substep(fields: Fields, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -> Fields:
-    """One projection substep on the solver's batch-last fields with the wall-velocity
+def substep(flow: Flow, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, kappa) -> Flow:
+    """One projection substep of the solver's batch-last flow with the wall-velocity
     ghost offsets ``walls`` (:meth:`Cavity.walls`); no flux of c through the walls
     (``c_offset`` None)."""
-    u, v = cavity.predict(fields, walls, nu, DT)
-    u, v, p = project(u, v, fields["p"], cavity.solver, DT, cavity.dx, cavity.dy)
-    return {"u": u, "v": v, "p": p, "c": transport(fields["c"], u, v, c_ghosts, c_offset, cavity, kappa, DT)}
+    u, v = cavity.predict(flow, walls, nu, DT)
+    u, v, p = project(u, v, flow.p, cavity.solver, DT, cavity.dx, cavity.dy)
+    return Flow(u, v, p, transport(flow.scalar, u, v, c_ghosts, c_offset, cavity, kappa, DT))
 
 
 class MixingPhysics(CavityPhysics):
@@ -140,15 +141,15 @@ class MixingPhysics(CavityPhysics):
         i0, j0 = int(round((nx - n_side[0]) / 2)), int(round((ny - n_side[1]) / 2))
         c[:, i0 : i0 + n_side[0], j0 : j0 + n_side[1]] = 1.0
         c = c * self.member(p.c0, 2)
-        flow = {"u": zeros(nx + 2, ny + 2), "v": zeros(nx + 2, ny + 2), "p": zeros(nx, ny), "c": c}
-        return MixingState(**flow, walls=zeros(4), probes=self.probes.start(flow))
+        flow = Flow(u=zeros(nx + 2, ny + 2), v=zeros(nx + 2, ny + 2), p=zeros(nx, ny), scalar=c)
+        return MixingState(*flow, walls=zeros(4), probes=self.probes.start(flow))
 
     def advance(self, p, state: MixingState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         walls = self.walls(action)
         lids = (walls * self.u_max(p)).T
         walls_moving = self.cavity.walls(*lids, like=lids)
         flow = self.run(self.flow(state), SUBSTEPS, self.nu(p), self.kappa(p), walls=walls_moving)
-        new = MixingState(**flow, walls=walls, probes=self.probes.push(state.probes, flow))
+        new = MixingState(*flow, walls=walls, probes=self.probes.push(state.probes, flow))
         return new, -(new.c - self.target(p)).abs().mean((-2, -1))
 
     def diagnose(self, p, state: MixingState) -> dict[str, torch.Tensor]:

@@ -26,11 +26,11 @@ import torch
 
 from beacon_torch.base import GradCheck, Noise, map_state
 from beacon_torch.cache import cached
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, Fields, transport
+from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, transport
 from beacon_torch.numerics.grid import GRADIENT, VALUE, Ghosts, edge_offset
-from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.projection import Cavity, Flow
 from beacon_torch.numerics.staggered import project
-from beacon_torch.params import number, param
+from beacon_torch.params import number, param, resolve_params
 from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
 
 CELLS_PER_UNIT = 50
@@ -101,17 +101,16 @@ def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.T
     return edge_offset(ny + 2, 1, low, T_COLD, bottom)
 
 
-def substep(
-    fields: Fields, walls, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa
-) -> Fields:
-    """One projection substep of the Boussinesq flow on the solver's batch-last fields
-    (no-slip walls: ``walls`` None; ``theta_offset`` from :func:`temperature_offset`)."""
-    theta = fields["theta"]
+def substep(flow: Flow, walls, theta_offset: torch.Tensor, cavity: Cavity, theta_ghosts: Ghosts, nu, kappa) -> Flow:
+    """One projection substep of the Boussinesq flow, the solver's batch-last flow
+    with the temperature as its scalar (no-slip walls: ``walls`` None;
+    ``theta_offset`` from :func:`temperature_offset`)."""
+    theta = flow.scalar
     # as published, each interior v face takes the temperature of the cell above it
     buoyancy = theta[1:-1, 2:-1]
-    u, v = cavity.predict(fields, walls, nu, DT, buoyancy)
-    u, v, p = project(u, v, fields["p"], cavity.solver, DT, cavity.dx, cavity.dy)
-    return {"u": u, "v": v, "p": p, "theta": transport(theta, u, v, theta_ghosts, theta_offset, cavity, kappa, DT)}
+    u, v = cavity.predict(flow, walls, nu, DT, buoyancy)
+    u, v, p = project(u, v, flow.p, cavity.solver, DT, cavity.dx, cavity.dy)
+    return Flow(u, v, p, transport(theta, u, v, theta_ghosts, theta_offset, cavity, kappa, DT))
 
 
 def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
@@ -133,16 +132,20 @@ def developed_convection(
     from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
     would otherwise never start). Returns ``u``, ``v``, ``p``, ``theta`` without batch
     dimension."""
-    # an env of these parameters runs the substeps; its own start is never made
-    env = RayleighEnv(1, dtype=torch.float64, **{**dataclasses.asdict(p), "start": "generated"})
+    # the physics of these parameters runs the substeps; its own start is never made
+    given = {**dataclasses.asdict(p), "start": "generated"}
+    cpu, f64 = torch.device("cpu"), torch.float64
+    p = resolve_params(RayleighParams, given, batch_size=1, device=cpu, dtype=f64, env_id=RayleighEnv.env_id)
+    physics = RayleighPhysics(p, 1, dtype=f64, device=cpu)
     g = torch.Generator().manual_seed(seed)
-    flow = rest_state(1, env.nx, env.ny, torch.float64, "cpu")._asdict()
-    flow["theta"] = PERTURBATION * (2.0 * torch.rand(flow["theta"].shape, generator=g, dtype=torch.float64) - 1.0)
-    bottom = torch.full((1, env.nx), T_HOT, dtype=torch.float64)
-    flow = env.run(
-        flow, int(round(time / DT)), env.nu, env.kappa, offset=temperature_offset(bottom, env.ghosts, env.ny)
+    flow = Flow(*rest_state(1, physics.nx, physics.ny, torch.float64, "cpu"))
+    theta = PERTURBATION * (2.0 * torch.rand(flow.scalar.shape, generator=g, dtype=torch.float64) - 1.0)
+    bottom = torch.full((1, physics.nx), T_HOT, dtype=torch.float64)
+    offset = temperature_offset(bottom, physics.ghosts, physics.ny)
+    flow = physics.run(
+        flow._replace(scalar=theta), int(round(time / DT)), physics.nu(p), physics.kappa(p), offset=offset
     )
-    return Convection(**{k: flow[k][0] for k in Convection._fields})
+    return Convection(*(f[0] for f in flow))
 
 
 def published_convection(nx: int, ny: int) -> Convection:
@@ -208,16 +211,16 @@ class RayleighPhysics(CavityPhysics):
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
     def initial_state(self, p, generator, mask=None) -> RayleighState:
-        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start(p)._asdict().items()}
+        flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
         bottom = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
-        return RayleighState(**flow, bottom=bottom, probes=self.probes.start(flow))
+        return RayleighState(*flow, bottom=bottom, probes=self.probes.start(flow))
 
     def advance(self, p, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
         offset = temperature_offset(bottom, self.ghosts, self.ny)
         flow = self.run(self.flow(state), SUBSTEPS, self.nu(p), self.kappa(p), offset=offset)
-        new = RayleighState(**flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
+        new = RayleighState(*flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
         return new, -nusselt(new.theta, self.dy)
 
     def diagnose(self, p, state: RayleighState) -> dict[str, torch.Tensor]:

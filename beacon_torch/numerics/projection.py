@@ -8,8 +8,10 @@ numerics it is made of, each in its own module: the grid's boundaries and ghosts
 
 Layout: every field is ``[X, Y, B]``, batch last (:mod:`~beacon_torch.numerics.grid`).
 Envs keep their state batch first
-with ghost layers (``[B, nx + 2, ny + 2]``, what probes and rendering read) and convert
-once per action with :meth:`Cavity.fields` and :meth:`Cavity.stored`.
+with ghost layers (``[B, nx + 2, ny + 2]``, what probes and rendering read). The flow
+travels as one typed value, a :class:`Flow`, from the env's state to the substeps and
+back; its layout is converted once each way per action, by :meth:`Cavity.to_solver` and
+:meth:`Cavity.to_state`.
 
 What the solver carries (no ghost values):
 - ``u``: x-velocity on the x-faces ``0..nx`` of the ``nx`` cells (faces 0 and nx are the
@@ -28,6 +30,7 @@ is out of place, so the graph survives when gradients are wanted.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -55,6 +58,7 @@ __all__ = [
     "ZERO_GHOST",
     "FEW_MEMBERS",
     "Cavity",
+    "Flow",
     "Ghosts",
     "JacobiSolver",
     "PoissonSolver",
@@ -66,6 +70,22 @@ __all__ = [
     "project",
     "tendency",
 ]
+
+
+class Flow(NamedTuple):
+    """A cavity's flow: the velocities, the pressure and the transported scalar.
+
+    Batch first, as an env's state holds it (its first four fields, in this order):
+    ``u``, ``v`` and ``scalar`` ghosted ``[B, nx + 2, ny + 2]``, ``p`` ``[B, nx, ny]``.
+    Batch last, as the substeps carry it (:meth:`Cavity.to_solver`): ``u``
+    ``[nx + 1, ny, B]`` and ``v`` ``[nx, ny + 1, B]`` on their faces, ``p``
+    ``[nx, ny, B]`` (the stencils gather the velocities' ghosts), ``scalar``
+    ``[nx + 2, ny + 2, B]`` with its ghost layer, refreshed from the interior."""
+
+    u: torch.Tensor
+    v: torch.Tensor
+    p: torch.Tensor
+    scalar: torch.Tensor
 
 
 class Cavity:
@@ -106,36 +126,35 @@ class Cavity:
         )
 
     def predict(
-        self, fields: dict[str, torch.Tensor], walls, nu, dt: float, v_source: torch.Tensor | None = None
+        self, flow: Flow, walls, nu, dt: float, v_source: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """:func:`predict` on the solver's fields, with the wall ghost offsets ``walls``
-        (:meth:`walls`; None for walls at rest)."""
+        """:func:`predict` on the solver's (batch-last) flow, with the wall ghost offsets
+        ``walls`` (:meth:`walls`; None for walls at rest)."""
         off_u, off_v = walls if walls is not None else (None, None)
-        u, v = self.u_ghosts(fields["u"], off_u), self.v_ghosts(fields["v"], off_v)
-        return predict(u, v, fields["p"], nu, dt, self.dx, self.dy, v_source)
+        u, v = self.u_ghosts(flow.u, off_u), self.v_ghosts(flow.v, off_v)
+        return predict(u, v, flow.p, nu, dt, self.dx, self.dy, v_source)
 
-    def fields(self, state: dict[str, torch.Tensor], scalars: dict[str, tuple]) -> dict[str, torch.Tensor]:
-        """The solver's fields from a batch-first ghosted state (``u``, ``v`` and the
-        scalars ``[B, nx + 2, ny + 2]``, ``p`` ``[B, nx, ny]``). ``scalars`` maps each
-        scalar's name to its ``(ghosts, offset or None)``: scalars travel through the
-        substeps with their ghost layer, refreshed from the interior."""
+    def to_solver(self, flow: Flow, ghosts: Ghosts, offset: torch.Tensor | None = None) -> Flow:
+        """The batch-last flow the substeps carry, from a batch-first ghosted one; the
+        scalar's ghosts from its interior by ``ghosts`` (its wall conditions) and
+        ``offset`` (its prescribed wall values, or None)."""
         last = lambda f: f.movedim(0, -1).contiguous()
-        out = {"u": last(state["u"][:, 1:, 1:-1]), "v": last(state["v"][:, 1:-1, 1:]), "p": last(state["p"])}
-        for name, (ghosts, offset) in scalars.items():
-            out[name] = ghosts(last(state[name][:, 1:-1, 1:-1]), offset)
-        return out
+        return Flow(
+            u=last(flow.u[:, 1:, 1:-1]),
+            v=last(flow.v[:, 1:-1, 1:]),
+            p=last(flow.p),
+            scalar=ghosts(last(flow.scalar[:, 1:-1, 1:-1]), offset),
+        )
 
-    def stored(self, fields: dict[str, torch.Tensor], walls) -> dict[str, torch.Tensor]:
-        """Back to the batch-first ghosted state, with the velocities' wall ghosts of
-        ``walls`` (:meth:`walls`)."""
+    def to_state(self, flow: Flow, walls) -> Flow:
+        """Back to the batch-first ghosted flow of a state, with the velocities' wall
+        ghosts of ``walls`` (:meth:`walls`)."""
         first = lambda f: f.movedim(-1, 0).contiguous()
-        u, v = fields["u"], fields["v"]
+        u, v = flow.u, flow.v
         # the stored layout has one ghost position before the first face, none after
         u_full = F.pad(self.u_ghosts(u, walls[0]), (0, 0, 0, 0, 1, 0))
         v_full = F.pad(self.v_ghosts(v, walls[1]), (0, 0, 1, 0))
         # the ghost maps zero the wall faces for the predictor; keep what projection left
         u_full[1:, 1:-1] = u
         v_full[1:-1, 1:] = v
-        out = {name: first(f) for name, f in fields.items()}
-        out.update(u=first(u_full), v=first(v_full))
-        return out
+        return Flow(u=first(u_full), v=first(v_full), p=first(flow.p), scalar=first(flow.scalar))

@@ -1,7 +1,11 @@
 """Operators of the staggered grid, batch last: the explicit momentum terms, the
 predictor, the divergence and the projection that removes it. Velocities come with
 their ghosts (:class:`~beacon_torch.numerics.grid.Ghosts`); everything is out of place,
-so the graph survives when gradients are wanted."""
+so the graph survives when gradients are wanted.
+
+The spacing of each axis is a :class:`Uniform` one (the cavities) or a
+:class:`Stretched` one (the cylinder's channel, whose cells grow away from the body):
+the stencils are the same, and each difference is taken over its own distance."""
 
 from __future__ import annotations
 
@@ -9,35 +13,84 @@ import torch
 import torch.nn.functional as F
 
 
-def tendency(u: torch.Tensor, v: torch.Tensor, nu, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor]:
+class Uniform:
+    """An axis of equal cells of width ``h``."""
+
+    def __init__(self, h: float) -> None:
+        self.h = h
+
+    def difference(self, d: torch.Tensor, faces: bool) -> torch.Tensor:
+        """A difference of fluxes across the control volumes of the interior faces of
+        this axis (``faces``) or of its cells, over their widths."""
+        return d / self.h
+
+    def second(self, minus: torch.Tensor, mid: torch.Tensor, plus: torch.Tensor, faces: bool) -> torch.Tensor:
+        """The second derivative along this axis at the interior faces (``faces``) or the
+        cells, from the values ``minus``, ``mid``, ``plus`` one node apart."""
+        # the published form, which the reference rollouts match to the last bit
+        return (plus - 2.0 * mid + minus) / self.h**2
+
+
+class Stretched:
+    """An axis of unequal cells: their ``widths`` and the ``gaps`` between neighbouring
+    centres, the two ends' ghost centres included (``widths.numel() + 1`` values), each
+    shaped to broadcast against ``[X, Y, B]`` along dimension ``dim``."""
+
+    def __init__(self, widths: torch.Tensor, gaps: torch.Tensor, dim: int) -> None:
+        self.widths, self.gaps, self.dim = widths, gaps, dim
+
+    def _part(self, t: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+        return t.narrow(self.dim, start, t.shape[self.dim] + stop - start)
+
+    def difference(self, d: torch.Tensor, faces: bool) -> torch.Tensor:
+        # an interior face's control volume spans the centres on each side of it
+        return d / (self._part(self.gaps, 1, -1) if faces else self.widths)
+
+    def second(self, minus: torch.Tensor, mid: torch.Tensor, plus: torch.Tensor, faces: bool) -> torch.Tensor:
+        # between faces, the nodes are a cell apart; between cells, a gap apart
+        inner, outer = (self.widths, self._part(self.gaps, 1, -1)) if faces else (self.gaps, self.widths)
+        return ((plus - mid) / self._part(inner, 1, 0) - (mid - minus) / self._part(inner, 0, -1)) / outer
+
+
+def spacing(h) -> Uniform | Stretched:
+    """An axis's spacing: a number is the width of equal cells."""
+    return h if isinstance(h, Uniform | Stretched) else Uniform(h)
+
+
+def tendency(u: torch.Tensor, v: torch.Tensor, nu, dx, dy) -> tuple[torch.Tensor, torch.Tensor]:
     """The explicit terms -(u.grad)u + nu lap u on the interior faces, with centred
     fluxes of face-averaged velocities: ``[nx - 1, ny, B]`` on the x-faces 1..nx-1 and
     ``[nx, ny - 1, B]`` on the y-faces 1..ny-1. ``u`` (``[nx + 1, ny + 2, B]``) and
-    ``v`` (``[nx + 2, ny + 1, B]``) carry their ghosts (:class:`Ghosts`)."""
+    ``v`` (``[nx + 2, ny + 1, B]``) carry their ghosts (:class:`Ghosts`). ``dx`` and
+    ``dy`` are the axes' spacings (:class:`Uniform`, :class:`Stretched`, or a number:
+    equal cells). On a stretched axis the velocities are carried to a control volume's
+    faces by plain averages: exact where the cells are equal, first order where they
+    grow."""
+    x, y = spacing(dx), spacing(dy)
     # u on the interior x-faces 1..nx-1, cells 0..ny-1 (ghost rows 0 and ny + 1 in y)
     uf = u[1:-1, 1:-1]
     ue = 0.5 * (uf + u[2:, 1:-1])  # the cell centre east of the face
     uw = 0.5 * (u[:-2, 1:-1] + uf)
-    duu = (ue * ue - uw * uw) / dx
+    duu = x.difference(ue * ue - uw * uw, faces=True)
     un = 0.5 * (uf + u[1:-1, 2:])
     vn = 0.5 * (v[1:-2, 1:] + v[2:-1, 1:])
     us = 0.5 * (u[1:-1, :-2] + uf)
     vs = 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
-    duv = (un * vn - us * vs) / dy
-    lap_u = (u[2:, 1:-1] - 2.0 * uf + u[:-2, 1:-1]) / dx**2 + (u[1:-1, 2:] - 2.0 * uf + u[1:-1, :-2]) / dy**2
+    duv = y.difference(un * vn - us * vs, faces=False)
+    lap_u = x.second(u[:-2, 1:-1], uf, u[2:, 1:-1], faces=True) + y.second(u[1:-1, :-2], uf, u[1:-1, 2:], faces=False)
     hu = -duu - duv + nu * lap_u
 
     # v on the interior y-faces 1..ny-1, cells 0..nx-1 (ghost columns 0 and nx + 1 in x)
     vf = v[1:-1, 1:-1]
     vn_c = 0.5 * (vf + v[1:-1, 2:])
     vs_c = 0.5 * (v[1:-1, :-2] + vf)
-    dvv = (vn_c * vn_c - vs_c * vs_c) / dy
+    dvv = y.difference(vn_c * vn_c - vs_c * vs_c, faces=True)
     ve = 0.5 * (vf + v[2:, 1:-1])
     ue_c = 0.5 * (u[1:, 1:-2] + u[1:, 2:-1])
     vw = 0.5 * (v[:-2, 1:-1] + vf)
     uw_c = 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
-    duv_x = (ue_c * ve - uw_c * vw) / dx
-    lap_v = (v[2:, 1:-1] - 2.0 * vf + v[:-2, 1:-1]) / dx**2 + (v[1:-1, 2:] - 2.0 * vf + v[1:-1, :-2]) / dy**2
+    duv_x = x.difference(ue_c * ve - uw_c * vw, faces=False)
+    lap_v = x.second(v[:-2, 1:-1], vf, v[2:, 1:-1], faces=False) + y.second(v[1:-1, :-2], vf, v[1:-1, 2:], faces=True)
     return hu, -dvv - duv_x + nu * lap_v
 
 

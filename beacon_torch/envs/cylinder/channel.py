@@ -13,6 +13,7 @@ import torch
 from beacon_torch.base import map_state
 from beacon_torch.numerics.grid import NEUMANN, VALUE, ZERO_FACE, Ghosts
 from beacon_torch.numerics.poisson import PoissonSolver
+from beacon_torch.numerics.staggered import Stretched, divergence, tendency
 
 LENGTH, HEIGHT = 2.2, 0.41
 
@@ -56,10 +57,11 @@ N_PROBES = len(PROBES)  # 151
 
 
 class Flow(NamedTuple):
-    """The channel's flow on the staggered grid, batch first: the face velocities (the
-    inflow face and the outlet face included), the cells' pressure, the explicit terms
-    of the previous step on the interior faces (Adams-Bashforth's memory) and the top
-    jet's flow rate."""
+    """The channel's flow on the staggered grid, batch first as a state holds it (its
+    first six fields): the face velocities (the inflow face and the outlet face
+    included), the cells' pressure, the explicit terms of the previous step on the
+    interior faces (Adams-Bashforth's memory) and the top jet's flow rate. The steps
+    carry it batch last (``[X, Y, B]``, the rate ``[B]``)."""
 
     u: torch.Tensor  # [batch, nx + 1, ny]
     v: torch.Tensor  # [batch, nx, ny + 1]
@@ -160,6 +162,11 @@ class Channel:
         self.dx_gaps, self.dy_gaps = along(self.x.gaps), across(self.y.gaps)
         # the x-gradient's distances on the faces 1..nx (the outlet's mirrored ghost last)
         self.dx_grad = along(self.x.gaps[1:])
+        # the axes as the shared staggered operators take them
+        self.x_spacing, self.y_spacing = (
+            Stretched(self.dx_cells, self.dx_gaps, 0),
+            Stretched(self.dy_cells, self.dy_gaps, 1),
+        )
         x_faces, x_cells, y_faces, y_cells = self.x.faces, self.x.centres, self.y.faces, self.y.centres
         self.inflow = cast(4.0 * U_MAX * y_cells * (HEIGHT - y_cells) / HEIGHT**2)[:, None]  # [ny, 1]
         # the body: the faces inside it and the first fluid faces around it, per component
@@ -219,7 +226,7 @@ class Channel:
         return (f[:, 1:] - f[:, :-1]) / self.dy_gaps[:, 1:-1]
 
     def divergence(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        return (u[1:] - u[:-1]) / self.dx_cells + (v[:, 1:] - v[:, :-1]) / self.dy_cells
+        return divergence(u, v, self.dx_cells, self.dy_cells)
 
     def continuity(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """The divergence the projection removes: all of it in the fluid's cells; in the
@@ -234,33 +241,6 @@ class Channel:
         """phi with lap phi = rhs in the cells: zero normal gradient on the walls and
         the inflow, zero on the outlet face."""
         return self.solver.solve(rhs.transpose(0, 1).contiguous()).transpose(0, 1)
-
-    def tendency(self, u: torch.Tensor, v: torch.Tensor, nu) -> tuple[torch.Tensor, torch.Tensor]:
-        """-(u.grad)u + nu lap u on the interior faces of the stretched grid, from the
-        ghosted ``u`` (``[nx + 1, ny + 2, B]``) and ``v`` (``[nx + 2, ny + 1, B]``): the
-        cavities' centred scheme (:func:`~beacon_torch.numerics.staggered.tendency`)
-        with each difference over its own distance. Velocities are carried to a
-        control volume's faces by plain averages, exact where the grid is uniform (around
-        the cylinder) and first order where it stretches by 5 %."""
-        cx, cy, gx, gy = self.dx_cells, self.dy_cells, self.dx_gaps, self.dy_gaps
-        uf = u[1:-1, 1:-1]
-        ue, uw = 0.5 * (uf + u[2:, 1:-1]), 0.5 * (u[:-2, 1:-1] + uf)
-        un, us = 0.5 * (uf + u[1:-1, 2:]), 0.5 * (u[1:-1, :-2] + uf)
-        vn, vs = 0.5 * (v[1:-2, 1:] + v[2:-1, 1:]), 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
-        gu = gx[1:-1]  # an x-face's control volume spans the centres on each side
-        lap_u = ((u[2:, 1:-1] - uf) / cx[1:] - (uf - u[:-2, 1:-1]) / cx[:-1]) / gu
-        lap_u = lap_u + ((u[1:-1, 2:] - uf) / gy[:, 1:] - (uf - u[1:-1, :-2]) / gy[:, :-1]) / cy
-        hu = -(ue * ue - uw * uw) / gu - (un * vn - us * vs) / cy + nu * lap_u
-
-        vf = v[1:-1, 1:-1]
-        vn, vs = 0.5 * (vf + v[1:-1, 2:]), 0.5 * (v[1:-1, :-2] + vf)
-        ve, vw = 0.5 * (vf + v[2:, 1:-1]), 0.5 * (v[:-2, 1:-1] + vf)
-        ue, uw = 0.5 * (u[1:, 1:-2] + u[1:, 2:-1]), 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
-        gv = gy[:, 1:-1]
-        lap_v = ((v[2:, 1:-1] - vf) / gx[1:] - (vf - v[:-2, 1:-1]) / gx[:-1]) / cx
-        lap_v = lap_v + ((v[1:-1, 2:] - vf) / cy[:, 1:] - (vf - v[1:-1, :-2]) / cy[:, :-1]) / gv
-        hv = -(vn * vn - vs * vs) / gv - (ue * ve - uw * vw) / cx + nu * lap_v
-        return hu, hv
 
 
 def inside(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -389,18 +369,19 @@ def probe_stencil(
     return (torch.from_numpy(ix), torch.from_numpy(iy)), torch.from_numpy(w)
 
 
-def step(i, flow: dict, target: torch.Tensor, channel: Channel, nu, dt: float) -> dict:
-    """One time step of the batch-last flow (``u``, ``v``, ``p``, ``hu``, ``hv``, ``q``
-    and the running sums ``drag``, ``lift`` of the forces on the cylinder) with the top
-    jet's rate relaxing to ``target`` (``[B]``)."""
+def step(i, carried: tuple[Flow, torch.Tensor, torch.Tensor], target: torch.Tensor, channel: Channel, nu, dt: float):
+    """One time step of ``(flow, drag, lift)``: the batch-last flow and the running
+    sums of the forces on the cylinder (``[B]``), with the top jet's rate relaxing to
+    ``target`` (``[B]``)."""
+    flow, drag_sum, lift_sum = carried
     c, h = channel, channel.h
-    u, v, p = flow["u"], flow["v"], flow["p"]
-    q = flow["q"] + SMOOTHING * (target - flow["q"])
+    u, v, p = flow.u, flow.v, flow.p
+    q = flow.q + SMOOTHING * (target - flow.q)
     # explicit terms: centred advection and diffusion inside, the outlet face carried out
-    hu, hv = c.tendency(c.u_ghosts(u), c.v_ghosts(v), nu)
+    hu, hv = tendency(c.u_ghosts(u), c.v_ghosts(v), nu, c.x_spacing, c.y_spacing)
     hu = torch.cat((hu, -U_MEAN * (u[-1:] - u[-2:-1]) / c.dx_cells[-1:]), 0)
-    u_star = u[1:] + dt * (1.5 * hu - 0.5 * flow["hu"] - c.x_gradient(p))
-    v_star = v[:, 1:-1] + dt * (1.5 * hv - 0.5 * flow["hv"] - c.y_gradient(p))
+    u_star = u[1:] + dt * (1.5 * hu - 0.5 * flow.hu - c.x_gradient(p))
+    v_star = v[:, 1:-1] + dt * (1.5 * hv - 0.5 * flow.hv - c.y_gradient(p))
     u_star = torch.cat((c.inflow.expand_as(u[:1]), u_star), 0)
     v_star = torch.nn.functional.pad(v_star, (0, 0, 1, 1))
     # the body: its faces take its velocity, the first fluid faces around it the value
@@ -408,21 +389,12 @@ def step(i, flow: dict, target: torch.Tensor, channel: Channel, nu, dt: float) -
     u_new, v_new = c.body_u(u_star, q), c.body_v(v_star, q)
     cell = h * h / dt
     drag = (u_star - u_new).sum((0, 1)) * cell
-    lift = (v_star - v_new).sum((0, 1)) * cell + c.jet_momentum * (q - flow["q"]) / dt
+    lift = (v_star - v_new).sum((0, 1)) * cell + c.jet_momentum * (q - flow.q) / dt
     # projection on the rectangle
     phi = c.solve(c.continuity(u_new, v_new) / dt)
     u_new = torch.cat((u_new[:1], u_new[1:] - dt * c.x_gradient(phi)), 0)
     v_new = torch.cat((v_new[:, :1], v_new[:, 1:-1] - dt * c.y_gradient(phi), v_new[:, -1:]), 1)
-    return {
-        "u": u_new,
-        "v": v_new,
-        "p": p * c.live + phi,
-        "hu": hu,
-        "hv": hv,
-        "q": q,
-        "drag": flow["drag"] + drag,
-        "lift": flow["lift"] + lift,
-    }
+    return Flow(u=u_new, v=v_new, p=p * c.live + phi, hu=hu, hv=hv, q=q), drag_sum + drag, lift_sum + lift
 
 
 def rest(num_envs: int, channel: Channel, dtype, device) -> Flow:
@@ -439,19 +411,17 @@ def run(
 ) -> tuple[Flow, torch.Tensor, torch.Tensor]:
     """``n`` steps from a batch-first flow; returns the new flow and the mean drag and
     lift forces over the steps (``[B]``). ``loop`` runs the steps (an env's substep
-    loop; a Python loop when None)."""
+    loop; a Python loop when None). The flow's layout is converted once each way."""
     last = lambda f: f.movedim(0, -1).contiguous()
-    fields = {k: last(f) for k, f in flow._asdict().items()}
-    fields["drag"] = torch.zeros_like(fields["q"])
-    fields["lift"] = torch.zeros_like(fields["q"])
+    carried = Flow(*(last(f) for f in flow)), torch.zeros_like(flow.q), torch.zeros_like(flow.q)
     if loop is None:
         for i in range(n):
-            fields = step(i, fields, target, channel, nu, dt)
+            carried = step(i, carried, target, channel, nu, dt)
     else:
-        fields = loop(n, fields, target, channel, nu, dt)
+        carried = loop(n, carried, target, channel, nu, dt)
     first = lambda f: f.movedim(-1, 0).contiguous()
-    new = Flow(**{k: first(fields[k]) for k in Flow._fields})
-    return new, fields["drag"] / n, fields["lift"] / n
+    flow, drag, lift = carried
+    return Flow(*(first(f) for f in flow)), drag / n, lift / n
 
 
 def coefficient(force: torch.Tensor) -> torch.Tensor:

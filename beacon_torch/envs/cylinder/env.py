@@ -131,9 +131,9 @@ class CylinderPhysics(Physics):
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
     def initial_state(self, p, generator, mask=None) -> CylinderState:
-        flow = {k: v.expand(self.num_envs, *v.shape).clone() for k, v in self._start(p)._asdict().items()}
+        flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
         zeros = torch.zeros(self.num_envs, dtype=self.dtype, device=self.device)
-        return CylinderState(**flow, drag=zeros, lift=zeros.clone())
+        return CylinderState(*flow, drag=zeros, lift=zeros.clone())
 
     def advance(self, p, state: CylinderState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         flow = Flow(*state[: len(Flow._fields)])
