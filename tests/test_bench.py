@@ -119,3 +119,35 @@ def test_bench_command_reports_bad_input(capsys):
     assert "nope-v0" in capsys.readouterr().err
     assert main(["bench", "--envs", "lorenz-v0", "--num-envs", "0"]) == 2
     assert "--num-envs" in capsys.readouterr().err
+
+
+@pytest.mark.slow(20)
+def test_two_trees_timed_at_once_give_a_ratio_per_case(tmp_path):
+    """benchmarks/revisions.py --paired: the two processes wait for each other before
+    every case and take the same number of steps; the record keeps every round's
+    blocks and each round's ratio."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("two cores needed")
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "benchmarks" / "revisions.py"), str(root), str(root), "--paired"]
+    command += ["--envs", "lorenz-v0", "vortex-v0", "--batches", "1", "2", "--modes", "eager", "--rounds", "2"]
+    command += ["--seconds", "0.01", "--blocks", "2", "--out", str(tmp_path)]
+    out = subprocess.run(command, capture_output=True, text=True, check=False, cwd=tmp_path, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (record,) = tmp_path.glob("revisions-*.json")
+    rows = json.loads(record.read_text())["rows"]
+    assert [(r["env"], r["batch"]) for r in rows] == [
+        ("lorenz-v0", 1),
+        ("lorenz-v0", 2),
+        ("vortex-v0", 1),
+        ("vortex-v0", 2),
+    ]
+    for row in rows:
+        assert row["paired"] and len(row["round_ratios"]) == 2
+        assert all(len(blocks) == 2 for side in row["blocks"].values() for blocks in side)
+        assert row["ratio"] > 0
