@@ -1,7 +1,7 @@
 """Two versions of the package side by side: the CPU time of one step, every env.
 
     .venv/bin/python benchmarks/revisions.py BEFORE AFTER [--envs ...] [--batches 1 16]
-        [--modes eager compiled] [--rounds 3] [--seconds 1.0] [--blocks 3] [--paired] [--out DIR]
+        [--modes eager compiled] [--rounds 3] [--seconds 1.0] [--blocks 3] [--interleaved] [--out DIR]
 
 ``BEFORE`` and ``AFTER`` are source trees of the package (two clones or worktrees of
 two commits). Each round runs one process per tree on one thread; each process makes
@@ -12,13 +12,14 @@ the adapters and the recipes run), after warm-up steps (compilation included the
 that another process on the machine weighs less; run it on an idle machine all the same.
 
 Sequentially (the default) the trees alternate in order from round to round. With
-``--paired`` (a machine of two cores or more) the two processes run at once, each
-pinned to a core of its own (swapped from round to round), and wait for each other
-before every case, so that both time the case in the same seconds: a machine whose
-speed drifts (a shared host) then slows both sides alike, and each round's ratio is
-taken between simultaneous measurements. The table gives, per case, the median over the
-rounds of the block medians of each side and the median of the rounds' ratios. Writes a
-new ``revisions-DATE-TIME.json`` (machine, trees, every round's blocks) to ``--out``.
+``--interleaved`` the two processes run side by side on one core (the next core in
+the next round), and each case's blocks alternate between them, block by block: a
+machine whose speed drifts over seconds (a shared host: this project's machines
+change speed by up to two times between processes and within one) then slows the two
+blocks of a pair alike, and the ratio of the trees is the median over every pair of
+adjacent blocks, rounds pooled. The table gives, per case, the median block time of
+each side and that ratio. Writes a new ``revisions-DATE-TIME.json`` (machine, trees,
+every round's blocks) to ``--out``.
 """
 
 from __future__ import annotations
@@ -35,10 +36,13 @@ from pathlib import Path
 HERE = Path(__file__).resolve()
 
 
-def worker(envs: list[str], batches: list[int], modes: list[str], seconds: float, blocks: int, paired: bool) -> None:
+def worker(
+    envs: list[str], batches: list[int], modes: list[str], seconds: float, blocks: int, interleaved: bool
+) -> None:
     """Time the steps of every env in this process's tree; one JSON line per case.
-    ``paired``: before timing a case, say so and wait for the number of steps a block
-    takes (one line on stdin), so that the other tree times it at the same time."""
+    ``interleaved``: before timing a case, say so (with the steps a block would take),
+    then time one block of the number of steps each line on stdin gives, until an
+    empty line, so that the other tree's blocks run in between."""
     import torch
 
     import beacon_torch
@@ -55,10 +59,15 @@ def worker(envs: list[str], batches: list[int], modes: list[str], seconds: float
                 # warm-up: compilation, caches; an action of seconds is timed once a block
                 warm = timed(env, 1 if costly else 3, torch.Generator().manual_seed(1))
                 n = 1 if costly else max(2, min(env.episode_length // 2, int(seconds / max(warm / 3, 1e-6))))
-                if paired:
+                if interleaved:
                     print(json.dumps(dict(ready=env_id, steps=n)), flush=True)
-                    n = int(sys.stdin.readline())
-                times = [timed(env, n, gen) / n for _ in range(blocks)]
+                    times = []
+                    while line := sys.stdin.readline().strip():
+                        n = int(line)
+                        times.append(timed(env, n, gen) / n)
+                        print(json.dumps(dict(block=times[-1])), flush=True)
+                else:
+                    times = [timed(env, n, gen) / n for _ in range(blocks)]
                 case = dict(env=env_id, mode=mode, batch=batch, steps=n, cpu_s=statistics.median(times), blocks=times)
                 print(json.dumps(case), flush=True)
 
@@ -75,27 +84,29 @@ def timed(env, n: int, gen) -> float:
     return time.process_time() - start
 
 
-def worker_command(tree: Path, args, paired: bool) -> tuple[list[str], dict]:
+def worker_command(tree: Path, args, interleaved: bool) -> tuple[list[str], dict]:
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     command = [sys.executable, str(HERE), "--worker", "--envs", *args.envs, "--batches", *map(str, args.batches)]
     command += ["--modes", *args.modes]
-    command += ["--seconds", str(args.seconds), "--blocks", str(args.blocks)] + (["--paired"] if paired else [])
+    command += ["--seconds", str(args.seconds), "--blocks", str(args.blocks)]
+    command += ["--interleaved"] if interleaved else []
     return command, env
 
 
 def run_tree(tree: Path, args) -> list[dict]:
-    command, env = worker_command(tree, args, paired=False)
+    command, env = worker_command(tree, args, interleaved=False)
     out = subprocess.run(command, env=env, cwd=tree, capture_output=True, text=True, check=False)
     if out.returncode != 0:
         raise SystemExit(f"{tree}: the worker failed:\n{out.stderr[-3000:]}")
     return [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
 
 
-def run_paired(trees: list[Path], cores: list[int], args) -> list[list[dict]]:
-    """Both trees at once, tree k pinned to ``cores[k]``, each case started together."""
+def run_interleaved(trees: list[Path], core: int, args) -> list[list[dict]]:
+    """Both trees' processes on one core, their blocks of each case alternating (which
+    goes first alternates too), every block the same number of steps."""
     procs = []
-    for tree, core in zip(trees, cores, strict=True):
-        command, env = worker_command(tree, args, paired=True)
+    for tree in trees:
+        command, env = worker_command(tree, args, interleaved=True)
         procs.append(
             subprocess.Popen(
                 command,
@@ -105,36 +116,36 @@ def run_paired(trees: list[Path], cores: list[int], args) -> list[list[dict]]:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.DEVNULL,
                 text=True,
-                preexec_fn=lambda core=core: os.sched_setaffinity(0, {core}),
+                preexec_fn=lambda: os.sched_setaffinity(0, {core}),
             )
         )
 
-    def next_record(proc, tree) -> dict:
+    def record(proc) -> dict | None:
+        """The next JSON line of a worker, None when it has ended."""
         for line in proc.stdout:
             if line.startswith("{"):
                 return json.loads(line)
-        raise SystemExit(f"{tree}: the worker stopped (exit {proc.wait()})")
+        return None
+
+    def send(proc, text: str) -> None:
+        proc.stdin.write(text + "\n")
+        proc.stdin.flush()
 
     results: list[list[dict]] = [[] for _ in trees]
     while True:
-        ready = []
-        for proc in procs:
-            line = ""
-            while not line.startswith("{"):
-                line = proc.stdout.readline()
-                if not line:
-                    break
-            ready.append(json.loads(line) if line else None)
+        ready = [record(proc) for proc in procs]
         if all(r is None for r in ready):
             break
         if any(r is None for r in ready):
-            raise SystemExit("a worker stopped before the other")
-        steps = ready[0]["steps"]  # the same block for both: BEFORE's choice
-        for proc in procs:
-            proc.stdin.write(f"{steps}\n")
-            proc.stdin.flush()
-        for k, (proc, tree) in enumerate(zip(procs, trees, strict=True)):
-            results[k].append(next_record(proc, tree))
+            raise SystemExit("a worker stopped before the other (run it sequentially to see why)")
+        steps = str(ready[0]["steps"])  # the same blocks for both: BEFORE's choice
+        for k in range(args.blocks):
+            for proc in procs if k % 2 == 0 else procs[::-1]:
+                send(proc, steps)
+                record(proc)
+        for k, proc in enumerate(procs):
+            send(proc, "")
+            results[k].append(record(proc))
     for proc in procs:
         proc.wait()
     return results
@@ -151,7 +162,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=1.0, help="CPU seconds per timed block")
     parser.add_argument("--blocks", type=int, default=3, help="timed blocks per case and round")
-    parser.add_argument("--paired", action="store_true", help="both trees at once, on a core each (see above)")
+    parser.add_argument("--interleaved", action="store_true", help="the two trees' blocks alternate (see above)")
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "revisions")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -160,22 +171,20 @@ def main() -> None:
 
         args.envs = list_envs()
     if args.worker:
-        worker(args.envs, args.batches, args.modes, args.seconds, args.blocks, args.paired)
+        worker(args.envs, args.batches, args.modes, args.seconds, args.blocks, args.interleaved)
         return
     if len(args.trees) != 2 or not all((t / "beacon_torch").is_dir() for t in args.trees):
         parser.error("give two source trees of the package, BEFORE and AFTER")
-    if args.paired and len(os.sched_getaffinity(0)) < 2:
-        parser.error("--paired needs two cores")
     from beacon_torch.files import save_rows
 
     rounds = {"before": [], "after": []}
     for r in range(args.rounds):
-        if args.paired:
-            cores = sorted(os.sched_getaffinity(0))[:2]
-            before, after = run_paired(args.trees, cores if r % 2 == 0 else cores[::-1], args)
+        if args.interleaved:
+            cores = sorted(os.sched_getaffinity(0))
+            before, after = run_interleaved(args.trees, cores[r % len(cores)], args)
             rounds["before"].append(before)
             rounds["after"].append(after)
-            print(f"round {r + 1} done (paired)", file=sys.stderr, flush=True)
+            print(f"round {r + 1} done (interleaved)", file=sys.stderr, flush=True)
             continue
         order = [("before", args.trees[0]), ("after", args.trees[1])]
         for name, tree in order if r % 2 == 0 else order[::-1]:
@@ -185,9 +194,14 @@ def main() -> None:
     for i, case in enumerate(rounds["before"][0]):
         key = (case["env"], case["mode"], case["batch"])
         per = {name: [rnd[i]["cpu_s"] for rnd in runs] for name, runs in rounds.items()}
-        before, after = statistics.median(per["before"]), statistics.median(per["after"])
-        # paired: each round's ratio is of simultaneous measurements
-        ratios = [a / b for a, b in zip(per["after"], per["before"], strict=True)]
+        blocks = {name: [rnd[i]["blocks"] for rnd in runs] for name, runs in rounds.items()}
+        if args.interleaved:  # adjacent blocks, rounds pooled
+            pairs = zip(sum(blocks["before"], []), sum(blocks["after"], []), strict=True)
+            before, after = (statistics.median(sum(blocks[k], [])) for k in ("before", "after"))
+            ratio = statistics.median(a / b for b, a in pairs)
+        else:
+            before, after = statistics.median(per["before"]), statistics.median(per["after"])
+            ratio = after / before
         rows.append(
             dict(
                 env=key[0],
@@ -195,11 +209,10 @@ def main() -> None:
                 batch=key[2],
                 before_ms=1e3 * before,
                 after_ms=1e3 * after,
-                ratio=statistics.median(ratios) if args.paired else after / before,
-                round_ratios=ratios,
+                ratio=ratio,
                 rounds={k: [1e3 * v for v in vs] for k, vs in per.items()},
-                blocks={k: [[1e3 * v for v in rnd[i]["blocks"]] for rnd in runs] for k, runs in rounds.items()},
-                paired=args.paired,
+                blocks={k: [[1e3 * v for v in rnd] for rnd in runs] for k, runs in blocks.items()},
+                interleaved=args.interleaved,
             )
         )
     print("| env | mode | batch | before (ms CPU/step) | after | after / before |")
