@@ -16,7 +16,7 @@ An env registered by a module of your own (``beacon_torch.register``) is named
 ``module:env-id``, or its module imported first with ``beacon-torch --import module``;
 modules are found from the working directory, as ``python -m`` finds them.
 
-Training is the recipes' (``recipes/ppo.py``, ``td3.py``, ``dqn.py``, ``grad.py`` in the
+Training is the recipes' (``recipes/ppo.py``, ``td3.py``, ``sac.py``, ``dqn.py``, ``grad.py``, ``shac.py`` in the
 repository); ``eval`` and ``plot`` read the run directories they write.
 """
 

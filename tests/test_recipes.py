@@ -22,6 +22,7 @@ from beacon_torch.training.config import (
     GradConfig,
     PPOConfig,
     SACConfig,
+    SHACConfig,
     TD3Config,
     configure,
     paper_algorithms,
@@ -34,7 +35,7 @@ from beacon_torch.training.run import BadRun
 from conftest import TD3, recipe
 from conftest import script as load_script
 
-dqn, grad, ppo, td3 = (recipe(algo) for algo in ("dqn", "grad", "ppo", "td3"))
+dqn, grad, ppo, shac, td3 = (recipe(algo) for algo in ("dqn", "grad", "ppo", "shac", "td3"))
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -192,6 +193,7 @@ def test_recipe_scripts_run_from_the_checkout_and_list_their_settings(tmp_path):
         ("sac", "--alpha-lr"),
         ("dqn", "--eps-frames"),
         ("grad", "--horizon"),
+        ("shac", "--critic-iterations"),
     ):
         proc = subprocess.run(
             [sys.executable, ROOT / "recipes" / f"{name}.py", "--help"],
@@ -721,8 +723,36 @@ def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
     )
 
 
+def test_shac_closes_its_horizons_with_a_fitted_critic_and_resumes(tmp_path):
+    """Four burgers members, horizons of 10 actions closed by the target critic's value
+    (8 updates): the critic is fitted to its TD(lambda) targets, the target follows it
+    part of the way, the policy is what eval reads, and a resumed run restores the
+    policy, the critic, its target and both optimisers and goes on updating them."""
+    settings = dict(num_envs=4, horizon=10, critic_iterations=2, out=str(tmp_path), progress=False)
+    last = shac.main(configure(SHACConfig, "burgers-v0", frames=320, **settings))
+    assert torch.isfinite(torch.tensor([last["critic_loss"], last["grad_norm"], last["objective"]])).all(), last
+    state = checkpoint(tmp_path)
+    assert state["algo"] == "shac" and state["frames"] == 320 and state["counters"]["skipped"] == 0
+    modules = state["modules"]
+    assert {"actor", "optim", "critic", "target", "critic_optim"} <= set(modules)
+    assert any(not torch.equal(modules["critic"][k], modules["target"][k]) for k in modules["critic"])
+    result = evaluate_run(tmp_path, num_envs=2)
+    assert torch.isfinite(torch.tensor(result["score_mean"]))
+    shac.main(configure(SHACConfig, "burgers-v0", frames=400, resume=True, **settings))
+    resumed = checkpoint(tmp_path)
+    assert resumed["frames"] == 400
+    for name in ("actor", "critic", "target"):
+        before, after = modules[name], resumed["modules"][name]
+        assert any(not torch.equal(before[k], after[k]) for k in before), f"the resumed run left the {name} as it was"
+
+
+def test_the_gradient_recipe_is_the_actor_critics_loop_without_its_critic():
+    assert Path(grad.main.__code__.co_filename).name == "shac.py" and grad.main.__name__ == "main"
+    assert not GradConfig.critic and SHACConfig.critic and issubclass(SHACConfig, GradConfig)
+
+
 def test_config_module_is_the_one_place_of_the_algorithms():
-    assert set(CONFIGS) == {"ppo", "td3", "sac", "dqn", "grad"}
+    assert set(CONFIGS) == {"ppo", "td3", "sac", "dqn", "grad", "shac"}
     # the algorithms a checkpoint may name, which the package checks without the recipes
     from beacon_torch.training.run import ALGORITHMS as RECORDED
 

@@ -93,6 +93,15 @@ GRAD = {
     "cylinder-v0": dict(frames=16_000, num_envs=8, horizon=20, grad_checkpoint=True),
 }
 
+# the short-horizon actor-critic, where its settings differ from the defaults (first
+# settings, not yet tuned): the 2-D flows, whose differentiated action holds gigabytes,
+# with fewer members and each action recomputed in the backward pass
+SHAC = {
+    "vortex-v0": dict(grad_checkpoint=True),
+    "rayleigh-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True),
+    "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True),
+    "cylinder-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True),
+}
 
 # domains of real settings: (lowest, highest, whether the lowest itself is excluded)
 POSITIVE = (0.0, math.inf, True)
@@ -284,13 +293,16 @@ class DQNConfig(OffPolicyConfig):
 @dataclass(frozen=True, kw_only=True)
 class GradConfig(Config):
     """Gradient-based control: a deterministic policy trained by backpropagating the
-    rewards of ``horizon`` steps through the physics (one process: no collectors)."""
+    rewards of ``horizon`` steps through the physics (one process: no collectors). No
+    critic: the short-horizon actor-critic's critic-less setting."""
 
     algo: ClassVar[str] = "grad"
     actions: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = GRAD
     in_process: ClassVar[bool] = True
     positive: ClassVar[tuple[str, ...]] = ("horizon",)
+    # whether a critic's value closes each horizon
+    critic: ClassVar[bool] = False
 
     num_envs: int = setting(16, "members of the batched env")
     norm_steps: int = setting(NORM_STEPS, "random steps whose observations set the normalisation (0: raw observations)")
@@ -306,7 +318,31 @@ class GradConfig(Config):
         return self.num_envs * self.horizon
 
 
-CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, SACConfig, DQNConfig, GradConfig)}
+@dataclass(frozen=True, kw_only=True)
+class SHACConfig(GradConfig):
+    """The short-horizon actor-critic (SHAC, Xu et al. 2022): gradient-based control whose
+    horizons are closed by a critic's value, the critic fitted to TD(lambda) targets of
+    the states the horizons went through."""
+
+    algo: ClassVar[str] = "shac"
+    table: ClassVar[dict[str, dict]] = SHAC
+    positive: ClassVar[tuple[str, ...]] = ("horizon", "critic_iterations", "critic_minibatches")
+    critic: ClassVar[bool] = True
+
+    num_envs: int = setting(64, "members of the batched env")
+    lr: float = setting(2e-3, "the policy's learning rate", domain=POSITIVE)
+    critic_lr: float = setting(1e-3, "the critic's learning rate", domain=POSITIVE)
+    lmbda: float = setting(0.95, "lambda of the critic's TD(lambda) targets", domain=(0.0, 1.0, False))
+    critic_iterations: int = setting(16, "passes over a horizon's states fitting the critic")
+    critic_minibatches: int = setting(4, "minibatches per pass")
+    target_alpha: float = setting(
+        0.2,
+        "the target critic keeps this share of itself at each update (the rest: the critic)",
+        domain=(0.0, 1.0, False),
+    )
+
+
+CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, SACConfig, DQNConfig, GradConfig, SHACConfig)}
 
 
 def unfit(cls: type[Config], env: type[FlowEnv]) -> str | None:

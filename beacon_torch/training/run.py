@@ -48,7 +48,7 @@ from beacon_torch.training.networks import NETWORKS
 
 CHECKPOINT = "checkpoint.pt"
 # the algorithms whose runs a checkpoint may record (the recipes' names)
-ALGORITHMS = ("ppo", "td3", "sac", "dqn", "grad")
+ALGORITHMS = ("ppo", "td3", "sac", "dqn", "grad", "shac")
 # the widest hidden layer a checkpoint may ask evaluation to build (the recipes use 32
 # to 128): a forged width cannot make it allocate gigabytes
 MAX_HIDDEN = 4096

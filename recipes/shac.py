@@ -1,0 +1,158 @@
+"""Short-horizon actor-critic (SHAC; Xu et al., "Accelerated Policy Learning with
+Parallel Differentiable Simulation", ICLR 2022): a deterministic policy trained by
+backpropagating rewards through the physics, each horizon closed by a critic's value.
+
+The batched env runs with ``differentiable=True``. Each update steps the policy through
+``horizon`` actions of every member and follows the exact gradient, with respect to the
+policy's weights, of the discounted rewards plus the discounted value of where the
+horizon ends (of where an episode was cut short, for a member whose episode ends
+inside it; nothing after a blow-up), averaged over the members and the horizon.
+The value is the target critic's, differentiated through the observation into the
+physics. The critic is then fitted to the TD(lambda) targets of the states the horizon
+went through (TorchRL's estimator, the target critic's values), in minibatches, and the
+target critic moves a share towards it. The graph is cut at the current state and the
+episodes go on, ending and restarting as in any collector.
+
+    python recipes/shac.py --env burgers-v0
+    python recipes/shac.py --env cylinder-v0 --num-envs 8 --horizon 20 --grad-checkpoint
+
+Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
+the policy sees: short-horizon analytic policy gradients. The policy is TD3's
+deterministic actor, so ``beacon-torch eval`` and ``plot`` read these runs like any
+other. ``--grad-checkpoint`` recomputes each action in the backward pass (the env's
+``grad_checkpoint``), for horizons whose graph would not fit in memory.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torchrl.objectives.value import TDLambdaEstimator
+
+from beacon_torch.training import networks
+from beacon_torch.training.config import GradConfig, SHACConfig, script
+from beacon_torch.training.env import horizon_bytes, recipe_env
+from beacon_torch.training.run import Run, fits
+
+
+def main(cfg: GradConfig) -> dict:
+    """Train the policy on ``cfg.frames`` transitions; returns the last logged values."""
+    # the graph of a horizon of every member, estimated from one action, must fit
+    need = horizon_bytes(cfg.env, cfg.horizon, cfg.num_envs, params=cfg.params, grad_checkpoint=cfg.grad_checkpoint)
+    fits(f"the graph of {cfg.horizon} differentiated actions of {cfg.num_envs} members", need, cfg.device)
+    run = Run.of(cfg)
+    torch.manual_seed(cfg.seed)
+
+    # the differentiable env, with the saved normalisation when resuming
+    env = recipe_env(cfg, run.obs_norm, differentiable=True, grad_checkpoint=cfg.grad_checkpoint)
+    base = env.base_env
+    keys = networks.Keys.of(env)
+
+    # the policy, the critic and its target; the count of updates dropped for a
+    # non-finite gradient
+    actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
+    optim = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
+    modules = {"optim": optim}
+    if cfg.critic:
+        critic = networks.state_value(env, cfg.hidden).to(cfg.device)
+        target = copy.deepcopy(critic).requires_grad_(False)
+        critic_optim = torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)
+        modules.update(critic=critic, target=target, critic_optim=critic_optim)
+        targets = TDLambdaEstimator(gamma=cfg.gamma, lmbda=cfg.lmbda, value_network=target)
+        targets.set_keys(value=keys.value)
+    run.restore(actor=actor, **modules)
+    run.counters.setdefault("skipped", 0)
+
+    def save() -> None:
+        run.save(env, policy=("deterministic_actor", cfg.hidden, actor), **modules)
+
+    members = cfg.num_envs
+    td = env.reset()
+    while run.frames < cfg.frames:
+        objective, rewards, scores, visited = 0.0, 0.0, [], []
+        # per member: the discounted rewards since the horizon or its episode began
+        returns = torch.zeros(members, dtype=base.dtype, device=cfg.device)
+        discount = torch.ones_like(returns)
+        for h in range(cfg.horizon):
+            td, td_next = env.step_and_maybe_reset(actor(td))
+            reward = td["next", "reward"][..., 0]
+            returns = returns + discount * reward
+            rewards = rewards + reward.detach().mean()
+            discount = discount * cfg.gamma
+            done = td["next", "done"][..., 0]
+            last = h == cfg.horizon - 1
+            if cfg.critic and (last or done.any()):
+                # the value of where a return is closed: the horizon's end, or an
+                # episode cut short by its length (none after a blow-up)
+                value = target(td["next"].select(keys.obs))[keys.value][..., 0]
+                value = torch.where(td["next", "terminated"][..., 0], 0.0, value)
+                closed = returns + discount * value
+            else:
+                closed = returns
+            ends = torch.ones_like(done) if last else done
+            objective = objective + torch.where(ends, closed, 0.0).sum()
+            # a member whose episode ended starts a new return
+            returns = torch.where(done, 0.0, returns)
+            discount = torch.where(done, 1.0, discount)
+            if done.any():
+                scores.append(td["next", "episode_reward"][done].detach())
+            visited.append(td.detach())
+            td = td_next
+        loss = -objective / (cfg.horizon * members)
+        optim.zero_grad()
+        loss.backward()
+        norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip)
+        if torch.isfinite(norm):
+            optim.step()
+        else:
+            # a member that blew up inside the horizon can leave 0 * inf in the backward
+            # pass; its episode has ended, the update is dropped
+            run.counters["skipped"] += 1
+        # the next update differentiates from here on: cut the graph behind the state
+        base.detach_state()
+        td = td.detach()
+        values = {
+            "reward": rewards.item() / cfg.horizon,
+            "objective": -loss.item(),
+            "skipped_updates": float(run.counters["skipped"]),
+        }
+        if torch.isfinite(norm):
+            values["grad_norm"] = norm.item()
+        if scores:
+            values["episode_score"] = torch.cat(scores).mean().item()
+        if cfg.critic:
+            values["critic_loss"] = fit_critic(cfg, critic, target, critic_optim, targets, visited, keys)
+        run.log(cfg.horizon * members, values, save)
+    return run.close(save)
+
+
+def fit_critic(cfg: SHACConfig, critic, target, optim, targets: TDLambdaEstimator, visited: list, keys) -> float:
+    """Fit the critic to the TD(lambda) targets of the horizon's transitions (members x
+    time, the target critic's values) in ``critic_minibatches`` minibatches per pass,
+    ``critic_iterations`` passes; the target critic then keeps ``target_alpha`` of itself.
+    Returns the last pass's mean squared error."""
+    batch = torch.stack(visited, -1)  # [members, horizon]: time last, as TorchRL's estimators read it
+    with torch.no_grad():
+        goal = targets.value_estimate(batch)
+    observations = batch[keys.obs].reshape(-1, batch[keys.obs].shape[-1])
+    goal = goal.reshape(-1)
+    size = goal.numel()
+    for _ in range(cfg.critic_iterations):
+        order = torch.randperm(size, device=goal.device)
+        total = 0.0
+        for chunk in order.chunk(cfg.critic_minibatches):
+            predicted = critic.module(observations[chunk])[..., 0]
+            loss = (predicted - goal[chunk]).pow(2).mean()
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            total += loss.item() * chunk.numel()
+    with torch.no_grad():
+        for kept, new in zip(target.parameters(), critic.parameters(), strict=True):
+            kept.lerp_(new, 1.0 - cfg.target_alpha)
+    return total / size
+
+
+if __name__ == "__main__":
+    script(main, SHACConfig)
