@@ -391,3 +391,11 @@ def test_jacobi_solver_refuses_compilation():
     compiled = torch.compile(solver.solve, fullgraph=True)
     with pytest.raises(Exception, match="eagerly only"):
         compiled(torch.zeros(4, 4, 1, dtype=torch.float64))
+
+
+def test_the_dict_methods_of_a_cavity_name_their_typed_replacements():
+    cavity = Cavity(4, 4, 0.25, 0.25, **F64)
+    with pytest.raises(AttributeError, match=r"Cavity.fields is now Cavity.to_solver, which takes and gives a Flow"):
+        cavity.fields({}, {})
+    with pytest.raises(AttributeError, match=r"Cavity.stored is now Cavity.to_state"):
+        cavity.stored({}, None)

@@ -146,6 +146,17 @@ class Cavity:
             scalar=ghosts(last(flow.scalar[:, 1:-1, 1:-1]), offset),
         )
 
+    # the methods that took and gave dicts of fields, now a Flow: said by the error
+    RENAMED = {"fields": "to_solver", "stored": "to_state"}
+
+    def __getattr__(self, name: str):
+        if name in Cavity.RENAMED:
+            raise AttributeError(
+                f"Cavity.{name} is now Cavity.{Cavity.RENAMED[name]}, which takes and gives a Flow (u, v, p, scalar) "
+                f"instead of a dict of fields"
+            )
+        raise AttributeError(f"'Cavity' object has no attribute {name!r}")
+
     def to_state(self, flow: Flow, walls) -> Flow:
         """Back to the batch-first ghosted flow of a state, with the velocities' wall
         ghosts of ``walls`` (:meth:`walls`)."""
