@@ -54,6 +54,7 @@ def main(cfg: GradConfig) -> dict:
     actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
     optim = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
     modules = {"optim": optim}
+    critic = target = None
     if cfg.critic:
         critic = networks.state_value(env, cfg.hidden).to(cfg.device)
         target = copy.deepcopy(critic).requires_grad_(False)
@@ -70,35 +71,7 @@ def main(cfg: GradConfig) -> dict:
     members = cfg.num_envs
     td = env.reset()
     while run.frames < cfg.frames:
-        objective, rewards, scores, visited = 0.0, 0.0, [], []
-        # per member: the discounted rewards since the horizon or its episode began
-        returns = torch.zeros(members, dtype=base.dtype, device=cfg.device)
-        discount = torch.ones_like(returns)
-        for h in range(cfg.horizon):
-            td, td_next = env.step_and_maybe_reset(actor(td))
-            reward = td["next", "reward"][..., 0]
-            returns = returns + discount * reward
-            rewards = rewards + reward.detach().mean()
-            discount = discount * cfg.gamma
-            done = td["next", "done"][..., 0]
-            last = h == cfg.horizon - 1
-            if cfg.critic and (last or done.any()):
-                # the value of where a return is closed: the horizon's end, or an
-                # episode cut short by its length (none after a blow-up)
-                value = target(td["next"].select(keys.obs))[keys.value][..., 0]
-                value = torch.where(td["next", "terminated"][..., 0], 0.0, value)
-                closed = returns + discount * value
-            else:
-                closed = returns
-            ends = torch.ones_like(done) if last else done
-            objective = objective + torch.where(ends, closed, 0.0).sum()
-            # a member whose episode ended starts a new return
-            returns = torch.where(done, 0.0, returns)
-            discount = torch.where(done, 1.0, discount)
-            if done.any():
-                scores.append(td["next", "episode_reward"][done].detach())
-            visited.append(td.detach())
-            td = td_next
+        objective, td, visited, scores, rewards = horizon(cfg, env, actor, target, td)
         loss = -objective / (cfg.horizon * members)
         optim.zero_grad()
         loss.backward()
@@ -113,7 +86,7 @@ def main(cfg: GradConfig) -> dict:
         base.detach_state()
         td = td.detach()
         values = {
-            "reward": rewards.item() / cfg.horizon,
+            "reward": rewards,
             "objective": -loss.item(),
             "skipped_updates": float(run.counters["skipped"]),
         }
@@ -125,6 +98,46 @@ def main(cfg: GradConfig) -> dict:
             values["critic_loss"] = fit_critic(cfg, critic, target, critic_optim, targets, visited, keys)
         run.log(cfg.horizon * members, values, save)
     return run.close(save)
+
+
+def horizon(cfg: GradConfig, env, actor, target, td):
+    """One horizon of ``cfg.horizon`` differentiated actions of every member from ``td``,
+    each return closed by the ``target`` critic's value (None: no critic). Returns the
+    objective (the closed returns, summed over the members: a graph back to the
+    policy's weights), the tensordict to go on from, the horizon's transitions
+    (detached, for the critic), the scores of the episodes that ended and the mean
+    reward per action."""
+    keys = networks.Keys.of(env)
+    objective, rewards, scores, visited = 0.0, 0.0, [], []
+    # per member: the discounted rewards since the horizon or its episode began
+    returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
+    discount = torch.ones_like(returns)
+    for h in range(cfg.horizon):
+        td, td_next = env.step_and_maybe_reset(actor(td))
+        reward = td["next", "reward"][..., 0]
+        returns = returns + discount * reward
+        rewards = rewards + reward.detach().mean()
+        discount = discount * cfg.gamma
+        done = td["next", "done"][..., 0]
+        last = h == cfg.horizon - 1
+        if target is not None and (last or done.any()):
+            # the value of where a return is closed: the horizon's end, or an episode
+            # cut short by its length (none after a blow-up)
+            value = target(td["next"].select(keys.obs))[keys.value][..., 0]
+            value = torch.where(td["next", "terminated"][..., 0], 0.0, value)
+            closed = returns + discount * value
+        else:
+            closed = returns
+        ends = torch.ones_like(done) if last else done
+        objective = objective + torch.where(ends, closed, 0.0).sum()
+        # a member whose episode ended starts a new return
+        returns = torch.where(done, 0.0, returns)
+        discount = torch.where(done, 1.0, discount)
+        if done.any():
+            scores.append(td["next", "episode_reward"][done].detach())
+        visited.append(td.detach())
+        td = td_next
+    return objective, td, visited, scores, float(rewards) / cfg.horizon
 
 
 def fit_critic(cfg: SHACConfig, critic, target, optim, targets: TDLambdaEstimator, visited: list, keys) -> float:

@@ -746,6 +746,37 @@ def test_shac_closes_its_horizons_with_a_fitted_critic_and_resumes(tmp_path):
         assert any(not torch.equal(before[k], after[k]) for k in before), f"the resumed run left the {name} as it was"
 
 
+def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_gradients_unchanged():
+    """Two lorenz members, the second's state scaled out of any range so that it blows
+    up on the horizon's first action (float64): the horizon's objective has a finite gradient,
+    and the sound member's share of it is what it is alone (the objective is a mean
+    over the members: twice the pair's gradient is the lone member's)."""
+    grads, ended = [], []
+    for members in (2, 1):
+        # the smooth reward (the default counts sign changes: no gradient)
+        settings = dict(num_envs=members, horizon=1, params={"reward_width": 1.0}, compile=False, progress=False)
+        cfg = configure(SHACConfig, "lorenz-continuous-v0", **settings)
+        env = make_env(cfg.env, members, norm_steps=0, differentiable=True, params=cfg.params, dtype="float64")
+        torch.manual_seed(0)
+        actor = networks.deterministic_actor(env, 16, paper_init=False).double()
+        critic = networks.state_value(env, 16).double()
+        # a critic whose value varies (its last layer starts at zero): the value's path too
+        torch.nn.init.normal_(networks.last_linear(critic.module).weight)
+        td = env.reset()
+        if members == 2:
+            state = env.base_env.state
+            env.base_env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in state._asdict().items()})
+        objective, _, _, scores, _ = shac.horizon(cfg, env, actor, critic, td)
+        loss = -objective / (cfg.horizon * members)
+        grads.append(torch.autograd.grad(loss, list(actor.parameters())))
+        ended.append(len(scores))
+    assert ended == [1, 0], "the second member did not blow up"
+    assert any(bool(g.abs().sum() > 0) for g in grads[1]), "no gradient reached the policy"
+    for pair, alone in zip(*grads, strict=True):
+        assert torch.isfinite(pair).all()
+        torch.testing.assert_close(2 * pair, alone, rtol=1e-9, atol=1e-12 * float(alone.abs().max()))
+
+
 def test_the_gradient_recipe_is_the_actor_critics_loop_without_its_critic():
     assert Path(grad.main.__code__.co_filename).name == "shac.py" and grad.main.__name__ == "main"
     assert not GradConfig.critic and SHACConfig.critic and issubclass(SHACConfig, GradConfig)
