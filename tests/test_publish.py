@@ -162,3 +162,22 @@ def test_any_forged_field_of_a_summary_is_found(field, value):
         same = number and math.isclose(value, original, rel_tol=1e-6, abs_tol=1e-9)
     found = reproduce.mismatch(summary, TRUE)
     assert (found == "") == same, (field, value, found)
+
+
+def test_a_pairs_uncontrolled_episodes_run_once_for_all_its_seeds(pair, monkeypatch):
+    """The seeds of a pair trained on the same physics: their evaluations share the
+    uncontrolled episodes (the env's own starts and the held-out set), run once each and
+    equal to what a seed's own evaluation gives."""
+    from beacon_torch.training import evaluation
+
+    runs = []
+    null_policy = evaluation.episodes.null_policy
+    monkeypatch.setattr(evaluation.episodes, "null_policy", lambda env: runs.append(env) or null_policy(env))
+    summary = evaluation.summary_of(pair, num_envs=1)
+    assert len(summary["seeds"]) == 2 and len(runs) == 2
+    alone = evaluation.evaluate_run(pair / "seed1", num_envs=1)
+    held = evaluation.evaluate_run(pair / "seed1", num_envs=8, starts="test")
+    assert [s["uncontrolled"] for s in summary["seeds"]] == [alone["uncontrolled"]] * 2
+    assert [s["test_uncontrolled"] for s in summary["seeds"]] == [held["uncontrolled"]] * 2
+    with pytest.raises(ValueError, match="a known uncontrolled score draws no side-by-side"):
+        evaluation.evaluate_run(pair / "seed1", num_envs=1, figure="f.png", uncontrolled=1.0)

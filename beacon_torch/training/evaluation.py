@@ -60,6 +60,7 @@ def evaluate_policy(
     params: dict | None = None,
     starts: str | None = None,
     progress: bool = False,
+    uncontrolled: float | None = None,
 ) -> dict:
     """``policy``, deterministic, on ``num_envs`` episodes of ``env_id`` with the physical
     ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
@@ -69,7 +70,14 @@ def evaluate_policy(
     0's episode; ``side_by_side``: member 0's controlled and uncontrolled episodes side
     by side; ``figure``: the env's diagnostics and the reward per action over the
     episodes, controlled beside uncontrolled (new files, each); ``progress``: progress
-    bars of the two episodes on stderr."""
+    bars of the two episodes on stderr; ``uncontrolled``: the uncontrolled score of
+    these episodes where it is already known (the same env, parameters, seed, members
+    and starts: they are the same episodes), which are then not run again (with no
+    side-by-side animation nor figure, which draw them)."""
+    if uncontrolled is not None and (side_by_side is not None or figure is not None):
+        raise ValueError(
+            "a known uncontrolled score draws no side-by-side animation nor figure: they need its episodes"
+        )
     params = params or {}
     animate = gif is not None or side_by_side is not None
     sets = {} if starts is None else {"starts": starts}
@@ -86,17 +94,21 @@ def evaluate_policy(
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
-    # the same episodes without control: the same seed gives the same starts and noise
-    ref = beacon_torch.make(env_id, num_envs, device=device, seed=seed, params=params, record_history=animate, **sets)
-    title = f"{env_id} uncontrolled" if progress else None
-    free, free_frames = _episode(ref, episodes.null_policy(ref), frames=side_by_side is not None, title=title)
-    controlled, uncontrolled = episodes.scores(rollout), episodes.scores(free)
+    controlled = episodes.scores(rollout)
+    if uncontrolled is None:
+        # the same episodes without control: the same seed gives the same starts and noise
+        ref = beacon_torch.make(
+            env_id, num_envs, device=device, seed=seed, params=params, record_history=animate, **sets
+        )
+        title = f"{env_id} uncontrolled" if progress else None
+        free, free_frames = _episode(ref, episodes.null_policy(ref), frames=side_by_side is not None, title=title)
+        uncontrolled = episodes.scores(free).mean().item()
     out = {
         "env": env_id,
         "starts": starts,
         "score_mean": controlled.mean().item(),
         "score_std": controlled.std(unbiased=False).item(),
-        "uncontrolled": uncontrolled.mean().item(),
+        "uncontrolled": uncontrolled,
     }
     from beacon_torch.render import save_animation, side_by_side_frames
 
@@ -204,6 +216,7 @@ def evaluate_run(
     seed: int = EVAL_SEED,
     starts: str | None = None,
     progress: bool = False,
+    uncontrolled: float | None = None,
 ) -> dict:
     """The deterministic policy of one seed's checkpoint (:func:`evaluate_policy`)."""
     device = as_device(device)  # before the policy is moved there
@@ -230,6 +243,7 @@ def evaluate_run(
         params=params,
         starts=starts,
         progress=progress,
+        uncontrolled=uncontrolled,
     )
     return {**result, "frames": state["frames"]}
 
@@ -313,11 +327,17 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
     root = Path(root)
     seeds = seed_dirs(root)
     per_seed, pairs = [], set()
+    # the uncontrolled episodes of a seed's evaluation are every seed's that trained on
+    # the same physics: run once per parameters
+    known: dict[tuple[str, str], tuple[float, float]] = {}
     for run in seeds:
         state = load_checkpoint(run)
         pairs.add((state["algo"], state["env"]))
-        ev = evaluate_run(run, num_envs=num_envs, gif=None, progress=progress)
-        held = evaluate_run(run, num_envs=SETS[HELD_OUT][1], starts=HELD_OUT, progress=progress)
+        physics = (state["env"], json.dumps(state["config"].get("params", {}), sort_keys=True, default=repr))
+        own, test = known.get(physics, (None, None))
+        ev = evaluate_run(run, num_envs=num_envs, gif=None, progress=progress, uncontrolled=own)
+        held = evaluate_run(run, num_envs=SETS[HELD_OUT][1], starts=HELD_OUT, progress=progress, uncontrolled=test)
+        known[physics] = (ev["uncontrolled"], held["uncontrolled"])
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
         per_seed.append(
