@@ -777,6 +777,11 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         torch.testing.assert_close(2 * pair, alone, rtol=1e-9, atol=1e-12 * float(alone.abs().max()))
 
 
+def test_the_actor_critic_budget_is_a_tenth_of_ppos():
+    for env_id in ("burgers-v0", "cylinder-v0", "mixing-continuous-v0"):
+        assert configure(SHACConfig, env_id).frames == configure(PPOConfig, env_id).frames // 10
+
+
 def test_the_gradient_recipe_is_the_actor_critics_loop_without_its_critic():
     assert Path(grad.main.__code__.co_filename).name == "shac.py" and grad.main.__name__ == "main"
     assert not GradConfig.critic and SHACConfig.critic and issubclass(SHACConfig, GradConfig)

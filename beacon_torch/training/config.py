@@ -129,6 +129,8 @@ class Config:
     table: ClassVar[dict[str, dict]] = {}
     # whether the algorithm needs the env in its own process (no collectors, no Ray)
     in_process: ClassVar[bool] = False
+    # the default budget, as a share of the paper's PPO budget of the env
+    budget_share: ClassVar[float] = 1.0
 
     env: str = setting("", "environment id (beacon-torch list)")
     # the env's physical parameters (beacon-torch list), recorded with the checkpoints,
@@ -326,6 +328,8 @@ class SHACConfig(GradConfig):
 
     algo: ClassVar[str] = "shac"
     table: ClassVar[dict[str, dict]] = SHAC
+    # what it is to show: PPO's score in a tenth of PPO's transitions
+    budget_share: ClassVar[float] = 0.1
     positive: ClassVar[tuple[str, ...]] = ("horizon", "critic_iterations", "critic_minibatches")
     critic: ClassVar[bool] = True
 
@@ -370,10 +374,11 @@ def paper_frames(env_id: str) -> int:
 
 
 def defaults(cls: type[Config], env_id: str) -> dict:
-    """The per-env defaults of an algorithm: the paper's PPO budget, then the entry of
-    the algorithm's own table."""
+    """The per-env defaults of an algorithm: its share of the paper's PPO budget, then
+    the entry of the algorithm's own table."""
     off = {} if compiles_by_default() else {"compile": False}
-    return {"frames": paper_frames(env_id), **off, **cls.table.get(env_class(env_id).base_id(), {})}
+    frames = int(paper_frames(env_id) * cls.budget_share)
+    return {"frames": frames, **off, **cls.table.get(env_class(env_id).base_id(), {})}
 
 
 def _typed(name: str, kind: str, value):
