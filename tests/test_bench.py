@@ -151,3 +151,26 @@ def test_two_trees_timed_block_by_block_give_a_ratio_per_case(tmp_path):
         before, after = (sum(row["blocks"][side], []) for side in ("before", "after"))
         pairs = [a / b for b, a in zip(before, after, strict=True)]
         assert row["ratio"] == pytest.approx(statistics.median(pairs)) and row["ratio"] > 0
+
+
+def test_the_gradient_norm_is_recorded_per_horizon(tmp_path):
+    """benchmarks/gradient_horizons.py: a row per horizon (its norm, finite, blow-ups,
+    CPU time) and the figure beside the record; lorenz's default reward counts sign
+    changes and gives no gradient, its smooth one does."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "benchmarks" / "gradient_horizons.py"), "--envs", "lorenz-continuous-v0"]
+    command += ["--members", "2", "--horizons", "1", "8", "--out", str(tmp_path)]
+    for params in ([], ["--param", "reward_width=1.0"]):
+        out = subprocess.run(command + params, capture_output=True, text=True, check=False, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+    records = sorted(tmp_path.glob("gradient-horizons-*.json"))
+    assert len(records) == 2 and all(r.with_suffix(".png").is_file() for r in records)
+    plain, smooth = sorted(
+        (json.loads(r.read_text())["rows"] for r in records), key=lambda rows: len(rows[0]["params"])
+    )
+    assert [r["horizon"] for r in smooth] == [1, 8] and all(r["finite"] and r["blown_up"] == 0 for r in smooth)
+    assert all(r["norm"] == 0 for r in plain) and all(r["norm"] > 0 for r in smooth)

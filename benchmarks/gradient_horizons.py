@@ -1,0 +1,121 @@
+"""How the gradient of a differentiated horizon grows with its length: per env, the norm
+of the gradient of the horizon's discounted return (the gradient recipes' objective)
+with respect to a fresh policy's weights, for horizons from one action to an episode.
+
+    .venv/bin/python benchmarks/gradient_horizons.py --envs lorenz-continuous-v0 burgers-v0
+        [--members 8] [--horizons 1 2 4 8 ...] [--param NAME=VALUE] [--seed 0] [--out DIR]
+
+Each horizon starts from the same states (the env's own starts, after the recipes'
+64 random steps that set the observation normalisation), the policy TD3's
+deterministic actor as the gradient recipes build it (torch's initialisation, the
+seed's), float32 as the recipes run. What is recorded per horizon: the gradient's
+norm, whether it was finite, the members that blew up and the CPU time. A chaotic
+env's norm grows exponentially with the horizon past its Lyapunov time: the longest
+horizon whose gradient still carries information is what the recipes' default
+horizons are chosen from. Writes a new ``gradient-horizons-DATE-TIME.json`` (machine,
+rows) and a figure beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+HERE = Path(__file__).resolve()
+
+
+def horizon_norm(
+    env_id: str, horizon: int, members: int, seed: int, params: dict | None = None, gamma: float = 0.99
+) -> dict:
+    """The gradient norm of one horizon of ``horizon`` actions from the env's starts."""
+    from beacon_torch.training import networks
+    from beacon_torch.training.env import NORM_STEPS, make_env
+
+    env = make_env(
+        env_id, members, seed=seed, norm_steps=NORM_STEPS, differentiable=True, compile=False, params=params or {}
+    )
+    torch.manual_seed(seed)
+    actor = networks.deterministic_actor(env, 64, paper_init=False)
+    td = env.reset()
+    start = time.process_time()
+    total, ended = 0.0, torch.zeros(members, dtype=torch.bool)
+    for h in range(horizon):
+        td, td_next = env.step_and_maybe_reset(actor(td))
+        total = total + gamma**h * td["next", "reward"][..., 0]
+        ended |= td["next", "terminated"][..., 0]
+        td = td_next
+    loss = -total.mean() / horizon
+    grads = torch.autograd.grad(loss, list(actor.parameters()), allow_unused=True)
+    norm = torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None]))
+    return dict(
+        env=env_id,
+        params=params or {},
+        horizon=horizon,
+        members=members,
+        norm=float(norm),
+        finite=bool(torch.isfinite(norm)),
+        blown_up=int(ended.sum()),
+        cpu_s=time.process_time() - start,
+    )
+
+
+def draw(rows: list[dict], path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from beacon_torch.files import save_figure
+
+    fig = Figure(figsize=(6.5, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    for env_id in dict.fromkeys(r["env"] for r in rows):
+        own = [r for r in rows if r["env"] == env_id and r["finite"] and r["norm"] > 0]
+        ax.plot([r["horizon"] for r in own], [r["norm"] for r in own], "o-", ms=3, label=env_id)
+    ax.set_xscale("log")
+    if any(r["finite"] and r["norm"] > 0 for r in rows):
+        ax.set_yscale("log")
+    zero = sorted({r["env"] for r in rows} - {r["env"] for r in rows if r["norm"] > 0})
+    if zero:  # a reward that is piecewise constant in the state: no gradient at all
+        ax.set_title(f"zero gradient at every horizon: {', '.join(zero)}", fontsize=8)
+    ax.set_xlabel("differentiated actions in the horizon")
+    ax.set_ylabel("gradient norm of the horizon's return")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, new=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", required=True, help="env ids with continuous actions")
+    parser.add_argument("--members", type=int, default=8)
+    parser.add_argument("--horizons", nargs="+", type=int, default=None, help="default: 1, 2, 4, ... to an episode")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="a physical parameter")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "gradient_horizons")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    from beacon_torch.files import save_rows
+    from beacon_torch.params import parse_assignments
+    from beacon_torch.registry import env_class
+
+    params = dict(parse_assignments(args.param))
+    rows = []
+    for env_id in args.envs:
+        length = env_class(env_id).episode_length
+        horizons = args.horizons or sorted({*(2**k for k in range(length.bit_length()) if 2**k <= length), length})
+        for h in horizons:
+            row = horizon_norm(env_id, h, args.members, args.seed, params)
+            rows.append(row)
+            print(f"{env_id} horizon {h}: norm {row['norm']:.4g} ({row['blown_up']} blown up, {row['cpu_s']:.1f} s)")
+    path = save_rows(rows, args.out, "gradient-horizons")
+    draw(rows, path.with_suffix(".png"))
+    print(f"written to {path} and {path.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    main()
