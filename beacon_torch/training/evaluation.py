@@ -61,6 +61,7 @@ def evaluate_policy(
     starts: str | None = None,
     progress: bool = False,
     uncontrolled: float | None = None,
+    compile: bool | None = None,
 ) -> dict:
     """``policy``, deterministic, on ``num_envs`` episodes of ``env_id`` with the physical
     ``params`` (seeded by ``seed``) whose observations are normalised by ``norm`` (an
@@ -73,7 +74,12 @@ def evaluate_policy(
     bars of the two episodes on stderr; ``uncontrolled``: the uncontrolled score of
     these episodes where it is already known (the same env, parameters, seed, members
     and starts: they are the same episodes), which are then not run again (with no
-    side-by-side animation nor figure, which draw them)."""
+    side-by-side animation nor figure, which draw them); ``compile``: the controlled
+    env's compiled physics (None: the env's default).
+
+    ``policy`` may also be a function of the evaluation env returning the policy that
+    acts on it (a planner reads the env's state), marked by a true ``acts_on_env``
+    attribute."""
     if uncontrolled is not None and (side_by_side is not None or figure is not None):
         raise ValueError(
             "a known uncontrolled score draws no side-by-side animation nor figure: they need its episodes"
@@ -91,7 +97,10 @@ def evaluate_policy(
         record_history=animate,
         params=params,
         **sets,
+        **({} if compile is None else {"compile": compile}),
     )
+    if getattr(policy, "acts_on_env", False):
+        policy = policy(env)
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
     controlled = episodes.scores(rollout)
