@@ -14,7 +14,8 @@ came from the training's checkpoint (normalisation as a transform); the two agre
 round-off, up to what chaotic envs make of it over an episode. ``--changed`` evaluates
 only the policies shipped since the numbers file was written (a policy whose shipping
 record, seed, transitions and recorded score, differs from its row's, or is new) and
-keeps the other rows: the cavities' policies take minutes each.
+keeps the other rows (normalised again by the cards' current references): the
+cavities' policies take minutes each.
 """
 
 from __future__ import annotations
@@ -50,7 +51,14 @@ def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()
             info.get("score"),
         )
         if same and "test_score" in old:
-            rows.append(old)
+            # the scores stand; their normalisation follows the card's current reference
+            rows.append(
+                {
+                    **old,
+                    "normalised": float(normalised(old["score"], old["uncontrolled"], env_id)),
+                    "test_normalised": float(normalised(old["test_score"], old["test_uncontrolled"], env_id)),
+                }
+            )
             continue
         policy = pretrained.load(name)
         row = dict(old) if same else {}

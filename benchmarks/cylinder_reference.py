@@ -1,0 +1,121 @@
+"""The "= 1" of cylinder-v0's normalised score: the reward of an episode that passes
+through the measured transient and then holds the steady base flow's drag with no lift.
+
+    .venv/bin/python benchmarks/cylinder_reference.py CONTROL.json BASE_FLOW.json [--out DIR]
+
+CONTROL.json is a record of ``benchmarks/cylinder_control.py`` (the drag and lift
+coefficients per action of trained policies from the developed start, beside no
+control), BASE_FLOW.json one of ``python -m beacon_torch.envs.cylinder.base_flow`` (the
+steady solution's drag). A controller that only stabilises the wake cannot bring the
+drag below the base flow's, and cannot reach it at once: the shedding takes a transient
+to die out. Its end is measured on the recorded policies as a settling time: the first
+action from which the best policy's drag excess over the base flow stays within a tenth
+of the uncontrolled shedding's mean excess (90 % of the reachable reduction). The
+reference episode has the best policy's rewards up to there, then the base flow's
+reward, -(F_D(base) - 0.159), at every remaining action (Rabault et al.'s reward with
+no lift). Also recorded, per policy and for no control: the drag reduction over the
+evaluation episode and in the regime after the transient, the numbers the env's page
+sets beside Rabault et al.'s and FluidGym's. Writes a new dated
+``cylinder_reference-DATE-TIME.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve()
+# the share of the uncontrolled excess over the base flow's drag left at the end of
+# the transient
+SETTLED = 0.1
+
+
+def reference(control: dict, base_flow: dict) -> dict:
+    """The reference episode's reward and what it is made of, from the two records'
+    contents (their ``rows``)."""
+    from beacon_torch.envs.cylinder.channel import DIAMETER, DRAG_OFFSET, EPISODE_LENGTH, LIFT_PENALTY, U_MEAN
+
+    force = U_MEAN**2 * DIAMETER / 2.0  # the force of a unit coefficient
+    base = base_flow["rows"][0]
+    cd_base = base["cd_base"]
+    n = EPISODE_LENGTH
+    policies = []
+    for row in control["rows"]:
+        drag, lift = (np.asarray(row["per_action"][k][:n]) for k in ("drag", "lift"))
+        free = np.asarray(row["per_action"]["uncontrolled_drag"][:n])
+        rewards = DRAG_OFFSET - force * drag - LIFT_PENALTY * force * np.abs(lift)
+        policies.append(dict(policy=row["policy"], drag=drag, free=free, rewards=rewards))
+    excess = np.mean(policies[0]["free"]) - cd_base
+    threshold = cd_base + SETTLED * excess
+    # per policy: the first action from which its drag stays under the threshold
+    for p in policies:
+        above = np.nonzero(p["drag"] > threshold)[0]
+        p["settled_at"] = int(above[-1] + 1) if len(above) else 0
+    best = min(policies, key=lambda p: (p["settled_at"], -p["rewards"][: p["settled_at"]].sum()))
+    end = best["settled_at"]
+    if end >= n:
+        raise ValueError(f"no recorded policy settles within an episode ({n} actions) below C_D {threshold:.4f}")
+    held = DRAG_OFFSET - force * cd_base
+    value = float(best["rewards"][:end].sum() + (n - end) * held)
+
+    def reduction(drag, free) -> float:
+        return float(1.0 - np.mean(drag) / np.mean(free))
+
+    return {
+        "reference": value,
+        "transient_actions": end,
+        "transient_policy": best["policy"],
+        "settled_threshold_cd": float(threshold),
+        "settled_share": SETTLED,
+        "cd_base": cd_base,
+        "cd_uncontrolled": float(np.mean(policies[0]["free"])),
+        "held_reward_per_action": float(held),
+        "episode_actions": n,
+        "reference_reduction_episode": float(
+            1.0 - (best["drag"][:end].sum() + (n - end) * cd_base) / (n * np.mean(policies[0]["free"]))
+        ),
+        "reference_reduction_regime": float(1.0 - cd_base / np.mean(policies[0]["free"][end:])),
+        "policies": [
+            dict(
+                policy=p["policy"],
+                score=float(p["rewards"].sum()),
+                settled_at=p["settled_at"],
+                reduction_episode=reduction(p["drag"], p["free"]),
+                reduction_regime=reduction(p["drag"][end:], p["free"][end:]),
+            )
+            for p in policies
+        ],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("control", type=Path, help="a record of benchmarks/cylinder_control.py")
+    parser.add_argument("base_flow", type=Path, help="a record of python -m beacon_torch.envs.cylinder.base_flow")
+    parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "cylinder")
+    args = parser.parse_args()
+    from beacon_torch import received
+    from beacon_torch.files import save_rows
+
+    records = [
+        received.json_file(path, what) for path, what in ((args.control, "control"), (args.base_flow, "base flow"))
+    ]
+    result = reference(*records)
+    result["records"] = [path.name for path in (args.control, args.base_flow)]
+    print(
+        f"transient: {result['transient_actions']} actions ({result['transient_policy']}), then C_D "
+        f"{result['cd_base']:.4f} and no lift: reference {result['reference']:.6f} "
+        f"({100 * result['reference_reduction_episode']:.2f} % over the episode)"
+    )
+    for p in result["policies"]:
+        print(
+            f"  {p['policy']}: {p['score']:.4f}, settled at {p['settled_at']}, "
+            f"{100 * p['reduction_episode']:.2f} % over the episode, {100 * p['reduction_regime']:.2f} % after"
+        )
+    print("written to", save_rows([result], args.out, "cylinder_reference"))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,136 @@
+"""What a differentiated transition costs against a compiled forward one, per env, at the
+short-horizon actor-critic's batch and settings (``SHACConfig``: its members and
+``grad_checkpoint``), in CPU time of this process, float32.
+
+    .venv/bin/python benchmarks/grad_cost.py [--envs ...] [--rounds 5] [--horizon 4]
+
+Three ways of taking an action, measured side by side, one block of each in turn per
+round, after a warm-up (compilation) that is not counted:
+
+- ``forward``: the env compiled, no graph: one compiled call per action (what a
+  collector runs);
+- ``eager``: the differentiable env eager, ``horizon`` actions with the graph kept, then
+  the backward pass of their summed rewards to the actions;
+- ``compiled``: the same with the env compiled (each substep one compiled call,
+  differentiated by torch.compile).
+
+Recorded per env and round: CPU seconds per transition of each; the ratios are the
+medians over the rounds of each round's ratio. Writes a new
+``grad-cost-DATE-TIME.json`` in ``benchmarks/results/grad_cost`` and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+HERE = Path(__file__).resolve()
+ENVS = [
+    "lorenz-continuous-v0",
+    "vortex-v0",
+    "burgers-v0",
+    "sloshing-v0",
+    "shkadov-v0",
+    "rayleigh-v0",
+    "mixing-continuous-v0",
+    "cylinder-v0",
+]
+# a smooth reward where the default has no gradient
+PARAMS = {"lorenz-continuous-v0": {"reward_width": 1.0}}
+
+
+class Way:
+    """One way of taking actions of ``env_id`` at ``members``."""
+
+    def __init__(self, env_id: str, members: int, kind: str, checkpoint: bool, horizon: int) -> None:
+        import beacon_torch
+
+        differentiable = kind != "forward"
+        self.kind, self.horizon = kind, horizon
+        self.env = beacon_torch.make(
+            env_id,
+            members,
+            seed=0,
+            compile=kind != "eager",
+            differentiable=differentiable,
+            grad_checkpoint=checkpoint and differentiable,
+            params=PARAMS.get(env_id, {}),
+        )
+        self.env.reset()
+        self.generator = torch.Generator().manual_seed(0)
+
+    def actions(self) -> int:
+        """One block: ``horizon`` actions (and their backward pass); returns the count."""
+        env = self.env
+        shape = (self.horizon, *env.batch_size, *env.action_spec.shape[1:])
+        actions = 0.2 * (2 * torch.rand(shape, generator=self.generator) - 1)
+        if self.kind == "forward":
+            with torch.no_grad():
+                for a in actions:
+                    env.step(TensorDict({env.action_key: a}, batch_size=env.batch_size))
+        else:
+            actions.requires_grad_()
+            total = 0.0
+            for a in actions:
+                total = (
+                    total + env.step(TensorDict({env.action_key: a}, batch_size=env.batch_size))["next", "reward"].sum()
+                )
+            total.backward()
+            env.detach_state()
+        if bool(env.step_count.max() >= env.episode_length - self.horizon):
+            env.reset()
+        return self.horizon * env.num_envs
+
+
+def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
+    from beacon_torch.training.config import SHACConfig, configure
+
+    cfg = configure(SHACConfig, env_id)
+    ways = {k: Way(env_id, cfg.num_envs, k, cfg.grad_checkpoint, horizon) for k in kinds}
+    for way in ways.values():  # compilation, forward and backward
+        way.actions()
+        way.actions()
+    per = {k: [] for k in kinds}
+    for _ in range(rounds):
+        for k, way in ways.items():
+            start = time.process_time()
+            n = way.actions()
+            per[k].append((time.process_time() - start) / n)
+    row = dict(env=env_id, members=cfg.num_envs, grad_checkpoint=cfg.grad_checkpoint, horizon=horizon, rounds=per)
+    for k in kinds:
+        row[f"{k}_s"] = statistics.median(per[k])
+        if k != "forward":
+            row[f"{k}_ratio"] = statistics.median(d / f for d, f in zip(per[k], per["forward"], strict=True))
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", default=ENVS)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--horizon", type=int, default=4)
+    parser.add_argument("--kinds", nargs="+", default=["forward", "eager", "compiled"])
+    parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_cost")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    from beacon_torch.files import save_rows
+
+    rows = []
+    print("| env | members | checkpoint | forward (ms/transition) | eager / forward | compiled / forward |")
+    print("|---|---|---|---|---|---|")
+    for env_id in args.envs:
+        row = measure(env_id, args.rounds, args.horizon, args.kinds)
+        rows.append(row)
+        ratios = " | ".join(f"{row.get(f'{k}_ratio', float('nan')):.1f}" for k in ("eager", "compiled"))
+        print(f"| {env_id} | {row['members']} | {row['grad_checkpoint']} | {1e3 * row['forward_s']:.3g} | {ratios} |")
+    path = save_rows(rows, args.out, "grad-cost")
+    print(f"written to {path}")
+
+
+if __name__ == "__main__":
+    main()
