@@ -28,14 +28,29 @@ HERE = Path(__file__).resolve()
 
 
 def horizon_norm(
-    env_id: str, horizon: int, members: int, seed: int, params: dict | None = None, gamma: float = 0.99
+    env_id: str,
+    horizon: int,
+    members: int,
+    seed: int,
+    params: dict | None = None,
+    gamma: float = 0.99,
+    checkpoint: bool = False,
 ) -> dict:
-    """The gradient norm of one horizon of ``horizon`` actions from the env's starts."""
+    """The gradient norm of one horizon of ``horizon`` actions from the env's starts
+    (``checkpoint``: each action recomputed in the backward pass, as the recipes run
+    the 2-D flows)."""
     from beacon_torch.training import networks
     from beacon_torch.training.env import NORM_STEPS, make_env
 
     env = make_env(
-        env_id, members, seed=seed, norm_steps=NORM_STEPS, differentiable=True, compile=False, params=params or {}
+        env_id,
+        members,
+        seed=seed,
+        norm_steps=NORM_STEPS,
+        differentiable=True,
+        grad_checkpoint=checkpoint,
+        compile=False,
+        params=params or {},
     )
     torch.manual_seed(seed)
     actor = networks.deterministic_actor(env, 64, paper_init=False)
@@ -58,6 +73,7 @@ def horizon_norm(
         norm=float(norm),
         finite=bool(torch.isfinite(norm)),
         blown_up=int(ended.sum()),
+        grad_checkpoint=checkpoint,
         cpu_s=time.process_time() - start,
     )
 
@@ -96,6 +112,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="a physical parameter")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--grad-checkpoint", action="store_true", help="recompute each action in the backward pass")
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "gradient_horizons")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -109,7 +126,7 @@ def main() -> None:
         length = env_class(env_id).episode_length
         horizons = args.horizons or sorted({*(2**k for k in range(length.bit_length()) if 2**k <= length), length})
         for h in horizons:
-            row = horizon_norm(env_id, h, args.members, args.seed, params)
+            row = horizon_norm(env_id, h, args.members, args.seed, params, checkpoint=args.grad_checkpoint)
             rows.append(row)
             print(f"{env_id} horizon {h}: norm {row['norm']:.4g} ({row['blown_up']} blown up, {row['cpu_s']:.1f} s)")
     path = save_rows(rows, args.out, "gradient-horizons")

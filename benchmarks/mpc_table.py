@@ -1,0 +1,62 @@
+"""The gradient model-predictive control's recorded results as the table of
+docs/gradients.md: one row per record of ``recipes/mpc.py`` in
+``benchmarks/results/mpc/ENV/mpc.json`` (an evaluation, or the cost of a few planned
+actions where an episode does not fit in an hour).
+
+    .venv/bin/python benchmarks/mpc_table.py [--page docs/gradients.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "benchmarks" / "results" / "mpc"
+BEGIN, END = "<!-- gradient mpc: benchmarks/mpc_table.py -->", "<!-- end of gradient mpc -->"
+
+
+def records(folder: Path = RECORDS) -> list[dict]:
+    from beacon_torch import received
+
+    return [received.json_file(path, "an mpc record") for path in sorted(folder.glob("*/mpc.json"))]
+
+
+def table(rows: list[dict]) -> str:
+    from beacon_torch.registry import env_class
+
+    lines = [
+        "| env | starts | horizon x iterations | planner's model | score (std over episodes) | uncontrolled "
+        "| normalised | CPU s per action | an episode's planning (one core) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        s = r["settings"]
+        model = ", ".join(f"{k}={v}" for k, v in r["plan_params"].items()) or "the env's"
+        per_action = r["cpu_s_per_action"]
+        hours = per_action * env_class(r["env"]).episode_length / 3600
+        episode = f"{hours:.2f} h" if hours >= 1 else f"{60 * hours:.0f} min"
+        if "normalised" in r:
+            scores = (
+                f"{r['score_mean']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | **{r['normalised']:.2f}**"
+            )
+        else:
+            scores = f"not run: {r['planned_actions']} actions planned for their cost | | "
+        lines.append(
+            f"| {r['env']} | {r['starts']} ({s['num_envs']}) | {s['horizon']} x {s['iterations']} | {model} "
+            f"| {scores} | {per_action:.3g} | {episode} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--page", type=Path, default=ROOT / "docs" / "gradients.md")
+    args = parser.parse_args()
+    from beacon_torch.training.report import write_block
+
+    print(write_block(args.page, BEGIN, END, table(records())))
+
+
+if __name__ == "__main__":
+    main()
