@@ -12,8 +12,8 @@ seed's), float32 as the recipes run. What is recorded per horizon: the gradient'
 norm, whether it was finite, the members that blew up and the CPU time. A chaotic
 env's norm grows exponentially with the horizon past its Lyapunov time: the longest
 horizon whose gradient still carries information is what the recipes' default
-horizons are chosen from. Writes a new ``gradient-horizons-DATE-TIME.json`` (machine,
-rows) and a figure beside it.
+horizons are chosen from. Writes, per env, a new
+``gradient-horizons-ENV-DATE-TIME.json`` (machine, rows) and a figure beside it.
 """
 
 from __future__ import annotations
@@ -121,17 +121,21 @@ def main() -> None:
     from beacon_torch.registry import env_class
 
     params = dict(parse_assignments(args.param))
-    rows = []
     for env_id in args.envs:
         length = env_class(env_id).episode_length
         horizons = args.horizons or sorted({*(2**k for k in range(length.bit_length()) if 2**k <= length), length})
+        rows = []
         for h in horizons:
             row = horizon_norm(env_id, h, args.members, args.seed, params, checkpoint=args.grad_checkpoint)
             rows.append(row)
-            print(f"{env_id} horizon {h}: norm {row['norm']:.4g} ({row['blown_up']} blown up, {row['cpu_s']:.1f} s)")
-    path = save_rows(rows, args.out, "gradient-horizons")
-    draw(rows, path.with_suffix(".png"))
-    print(f"written to {path} and {path.with_suffix('.png')}")
+            print(
+                f"{env_id} horizon {h}: norm {row['norm']:.4g} ({row['blown_up']} blown up, {row['cpu_s']:.1f} s)",
+                flush=True,
+            )
+        # a record per env, written as soon as it is measured
+        path = save_rows(rows, args.out, f"gradient-horizons-{env_id}")
+        draw(rows, path.with_suffix(".png"))
+        print(f"written to {path} and {path.with_suffix('.png')}", flush=True)
 
 
 if __name__ == "__main__":

@@ -23,28 +23,31 @@ def records(folder: Path = RECORDS) -> list[dict]:
 
 
 def table(rows: list[dict]) -> str:
+    """The records as a markdown table. A planned action costs ``horizon x iterations``
+    differentiated steps: the cost at FluidGym's 20 x 10 is the recorded one scaled."""
     from beacon_torch.registry import env_class
 
     lines = [
-        "| env | starts | horizon x iterations | planner's model | score (std over episodes) | uncontrolled "
-        "| normalised | CPU s per action | an episode's planning (one core) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| env | starts (episodes) | horizon x iterations | planner's model | score (std over episodes) "
+        "| uncontrolled | normalised | CPU s per action | at 20 x 10 | an episode at 20 x 10 |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         s = r["settings"]
         model = ", ".join(f"{k}={v}" for k, v in r["plan_params"].items()) or "the env's"
         per_action = r["cpu_s_per_action"]
-        hours = per_action * env_class(r["env"]).episode_length / 3600
-        episode = f"{hours:.2f} h" if hours >= 1 else f"{60 * hours:.0f} min"
+        default = per_action * (20 * 10) / (s["horizon"] * s["iterations"])
+        hours = default * env_class(r["env"]).episode_length / 3600
+        episode = f"{hours:.1f} h" if hours >= 1 else f"{60 * hours:.0f} min"
         if "normalised" in r:
             scores = (
                 f"{r['score_mean']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | **{r['normalised']:.2f}**"
             )
         else:
-            scores = f"not run: {r['planned_actions']} actions planned for their cost | | "
+            scores = f"not run ({r['planned_actions']} actions planned for their cost) | | "
         lines.append(
             f"| {r['env']} | {r['starts']} ({s['num_envs']}) | {s['horizon']} x {s['iterations']} | {model} "
-            f"| {scores} | {per_action:.3g} | {episode} |"
+            f"| {scores} | {per_action:.3g} | {default:.3g} | {episode} |"
         )
     return "\n".join(lines)
 

@@ -3,13 +3,14 @@ own episodes, its iterations improve them, and planned episodes are judged by th
 recipes' evaluation protocol."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
 from beacon_torch.training.env import make_env
 
-from conftest import recipe
+from conftest import recipe, script
 
 mpc = recipe("mpc")
 
@@ -100,3 +101,18 @@ def test_a_member_that_blows_up_in_a_plan_leaves_the_others_plans_finite():
             assert torch.isfinite(predicted).all() and torch.isfinite(grads[0]).all()
             assert (grads[0][:, 1] == 0).all(), "the member that blew up still steers its plan"
     torch.testing.assert_close(grads[0][:, :1], grads[1], rtol=1e-12, atol=0.0)
+
+
+def test_the_gradients_page_shows_a_recorded_plan_of_every_continuous_env():
+    """Every single-agent env with continuous actions has a record of the planner (an
+    evaluation, or the cost of planned actions where an episode takes more than an
+    hour), and the page's table is the one its script writes from them."""
+    table = script("benchmarks/mpc_table.py")
+    rows = table.records()
+    continuous = {"lorenz-continuous-v0", "vortex-v0", "burgers-v0", "sloshing-v0", "shkadov-v0"}
+    continuous |= {"rayleigh-v0", "mixing-continuous-v0", "cylinder-v0"}
+    assert {r["env"] for r in rows} == continuous
+    evaluated = {r["env"] for r in rows if "normalised" in r}
+    assert {"lorenz-continuous-v0", "burgers-v0", "vortex-v0"} <= evaluated
+    page = (Path(__file__).resolve().parents[1] / "docs" / "gradients.md").read_text()
+    assert table.table(rows) in page
