@@ -136,8 +136,13 @@ class _Loop:
 
     def __call__(self, n: int, carried, *inputs):
         if self.kernels.options is None or _records(carried, inputs):
+            # substeps compiled one by one take their index as a tensor, as inside a
+            # loop's graph: an int would be a constant of the compiled code, and each
+            # index an entry of its own, past the recompile limit for long actions
+            separate = self.kernels.options is not None and not torch.compiler.is_compiling()
             for i in range(n):
-                carried = self._step(i, carried, *inputs)
+                index = torch.tensor(i, device=_device(carried)) if separate else i
+                carried = self._step(index, carried, *inputs)
             return carried
         if torch.compiler.is_compiling():
             return self._graph(n, carried, *inputs)

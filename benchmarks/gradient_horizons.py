@@ -3,7 +3,8 @@ of the gradient of the horizon's discounted return (the gradient recipes' object
 with respect to a fresh policy's weights, for horizons from one action to an episode.
 
     .venv/bin/python benchmarks/gradient_horizons.py --envs lorenz-continuous-v0 burgers-v0
-        [--members 8] [--horizons 1 2 4 8 ...] [--param NAME=VALUE] [--seed 0] [--out DIR]
+        [--members 8] [--horizons 1 2 4 8 ...] [--param NAME=VALUE] [--seed 0] [--grad-checkpoint] [--out DIR]
+    .venv/bin/python benchmarks/gradient_horizons.py --page docs/gradients.md
 
 Each horizon starts from the same states (the env's own starts, after the recipes'
 64 random steps that set the observation normalisation), the policy TD3's
@@ -12,8 +13,10 @@ seed's), float32 as the recipes run. What is recorded per horizon: the gradient'
 norm, whether it was finite, the members that blew up and the CPU time. A chaotic
 env's norm grows exponentially with the horizon past its Lyapunov time: the longest
 horizon whose gradient still carries information is what the recipes' default
-horizons are chosen from. Writes, per env, a new
-``gradient-horizons-ENV-DATE-TIME.json`` (machine, rows) and a figure beside it.
+horizons are chosen from (:func:`knee`, :func:`default_horizon`). Writes, per env, a
+new ``gradient-horizons-ENV-DATE-TIME.json`` (machine, rows) and a figure beside it;
+``--page`` writes the newest record of each env in ``--out`` as the page's table and
+its figure (``docs/img/gradient-horizons.png``).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from pathlib import Path
 import torch
 
 HERE = Path(__file__).resolve()
+BEGIN, END = "<!-- gradient horizons: benchmarks/gradient_horizons.py -->", "<!-- end of gradient horizons -->"
 
 
 def horizon_norm(
@@ -78,7 +82,7 @@ def horizon_norm(
     )
 
 
-def draw(rows: list[dict], path: Path) -> None:
+def draw(rows: list[dict], path: Path, new: bool = True) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -101,12 +105,83 @@ def draw(rows: list[dict], path: Path) -> None:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    save_figure(fig, path, new=True)
+    save_figure(fig, path, new=new)
+
+
+# a doubling of the horizon that multiplies the gradient's norm by more than this,
+# past anything shorter horizons gave, marks where it starts growing exponentially
+KNEE_GROWTH = 10.0
+# the short-horizon actor-critic's own default (Xu et al.): the longest horizon chosen
+CAP = 32
+
+
+def knee(rows: list[dict]) -> int | None:
+    """The longest measured horizon before the gradient's norm starts growing
+    exponentially: the first horizon ``h`` (of 8 actions or more, past the start-up of
+    a reward that reacts late) whose next measured horizon's norm exceeds
+    ``KNEE_GROWTH`` times the largest at ``h`` or below (a non-finite norm counts as
+    growth); None if the norm never grows so within an episode."""
+    rows = sorted(rows, key=lambda r: r["horizon"])
+    for k in range(len(rows) - 1):
+        seen = max(r["norm"] for r in rows[: k + 1])
+        after = rows[k + 1]
+        if rows[k]["horizon"] >= 8 and (not after["finite"] or after["norm"] > KNEE_GROWTH * seen):
+            return rows[k]["horizon"]
+    return None
+
+
+def default_horizon(rows: list[dict]) -> int:
+    """The horizon the measurements allow the recipes: the knee's (or an episode's),
+    at most ``CAP``, a power of two."""
+    longest = knee(rows) or max(r["horizon"] for r in rows)
+    return min(CAP, 2 ** (int(longest).bit_length() - 1))
+
+
+def newest(folder: Path) -> dict[str, list[dict]]:
+    """The newest record's rows of each env in ``folder`` (lorenz's with its smooth
+    reward: its default one has no gradient)."""
+    from beacon_torch import received
+
+    found: dict[str, tuple[str, list[dict]]] = {}
+    for path in sorted(folder.glob("gradient-horizons-*.json"), key=lambda p: p.name[-20:]):
+        rows = received.json_file(path, "a gradient horizons record")["rows"]
+        for env_id in dict.fromkeys(r["env"] for r in rows):
+            own = [r for r in rows if r["env"] == env_id]
+            if any(r["norm"] > 0 for r in own):
+                found[env_id] = own
+    return found
+
+
+def page_table(records: dict[str, list[dict]]) -> str:
+    from beacon_torch.training.config import SHACConfig, configure
+
+    lines = [
+        "| env | horizons measured | members | norm at 1 / 8 / 32 actions | norm at the longest | knee "
+        "| default horizon | the actor-critic's horizon |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for env_id, rows in records.items():
+        by = {r["horizon"]: r for r in rows}
+        at = " / ".join(f"{by[h]['norm']:.2g}" if h in by else "-" for h in (1, 8, 32))
+        last = max(rows, key=lambda r: r["horizon"])
+        found = knee(rows)
+        lines.append(
+            f"| {env_id} | 1 to {last['horizon']} | {rows[0]['members']} | {at} | {last['norm']:.2g} "
+            f"({last['horizon']}) | {found if found else 'none'} | {default_horizon(rows)} "
+            f"| {configure(SHACConfig, env_id).horizon} |"
+        )
+    return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", nargs="+", required=True, help="env ids with continuous actions")
+    parser.add_argument("--envs", nargs="+", default=[], help="env ids with continuous actions")
+    parser.add_argument(
+        "--page",
+        type=Path,
+        default=None,
+        help="write the newest record of each env in --out as the table and figure of this page",
+    )
     parser.add_argument("--members", type=int, default=8)
     parser.add_argument("--horizons", nargs="+", type=int, default=None, help="default: 1, 2, 4, ... to an episode")
     parser.add_argument("--seed", type=int, default=0)
@@ -121,6 +196,19 @@ def main() -> None:
     from beacon_torch.registry import env_class
 
     params = dict(parse_assignments(args.param))
+    if args.page is not None:
+        from beacon_torch.training.report import write_block
+
+        records = newest(args.out)
+        draw(
+            [r for rows in records.values() for r in rows],
+            args.page.parent / "img" / "gradient-horizons.png",
+            new=False,
+        )
+        print(write_block(args.page, BEGIN, END, page_table(records)))
+        return
+    if not args.envs:
+        parser.error("give --envs to measure, or --page to write the records")
     for env_id in args.envs:
         length = env_class(env_id).episode_length
         horizons = args.horizons or sorted({*(2**k for k in range(length.bit_length()) if 2**k <= length), length})

@@ -174,3 +174,32 @@ def test_the_gradient_norm_is_recorded_per_horizon(tmp_path):
     )
     assert [r["horizon"] for r in smooth] == [1, 8] and all(r["finite"] and r["blown_up"] == 0 for r in smooth)
     assert all(r["norm"] == 0 for r in plain) and all(r["norm"] > 0 for r in smooth)
+
+
+def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentiate():
+    """The knee is the last horizon before a doubling multiplies the norm tenfold past
+    what shorter horizons gave (a late start-up below 8 actions aside); the default
+    horizon is the knee's power of two, at most 32. On the recorded envs, the page shows
+    the newest records and the actor-critic never differentiates past the knee."""
+    from pathlib import Path
+
+    from conftest import script
+
+    horizons = script("benchmarks/gradient_horizons.py")
+    rows = lambda norms: [
+        dict(env="x", horizon=h, norm=n, finite=n == n and n != float("inf"), members=8) for h, n in norms.items()
+    ]
+    assert horizons.knee(rows({1: 1e-7, 4: 1e-7, 8: 1e-2, 16: 2e-2, 32: 0.1, 64: 5.0})) == 32
+    assert horizons.knee(rows({1: 1.0, 8: 2.0, 16: 1.0, 32: 3.0})) is None
+    assert horizons.knee(rows({8: 1.0, 16: float("inf")})) == 8
+    assert horizons.default_horizon(rows({1: 1.0, 8: 2.0, 16: 1.0, 200: 3.0})) == 32
+    assert horizons.default_horizon(rows({1: 1.0, 8: 1.0, 16: 1.0, 24: 100.0})) == 16
+
+    root = Path(__file__).resolve().parents[1]
+    records = horizons.newest(root / "benchmarks" / "results" / "gradient_horizons")
+    assert {"lorenz-continuous-v0", "burgers-v0", "shkadov-v0"} <= set(records)
+    assert horizons.page_table(records) in (root / "docs" / "gradients.md").read_text()
+    from beacon_torch.training.config import SHACConfig, configure
+
+    for env_id, measured in records.items():
+        assert configure(SHACConfig, env_id).horizon <= horizons.default_horizon(measured), env_id

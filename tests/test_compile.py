@@ -88,6 +88,35 @@ def test_compilation_happens_once_not_per_step():
     assert counters["stats"]["unique_graphs"] == graphs
 
 
+def test_a_differentiated_loop_compiles_its_substep_once_whatever_its_length():
+    """A loop recorded by autograd runs its compiled substep once per index; a substep
+    that reads per-substep values (``at``: the interpolated actions, the inlet noise)
+    compiles once for every index, not once per index (70 substeps, past the recompile
+    limit), and differentiates as the eager loop does."""
+    from beacon_torch.compiled import RECOMPILE_LIMIT, Kernels, at
+
+    def substep(i, carried, weights):
+        (x,) = carried
+        return (torch.sin(x) * at(weights, i) + x,)
+
+    n = RECOMPILE_LIMIT + 6
+    weights = torch.linspace(0.0, 1.0, n, dtype=torch.float64)
+    grads = []
+    for compiled in (False, True):
+        kernels = Kernels()
+        if compiled:
+            kernels.compile()
+        loop = kernels.loop(substep)
+        x = torch.linspace(-1.0, 1.0, 5, dtype=torch.float64, requires_grad=True)
+        before = counters["stats"]["unique_graphs"]
+        (y,) = loop(n, (x,), weights)
+        (grad,) = torch.autograd.grad(y.sum(), x)
+        grads.append(grad)
+        if compiled:
+            assert counters["stats"]["unique_graphs"] - before <= 2  # the substep, and its backward
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=0.0)
+
+
 def test_compile_accepts_torch_compile_options_and_rejects_nonsense():
     env = beacon_torch.make("lorenz-v0", 2, compile={"mode": "default"})
     assert env.kernels.options["mode"] == "default" and env.kernels.options["fullgraph"]
