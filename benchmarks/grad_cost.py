@@ -16,7 +16,8 @@ round, after a warm-up (compilation) that is not counted:
 
 Recorded per env and round: CPU seconds per transition of each; the ratios are the
 medians over the rounds of each round's ratio. Writes a new
-``grad-cost-DATE-TIME.json`` in ``benchmarks/results/grad_cost`` and prints a table.
+``grad-cost-ENV-DATE-TIME.json`` per env in ``benchmarks/results/grad_cost`` and prints
+a table.
 """
 
 from __future__ import annotations
@@ -120,16 +121,14 @@ def main() -> None:
     torch.set_num_threads(1)
     from beacon_torch.files import save_rows
 
-    rows = []
     print("| env | members | checkpoint | forward (ms/transition) | eager / forward | compiled / forward |")
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|", flush=True)
     for env_id in args.envs:
         row = measure(env_id, args.rounds, args.horizon, args.kinds)
-        rows.append(row)
         ratios = " | ".join(f"{row.get(f'{k}_ratio', float('nan')):.1f}" for k in ("eager", "compiled"))
         print(f"| {env_id} | {row['members']} | {row['grad_checkpoint']} | {1e3 * row['forward_s']:.3g} | {ratios} |")
-    path = save_rows(rows, args.out, "grad-cost")
-    print(f"written to {path}")
+        # a record per env, written as soon as it is measured
+        print(f"written to {save_rows([row], args.out, f'grad-cost-{env_id}')}", flush=True)
 
 
 if __name__ == "__main__":
