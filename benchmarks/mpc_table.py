@@ -46,7 +46,8 @@ def table(rows: list[dict]) -> str:
         else:
             scores = f"not run ({r['planned_actions']} actions planned for their cost) | | "
         lines.append(
-            f"| {r['env']} | {r['starts']} ({s['num_envs']}) | {s['horizon']} x {s['iterations']} | {model} "
+            f"| {r['env']} | {r['starts']} ({s['num_envs']}) | {s['horizon']} x {s['iterations']}"
+            f"{', compiled' if s['compile'] else ''}{', checkpointed' if s['grad_checkpoint'] else ''} | {model} "
             f"| {scores} | {per_action:.3g} | {default:.3g} | {episode} |"
         )
     return "\n".join(lines)
