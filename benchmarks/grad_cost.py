@@ -3,6 +3,7 @@ short-horizon actor-critic's batch and settings (``SHACConfig``: its members and
 ``grad_checkpoint``), in CPU time of this process, float32.
 
     .venv/bin/python benchmarks/grad_cost.py [--envs ...] [--rounds 5] [--horizon 4]
+    .venv/bin/python benchmarks/grad_cost.py --page docs/performance.md
 
 Three ways of taking an action, measured side by side, one block of each in turn per
 round, after a warm-up (compilation) that is not counted:
@@ -110,6 +111,34 @@ def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
     return row
 
 
+BEGIN, END = (
+    "<!-- differentiated transitions: benchmarks/grad_cost.py -->",
+    "<!-- end of differentiated transitions -->",
+)
+
+
+def page_table(folder: Path) -> str:
+    """The newest record of each env in ``folder`` as a markdown table."""
+    from beacon_torch import received
+
+    newest: dict[str, dict] = {}
+    for path in sorted(folder.glob("grad-cost-*.json"), key=lambda p: p.name[-20:]):
+        for row in received.json_file(path, "a differentiated transitions record")["rows"]:
+            newest[row["env"]] = row
+    lines = [
+        "| env | members | grad_checkpoint | forward, compiled (ms per transition) | differentiated, eager "
+        "| differentiated, compiled |",
+        "|---|---|---|---|---|---|",
+    ]
+    for env_id in [e for e in ENVS if e in newest]:
+        r = newest[env_id]
+        lines.append(
+            f"| {env_id} | {r['members']} | {r['grad_checkpoint']} | {1e3 * r['forward_s']:.3g} "
+            f"| {r['eager_ratio']:.1f} x | {r['compiled_ratio']:.1f} x |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", default=ENVS)
@@ -117,7 +146,13 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=4)
     parser.add_argument("--kinds", nargs="+", default=["forward", "eager", "compiled"])
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_cost")
+    parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
     args = parser.parse_args()
+    if args.page is not None:
+        from beacon_torch.training.report import write_block
+
+        print(write_block(args.page, BEGIN, END, page_table(args.out)))
+        return
     torch.set_num_threads(1)
     from beacon_torch.files import save_rows
 

@@ -203,3 +203,33 @@ def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentia
 
     for env_id, measured in records.items():
         assert configure(SHACConfig, env_id).horizon <= horizons.default_horizon(measured), env_id
+
+
+def test_the_performance_page_shows_the_recorded_cost_of_differentiated_transitions():
+    from pathlib import Path
+
+    from conftest import script
+
+    root = Path(__file__).resolve().parents[1]
+    cost = script("benchmarks/grad_cost.py")
+    table = cost.page_table(root / "benchmarks" / "results" / "grad_cost")
+    assert "| burgers-v0 | 64 |" in table and "| shkadov-v0 | 64 |" in table
+    assert table in (root / "docs" / "performance.md").read_text()
+
+
+def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_one(tmp_path):
+    """benchmarks/grad_cost.py on lorenz: a record per env, the forward's time and the
+    differentiated one's ratio to it, per round."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "benchmarks" / "grad_cost.py"), "--envs", "lorenz-continuous-v0"]
+    command += ["--rounds", "2", "--horizon", "2", "--kinds", "forward", "eager", "--out", str(tmp_path)]
+    out = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (record,) = tmp_path.glob("grad-cost-lorenz-continuous-v0-*.json")
+    (row,) = json.loads(record.read_text())["rows"]
+    assert row["members"] == 64 and len(row["rounds"]["eager"]) == 2
+    assert row["forward_s"] > 0 and row["eager_ratio"] > 1
