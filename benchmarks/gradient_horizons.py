@@ -31,55 +31,111 @@ HERE = Path(__file__).resolve()
 BEGIN, END = "<!-- gradient horizons: benchmarks/gradient_horizons.py -->", "<!-- end of gradient horizons -->"
 
 
-def horizon_norm(
-    env_id: str,
-    horizon: int,
-    members: int,
-    seed: int,
-    params: dict | None = None,
-    gamma: float = 0.99,
-    checkpoint: bool = False,
-) -> dict:
-    """The gradient norm of one horizon of ``horizon`` actions from the env's starts
-    (``checkpoint``: each action recomputed in the backward pass, as the recipes run
-    the 2-D flows)."""
-    from beacon_torch.training import networks
-    from beacon_torch.training.env import NORM_STEPS, make_env
+class Start:
+    """One env's starts and a fresh policy, built once (the 64 random actions of the
+    observation normalisation cost more than a short horizon on the 2-D flows): every
+    horizon measured from it begins from the same states, generator and weights, as if
+    the env and policy were built anew (``checkpoint``: each action recomputed in the
+    backward pass, as the recipes run the 2-D flows)."""
 
-    env = make_env(
-        env_id,
-        members,
-        seed=seed,
-        norm_steps=NORM_STEPS,
-        differentiable=True,
-        grad_checkpoint=checkpoint,
-        compile=False,
-        params=params or {},
-    )
-    torch.manual_seed(seed)
-    actor = networks.deterministic_actor(env, 64, paper_init=False)
-    td = env.reset()
-    start = time.process_time()
-    total, ended = 0.0, torch.zeros(members, dtype=torch.bool)
-    for h in range(horizon):
-        td, td_next = env.step_and_maybe_reset(actor(td))
-        total = total + gamma**h * td["next", "reward"][..., 0]
-        ended |= td["next", "terminated"][..., 0]
-        td = td_next
-    loss = -total.mean() / horizon
-    grads = torch.autograd.grad(loss, list(actor.parameters()), allow_unused=True)
-    norm = torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None]))
-    return dict(
-        env=env_id,
-        params=params or {},
-        horizon=horizon,
-        members=members,
-        norm=float(norm),
-        finite=bool(torch.isfinite(norm)),
-        blown_up=int(ended.sum()),
-        grad_checkpoint=checkpoint,
-        cpu_s=time.process_time() - start,
-    )
+    def __init__(
+        self,
+        env_id: str,
+        members: int,
+        seed: int,
+        params: dict | None = None,
+        checkpoint: bool = False,
+        device: str = "cpu",
+    ):
+        from beacon_torch.core.state import map_state
+        from beacon_torch.training import networks
+        from beacon_torch.training.env import NORM_STEPS, make_env
+
+        self.env_id, self.members, self.params, self.checkpoint, self.device = (
+            env_id,
+            members,
+            params or {},
+            checkpoint,
+            str(device),
+        )
+        self.env = make_env(
+            env_id,
+            members,
+            seed=seed,
+            norm_steps=NORM_STEPS,
+            differentiable=True,
+            grad_checkpoint=checkpoint,
+            compile=False,
+            device=device,
+            params=self.params,
+        )
+        torch.manual_seed(seed)
+        self.actor = networks.deterministic_actor(self.env, 64, paper_init=False).to(device)
+        self.td = self.env.reset().clone()
+        base = self.env.base_env
+        self.state = map_state(torch.Tensor.clone, base.state)
+        self.count, self.rng = base.step_count.clone(), base.rng.get_state()
+
+    def norm(self, horizon: int, gamma: float = 0.99) -> dict:
+        """The gradient norm of one horizon of ``horizon`` actions from the starts."""
+        env, base = self.env, self.env.base_env
+        base.set_state(self.state, self.count)
+        base.rng.set_state(self.rng)
+        td = self.td.clone()
+        synchronize(self.device)
+        start, wall = time.process_time(), time.perf_counter()
+        total, ended = 0.0, torch.zeros(self.members, dtype=torch.bool, device=self.device)
+        for h in range(horizon):
+            td, td_next = env.step_and_maybe_reset(self.actor(td))
+            total = total + gamma**h * td["next", "reward"][..., 0]
+            ended |= td["next", "terminated"][..., 0]
+            td = td_next
+        loss = -total.mean() / horizon
+        grads = torch.autograd.grad(loss, list(self.actor.parameters()), allow_unused=True)
+        norm = torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None]))
+        synchronize(self.device)
+        return dict(
+            env=self.env_id,
+            params=self.params,
+            horizon=horizon,
+            members=self.members,
+            norm=float(norm),
+            finite=bool(torch.isfinite(norm)),
+            blown_up=int(ended.sum()),
+            grad_checkpoint=self.checkpoint,
+            device=self.device,
+            cpu_s=time.process_time() - start,
+            wall_s=time.perf_counter() - wall,
+        )
+
+
+def synchronize(device) -> None:
+    # a GPU's queued work must end inside the interval it is timed in
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def horizons_within(env_id: str, horizons: list[int], measure, budget_s: float | None) -> list[dict]:
+    """``measure(h)`` for each horizon in increasing order, stopping before a horizon
+    whose predicted time (the last one's, scaled by the horizons' ratio) would take
+    the run past ``budget_s`` seconds of wall time; the horizons left out are printed."""
+    rows, spent = [], 0.0
+    for h in sorted(horizons):
+        if budget_s is not None and rows:
+            predicted = rows[-1]["wall_s"] * h / rows[-1]["horizon"]
+            if spent + predicted > budget_s:
+                left = [k for k in horizons if k >= h]
+                print(f"{env_id}: horizons {left} left out, past the {budget_s:.0f} s budget", flush=True)
+                break
+        row = measure(h)
+        spent += row["wall_s"]
+        rows.append(row)
+        print(
+            f"{env_id} horizon {h}: norm {row['norm']:.4g} ({row['blown_up']} blown up, "
+            f"{row['cpu_s']:.1f} CPU s, {row['wall_s']:.1f} s)",
+            flush=True,
+        )
+    return rows
 
 
 def draw(rows: list[dict], path: Path, new: bool = True) -> None:
@@ -187,6 +243,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="a physical parameter")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="per env: leave out the longer horizons that would take it past this many seconds",
+    )
     parser.add_argument("--grad-checkpoint", action="store_true", help="recompute each action in the backward pass")
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "gradient_horizons")
     args = parser.parse_args()
@@ -212,14 +275,8 @@ def main() -> None:
     for env_id in args.envs:
         length = env_class(env_id).episode_length
         horizons = args.horizons or sorted({*(2**k for k in range(length.bit_length()) if 2**k <= length), length})
-        rows = []
-        for h in horizons:
-            row = horizon_norm(env_id, h, args.members, args.seed, params, checkpoint=args.grad_checkpoint)
-            rows.append(row)
-            print(
-                f"{env_id} horizon {h}: norm {row['norm']:.4g} ({row['blown_up']} blown up, {row['cpu_s']:.1f} s)",
-                flush=True,
-            )
+        start = Start(env_id, args.members, args.seed, params, checkpoint=args.grad_checkpoint, device=args.device)
+        rows = horizons_within(env_id, horizons, start.norm, args.budget_s)
         # a record per env, written as soon as it is measured
         path = save_rows(rows, args.out, f"gradient-horizons-{env_id}")
         draw(rows, path.with_suffix(".png"))

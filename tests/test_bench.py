@@ -176,6 +176,40 @@ def test_the_gradient_norm_is_recorded_per_horizon(tmp_path):
     assert all(r["norm"] == 0 for r in plain) and all(r["norm"] > 0 for r in smooth)
 
 
+def test_every_horizon_of_a_record_starts_from_the_same_states_as_a_fresh_env():
+    """The env and policy are built once per env and every horizon restarts from their
+    saved starts: a horizon measured after others equals one measured first on an env
+    built anew, on a stochastic env (burgers' inflow noise) with its generator."""
+    from conftest import script
+
+    horizons = script("benchmarks/gradient_horizons.py")
+    shared = horizons.Start("burgers-v0", 2, seed=3)
+    after = [shared.norm(h)["norm"] for h in (2, 5, 5)]
+    fresh = horizons.Start("burgers-v0", 2, seed=3).norm(5)["norm"]
+    assert after[1] == after[2] == fresh and after[0] != fresh
+    assert horizons.Start("burgers-v0", 2, seed=4).norm(5)["norm"] != fresh
+
+
+def test_a_time_budget_leaves_out_the_longer_horizons_and_says_which(capsys):
+    """With a budget, a horizon whose time predicted from the last measured one would
+    overrun it is not started, nor any longer one, and the record keeps what was measured."""
+    from conftest import script
+
+    horizons = script("benchmarks/gradient_horizons.py")
+    started = []
+
+    def measure(h):
+        started.append(h)
+        return dict(horizon=h, norm=1.0, blown_up=0, cpu_s=float(h), wall_s=float(h))
+
+    rows = horizons.horizons_within("x", [8, 1, 2, 4, 16], measure, budget_s=10.0)
+    # 1 + 2 + 4 = 7 s spent; 8 more predicted from the 4's 4 s would make 15
+    assert started == [1, 2, 4] and [r["horizon"] for r in rows] == [1, 2, 4]
+    assert "horizons [8, 16] left out" in capsys.readouterr().out
+    started.clear()
+    assert len(horizons.horizons_within("x", [1, 2, 4, 8, 16], measure, budget_s=None)) == 5
+
+
 def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentiate():
     """The knee is the last horizon before a doubling multiplies the norm tenfold past
     what shorter horizons gave (a late start-up below 8 actions aside); the default
