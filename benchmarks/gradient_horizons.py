@@ -193,6 +193,15 @@ def default_horizon(rows: list[dict]) -> int:
     return min(CAP, 2 ** (int(longest).bit_length() - 1))
 
 
+def reaches_episode(rows: list[dict]) -> bool:
+    """Whether the measured horizons reach the env's episode, or a knee was found: only
+    then does :func:`default_horizon` bound what the recipes may differentiate (a record
+    cut short by its time budget says nothing of the horizons it left out)."""
+    from beacon_torch.registry import env_class
+
+    return knee(rows) is not None or max(r["horizon"] for r in rows) >= env_class(rows[0]["env"]).episode_length
+
+
 def newest(folder: Path) -> dict[str, list[dict]]:
     """The newest record's rows of each env in ``folder`` (lorenz's with its smooth
     reward: its default one has no gradient)."""
@@ -220,11 +229,15 @@ def page_table(records: dict[str, list[dict]]) -> str:
         by = {r["horizon"]: r for r in rows}
         at = " / ".join(f"{by[h]['norm']:.2g}" if h in by else "-" for h in (1, 8, 32))
         last = max(rows, key=lambda r: r["horizon"])
-        found = knee(rows)
+        found, whole, longest = knee(rows), reaches_episode(rows), last["horizon"]
+        if whole:
+            measured, knee_cell, default = f"1 to {longest}", found or "none", default_horizon(rows)
+        else:
+            measured, knee_cell = f"1 to {longest} (time budget)", f"none to {longest}"
+            default = f"{default_horizon(rows)} or more"
         lines.append(
-            f"| {env_id} | 1 to {last['horizon']} | {rows[0]['members']} | {at} | {last['norm']:.2g} "
-            f"({last['horizon']}) | {found if found else 'none'} | {default_horizon(rows)} "
-            f"| {configure(SHACConfig, env_id).horizon} |"
+            f"| {env_id} | {measured} | {rows[0]['members']} | {at} | {last['norm']:.2g} ({longest}) "
+            f"| {knee_cell} | {default} | {configure(SHACConfig, env_id).horizon} |"
         )
     return "\n".join(lines)
 
