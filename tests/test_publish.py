@@ -69,6 +69,8 @@ def forged(pair, tmp_path, change) -> tuple:
         (lambda s: s["seeds"][1].update(test=1e6), "seed1's test 1000000.0 is not what its checkpoint gives"),
         (lambda s: s["seeds"][0].pop("test"), "not a summary of trained seeds \\(test-set scores must be finite"),
         (lambda s: s.update(test_uncontrolled=0.0), "its test_uncontrolled 0.0 is not what its seeds give"),
+        (lambda s: s["seeds"][0]["curve"]["score"].__setitem__(-1, 1e6), "seed0's curve .* is not what its checkpoint"),
+        (lambda s: s["seeds"][1]["curve"].update(frames=[0] * 300), "not a summary of trained seeds \\(a seed's"),
     ],
 )
 def test_a_forged_summary_is_refused_and_the_repository_left_alone(pair, repo, tmp_path, change, words):
@@ -89,6 +91,12 @@ def test_a_true_summary_is_published_from_its_checkpoints(pair, repo, tmp_path, 
     published = json.loads((recorded / "ppo" / "short-lorenz-v0.json").read_text())
     true = json.loads((pair / "summary.json").read_text())
     assert [s["eval"] for s in published["seeds"]] == [s["eval"] for s in true["seeds"]]
+    # each seed's training curve: its episodes' scores against transitions and minutes
+    for seed in published["seeds"]:
+        curve = seed["curve"]
+        assert len(curve["frames"]) == len(curve["score"]) == len(curve["wall_s"]) > 0
+        assert curve["frames"] == sorted(curve["frames"]) and curve["frames"][-1] <= 400
+        assert all(b >= a >= 0 for a, b in zip(curve["wall_s"][:-1], curve["wall_s"][1:], strict=True))
     assert published["png"] != "/elsewhere/curve.png" and (images / "ppo" / "short-lorenz-v0.png").is_file()
     from beacon_torch import pretrained
 
@@ -118,7 +126,9 @@ TRUE = {
     ],
 }
 for seed, test in zip(TRUE["seeds"], (-1.7, -1.9), strict=True):
-    seed.update(test=test, test_uncontrolled=-2.4)
+    seed.update(
+        test=test, test_uncontrolled=-2.4, curve={"frames": [200, 400], "score": [-2.0, -1.5], "wall_s": [5.0, 11.0]}
+    )
 FIELDS = [
     "algo",
     "env",
@@ -131,7 +141,7 @@ FIELDS = [
     "test_uncontrolled",
     "seeds",
 ]
-SEED_FIELDS = ["seed", "frames", "eval", "train_tail", "uncontrolled", "wall_s", "test", "test_uncontrolled"]
+SEED_FIELDS = ["seed", "frames", "eval", "train_tail", "uncontrolled", "wall_s", "test", "test_uncontrolled", "curve"]
 VALUES = st.one_of(
     st.none(),
     st.booleans(),
@@ -155,7 +165,7 @@ def test_any_forged_field_of_a_summary_is_found(field, value):
         original = summary[field]
         summary[field] = value
     name = field[1] if isinstance(field, tuple) else field
-    if name in ("algo", "env", "frames", "seeds", "seed"):
+    if name in ("algo", "env", "frames", "seeds", "seed", "curve"):
         same = type(value) is type(original) and value == original
     else:  # a score or a time: the same number, written as an int or a float
         number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

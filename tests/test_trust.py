@@ -469,6 +469,36 @@ def test_any_forged_summary_field_is_one_clear_error(key, value, held_out):
             assert np.isfinite(row["iqm"]) and np.isfinite(row["ci"]).all()
 
 
+@settings(max_examples=150, deadline=None)
+@given(
+    curve=st.one_of(
+        JUNK,
+        st.fixed_dictionaries({"frames": st.lists(JUNK, max_size=3), "score": st.lists(JUNK, max_size=3)}),
+        st.fixed_dictionaries(
+            {
+                "frames": st.lists(st.integers(-5, 10**20), max_size=3),
+                "score": st.lists(st.floats(), max_size=3),
+                "wall_s": st.lists(st.floats(), max_size=3),
+            }
+        ),
+    )
+)
+def test_a_seed_s_training_curve_is_three_lists_of_bounded_numbers_or_one_clear_error(curve):
+    summary = summary_of(train_mean=-1.5)
+    summary["seeds"][0]["curve"] = curve
+    try:
+        report.check_summary(summary, "forged.json")
+    except ValueError as err:
+        assert str(err).startswith("forged.json: not a summary of trained seeds (a seed's 'curve' must")
+    else:
+        frames, score, wall = curve["frames"], curve["score"], curve["wall_s"]
+        assert len(frames) == len(score) and len(wall) in (0, len(frames)) and frames == sorted(frames)
+        assert all(0 <= f <= report.MAX_COUNT for f in frames) and np.isfinite(score + wall).all()
+    good = {"frames": [0, 64, 128], "score": [-2.0, -1.5, -1.0], "wall_s": [0.0, 1.0, 2.5]}
+    summary["seeds"][0]["curve"] = good
+    assert report.check_summary(summary, "true.json") is summary
+
+
 # ---------------------------------------------------------------- no NaN as a result
 def test_a_diverging_training_stops_and_keeps_its_last_good_checkpoint(tmp_path):
     settings_ = dict(

@@ -116,7 +116,7 @@ def recorded_budget(algo: str, env_id: str, recorded: Path = RECORDED) -> int:
 # and their transitions exactly, scores and times to float rounding
 EXACT = ("algo", "env", "frames")
 CLOSE = ("eval_mean", "train_mean", "wall_s_per_seed", "uncontrolled", "test_mean", "test_uncontrolled")
-PER_SEED_EXACT = ("seed", "frames")
+PER_SEED_EXACT = ("seed", "frames", "curve")
 PER_SEED_CLOSE = ("eval", "train_tail", "uncontrolled", "wall_s", "test", "test_uncontrolled")
 
 

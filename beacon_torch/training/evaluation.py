@@ -324,6 +324,28 @@ def _uncontrolled(env_id: str, progress: bool = True) -> float:
     return episodes.scores(rollout).mean().item()
 
 
+# the points of a seed's training curve a summary keeps: enough to draw it, small
+# beside the summary's size limit
+CURVE_POINTS = 200
+
+
+def curve_of(run: str | Path) -> dict:
+    """A seed's training curve as its summary keeps it: the training episodes' scores
+    (``score``) against the transitions (``frames``) and the wall time of training at
+    them (``wall_s``, interpolated between the logged batches; empty where no wall time
+    was logged), at most ``CURVE_POINTS`` points evenly spread over the logged ones."""
+    steps, scores = read_scalar(run, "episode_score")
+    if len(steps) > CURVE_POINTS:
+        keep = np.unique(np.linspace(0, len(steps) - 1, CURVE_POINTS).round().astype(int))
+        steps, scores = steps[keep], scores[keep]
+    logged, wall = read_scalar(run, "wall_time")
+    return {
+        "frames": [int(s) for s in steps],
+        "score": [float(v) for v in scores],
+        "wall_s": [float(w) for w in np.interp(steps, logged, wall)] if len(logged) else [],
+    }
+
+
 def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -> dict:
     """A run directory's results, from its checkpoints and logs alone: per seed, the
     deterministic policy's score on ``num_envs`` episodes from the env's own start (the
@@ -331,8 +353,8 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
     one episode per state) and the mean score of the training episodes that ended in
     the last tenth of the transitions, each beside no control on the same episodes;
     their mean and spread over the seeds; transitions and wall time (what the
-    checkpoints record). Every seed must be a run of the same algorithm on the same
-    env."""
+    checkpoints record); each seed's training curve (:func:`curve_of`). Every seed
+    must be a run of the same algorithm on the same env."""
     root = Path(root)
     seeds = seed_dirs(root)
     per_seed, pairs = [], set()
@@ -359,6 +381,7 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
                 "uncontrolled": ev["uncontrolled"],
                 "test": held["score_mean"],
                 "test_uncontrolled": held["uncontrolled"],
+                "curve": curve_of(run),
             }
         )
     if len(pairs) > 1:

@@ -24,7 +24,7 @@ from scipy import stats
 from beacon_torch import received
 from beacon_torch.files import create_file, refuse_existing, save_figure, write_text
 from beacon_torch.registry import ENVS, env_class
-from beacon_torch.training.evaluation import summarise
+from beacon_torch.training.evaluation import CURVE_POINTS, summarise
 
 BOOTSTRAP = 10_000  # resamples of the seeds
 CONFIDENCE = 0.95
@@ -145,6 +145,12 @@ def check_summary(summary, file: str | Path) -> dict:
         raise bad(f"'frames' must be a count of transitions (an integer up to {MAX_COUNT:.0e})")
     if summary["wall_s_per_seed"] > MAX_SECONDS:
         raise bad(f"'wall_s_per_seed' must be at most {MAX_SECONDS:.0e} s, got {_short(summary['wall_s_per_seed'])}")
+    for s in seeds:
+        if "curve" in s and not _curve(s["curve"]):
+            raise bad(
+                "a seed's 'curve' must hold 'frames' (counts, not decreasing), 'score' (finite numbers) and "
+                f"'wall_s' (finite seconds, or none), as many of each, at most {CURVE_POINTS}"
+            )
     if "train_mean" in summary and not finite(summary["train_mean"]):
         raise bad(f"'train_mean' must be finite, got {_short(summary['train_mean'])}")
     if summary["uncontrolled"] == reference(summary["env"]):
@@ -160,6 +166,27 @@ def check_summary(summary, file: str | Path) -> dict:
             if not np.isfinite(norm).all() or not np.isfinite(np.abs(norm).sum()):
                 raise bad("its scores are too far from the uncontrolled one to normalise in floating point")
     return summary
+
+
+def _curve(curve) -> bool:
+    """Whether a seed's ``curve`` is what :func:`~beacon_torch.training.evaluation.curve_of`
+    writes: three lists of numbers of one length (``wall_s`` possibly empty), within
+    bounds."""
+    finite = received.finite_number
+    if not isinstance(curve, dict) or set(curve) != {"frames", "score", "wall_s"}:
+        return False
+    frames, score, wall = curve["frames"], curve["score"], curve["wall_s"]
+    if not all(isinstance(x, list) for x in (frames, score, wall)) or len(frames) > CURVE_POINTS:
+        return False
+    counts = all(isinstance(f, int) and not isinstance(f, bool) and 0 <= f <= MAX_COUNT for f in frames)
+    return (
+        counts
+        and all(a <= b for a, b in zip(frames[:-1], frames[1:], strict=True))
+        and len(score) == len(frames)
+        and all(finite(v) for v in score)
+        and len(wall) in (0, len(frames))
+        and all(finite(w) and 0 <= w <= MAX_SECONDS for w in wall)
+    )
 
 
 # beyond any run (a billion transitions a second for three centuries; a century)
