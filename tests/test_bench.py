@@ -276,3 +276,40 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
     (row,) = json.loads(record.read_text())["rows"]
     assert row["members"] == 64 and len(row["rounds"]["eager"]) == 2
     assert row["forward_s"] > 0 and row["eager_ratio"] > 1
+
+
+def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_curves():
+    """benchmarks/comparison.py: with its seeds' curves, a pair reached normalised 1.0
+    where the mean of its last points first does (transitions and minutes there); without
+    them (published before curves were kept), within its budget if its final score is 1
+    or more; the gradients page shows the table of the recorded pairs."""
+    from pathlib import Path
+
+    from conftest import script
+
+    comparison = script("benchmarks/comparison.py")
+    # burgers: 0 at -3.378 (no control), 1 at the paper's -1.75
+    frames = list(range(0, 10_000, 100))
+    rising = [-3.378 + 1.628 * min(1.0, f / 5000) * 1.05 for f in frames]
+    curve = {"frames": frames, "score": rising, "wall_s": [f / 100 for f in frames]}
+    summary = {
+        "algo": "shac",
+        "env": "burgers-v0",
+        "frames": 10_000,
+        "wall_s_per_seed": 100.0,
+        "uncontrolled": -3.378,
+        "seeds": [{"seed": "seed0", "eval": -1.7, "curve": curve}, {"seed": "seed1", "eval": -1.6, "curve": curve}],
+    }
+    reached, minutes = comparison.to_one(summary)
+    at = int(reached.replace(",", ""))
+    # 1.05 x the way from no control to the paper's score at 5,000: 1.0 at 4,762, and
+    # the window of 5 grid points (about 100 transitions each) reaches it a little later
+    assert 4_762 <= at <= 5_300 and float(minutes) == pytest.approx(at / 100 / 60, abs=0.05)  # one decimal
+    flat = dict(summary, seeds=[dict(s, curve=dict(curve, score=[-3.0] * len(frames))) for s in summary["seeds"]])
+    assert comparison.to_one(flat) == ("not reached", "-")
+    final_only = dict(summary, seeds=[{"seed": "seed0", "eval": -1.7}])
+    assert comparison.to_one(final_only) == ("within 10,000 (final only)", "within 1.7")
+    assert comparison.to_one(dict(final_only, seeds=[{"seed": "seed0", "eval": -3.0}]))[0] == "not reached (final only)"
+
+    root = Path(__file__).resolve().parents[1]
+    assert comparison.table() in (root / "docs" / "gradients.md").read_text()
