@@ -143,6 +143,18 @@ def base_envs() -> list[str]:
     return [env_id for env_id, cls in ENVS.items() if cls.base_id() == env_id]
 
 
+def continuous_envs() -> list[str]:
+    """The package's own envs with continuous actions in their single-agent layout (the
+    continuous twins of the discrete ones included), in the paper's order: what the
+    gradient-based recipes and their benchmarks cover. Envs registered from outside
+    the package are not among them."""
+    return [
+        env_id
+        for env_id, cls in ENVS.items()
+        if env_id not in ORIGIN and not cls.discrete and isinstance(cls.observation_key, str)
+    ]
+
+
 def env_class(env_id: str) -> type[FlowEnv]:
     """The class of a registered id (or of ``"module:env-id"``, :func:`resolve_id`)."""
     env_id = resolve_id(env_id)

@@ -21,19 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from beacon_torch.registry import continuous_envs
+
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED = ROOT / "docs" / "results"
 BEGIN, END = "<!-- comparison: benchmarks/comparison.py -->", "<!-- end of comparison -->"
-ENVS = (
-    "lorenz-continuous-v0",
-    "vortex-v0",
-    "burgers-v0",
-    "sloshing-v0",
-    "shkadov-v0",
-    "rayleigh-v0",
-    "mixing-continuous-v0",
-    "cylinder-v0",
-)
 ALGOS = ("ppo", "td3", "sac", "shac")
 # PPO trains on the discrete twins of these: their rows are the targets' reference
 PPO_OF = {"lorenz-continuous-v0": "lorenz-v0", "mixing-continuous-v0": "mixing-v0"}
@@ -118,7 +110,7 @@ def table(recorded: Path = RECORDED) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     levels = mpc_levels()
-    for env_id in ENVS:
+    for env_id in continuous_envs():
         for algo, summary in pairs(env_id, recorded):
             row = report.row(summary, "test")
             name = algo if summary["env"] == env_id else f"{algo} ({summary['env']})"
@@ -146,11 +138,11 @@ def draw(path: Path, recorded: Path = RECORDED) -> None:
     from beacon_torch.files import save_figure
     from beacon_torch.training import report
 
-    levels = mpc_levels()
-    fig = Figure(figsize=(10, 2.6 * len(ENVS)), dpi=80)
+    levels, envs = mpc_levels(), continuous_envs()
+    fig = Figure(figsize=(10, 2.6 * len(envs)), dpi=80)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(len(ENVS), 2, squeeze=False)
-    for k, env_id in enumerate(ENVS):
+    axes = fig.subplots(len(envs), 2, squeeze=False)
+    for k, env_id in enumerate(envs):
         left, right = axes[k]
         for algo, summary in pairs(env_id, recorded):
             color, label = f"C{ALGOS.index(algo)}", algo if summary["env"] == env_id else f"{algo} ({summary['env']})"

@@ -31,17 +31,9 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from beacon_torch.registry import continuous_envs
+
 HERE = Path(__file__).resolve()
-ENVS = [
-    "lorenz-continuous-v0",
-    "vortex-v0",
-    "burgers-v0",
-    "sloshing-v0",
-    "shkadov-v0",
-    "rayleigh-v0",
-    "mixing-continuous-v0",
-    "cylinder-v0",
-]
 # a smooth reward where the default has no gradient
 PARAMS = {"lorenz-continuous-v0": {"reward_width": 1.0}}
 
@@ -130,7 +122,7 @@ def page_table(folder: Path) -> str:
         "| differentiated, compiled |",
         "|---|---|---|---|---|---|",
     ]
-    for env_id in [e for e in ENVS if e in newest]:
+    for env_id in [e for e in continuous_envs() if e in newest]:
         r = newest[env_id]
         lines.append(
             f"| {env_id} | {r['members']} | {r['grad_checkpoint']} | {1e3 * r['forward_s']:.3g} "
@@ -141,7 +133,7 @@ def page_table(folder: Path) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", nargs="+", default=ENVS)
+    parser.add_argument("--envs", nargs="+", default=continuous_envs())
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--horizon", type=int, default=4)
     parser.add_argument("--kinds", nargs="+", default=["forward", "eager", "compiled"])

@@ -266,6 +266,17 @@ def test_every_env_declares_its_card():
         "mixing-continuous-v0": "mixing-v0",
     }
     assert EXPENSIVE_ENVS == {"rayleigh-v0", "mixing-v0", "mixing-continuous-v0", "cylinder-v0"}
+    # what the gradient-based recipes and their benchmarks cover
+    assert beacon_torch.registry.continuous_envs() == [
+        "lorenz-continuous-v0",
+        "vortex-v0",
+        "burgers-v0",
+        "sloshing-v0",
+        "shkadov-v0",
+        "rayleigh-v0",
+        "mixing-continuous-v0",
+        "cylinder-v0",
+    ]
     for env_id, cls in envs.items():
         assert cls.family in ("ode", "1-D", "2-D"), env_id
         assert cls.costly == (cls.family == "2-D"), env_id  # of these envs, the 2-D flows
@@ -341,3 +352,12 @@ def test_a_variant_class_may_shorten_the_episode_of_its_physics():
     env.reset()
     flags = [env.step_members(env.null_action())[3].tolist() for _ in range(3)]
     assert flags == [[False, False], [False, False], [True, True]] and env.physics.blowup_reward == -7.0
+
+
+def test_an_env_registered_from_outside_the_package_is_not_among_its_continuous_envs(monkeypatch):
+    from beacon_torch import registry
+    from beacon_torch.envs.burgers import BurgersEnv
+
+    monkeypatch.setitem(registry.ENVS, "my-burgers-v0", BurgersEnv)
+    monkeypatch.setitem(registry.ORIGIN, "my-burgers-v0", "my_envs.burgers")
+    assert "my-burgers-v0" in registry.list_envs() and "my-burgers-v0" not in registry.continuous_envs()
