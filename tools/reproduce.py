@@ -209,13 +209,25 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     names = [images / f"report.{suffix}" for suffix in ("md", "json", "png")]
     # every pair on the paper's episodes, where all are recorded and comparable
     rows = report.report(sorted(recorded.glob("*/*.json")), *names, starts="own", replace=True)
-    held = [report.row(s, "test") for s in summaries if report.held_out(s)]
+    held = [report.row(s, "test") for s in summaries if report.test_scaled(s)]
     test_table = (
         "On the held-out test set's 8 developed starts (one episode each; 0 = no control from "
         "the same states, 1 = the paper's PPO on its own start), the pairs recorded with them:\n\n" + report.table(held)
         if held
         else "No recorded pair has test-set scores yet."
     )
+    unscaled = [s for s in summaries if report.held_out(s) and not report.test_scaled(s)]
+    if unscaled:
+        test_table += (
+            "\n\nNot normalised on the test set, where no control from the developed starts already scores "
+            "above the paper's PPO (the scale would run backwards): "
+            + "; ".join(
+                f"{s['algo']}/{s['env']} {report.iqm([seed['test'] for seed in s['seeds']]):.4g} "
+                f"against {s['test_uncontrolled']:.4g} uncontrolled (paper's PPO {report.reference(s['env']):g})"
+                for s in unscaled
+            )
+            + "."
+        )
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = [
         "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "
