@@ -169,6 +169,8 @@ def draw(path: Path, recorded: Path = RECORDED) -> None:
             ax.grid(alpha=0.3)
             ax.set_ylabel("normalised score")
         left.set_xscale("log")
+        low, high = left.get_xlim()
+        left.set_xlim(low / 2, high * 2)  # a decade's tick always inside
         left.xaxis.set_minor_formatter(NullFormatter())  # the decades alone: minor labels overlap
         right.set_xlim(left=0)
         left.set_xlabel("transitions")
