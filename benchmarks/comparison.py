@@ -93,14 +93,14 @@ def mpc_levels() -> dict[str, dict]:
     test starts) has no meaningful normalised score and is no level."""
     import importlib.util
 
-    from beacon_torch.training.report import reference
+    from beacon_torch.training.report import scaled
 
     spec = importlib.util.spec_from_file_location("mpc_table", ROOT / "benchmarks" / "mpc_table.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     best: dict[str, dict] = {}
     for record in module.records():
-        if "normalised" not in record or reference(record["env"]) <= record["uncontrolled"]:
+        if "normalised" not in record or not scaled(record["uncontrolled"], record["env"]):
             continue
         if record["normalised"] > best.get(record["env"], {}).get("normalised", -np.inf):
             best[record["env"]] = record

@@ -26,7 +26,7 @@ def table(rows: list[dict]) -> str:
     """The records as a markdown table. A planned action costs ``horizon x iterations``
     differentiated steps: the cost at FluidGym's 20 x 10 is the recorded one scaled."""
     from beacon_torch.registry import env_class
-    from beacon_torch.training.report import reference
+    from beacon_torch.training.report import scaled
 
     lines = [
         "| env | starts (episodes) | horizon x iterations | planner's model | score (std over episodes) "
@@ -42,7 +42,7 @@ def table(rows: list[dict]) -> str:
         episode = f"{hours:.1f} h" if hours >= 1 else f"{60 * hours:.0f} min"
         if "normalised" in r:
             # no control above the paper's score from these starts: the scale runs backwards
-            normalised = "- (a)" if r["uncontrolled"] >= reference(r["env"]) else f"**{r['normalised']:.2f}**"
+            normalised = f"**{r['normalised']:.2f}**" if scaled(r["uncontrolled"], r["env"]) else "- (a)"
             scores = f"{r['score_mean']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {normalised}"
         else:
             scores = f"not run ({r['planned_actions']} actions planned for their cost) | | "

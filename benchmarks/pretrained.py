@@ -29,7 +29,7 @@ import torch
 
 from beacon_torch import pretrained, starts
 from beacon_torch.training.evaluation import EVAL_SEED, evaluate_policy
-from beacon_torch.training.report import normalised, reference, write_block
+from beacon_torch.training.report import normalised, scaled, write_block
 
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of shipped policies -->"
@@ -100,7 +100,7 @@ def table(rows: list[dict], num_envs: int, seed: int) -> str:
     for r in rows:
         recorded = "-" if r["recorded"] is None else f"{r['recorded']:.4g}"
         # no control from the developed starts above the paper's score: a backward scale
-        backward = r["test_uncontrolled"] >= reference(r["policy"].split("/", 1)[1])
+        backward = not scaled(r["test_uncontrolled"], r["policy"].split("/", 1)[1])
         test_normalised = "- (a)" if backward else f"{r['test_normalised']:.2f}"
         lines.append(
             f"| {r['policy']} | {r['frames']:,} ({r['trained_seed']}) | {r['score']:.4g} "

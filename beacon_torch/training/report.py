@@ -81,13 +81,19 @@ def held_out(summary: dict) -> bool:
     return "test_uncontrolled" in summary and all("test" in s for s in summary["seeds"])
 
 
+def scaled(uncontrolled: float, env_id: str) -> bool:
+    """Whether scores beside no control scoring ``uncontrolled`` can be normalised: no
+    control below the paper's PPO. Where it scores above (sloshing's and mixing's calmer
+    developed states), the scale from no control to the paper's score runs backwards and
+    a normalised number would rank a policy worse than no control above one that beats
+    it."""
+    return uncontrolled < reference(env_id)
+
+
 def test_scaled(summary: dict) -> bool:
-    """Whether ``summary``'s test-set scores can be normalised: recorded, and no control
-    from the test set's developed starts scores below the paper's PPO. Where it scores
-    above (sloshing's and mixing's calmer developed states), the scale from no control
-    to the paper's score runs backwards and a normalised number would rank a policy
-    worse than no control above one that beats it."""
-    return held_out(summary) and summary["test_uncontrolled"] < reference(summary["env"])
+    """Whether ``summary``'s test-set scores can be normalised: recorded, and
+    :func:`scaled` beside no control from the test set's developed starts."""
+    return held_out(summary) and scaled(summary["test_uncontrolled"], summary["env"])
 
 
 def row(summary: dict, starts: str = "test") -> dict:
