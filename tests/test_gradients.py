@@ -174,6 +174,32 @@ def test_lorenz_smooth_reward_tends_to_the_indicator():
     assert torch.equal(indicator.physics.reward(indicator.params, x.float()), torch.tensor([1.0, 1.0, 0.0, 0.0]))
 
 
+def test_lorenz_straight_through_reward_is_worth_the_indicator_with_the_smooth_gradient():
+    """reward_value="indicator": a rollout scores exactly the published reward and its
+    gradient is the smooth reward's."""
+    actions = torch.linspace(-0.8, 0.8, 40, dtype=F64).reshape(40, 1, 1)
+    runs = {}
+    for name, params in {
+        "published": {},
+        "smooth": dict(reward_width=1.0),
+        "straight": dict(reward_width=1.0, reward_value="indicator"),
+    }.items():
+        env = beacon_torch.make("lorenz-continuous-v0", dtype=F64, differentiable=True, **params)
+        start = generic_start(env, 10)
+        taken = actions.clone().requires_grad_()
+        rewards = []
+        env.set_state(start)
+        for a in taken:
+            rewards.append(env.step(TensorDict({"action": a}, batch_size=[1]))["next", "reward"])
+        rewards = torch.cat(rewards)
+        grad = torch.autograd.grad(rewards.sum(), taken, allow_unused=True)[0] if rewards.requires_grad else None
+        runs[name] = rewards.detach(), grad
+    assert torch.equal(runs["straight"][0], runs["published"][0])
+    assert not torch.equal(runs["smooth"][0], runs["published"][0])
+    assert runs["straight"][1].abs().sum() > 0
+    assert torch.allclose(runs["straight"][1], runs["smooth"][1], rtol=1e-12, atol=0)
+
+
 def test_errors_name_the_problem():
     with pytest.raises(TypeError, match="'L' cannot be differentiated"):
         beacon_torch.make("burgers-v0", L=torch.tensor(2.0, requires_grad=True))

@@ -12,7 +12,10 @@ The forcing u is -1, 0 or +1 (discrete actions 0, 1, 2) in ``lorenz-v0`` and any
 
 That indicator has no gradient; for gradient-based control ``reward_width`` > 0 replaces
 it with the logistic step sigmoid(-x / reward_width), which tends to it as the width
-goes to 0 (the published scores use the indicator, the default).
+goes to 0 (the published scores use the indicator, the default). With
+``reward_value="indicator"`` the reward keeps the indicator's value and only its
+gradient is the logistic step's (straight-through): a policy trained by gradient is then
+scored, logged and evaluated on the published reward.
 """
 
 from __future__ import annotations
@@ -47,6 +50,12 @@ class LorenzParams:
     beta: float = param(8.0 / 3.0, low=0.0, high=1e3, low_open=True, doc="geometric factor")
     reward_width: float = param(
         0.0, low=0.0, high=1e3, doc="width of a smooth step replacing the reward's indicator x < 0 (0: the indicator)"
+    )
+    reward_value: str = param(
+        "smooth",
+        kind="choice",
+        choices=("smooth", "indicator"),
+        doc="with reward_width > 0, the reward's value: the smooth step's, or the indicator's with its gradient",
     )
 
 
@@ -98,8 +107,12 @@ class LorenzPhysics(Physics):
     def reward(self, p, x: torch.Tensor) -> torch.Tensor:
         width = p.reward_width
         step = (x < 0).to(self.dtype)
+        smooth = torch.sigmoid(-x / width.clamp(min=1e-30))
+        if p.reward_value == "indicator":
+            # s - s is exactly 0 for a finite s: the indicator's value, the step's gradient
+            smooth = step + (smooth - smooth.detach())
         # a width of 0 keeps the indicator
-        return torch.where(width > 0, torch.sigmoid(-x / width.clamp(min=1e-30)), step)
+        return torch.where(width > 0, smooth, step)
 
     def diagnose(self, p, state: LorenzState) -> dict[str, torch.Tensor]:
         x, y, z = state.xyz.unbind(-1)
