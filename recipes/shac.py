@@ -70,8 +70,14 @@ def main(cfg: GradConfig) -> dict:
 
     members = cfg.num_envs
     td = env.reset()
+    # per member, the actions left before its first episode is cut (0: none): members
+    # that all start together stay at the same instant of their episodes, and every
+    # update would follow one phase of the episode at a time
+    cuts = torch.zeros(members, dtype=torch.int64, device=cfg.device)
+    if cfg.stagger:
+        cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device)
     while run.frames < cfg.frames:
-        objective, td, visited, scores, rewards = horizon(cfg, env, actor, target, td)
+        objective, td, visited, scores, rewards = horizon(cfg, env, actor, target, td, cuts)
         loss = -objective / (cfg.horizon * members)
         optim.zero_grad()
         loss.backward()
@@ -100,9 +106,11 @@ def main(cfg: GradConfig) -> dict:
     return run.close(save)
 
 
-def horizon(cfg: GradConfig, env, actor, target, td):
+def horizon(cfg: GradConfig, env, actor, target, td, cuts):
     """One horizon of ``cfg.horizon`` differentiated actions of every member from ``td``,
-    each return closed by the ``target`` critic's value (None: no critic). Returns the
+    each return closed by the ``target`` critic's value (None: no critic). A member whose
+    count in ``cuts`` reaches 0 has its episode cut there, as by its length (the count
+    is decremented in place; an episode cut short is not scored). Returns the
     objective (the closed returns, summed over the members: a graph back to the
     policy's weights), the tensordict to go on from, the horizon's transitions
     (detached, for the critic), the scores of the episodes that ended and the mean
@@ -114,6 +122,9 @@ def horizon(cfg: GradConfig, env, actor, target, td):
     discount = torch.ones_like(returns)
     for h in range(cfg.horizon):
         td, td_next = env.step_and_maybe_reset(actor(td))
+        cut = staggered(td, cuts)
+        if cut.any():
+            td_next = env.reset(td_next.set("_reset", cut.unsqueeze(-1))).exclude("_reset")
         reward = td["next", "reward"][..., 0]
         returns = returns + discount * reward
         rewards = rewards + reward.detach().mean()
@@ -133,11 +144,26 @@ def horizon(cfg: GradConfig, env, actor, target, td):
         # a member whose episode ended starts a new return
         returns = torch.where(done, 0.0, returns)
         discount = torch.where(done, 1.0, discount)
-        if done.any():
-            scores.append(td["next", "episode_reward"][done].detach())
+        if (done & ~cut).any():
+            scores.append(td["next", "episode_reward"][done & ~cut].detach())
         visited.append(td.detach())
         td = td_next
     return objective, td, visited, scores, float(rewards) / cfg.horizon
+
+
+def staggered(td, cuts: torch.Tensor) -> torch.Tensor:
+    """The members whose first episode is cut at this step, marked truncated and done in
+    ``td["next"]`` as an episode that reached its length; counts ``cuts`` down (an
+    episode that ended by itself first needs no cut)."""
+    counting = cuts > 0
+    cuts.sub_(counting.to(cuts.dtype))
+    ended = td["next", "done"][..., 0]
+    cut = counting & (cuts == 0) & ~ended
+    cuts.masked_fill_(ended, 0)
+    if cut.any():
+        td["next", "truncated"] = td["next", "truncated"] | cut.unsqueeze(-1)
+        td["next", "done"] = td["next", "done"] | cut.unsqueeze(-1)
+    return cut
 
 
 def fit_critic(cfg: SHACConfig, critic, target, optim, targets: TDLambdaEstimator, visited: list, keys) -> float:

@@ -104,7 +104,7 @@ SHAC = {
     "lorenz-v0": dict(num_envs=16, params={"reward_width": 1.0, "reward_value": "indicator"}),
     "sloshing-v0": dict(num_envs=16, horizon=16),
     "shkadov-v0": dict(num_envs=16),
-    "vortex-v0": dict(grad_checkpoint=True),
+    "vortex-v0": dict(grad_checkpoint=True, stagger=True),
     "rayleigh-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True),
     "cylinder-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True),
@@ -319,6 +319,11 @@ class GradConfig(Config):
     lr: float = setting(1e-3, "learning rate", domain=POSITIVE)
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
+    stagger: bool = setting(
+        False,
+        "cut each member's first episode after a random number of actions, so that the members "
+        "spread over an episode's phases instead of all being at the same instant",
+    )
     # a differentiated step is compiled substep by substep, not as one call; the
     # recorded runs are eager
     compile: bool = setting(False, "the env's compiled physics")
