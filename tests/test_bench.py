@@ -274,7 +274,11 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
     assert out.returncode == 0, out.stderr[-2000:]
     (record,) = tmp_path.glob("grad-cost-lorenz-continuous-v0-*.json")
     (row,) = json.loads(record.read_text())["rows"]
-    assert row["members"] == 64 and len(row["rounds"]["eager"]) == 2
+    # at the actor-critic's batch
+    from beacon_torch.training.config import SHACConfig, configure
+
+    assert row["members"] == configure(SHACConfig, "lorenz-continuous-v0").num_envs == 16
+    assert len(row["rounds"]["eager"]) == 2
     assert row["forward_s"] > 0 and row["eager_ratio"] > 1
 
 
