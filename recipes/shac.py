@@ -73,9 +73,7 @@ def main(cfg: GradConfig) -> dict:
     # per member, the actions left before its first episode is cut (0: none): members
     # that all start together stay at the same instant of their episodes, and every
     # update would follow one phase of the episode at a time
-    cuts = torch.zeros(members, dtype=torch.int64, device=cfg.device)
-    if cfg.stagger:
-        cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device)
+    cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device) if cfg.stagger else None
     while run.frames < cfg.frames:
         objective, td, visited, scores, rewards = horizon(cfg, env, actor, target, td, cuts)
         loss = -objective / (cfg.horizon * members)
@@ -106,10 +104,10 @@ def main(cfg: GradConfig) -> dict:
     return run.close(save)
 
 
-def horizon(cfg: GradConfig, env, actor, target, td, cuts):
+def horizon(cfg: GradConfig, env, actor, target, td, cuts=None):
     """One horizon of ``cfg.horizon`` differentiated actions of every member from ``td``,
     each return closed by the ``target`` critic's value (None: no critic). A member whose
-    count in ``cuts`` reaches 0 has its episode cut there, as by its length (the count
+    count in ``cuts`` (None: no staggering) reaches 0 has its episode cut there, as by its length (the count
     is decremented in place; an episode cut short is not scored). Returns the
     objective (the closed returns, summed over the members: a graph back to the
     policy's weights), the tensordict to go on from, the horizon's transitions
@@ -122,8 +120,9 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts):
     discount = torch.ones_like(returns)
     for h in range(cfg.horizon):
         td, td_next = env.step_and_maybe_reset(actor(td))
-        cut = staggered(td, cuts)
-        if cut.any():
+        # the default path takes no host sync for it
+        cut = staggered(td, cuts) if cuts is not None else None
+        if cut is not None and cut.any():
             td_next = env.reset(td_next.set("_reset", cut.unsqueeze(-1))).exclude("_reset")
         reward = td["next", "reward"][..., 0]
         returns = returns + discount * reward
@@ -144,8 +143,9 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts):
         # a member whose episode ended starts a new return
         returns = torch.where(done, 0.0, returns)
         discount = torch.where(done, 1.0, discount)
-        if (done & ~cut).any():
-            scores.append(td["next", "episode_reward"][done & ~cut].detach())
+        scored = done if cut is None else done & ~cut
+        if scored.any():
+            scores.append(td["next", "episode_reward"][scored].detach())
         visited.append(td.detach())
         td = td_next
     return objective, td, visited, scores, float(rewards) / cfg.horizon
@@ -160,9 +160,8 @@ def staggered(td, cuts: torch.Tensor) -> torch.Tensor:
     ended = td["next", "done"][..., 0]
     cut = counting & (cuts == 0) & ~ended
     cuts.masked_fill_(ended, 0)
-    if cut.any():
-        td["next", "truncated"] = td["next", "truncated"] | cut.unsqueeze(-1)
-        td["next", "done"] = td["next", "done"] | cut.unsqueeze(-1)
+    td["next", "truncated"] = td["next", "truncated"] | cut.unsqueeze(-1)
+    td["next", "done"] = td["next", "done"] | cut.unsqueeze(-1)
     return cut
 
 

@@ -766,7 +766,7 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         if members == 2:
             state = env.base_env.state
             env.base_env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in state._asdict().items()})
-        objective, _, _, scores, _ = shac.horizon(cfg, env, actor, critic, td, torch.zeros(members, dtype=torch.int64))
+        objective, _, _, scores, _ = shac.horizon(cfg, env, actor, critic, td)
         loss = -objective / (cfg.horizon * members)
         grads.append(torch.autograd.grad(loss, list(actor.parameters())))
         ended.append(len(scores))
