@@ -15,6 +15,7 @@ from beacon_torch.core.checks import as_batch_size, as_device, as_dtype
 from beacon_torch.core.physics import Physics
 from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.cylinder import CylinderEnv
+from beacon_torch.envs.ks import KSEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
 from beacon_torch.envs.mixing import MixingContinuousEnv, MixingEnv
 from beacon_torch.envs.rayleigh import RayleighEnv
@@ -37,6 +38,7 @@ ENVS: dict[str, type[FlowEnv]] = {
         MixingEnv,
         MixingContinuousEnv,
         CylinderEnv,
+        KSEnv,
     )
 }
 

@@ -165,6 +165,23 @@ def burgers_frame(x: np.ndarray, u: np.ndarray, x_ctrl: float, u_target: float, 
     return to_rgb(fig)
 
 
+def ks_frame(x: np.ndarray, u: np.ndarray, target: np.ndarray, actions: np.ndarray, t: float) -> np.ndarray:
+    """The field, the target equilibrium, the actuators' positions and their bars."""
+    fig = new_figure()
+    ax, bars = _profile_axes(fig, with_bars_width=0.3)
+    ax.plot(x, u, lw=1.0, color="#1f77b4")
+    ax.plot(x, target, color="#555555", lw=0.6, ls="--")
+    for centre in x[:: len(x) // 4]:
+        ax.axvline(centre, color=ACTION_COLOR, lw=0.8)
+    ax.set_xlim(x[0], x[-1])
+    ax.set_ylim(-4.0, 4.0)
+    ax.set_xlabel("x")
+    ax.set_ylabel("u")
+    ax.set_title(f"ks   t = {t:.2f}", fontsize=10)
+    action_bars(bars, list(actions), [f"a{i}" for i in range(len(actions))], [(-1.0, 1.0)] * len(actions))
+    return to_rgb(fig)
+
+
 def sloshing_frame(x: np.ndarray, h: np.ndarray, action: float, t: float) -> np.ndarray:
     """The free surface in the tank and the acceleration bar."""
     fig = new_figure()
