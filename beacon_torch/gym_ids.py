@@ -28,6 +28,7 @@ BUILT_IN = {
     "mixing-v0": 100,
     "mixing-continuous-v0": 100,
     "cylinder-v0": 80,
+    "ks-v0": 3000,
 }
 
 

@@ -40,9 +40,14 @@ def table(rows: list[dict]) -> str:
         default = per_action * (20 * 10) / (s["horizon"] * s["iterations"])
         hours = default * env_class(r["env"]).episode_length / 3600
         episode = f"{hours:.1f} h" if hours >= 1 else f"{60 * hours:.0f} min"
-        if "normalised" in r:
+        if "score_mean" in r:
+            if "normalised" not in r:
+                normalised = "- (b)"
             # no control above the paper's score from these starts: the scale runs backwards
-            normalised = f"**{r['normalised']:.2f}**" if scaled(r["uncontrolled"], r["env"]) else "- (a)"
+            elif scaled(r["uncontrolled"], r["env"]):
+                normalised = f"**{r['normalised']:.2f}**"
+            else:
+                normalised = "- (a)"
             scores = f"{r['score_mean']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {normalised}"
         else:
             scores = f"not run ({r['planned_actions']} actions planned for their cost) | | "

@@ -155,12 +155,9 @@ def main(args) -> dict:
             progress=args.progress,
             compile=args.compile,
         )
-        record.update(
-            score_mean=result["score_mean"],
-            score_std=result["score_std"],
-            uncontrolled=result["uncontrolled"],
-            normalised=float(normalised(result["score_mean"], result["uncontrolled"], args.env)),
-        )
+        record.update({k: result[k] for k in ("score_mean", "score_std", "uncontrolled")})
+        if env_class(args.env).paper_ppo is not None:  # else no reference score to scale by
+            record["normalised"] = float(normalised(result["score_mean"], result["uncontrolled"], args.env))
     record.update(
         planned_actions=stats["actions"],
         cpu_s_per_action=stats["cpu_s"] / max(stats["actions"], 1),
@@ -170,10 +167,11 @@ def main(args) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(record, indent=1)
     create_file(record_file, lambda tmp: tmp.write_text(text), "give another --out")
-    if "normalised" in record:
+    if "score_mean" in record:
+        scaled_text = f"normalised {record['normalised']:.2f}, " if "normalised" in record else ""
         print(
             f"mpc on {args.env} ({args.starts} starts): {record['score_mean']:.4g} against "
-            f"{record['uncontrolled']:.4g} uncontrolled, normalised {record['normalised']:.2f}, "
+            f"{record['uncontrolled']:.4g} uncontrolled, {scaled_text}"
             f"{record['cpu_s_per_action']:.2f} CPU s per action"
         )
     else:

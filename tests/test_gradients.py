@@ -241,6 +241,7 @@ REACH = {
     "rayleigh-v0": (0, 1, {}),
     "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].test_settings),
     "cylinder-v0": (0, 1, ENVS["cylinder-v0"].test_settings),
+    "ks-v0": (2, 2, {}),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)

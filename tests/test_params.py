@@ -151,6 +151,7 @@ def test_list_envs():
     assert beacon_torch.list_envs() == [
         "burgers-v0",
         "cylinder-v0",
+        "ks-v0",
         "lorenz-continuous-v0",
         "lorenz-v0",
         "mixing-continuous-v0",
