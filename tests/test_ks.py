@@ -125,3 +125,18 @@ def test_the_sensors_and_actuators_are_the_papers():
     assert np.allclose(psi.max(0), 1.0) and list(psi.argmax(0)) == [0, 16, 32, 48]
     # the actuator at x = 0 reaches across the periodic boundary
     assert psi[63, 0] == pytest.approx(psi[1, 0])
+
+
+def test_the_page_shows_the_recorded_validation_and_trials():
+    from pathlib import Path
+
+    from beacon_torch import received
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "ks.md").read_text()
+    newest = sorted(validation.RECORDS.glob("ks_validation-*.json"))[-1]
+    rows = received.json_file(newest, "a ks validation record")["rows"]
+    assert validation.table(rows) in page
+    # the recorded exponent is within a tenth of the published one, the energies within 1 %
+    (lyapunov,) = [r for r in rows if r["kind"] == "lyapunov"]
+    assert lyapunov["members"] == 256 and abs(lyapunov["exponent"] / PUBLISHED_LYAPUNOV - 1) < 0.1
+    assert script("benchmarks/ks_trials.py").table() in page
