@@ -88,6 +88,16 @@ def wavenumbers(L: float, n: int) -> np.ndarray:
     return 2.0 * np.pi * np.arange(n // 2 + 1) / L
 
 
+def symbols(L: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The Fourier symbols of the real transform's modes: the linear operator
+    -d_xx - d_xxxx (q^2 - q^4) and the advection -(u^2)_x / 2 (-i q / 2, none at the
+    Nyquist mode, which a real field's derivative does not have)."""
+    q = wavenumbers(L, n)
+    advect = -0.5j * q
+    advect[-1] = 0.0
+    return q**2 - q**4, advect
+
+
 def circulant(symbol: np.ndarray, n: int) -> np.ndarray:
     """The real ``[n, n]`` matrix M with M u = irfft(symbol * rfft(u)) (a Fourier
     multiplier; the imaginary part at the Nyquist mode is dropped, as irfft does)."""
@@ -107,10 +117,7 @@ def stage_matrices(L: float, n: int, sigma: float, dt: float = DT) -> np.ndarray
     """``[3, 3n + 4, n]`` float64: per stage, W with u_next = [u, u^2, u_prev^2, a] @ W,
     where u_prev is the previous stage's input and a the actuators' amplitudes (the
     forcing, amp included, enters like the advection, with gamma + zeta)."""
-    q = wavenumbers(L, n)
-    lam = q**2 - q**4  # the linear operator -d_xx - d_xxxx
-    advect = -0.5j * q  # -(u^2)_x / 2
-    advect[-1] = 0.0  # the Nyquist mode of a real field has no derivative
+    lam, advect = symbols(L, n)
     psi = actuators(L, n, sigma)
     out = []
     for alpha, beta, gamma, zeta in zip(ALPHA, BETA, GAMMA, ZETA, strict=True):
@@ -138,21 +145,16 @@ def rhs(u: torch.Tensor, L: float) -> torch.Tensor:
     """The uncontrolled equations' right-hand side -u u_x - u_xx - u_xxxx at the grid
     points (``u`` ``[..., n]``, spectral derivatives)."""
     n = u.shape[-1]
-    q = torch.as_tensor(wavenumbers(L, n), dtype=u.dtype, device=u.device)
-    lam = q**2 - q**4
-    advect = -0.5j * q
-    advect[-1] = 0.0
+    lam, advect = (torch.as_tensor(s, device=u.device) for s in symbols(L, n))
     return torch.fft.irfft(lam * torch.fft.rfft(u) + advect * torch.fft.rfft(u * u), n=n)
 
 
 def jacobian(u: torch.Tensor, L: float) -> np.ndarray:
     """``[n, n]`` float64: the derivative of :func:`rhs` at the field ``u`` ``[n]``,
     whose eigenvalues are an equilibrium's stability exponents."""
-    n = u.shape[-1]
-    q = wavenumbers(L, n)
-    derivative = 1j * q
-    derivative[-1] = 0.0
-    return circulant(q**2 - q**4, n) - circulant(derivative, n) @ np.diag(u.double().cpu().numpy())
+    lam, advect = symbols(L, u.shape[-1])
+    # the advection's derivative at u: -(u v)_x, the symbol -2 x advect applied to u v
+    return circulant(lam, u.shape[-1]) + circulant(2.0 * advect, u.shape[-1]) @ np.diag(u.double().cpu().numpy())
 
 
 def equilibrium(target: str, L: float = 22.0, n: int = 64, tol: float = 1e-10) -> torch.Tensor:
@@ -195,12 +197,13 @@ def attractor_bank(L: float, n: int, sigma: float) -> KSState:
     u = u - u.mean(-1, keepdim=True)  # the equilibria's mean: the flow keeps it
     weights = torch.as_tensor(stage_matrices(L, n, sigma))
     zero = torch.zeros(BANK_TRAJECTORIES, len(ACTUATORS), dtype=torch.float64)
-    states = []
-    steps = round(BANK_TRANSIENT / DT)
-    for i in range(steps + BANK_STATES * round(BANK_SPACING / DT)):
+    for _ in range(round(BANK_TRANSIENT / DT)):
         u = ks_step(u, zero, weights)
-        if i >= steps and (i - steps) % round(BANK_SPACING / DT) == round(BANK_SPACING / DT) - 1:
-            states.append(u)
+    states = []
+    for _ in range(BANK_STATES):
+        for _ in range(round(BANK_SPACING / DT)):
+            u = ks_step(u, zero, weights)
+        states.append(u)
     fields = torch.stack(states, 1).reshape(-1, n)
     return KSState(u=fields, a=torch.zeros(len(fields), len(ACTUATORS), dtype=torch.float64))
 
@@ -233,26 +236,26 @@ class KSPhysics(Physics):
         self._weights = self.tensor(stage_matrices(self.L, self.n, self.sigma))
         self._target = self.tensor(equilibrium(p.target, self.L, self.n))
         self._sensors = slice(0, self.n, self.n // N_SENSORS)
-        self._bank = None
+        self._starts = None
         self._step = self.kernels(ks_step)
 
-    def bank(self) -> KSState:
-        """The start states (float64 on the CPU; computed once per L, n and sigma, and
-        cached)."""
-        if self._bank is None:
+    def starts(self) -> torch.Tensor:
+        """``[1024, n]``: the start fields, in the physics' dtype and on its device (the
+        bank is computed once per L, n and sigma in float64, and cached)."""
+        if self._starts is None:
             key = dict(version=1, L=self.L, n=self.n, sigma=self.sigma)
             size = BANK_TRAJECTORIES * BANK_STATES
-            like = KSState(u=torch.zeros(size, self.n, dtype=torch.float64), a=torch.zeros(size, len(ACTUATORS)))
-            like = like._replace(a=like.a.double())
-            self._bank = cached("ks-attractor", key, lambda: attractor_bank(self.L, self.n, self.sigma), like)
-        return self._bank
+            zeros = torch.zeros(size, self.n + len(ACTUATORS), dtype=torch.float64)
+            like = KSState(u=zeros[:, : self.n], a=zeros[:, self.n :])
+            bank = cached("ks-attractor", key, lambda: attractor_bank(self.L, self.n, self.sigma), like)
+            self._starts = bank.u.to(device=self.device, dtype=self.dtype)
+        return self._starts
 
     def initial_state(self, p, generator, mask=None) -> KSState:
-        bank = self.bank()
-        pick = torch.randint(len(bank.u), (self.num_envs,), generator=generator, device=self.device)
-        u = bank.u.to(self.device)[pick]
+        starts = self.starts()
+        pick = torch.randint(len(starts), (self.num_envs,), generator=generator, device=self.device)
         return KSState(
-            u=u.to(self.dtype), a=torch.zeros(self.num_envs, len(ACTUATORS), dtype=self.dtype, device=self.device)
+            u=starts[pick], a=torch.zeros(self.num_envs, len(ACTUATORS), dtype=self.dtype, device=self.device)
         )
 
     def advance(self, p, state: KSState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
