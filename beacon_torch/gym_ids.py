@@ -25,6 +25,7 @@ BUILT_IN = {
     "shkadov-v0": 400,
     "shkadov-separable-v0": 400,
     "rayleigh-v0": 100,
+    "rayleigh-separable-v0": 200,
     "mixing-v0": 100,
     "mixing-continuous-v0": 100,
     "cylinder-v0": 80,

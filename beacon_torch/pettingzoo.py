@@ -1,5 +1,6 @@
-"""PettingZoo's parallel API for the multi-agent layouts (``shkadov-separable-v0``):
-:class:`BeaconParallelEnv`, each agent a jet of one batch member.
+"""PettingZoo's parallel API for the multi-agent layouts (``shkadov-separable-v0``,
+``rayleigh-separable-v0``): :class:`BeaconParallelEnv`, each agent an actuator (a jet, a
+heated segment) of one batch member.
 
     from beacon_torch.pettingzoo import parallel_env   # pip install "beacon-torch[pettingzoo]"
 
@@ -12,7 +13,8 @@
 The agents (``jet_0`` ... ``jet_{n-1}``) act together on one film: each observes the
 flow rate upstream of its jet, sets its jet's strength in ``[-1, 1]`` and is rewarded
 by the flatness downstream of it (their mean is the single-agent ``shkadov-v0``
-reward). An episode ends for all of them at once, at the episode length or when the
+reward); on ``rayleigh-separable-v0`` the agents ``segment_0`` ... are the heated segments
+of the convection channel. An episode ends for all of them at once, at the episode length or when the
 film blows up. The step is :meth:`FlowEnv.step_members` of a batch of one, the code of
 TorchRL's ``step`` (checks, blow-ups, trajectories bit for bit). PettingZoo's
 ``parallel_api_test`` passes (tested).
@@ -67,7 +69,7 @@ class BeaconParallelEnv(ParallelEnv):
         self.metadata = {**self.metadata, "name": env_id.replace("-", "_")}
         obs_spec = self.env.full_observation_spec[self.env.observation_key]
         n_agents, n_obs = obs_spec.shape[1:]
-        self.possible_agents = [f"jet_{i}" for i in range(n_agents)]
+        self.possible_agents = [f"{self.env.agent_name}_{i}" for i in range(n_agents)]
         self.agents: list[str] = []
         np_dtype = np.float64 if self.env.dtype == torch.float64 else np.float32
         self._observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np_dtype)

@@ -18,7 +18,7 @@ from beacon_torch.envs.cylinder import CylinderEnv
 from beacon_torch.envs.ks import KSEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
 from beacon_torch.envs.mixing import MixingContinuousEnv, MixingEnv
-from beacon_torch.envs.rayleigh import RayleighEnv
+from beacon_torch.envs.rayleigh import RayleighEnv, RayleighSeparableEnv
 from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
 from beacon_torch.envs.sloshing import SloshingEnv
 from beacon_torch.envs.vortex import VortexEnv
@@ -35,6 +35,7 @@ ENVS: dict[str, type[FlowEnv]] = {
         ShkadovEnv,
         ShkadovSeparableEnv,
         RayleighEnv,
+        RayleighSeparableEnv,
         MixingEnv,
         MixingContinuousEnv,
         CylinderEnv,

@@ -56,6 +56,8 @@ def start_param(doc: str):
 
 
 def _differs(value, default) -> bool:
+    if isinstance(value, str):
+        return value != default
     if isinstance(value, torch.Tensor):
         # in the parameter's own dtype: a float32 9.81 is the default 9.81
         value = value.detach()

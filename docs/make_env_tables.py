@@ -18,7 +18,16 @@ END = "<!-- end of the parameters -->"
 
 
 def page(env_id: str) -> Path:
-    return PAGES / f"{env_id.split('-')[0]}.md"
+    """An env's own page, or for a variant without one, its family's."""
+    own = PAGES / f"{env_id.removesuffix('-v0')}.md"
+    return own if own.exists() else PAGES / f"{env_id.split('-')[0]}.md"
+
+
+def paged_envs() -> list[str]:
+    """The envs whose tables are written: the benchmark's own, and the variants with a
+    page of their own."""
+    base = base_envs()
+    return base + [e for e in ENVS if e not in base and page(e) != page(ENVS[e].base_id())]
 
 
 def block(env_id: str) -> str:
@@ -37,6 +46,6 @@ def block(env_id: str) -> str:
 
 
 if __name__ == "__main__":
-    for env_id in base_envs():
+    for env_id in paged_envs():
         print(write_block(page(env_id), BEGIN, END, block(env_id)))
     print(write_text(LISTING, listing()))

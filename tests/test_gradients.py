@@ -239,6 +239,7 @@ REACH = {
     "shkadov-v0": (1, 2, {"random_start": 0}),
     "shkadov-separable-v0": (1, 2, {"random_start": 0}),
     "rayleigh-v0": (0, 1, {}),
+    "rayleigh-separable-v0": (0, 1, ENVS["rayleigh-separable-v0"].test_settings),
     "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].test_settings),
     "cylinder-v0": (0, 1, ENVS["cylinder-v0"].test_settings),
     "ks-v0": (2, 2, {}),

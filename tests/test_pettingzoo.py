@@ -18,6 +18,12 @@ def test_pettingzoos_own_api_test_passes():
     parallel_api_test(parallel_env("shkadov-separable-v0", compile=False, **FAST), num_cycles=30)
 
 
+def test_pettingzoos_own_api_test_passes_on_the_convection_segments():
+    env = parallel_env("rayleigh-separable-v0", compile=False, period=0.1)
+    assert env.possible_agents[0] == "segment_0" and len(env.possible_agents) == 10
+    parallel_api_test(env, num_cycles=5)
+
+
 def test_the_agents_are_the_jets_of_the_batched_env():
     """Per-agent rewards and observations are those of the TorchRL env's agents; their
     mean reward is the single-agent env's."""
@@ -49,7 +55,7 @@ def test_an_episode_ends_for_every_agent_at_its_length():
 
 
 def test_single_agent_envs_and_missing_actions_are_refused():
-    assert multi_agent_envs() == ["shkadov-separable-v0"]
+    assert multi_agent_envs() == ["rayleigh-separable-v0", "shkadov-separable-v0"]
     with pytest.raises(ValueError, match="one agent"):
         BeaconParallelEnv("shkadov-v0")
     env = parallel_env("shkadov-separable-v0", n_jets=2, compile=False)

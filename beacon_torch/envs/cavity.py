@@ -114,15 +114,30 @@ class CavityPhysics(Physics):
         return 5 * (self.nx + 2) * (self.ny + 2)  # u, v, p, the scalar and a projection's work
 
     def setup(self, p) -> None:
-        self.nx, self.ny, self.dx, self.dy = grid(p.L, p.H, self.cells_per_unit)
+        self.nx, self.ny, self.dx, self.dy = self.grid(p)
         tol = self.jacobi_tol if p.solver == "jacobi" else None
         self.cavity = Cavity(
-            self.nx, self.ny, self.dx, self.dy, self.poisson_bc, jacobi_tol=tol, dtype=self.dtype, device=self.device
+            self.nx,
+            self.ny,
+            self.dx,
+            self.dy,
+            self.poisson_conditions(p),
+            jacobi_tol=tol,
+            dtype=self.dtype,
+            device=self.device,
         )
         self.solver = self.cavity.solver
         self.ghosts = self.scalar_ghosts()
         self._substeps = self.kernels.loop(functools.partial(_any_substep, self.substep))
         self.probes = Probes(self.nx, self.ny, self.device)
+
+    def grid(self, p) -> tuple[int, int, float, float]:
+        """``(nx, ny, dx, dy)`` of the parameters' cavity."""
+        return grid(p.L, p.H, self.cells_per_unit)
+
+    def poisson_conditions(self, p) -> Sequence[str]:
+        """The pressure increment's conditions on the left, right, bottom and top."""
+        return self.poisson_bc
 
     def scalar_ghosts(self) -> Ghosts:
         """The ghost map of the scalar (its wall conditions)."""

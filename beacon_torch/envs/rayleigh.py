@@ -18,20 +18,23 @@ Nusselt number. Every episode starts from the developed single convection roll
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
+from beacon_torch.agents import AgentsLayout
 from beacon_torch.base import GradCheck, Noise, map_state
 from beacon_torch.cache import cached
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, transport
-from beacon_torch.numerics.grid import GRADIENT, VALUE, Ghosts, edge_offset
+from beacon_torch.envs.cavity import N_OBS, PROBED, CavityEnv, CavityPhysics, grid, transport
+from beacon_torch.numerics.grid import GRADIENT, NEUMANN, PERIODIC, VALUE, Ghosts, edge_offset
 from beacon_torch.numerics.projection import Cavity, Flow
 from beacon_torch.numerics.staggered import project
 from beacon_torch.params import number, param, resolve_params
-from beacon_torch.starts import PUBLISHED, choose_start, published_table, start_param
+from beacon_torch.starts import GENERATED, PUBLISHED, choose_start, published_table, start_param
 
 CELLS_PER_UNIT = 50
 DT = 0.01
@@ -40,6 +43,8 @@ PR = 0.71
 T_HOT, T_COLD = 0.5, -0.5
 C = 0.75  # largest temperature fluctuation of a segment
 DEVELOP_TIME = 200.0
+CHANNEL_DEVELOP_TIME = 400.0  # the uncontrolled run before a periodic channel's episodes
+WALLS, CHANNEL = "walls", "periodic"
 DEVELOP_SEED = 0
 PERTURBATION = 1e-6  # breaks the left-right symmetry of the exact solver
 
@@ -68,7 +73,7 @@ class RayleighState(NamedTuple):
 
 @dataclass(frozen=True)
 class RayleighParams:
-    L: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity length (50 cells per unit)")
+    L: float = param(1.0, low=0.2, high=8.0, per_member=False, doc="cavity length (50 cells per unit)")
     H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
     n_sgts: int = param(
         10,
@@ -79,6 +84,21 @@ class RayleighParams:
         doc="number of bottom segments (actions); divides the cells along L",
     )
     ra: float = param(1e4, low=1.0, high=1e6, per_member=False, differentiable=True, doc="Rayleigh number")
+    pr: float = param(PR, low=0.01, high=100.0, per_member=False, differentiable=True, doc="Prandtl number")
+    sides: str = param(
+        WALLS,
+        kind="choice",
+        choices=(WALLS, CHANNEL),
+        doc="the side boundaries: adiabatic no-slip walls (a cavity), or periodic (a channel of period L)",
+    )
+    period: float = param(
+        DT * SUBSTEPS,
+        low=DT,
+        high=100.0,
+        per_member=False,
+        doc=f"time between two actions, a multiple of the time step {DT:g}",
+    )
+    resolution: int = param(CELLS_PER_UNIT, low=8, high=200, kind="int", per_member=False, doc="cells per unit length")
     start: str = start_param("the published stored roll, or the one of developed_convection()")
     solver: str = param(
         "direct",
@@ -88,10 +108,33 @@ class RayleighParams:
     )
 
     def __post_init__(self):
-        choose_start(self, ("L", "H", "ra"))
-        nx = int(round(self.L * CELLS_PER_UNIT))
-        if nx % self.n_sgts:
-            raise ValueError(f"parameter 'n_sgts' = {self.n_sgts} must divide the {nx} cells along L = {self.L:g}")
+        choose_start(self, ("L", "H", "ra", "pr", "sides", "resolution"))
+        check_layout(self)
+
+
+def check_layout(p) -> None:
+    """The one-line errors of a layout whose segments or action period do not fit the
+    grid and the time step."""
+    nx = int(round(p.L * p.resolution))
+    if p.sides == WALLS and nx % p.n_sgts:
+        raise ValueError(f"parameter 'n_sgts' = {p.n_sgts} must divide the {nx} cells along L = {p.L:g}")
+    if abs(p.period / DT - round(p.period / DT)) > 1e-9:
+        raise ValueError(f"parameter 'period' = {p.period:g} must be a multiple of the time step {DT:g}")
+    if p.sides == CHANNEL:
+        # the channel's forward-Euler transport is stable up to a diffusion number of 1/2
+        dx, dy = p.L / channel_cells(p.L, p.n_sgts, p.resolution), p.H / round(p.H * p.resolution)
+        number_ = DT / (number(p.pr) * number(p.ra)) ** 0.5 * (dx**-2 + dy**-2)
+        if number_ > 0.5:
+            raise ValueError(
+                f"parameter 'resolution' = {p.resolution} is too fine for the channel's explicit transport at "
+                f"Ra = {number(p.ra):g}, Pr = {number(p.pr):g} (diffusion number {number_:.2f} > 0.5)"
+            )
+
+
+def channel_cells(L: float, n_sgts: int, resolution: int) -> int:
+    """The cells along a periodic channel: about ``resolution`` per unit length, rounded
+    to a multiple of the segments so that each segment covers whole cells."""
+    return n_sgts * max(1, int(round(L * resolution / n_sgts)))
 
 
 def temperature_offset(bottom: torch.Tensor, ghosts: Ghosts, ny: int) -> torch.Tensor:
@@ -107,7 +150,7 @@ def substep(flow: Flow, walls, theta_offset: torch.Tensor, cavity: Cavity, theta
     ``theta_offset`` from :func:`temperature_offset`)."""
     theta = flow.scalar
     # as published, each interior v face takes the temperature of the cell above it
-    buoyancy = theta[1:-1, 2:-1]
+    buoyancy = theta[cavity.source_x, 2:-1]
     u, v = cavity.predict(flow, walls, nu, DT, buoyancy)
     u, v, p = project(u, v, flow.p, cavity.solver, DT, cavity.dx, cavity.dy)
     return Flow(u, v, p, transport(theta, u, v, theta_ghosts, theta_offset, cavity, kappa, DT))
@@ -125,17 +168,19 @@ def rest_state(num_envs: int, nx: int, ny: int, dtype, device) -> Convection:
 
 
 def developed_convection(
-    p: RayleighParams = RayleighParams(), *, time: float = DEVELOP_TIME, seed: int = DEVELOP_SEED
+    p: RayleighParams = RayleighParams(), *, time: float | None = None, seed: int = DEVELOP_SEED
 ) -> Convection:
     """The published initial state: from rest (theta = 0) ``time`` time units without
-    control, in float64, after a perturbation of the temperature of amplitude 1e-6 drawn
-    from a generator seeded by ``seed`` (the solver is exactly symmetric, so convection
-    would otherwise never start). Returns ``u``, ``v``, ``p``, ``theta`` without batch
-    dimension."""
+    control (default 200 for a cavity, 400 for a channel), in float64, after a
+    perturbation of the temperature of amplitude 1e-6 drawn from a generator seeded by
+    ``seed`` (the solver is exactly symmetric, so convection would otherwise never
+    start). Returns ``u``, ``v``, ``p``, ``theta`` without batch dimension."""
+    if time is None:
+        time = CHANNEL_DEVELOP_TIME if p.sides == CHANNEL else DEVELOP_TIME
     # the physics of these parameters runs the substeps; its own start is never made
     given = {**dataclasses.asdict(p), "start": "generated"}
     cpu, f64 = torch.device("cpu"), torch.float64
-    p = resolve_params(RayleighParams, given, batch_size=1, device=cpu, dtype=f64, env_id=RayleighEnv.env_id)
+    p = resolve_params(type(p), given, batch_size=1, device=cpu, dtype=f64, env_id=RayleighEnv.env_id)
     physics = RayleighPhysics(p, 1, dtype=f64, device=cpu)
     g = torch.Generator().manual_seed(seed)
     flow = Flow(*rest_state(1, physics.nx, physics.ny, torch.float64, "cpu"))
@@ -185,27 +230,46 @@ class RayleighPhysics(CavityPhysics):
     def sizes(cls, p) -> tuple[int, int]:
         return N_OBS, p.n_sgts  # one temperature per bottom segment
 
-    def scalar_ghosts(self) -> Ghosts:
-        # adiabatic sides; the plates' temperatures through the ghost offset
-        return Ghosts.cells(self.nx, self.ny, GRADIENT, GRADIENT, VALUE, VALUE, dtype=self.dtype, device=self.device)
+    def setup(self, p) -> None:
+        self.sides = p.sides
+        super().setup(p)
+        self.substeps = int(round(p.period / DT))
 
-    # derived from ra at each use, so that every differentiated step has its own graph
+    def grid(self, p) -> tuple[int, int, float, float]:
+        if p.sides == WALLS:
+            return grid(p.L, p.H, p.resolution)
+        nx, ny = channel_cells(p.L, p.n_sgts, p.resolution), int(round(p.H * p.resolution))
+        return nx, ny, p.L / nx, p.H / ny
+
+    def poisson_conditions(self, p):
+        return (NEUMANN,) * 4 if p.sides == WALLS else (PERIODIC, PERIODIC, NEUMANN, NEUMANN)
+
+    def scalar_ghosts(self) -> Ghosts:
+        # adiabatic sides (or none, in a channel); the plates' temperatures through the
+        # ghost offset
+        side = GRADIENT if self.sides == WALLS else PERIODIC
+        return Ghosts.cells(self.nx, self.ny, side, side, VALUE, VALUE, dtype=self.dtype, device=self.device)
+
+    # derived from ra and pr at each use, so that every differentiated step has its own graph
     def nu(self, p):
-        return (PR / p.ra) ** 0.5
+        return (p.pr / p.ra) ** 0.5
 
     def kappa(self, p):
-        return 1.0 / (PR * p.ra) ** 0.5
+        return 1.0 / (p.pr * p.ra) ** 0.5
 
     def _start(self, p) -> Convection:
         # loaded at the first reset: an env started by set_state never develops its roll
-        return self.remembered(("convection", p.start, number(p.ra)), lambda: self._developed(p))
+        return self.remembered(("convection", p.start, number(p.ra), number(p.pr)), lambda: self._developed(p))
 
     def _developed(self, p) -> Convection:
         if p.start == PUBLISHED:
             start = published_convection(self.nx, self.ny)
         else:
-            p = dataclasses.replace(p, ra=number(p.ra))
+            p = dataclasses.replace(p, ra=number(p.ra), pr=number(p.pr))
             key = dict(version=3, L=p.L, H=p.H, ra=p.ra)
+            if (p.sides, p.pr, p.resolution) != (WALLS, PR, CELLS_PER_UNIT):  # the shipped cavity's key unchanged
+                key.update(sides=p.sides, pr=p.pr, resolution=p.resolution)
+                key.update(n_sgts=p.n_sgts if p.sides == CHANNEL else None)
             like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
             start = cached("rayleigh-convection", key, lambda: developed_convection(p), like)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
@@ -219,7 +283,7 @@ class RayleighPhysics(CavityPhysics):
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
         offset = temperature_offset(bottom, self.ghosts, self.ny)
-        flow = self.run(self.flow(state), SUBSTEPS, self.nu(p), self.kappa(p), offset=offset)
+        flow = self.run(self.flow(state), self.substeps, self.nu(p), self.kappa(p), offset=offset)
         new = RayleighState(*flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
         return new, -nusselt(new.theta, self.dy)
 
@@ -242,3 +306,141 @@ class RayleighEnv(CavityEnv):
 
     def scalar_range(self) -> tuple[float, float]:
         return T_COLD, T_HOT
+
+
+# Vignon et al. (2023)'s channel: x in [0, 2 pi) periodic, y in [-1, 1], Ra = 1e4 and
+# Pr = 0.7 on the half-height, actions every 1.5 time units, 200 a training episode
+VIGNON = dict(L=2.0 * math.pi, H=2.0, sides=CHANNEL, pr=0.7, period=1.5)
+# BEACON's cavity (rayleigh-v0's geometry) for the same multi-agent layout
+BEACON = dict(L=1.0, H=1.0, sides=WALLS, pr=PR, period=DT * SUBSTEPS, resolution=CELLS_PER_UNIT)
+VIGNON_RESOLUTION = 32  # cells per unit length (ny = 64 across the channel, as Vignon's 64 modes)
+PROBE_ROWS, PROBE_COLUMNS = 8, 3  # probe rows over the height; probe columns per segment
+
+
+@dataclass(frozen=True)
+class RayleighSeparableParams(RayleighParams):
+    L: float = param(VIGNON["L"], low=0.2, high=8.0, per_member=False, doc="length (the period of a channel)")
+    H: float = param(VIGNON["H"], low=0.2, high=4.0, per_member=False, doc="height between the plates")
+    pr: float = param(VIGNON["pr"], low=0.01, high=100.0, per_member=False, differentiable=True, doc="Prandtl number")
+    sides: str = param(
+        CHANNEL,
+        kind="choice",
+        choices=(WALLS, CHANNEL),
+        doc="the side boundaries: periodic (a channel of period L), or adiabatic no-slip walls (a cavity)",
+    )
+    period: float = param(
+        VIGNON["period"],
+        low=DT,
+        high=100.0,
+        per_member=False,
+        doc=f"time between two actions, a multiple of the time step {DT:g}",
+    )
+    resolution: int = param(
+        VIGNON_RESOLUTION, low=8, high=200, kind="int", per_member=False, doc="cells per unit length"
+    )
+    start: str = param(
+        GENERATED, kind="choice", choices=(GENERATED,), doc="the developed flow of developed_convection()"
+    )
+    window: int = param(
+        3,
+        low=1,
+        high=199,
+        kind="int",
+        per_member=False,
+        doc="segments an agent observes, centred on its own (odd; n_sgts with a channel: the whole flow, recentred)",
+    )
+    beta: float = param(
+        0.0015,
+        low=0.0,
+        high=1.0,
+        per_member=False,
+        doc="weight of the agent's own Nusselt number in its reward (the rest: the whole flow's)",
+    )
+
+    def __post_init__(self):
+        check_layout(self)
+        if self.window % 2 == 0 or self.window > self.n_sgts:
+            raise ValueError(
+                f"parameter 'window' = {self.window} must be odd and at most n_sgts = {self.n_sgts} (segments seen)"
+            )
+
+
+class RayleighSeparablePhysics(RayleighPhysics):
+    """The convection with each bottom segment an agent: actions ``[B, n_sgts, 1]``,
+    observations ``[B, n_sgts, 3 x 8 rows x 3 columns x window]`` (temperature and the
+    two velocities at the probes above the agent's window of segments, its own in the
+    middle) and rewards ``[B, n_sgts]``."""
+
+    Params = RayleighSeparableParams
+    diagnostics = {
+        "nusselt": "the whole flow's Nusselt number, (<v theta> - kappa d<theta>/dy) / (kappa dT / H)",
+        "kinetic_energy": "half the mean squared speed in the flow",
+    }
+
+    @classmethod
+    def sizes(cls, p) -> tuple[int, int]:
+        return p.n_sgts * len(PROBED) * PROBE_ROWS * PROBE_COLUMNS * p.window, p.n_sgts
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        return (self.n_actions, 1)
+
+    def setup(self, p) -> None:
+        super().setup(p)
+        n, m = self.n_actions, self.nx // self.n_actions
+        if m < PROBE_COLUMNS or self.ny < PROBE_ROWS:
+            raise ValueError(f"the grid of resolution {p.resolution} is too coarse for the probes of {n} segments")
+        columns = [s * m + (2 * c + 1) * m // (2 * PROBE_COLUMNS) for s in range(n) for c in range(PROBE_COLUMNS)]
+        rows = [(2 * r + 1) * self.ny // (2 * PROBE_ROWS) for r in range(PROBE_ROWS)]
+        self._columns = torch.tensor(columns, device=self.device)
+        self._rows = torch.tensor(rows, device=self.device)
+        seen = torch.arange(n)[:, None] + torch.arange(p.window)[None, :] - p.window // 2
+        # a channel wraps; a cavity's agents near a wall see zeros (segment n) past it
+        seen = seen % n if p.sides == CHANNEL else torch.where((seen >= 0) & (seen < n), seen, n)
+        self._seen = seen.to(self.device)
+
+    def observe(self, p, state: RayleighState) -> torch.Tensor:
+        centre = lambda f: f[:, self._columns][:, :, self._rows]
+        theta = state.theta[:, 1:-1, 1:-1]
+        u = 0.5 * (state.u[:, 1:-1, 1:-1] + state.u[:, 2:, 1:-1])
+        v = 0.5 * (state.v[:, 1:-1, 1:-1] + state.v[:, 1:-1, 2:])
+        probes = torch.stack([centre(theta), centre(u), centre(v)], 1)  # [B, 3, n * columns, rows]
+        b, n = probes.shape[0], self.n_actions
+        probes = F.pad(probes.reshape(b, len(PROBED), n, -1), (0, 0, 0, 1))  # a zero segment n
+        return probes[:, :, self._seen].transpose(1, 2).reshape(b, n, -1)
+
+    def column_nusselt(self, p, state: RayleighState) -> torch.Tensor:
+        """``[B, nx]``: the Nusselt number of each column of cells, the convective flux
+        ``<v theta>`` over the height plus the conduction between the plates' wall
+        values, in units of the conduction kappa dT / H."""
+        theta = state.theta[:, 1:-1]
+        v = 0.5 * (state.v[:, 1:-1, 1:-1] + state.v[:, 1:-1, 2:])
+        bottom = 0.5 * (theta[:, :, 0] + theta[:, :, 1])
+        top = 0.5 * (theta[:, :, -1] + theta[:, :, -2])
+        return (p.H / self.kappa(p) * (v * theta[:, :, 1:-1]).mean(-1) + bottom - top) / (T_HOT - T_COLD)
+
+    def advance(self, p, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+        new, _ = super().advance(p, state, action[..., 0], count, noise)
+        columns = self.column_nusselt(p, new)
+        own = columns.reshape(columns.shape[0], self.n_actions, -1).mean(-1)
+        return new, -(p.beta * own + (1.0 - p.beta) * columns.mean(-1, keepdim=True))
+
+    def diagnose(self, p, state: RayleighState) -> dict[str, torch.Tensor]:
+        return {"nusselt": self.column_nusselt(p, state).mean(-1), "kinetic_energy": self.kinetic_energy(state)}
+
+
+class RayleighSeparableEnv(AgentsLayout, RayleighEnv):
+    """rayleigh-separable-v0: the bottom segments as agents of one convection flow
+    (Vignon et al. 2023), TorchRL's multi-agent layout (:class:`AgentsLayout`): each
+    agent observes the probes above its window of segments, sets its segment's
+    temperature and is rewarded by minus a mix of its own and the whole flow's Nusselt
+    numbers. The default is Vignon's channel; ``**BEACON`` gives rayleigh-v0's cavity."""
+
+    env_id = "rayleigh-separable-v0"
+    physics_type = RayleighSeparablePhysics
+    agent_name = "segment"
+    episode_length = 200
+    test_settings = {"period": 0.1}  # ten substeps an action
+    published_speed = None
+    speed_target = None
+    paper_ppo = None

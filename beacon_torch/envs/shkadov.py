@@ -28,9 +28,8 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-from tensordict import TensorDict
-from torchrl.data import Composite, Unbounded
 
+from beacon_torch.agents import AgentsLayout
 from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
@@ -408,7 +407,7 @@ class ShkadovEnv(FlowEnv):
         )
 
 
-class ShkadovSeparableEnv(ShkadovEnv):
+class ShkadovSeparableEnv(AgentsLayout, ShkadovEnv):
     """shkadov-separable-v0: the jets as agents sharing the physics.
 
     Under the ``"agents"`` sub-TensorDict (TorchRL's multi-agent convention, agent
@@ -420,39 +419,4 @@ class ShkadovSeparableEnv(ShkadovEnv):
 
     env_id = "shkadov-separable-v0"
     physics_type = ShkadovSeparablePhysics
-    action_key = ("agents", "action")
-    observation_key = ("agents", "observation")
-    reward_key = ("agents", "reward")
-
-    def _make_specs(self) -> None:
-        super()._make_specs()
-        B, dev = self.batch_size, self.device
-        per_agent = int(round(OBS_LENGTH))
-        agents = (*B, self.n_jets)
-        self.observation_spec = Composite(
-            agents=Composite(
-                observation=Unbounded(shape=(*agents, per_agent), dtype=self.dtype, device=dev),
-                shape=agents,
-                device=dev,
-            ),
-            shape=B,
-            device=dev,
-        )
-        self.full_action_spec = Composite(
-            agents=Composite(action=self._action_leaf_spec((*agents, 1)), shape=agents, device=dev),
-            shape=B,
-            device=dev,
-        )
-        self.full_reward_spec = Composite(
-            agents=Composite(
-                reward=Unbounded(shape=(*agents, 1), dtype=self.dtype, device=dev), shape=agents, device=dev
-            ),
-            shape=B,
-            device=dev,
-        )
-
-    def _pack(self, obs: torch.Tensor, reward: torch.Tensor | None) -> dict:
-        agents = {"observation": obs}
-        if reward is not None:
-            agents["reward"] = reward[..., None]
-        return {"agents": TensorDict(agents, batch_size=(*self.batch_size, self.n_jets), device=self.device)}
+    agent_name = "jet"

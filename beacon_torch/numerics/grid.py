@@ -19,6 +19,7 @@ import torch
 NEUMANN = "neumann"
 ZERO_GHOST = "zero_ghost"
 ZERO_FACE = "zero_face"  # zero value on the wall face itself (an open boundary's pressure)
+PERIODIC = "periodic"  # an axis that wraps around (a pair of sides, not one wall)
 # ghost factors: zero normal gradient (ghost = neighbour), a value imposed through the
 # ghost (ghost = 2 value - neighbour, the value comes as an offset), a zero ghost
 GRADIENT, VALUE, ZERO = 1.0, -1.0, 0.0
@@ -38,7 +39,11 @@ class Ghosts:
         self.factor = (fx[:, None, None] * fy[None, :, None]).to(dtype=dtype, device=device)
 
     @staticmethod
-    def _cell_axis(n: int, low: float, high: float):
+    def _cell_axis(n: int, low, high):
+        if PERIODIC in (low, high):
+            if low != high:
+                raise ValueError("a periodic axis wraps around: both its sides must be PERIODIC")
+            return [n - 1, *range(n), 0], [1.0] * (n + 2)
         return [0, *range(n), n - 1], [low, *[1.0] * n, high]
 
     @classmethod
@@ -46,25 +51,35 @@ class Ghosts:
         cls, nx: int, ny: int, left: float, right: float, bottom: float, top: float, *, corners: bool = True, **kw
     ) -> Ghosts:
         """Cell-centred ``[nx, ny, B]`` to ``[nx + 2, ny + 2, B]``; each wall's factor is
-        GRADIENT, VALUE or ZERO. No stencil reads the four corner ghosts; ``corners``
-        False leaves them at zero (where a reward averages over the ghosted array, as
-        the published mixing reward does)."""
+        GRADIENT, VALUE or ZERO (PERIODIC on both sides of an axis that wraps). No
+        stencil reads the four corner ghosts; ``corners`` False leaves them at zero (where
+        a reward averages over the ghosted array, as the published mixing reward does)."""
         ghosts = cls(*cls._cell_axis(nx, left, right), *cls._cell_axis(ny, bottom, top), **kw)
         if not corners:
             ghosts.factor[[0, 0, -1, -1], [0, -1, 0, -1]] = 0.0
         return ghosts
 
     @classmethod
-    def u_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
+    def u_faces(cls, nx: int, ny: int, *, periodic: bool = False, **kw) -> Ghosts:
         """x-face velocity ``[nx + 1, ny, B]`` to ``[nx + 1, ny + 2, B]``: impermeable
-        side walls (zeroed), tangential velocity on the bottom and top through the
-        ghosts."""
-        return cls(None, [0.0, *[1.0] * (nx - 1), 0.0], *cls._cell_axis(ny, VALUE, VALUE), **kw)
+        side walls (zeroed; ``periodic``: faces 0 and nx are one face, kept), tangential
+        velocity on the bottom and top through the ghosts."""
+        side = 1.0 if periodic else 0.0
+        return cls(None, [side, *[1.0] * (nx - 1), side], *cls._cell_axis(ny, VALUE, VALUE), **kw)
 
     @classmethod
-    def v_faces(cls, nx: int, ny: int, **kw) -> Ghosts:
+    def v_faces(cls, nx: int, ny: int, *, periodic: bool = False, **kw) -> Ghosts:
         """y-face velocity ``[nx, ny + 1, B]`` to ``[nx + 2, ny + 1, B]``."""
-        return cls(*cls._cell_axis(nx, VALUE, VALUE), None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
+        side = PERIODIC if periodic else VALUE
+        return cls(*cls._cell_axis(nx, side, side), None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
+
+    @classmethod
+    def periodic_wide(cls, nx: int, before: int, after: int, y_index, y_factor, **kw) -> Ghosts:
+        """A field of ``nx`` stored positions along a periodic x, widened by ``before``
+        wrapped positions in front and ``after`` behind (a stored ``nx + 1``-th position,
+        the faces' duplicate of the first, counts as one of them); y as given."""
+        index = [i % nx for i in range(-before, nx + after)]
+        return cls(index, [1.0] * len(index), y_index, y_factor, **kw)
 
     def __call__(self, f: torch.Tensor, offset: torch.Tensor | None = None) -> torch.Tensor:
         if self.ix is not None:

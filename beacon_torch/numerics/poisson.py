@@ -11,15 +11,21 @@ import torch
 import torch.nn.functional as F
 
 from beacon_torch.numerics import native
-from beacon_torch.numerics.grid import GRADIENT, NEUMANN, VALUE, ZERO, ZERO_FACE, ZERO_GHOST, Ghosts
+from beacon_torch.numerics.grid import GRADIENT, NEUMANN, PERIODIC, VALUE, ZERO, ZERO_FACE, ZERO_GHOST, Ghosts
 
 
 def laplacian_1d(n: int, h: float, low: str, high: str) -> torch.Tensor:
     """The ``[n, n]`` second-difference matrix with the boundary rows of each condition:
     zero normal gradient (ghost = neighbour), a zero ghost value, or a zero value on the
-    wall face (ghost = -neighbour)."""
+    wall face (ghost = -neighbour); or an axis that wraps around (PERIODIC, both ends)."""
     a = torch.diag(torch.full((n,), -2.0, dtype=torch.float64))
     a += torch.diag(torch.ones(n - 1, dtype=torch.float64), 1) + torch.diag(torch.ones(n - 1, dtype=torch.float64), -1)
+    if PERIODIC in (low, high):
+        if low != high:
+            raise ValueError("a periodic axis wraps around: both its ends must be PERIODIC")
+        a[0, -1] += 1.0
+        a[-1, 0] += 1.0
+        return a / h**2
     for index, kind in ((0, low), (n - 1, high)):
         if kind == NEUMANN:
             a[index, index] = -1.0
@@ -73,8 +79,10 @@ class _Basis:
             self.qo = inv[:h, ~even].to(dtype=dtype, device=device)
             self.qet = fwd[:h, even].T.contiguous().to(dtype=dtype, device=device)
             self.qot = fwd[:h, ~even].T.contiguous().to(dtype=dtype, device=device)
-        self.q = inv.to(dtype=dtype, device=device)
-        self.qt = fwd.T.contiguous().to(dtype=dtype, device=device)
+        # copies of their own: eigh's vectors are column-major, so q^T would otherwise
+        # share q's storage, which a compiled loop refuses as aliased inputs
+        self.q = inv.to(dtype=dtype, device=device).clone()
+        self.qt = fwd.T.to(dtype=dtype, device=device).contiguous().clone()
 
     def forward(self, f: torch.Tensor) -> list[torch.Tensor]:
         """q^T f: the coefficients, as one block or as the (even, odd) blocks."""
@@ -157,10 +165,14 @@ class PoissonSolver:
         device="cpu",
     ) -> None:
         left, right, bottom, top = bc
+        if PERIODIC in (bottom, top):
+            raise ValueError("only the x axis of the Poisson solve may be periodic")
         lx, ly = laplacian_1d(nx, dx, left, right), laplacian_1d(ny, dy, bottom, top)
-        self._build(lx, ly, None, None, left == right, min(dx, dy), dtype, device)
+        # a periodic axis's eigenvectors come in degenerate pairs, neither even nor odd
+        self.periodic = left == PERIODIC
+        self._build(lx, ly, None, None, left == right and not self.periodic, min(dx, dy), dtype, device)
         self.bc = tuple(bc)
-        factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO, ZERO_FACE: VALUE}
+        factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO, ZERO_FACE: VALUE, PERIODIC: PERIODIC}
         # the increment's ghost values, for its gradient on the wall faces
         self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
 
@@ -173,6 +185,7 @@ class PoissonSolver:
         and ``w`` the cells' widths ``wx``, ``wy`` (a divergence of a gradient). The x
         products are folded when the x grid and its conditions are mirror images."""
         solver = cls.__new__(cls)
+        solver.periodic = False
         symmetric = torch.equal(lx, lx.flip(0, 1)) and torch.equal(wx, wx.flip(0))
         solver._build(lx, ly, wx, wy, symmetric, float(min(wx.min(), wy.min())), dtype, device)
         return solver
@@ -247,6 +260,7 @@ class JacobiSolver:
 
     def __init__(self, nx: int, ny: int, dx: float, dy: float, bc: Sequence[str], tol: float, *, dtype, device) -> None:
         self.nx, self.ny, self.dx, self.dy, self.tol = nx, ny, dx, dy, tol
+        self.periodic = False
         self.top_zero = bc[3] == ZERO_GHOST
         if tuple(bc[:3]) != (NEUMANN,) * 3:
             raise ValueError("the published Jacobi solve has zero normal gradient on the left, right and bottom walls")

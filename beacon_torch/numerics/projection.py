@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from beacon_torch.numerics.grid import (
     GRADIENT,
     NEUMANN,
+    PERIODIC,
     VALUE,
     ZERO,
     ZERO_FACE,
@@ -47,11 +48,12 @@ from beacon_torch.numerics.grid import (
 )
 from beacon_torch.numerics.poisson import FEW_MEMBERS, JacobiSolver, PoissonSolver, laplacian_1d
 from beacon_torch.numerics.staggered import divergence, predict, project, tendency
-from beacon_torch.numerics.transport import Sweep
+from beacon_torch.numerics.transport import Explicit, Sweep
 
 __all__ = [
     "GRADIENT",
     "NEUMANN",
+    "PERIODIC",
     "VALUE",
     "ZERO",
     "ZERO_FACE",
@@ -92,7 +94,14 @@ class Cavity:
     """The grid of one rectangular cavity: sizes, the pressure-increment solver
     (``poisson_bc`` on left, right, bottom, top), the ghost maps of the velocities and
     the scalar transport sweep. ``jacobi_tol`` None solves for the increment directly;
-    a number runs the published Jacobi iterations to that tolerance instead."""
+    a number runs the published Jacobi iterations to that tolerance instead.
+
+    A ``poisson_bc`` of PERIODIC on the left and right makes the x axis wrap around (a
+    channel between the bottom and top walls): faces 0 and nx are then one face, carried
+    twice with one value, and the predictor works on the grid widened by one wrapped
+    cell on each side, so that the closed cavity's stencils reach every face; the
+    scalar's transport is then :class:`Explicit` (no ordered sweep), so that the flow
+    stays invariant under translation."""
 
     def __init__(
         self,
@@ -111,9 +120,20 @@ class Cavity:
             self.solver = PoissonSolver(nx, ny, dx, dy, poisson_bc, dtype=dtype, device=device)
         else:
             self.solver = JacobiSolver(nx, ny, dx, dy, poisson_bc, jacobi_tol, dtype=dtype, device=device)
-        self.sweep = Sweep(nx, ny, device, dtype)
-        self.u_ghosts = Ghosts.u_faces(nx, ny, dtype=dtype, device=device)
-        self.v_ghosts = Ghosts.v_faces(nx, ny, dtype=dtype, device=device)
+        self.periodic = poisson_bc[0] == PERIODIC
+        self.sweep = Explicit() if self.periodic else Sweep(nx, ny, device, dtype)
+        kw = dict(periodic=self.periodic, dtype=dtype, device=device)
+        self.u_ghosts = Ghosts.u_faces(nx, ny, **kw)
+        self.v_ghosts = Ghosts.v_faces(nx, ny, **kw)
+        # the x positions of a ghosted cell field that a predictor's source covers
+        self.source_x = slice(None) if self.periodic else slice(1, -1)
+        if self.periodic:
+            kw = dict(dtype=dtype, device=device)
+            wall_rows = Ghosts._cell_axis(ny, VALUE, VALUE)
+            # faces -1..nx+1, cells -2..nx+1 and -1..nx: a closed cavity of nx + 2 cells
+            self.u_wide = Ghosts.periodic_wide(nx, 1, 2, *wall_rows, **kw)
+            self.v_wide = Ghosts.periodic_wide(nx, 2, 2, None, [0.0, *[1.0] * (ny - 1), 0.0], **kw)
+            self.p_wide = Ghosts.periodic_wide(nx, 1, 1, None, [1.0] * ny, **kw)
 
     def walls(
         self, u_bottom=0.0, u_top=0.0, v_left=0.0, v_right=0.0, *, like: torch.Tensor
@@ -129,10 +149,18 @@ class Cavity:
         self, flow: Flow, walls, nu, dt: float, v_source: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """:func:`predict` on the solver's (batch-last) flow, with the wall ghost offsets
-        ``walls`` (:meth:`walls`; None for walls at rest)."""
+        ``walls`` (:meth:`walls`; None for walls at rest). ``v_source`` covers the cells
+        ``source_x`` of a ghosted field (the interior; with a periodic x, the ghosts
+        too)."""
         off_u, off_v = walls if walls is not None else (None, None)
-        u, v = self.u_ghosts(flow.u, off_u), self.v_ghosts(flow.v, off_v)
-        return predict(u, v, flow.p, nu, dt, self.dx, self.dy, v_source)
+        if not self.periodic:
+            u, v = self.u_ghosts(flow.u, off_u), self.v_ghosts(flow.v, off_v)
+            return predict(u, v, flow.p, nu, dt, self.dx, self.dy, v_source)
+        if off_v is not None:
+            raise ValueError("a periodic channel has no side walls to move")
+        u, v, p = self.u_wide(flow.u, off_u), self.v_wide(flow.v), self.p_wide(flow.p)
+        u_star, v_star = predict(u, v, p, nu, dt, self.dx, self.dy, v_source)
+        return u_star[1:-1], v_star[1:-1]
 
     def to_solver(self, flow: Flow, ghosts: Ghosts, offset: torch.Tensor | None = None) -> Flow:
         """The batch-last flow the substeps carry, from a batch-first ghosted one; the

@@ -145,12 +145,17 @@ def project(
     """Incremental projection: L phi = div(u*) / dt, u = u* - dt grad phi on the interior
     faces, p += phi (``solver``: :class:`PoissonSolver` or :class:`JacobiSolver`).
 
-    The walls keep zero normal velocity, as in the published corrector. Where the
+    The walls keep zero normal velocity, as in the published corrector (a periodic x
+    axis has none: its first and last faces, one face, are corrected alike). Where the
     increment has zero normal gradient that is also what the correction would give;
     on a zero-ghost wall (mixing's top) the cells next to it keep the divergence the
     increment's condition leaves there, as published."""
     phi = solver.solve(divergence(u, v, dx, dy) / dt)
     ext = solver.ghosts(phi)
-    gx = F.pad((ext[2:-1, 1:-1] - ext[1:-2, 1:-1]) / dx, (0, 0, 0, 0, 1, 1))
+    if solver.periodic:
+        # no side walls: every x-face is corrected, the first and the last alike
+        gx = (ext[1:, 1:-1] - ext[:-1, 1:-1]) / dx
+    else:
+        gx = F.pad((ext[2:-1, 1:-1] - ext[1:-2, 1:-1]) / dx, (0, 0, 0, 0, 1, 1))
     gy = F.pad((ext[1:-1, 2:-1] - ext[1:-1, 1:-2]) / dy, (0, 0, 1, 1))
     return u - dt * gx, v - dt * gy, p + phi

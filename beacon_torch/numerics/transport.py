@@ -59,18 +59,8 @@ class Sweep:
         """New cell values ``[nx, ny, B]`` of the scalar ``s`` given with its ghosts
         (``[nx + 2, ny + 2, B]``), transported by the face velocities ``u``
         ``[nx + 1, ny, B]`` and ``v`` ``[nx, ny + 1, B]`` over ``dt``."""
-        sc, se, sn = s[1:-1, 1:-1], s[2:, 1:-1], s[1:-1, 2:]
-        uw, ue, vs, vn = u[:-1], u[1:], v[:, :-1], v[:, 1:]
-        kx, ky = kappa / dx**2, kappa / dy**2
-        # everything but the new west and south values
-        c = sc + dt * (
-            kx * (se - 2.0 * sc)
-            + ky * (sn - 2.0 * sc)
-            - (ue * 0.5 * (se + sc) - uw * 0.5 * sc) / dx
-            - (vn * 0.5 * (sn + sc) - vs * 0.5 * sc) / dy
-        )
-        a = dt * (kx + 0.5 * uw / dx)
-        b = dt * (ky + 0.5 * vs / dy)
+        sc = s[1:-1, 1:-1]
+        c, a, b = _coefficients(s, u, v, kappa, dt, dx, dy)
         pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
         recording = native.recording(s, u, v, c)
         if self.native and native.takes(s, u, v, c):
@@ -84,6 +74,36 @@ class Sweep:
         else:
             rows = _rows(c, a, b, last)
         return rows[self.unskew_k, self.unskew_i]
+
+
+def _coefficients(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float):
+    """The explicit centred update of the cells written as ``c + a * west + b * south``:
+    ``c`` holds every term but the west and south neighbours', ``a`` and ``b`` their
+    weights, each ``[nx, ny, B]``."""
+    sc, se, sn = s[1:-1, 1:-1], s[2:, 1:-1], s[1:-1, 2:]
+    uw, ue, vs, vn = u[:-1], u[1:], v[:, :-1], v[:, 1:]
+    kx, ky = kappa / dx**2, kappa / dy**2
+    c = sc + dt * (
+        kx * (se - 2.0 * sc)
+        + ky * (sn - 2.0 * sc)
+        - (ue * 0.5 * (se + sc) - uw * 0.5 * sc) / dx
+        - (vn * 0.5 * (sn + sc) - vs * 0.5 * sc) / dy
+    )
+    return c, dt * (kx + 0.5 * uw / dx), dt * (ky + 0.5 * vs / dy)
+
+
+class Explicit:
+    """The same centred advection-diffusion with every neighbour's old value: plain
+    forward Euler. Where the x axis wraps around (a channel), an ordered sweep would
+    favour the cell where it starts and break the flow's invariance under translation;
+    this update keeps it (the price: the forward-Euler limit on the time step)."""
+
+    def __call__(
+        self, s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float
+    ) -> torch.Tensor:
+        """New cell values ``[nx, ny, B]``, as :meth:`Sweep.__call__`."""
+        c, a, b = _coefficients(s, u, v, kappa, dt, dx, dy)
+        return c + a * s[:-2, 1:-1] + b * s[1:-1, :-2]
 
 
 # The two recurrences run eagerly even in a compiled substep: a chain of hundreds of
