@@ -71,6 +71,25 @@ class RayleighState(NamedTuple):
     probes: torch.Tensor  # [batch, HISTORY, 3 * 16] the probe samples, oldest first
 
 
+# the parameters that the two layouts declare with their own defaults
+def pr_param(default: float):
+    return param(default, low=0.01, high=100.0, per_member=False, differentiable=True, doc="Prandtl number")
+
+
+def sides_param(default: str):
+    doc = "the side boundaries: adiabatic no-slip walls (a cavity), or periodic (a channel of period L)"
+    return param(default, kind="choice", choices=(WALLS, CHANNEL), doc=doc)
+
+
+def period_param(default: float):
+    doc = f"time between two actions, a multiple of the time step {DT:g}"
+    return param(default, low=DT, high=100.0, per_member=False, doc=doc)
+
+
+def resolution_param(default: int):
+    return param(default, low=8, high=200, kind="int", per_member=False, doc="cells per unit length")
+
+
 @dataclass(frozen=True)
 class RayleighParams:
     L: float = param(1.0, low=0.2, high=8.0, per_member=False, doc="cavity length (50 cells per unit)")
@@ -84,21 +103,10 @@ class RayleighParams:
         doc="number of bottom segments (actions); divides the cells along L",
     )
     ra: float = param(1e4, low=1.0, high=1e6, per_member=False, differentiable=True, doc="Rayleigh number")
-    pr: float = param(PR, low=0.01, high=100.0, per_member=False, differentiable=True, doc="Prandtl number")
-    sides: str = param(
-        WALLS,
-        kind="choice",
-        choices=(WALLS, CHANNEL),
-        doc="the side boundaries: adiabatic no-slip walls (a cavity), or periodic (a channel of period L)",
-    )
-    period: float = param(
-        DT * SUBSTEPS,
-        low=DT,
-        high=100.0,
-        per_member=False,
-        doc=f"time between two actions, a multiple of the time step {DT:g}",
-    )
-    resolution: int = param(CELLS_PER_UNIT, low=8, high=200, kind="int", per_member=False, doc="cells per unit length")
+    pr: float = pr_param(PR)
+    sides: str = sides_param(WALLS)
+    period: float = period_param(DT * SUBSTEPS)
+    resolution: int = resolution_param(CELLS_PER_UNIT)
     start: str = start_param("the published stored roll, or the one of developed_convection()")
     solver: str = param(
         "direct",
@@ -321,23 +329,10 @@ PROBE_ROWS, PROBE_COLUMNS = 8, 3  # probe rows over the height; probe columns pe
 class RayleighSeparableParams(RayleighParams):
     L: float = param(VIGNON["L"], low=0.2, high=8.0, per_member=False, doc="length (the period of a channel)")
     H: float = param(VIGNON["H"], low=0.2, high=4.0, per_member=False, doc="height between the plates")
-    pr: float = param(VIGNON["pr"], low=0.01, high=100.0, per_member=False, differentiable=True, doc="Prandtl number")
-    sides: str = param(
-        CHANNEL,
-        kind="choice",
-        choices=(WALLS, CHANNEL),
-        doc="the side boundaries: periodic (a channel of period L), or adiabatic no-slip walls (a cavity)",
-    )
-    period: float = param(
-        VIGNON["period"],
-        low=DT,
-        high=100.0,
-        per_member=False,
-        doc=f"time between two actions, a multiple of the time step {DT:g}",
-    )
-    resolution: int = param(
-        VIGNON_RESOLUTION, low=8, high=200, kind="int", per_member=False, doc="cells per unit length"
-    )
+    pr: float = pr_param(VIGNON["pr"])
+    sides: str = sides_param(CHANNEL)
+    period: float = period_param(VIGNON["period"])
+    resolution: int = resolution_param(VIGNON_RESOLUTION)
     start: str = param(
         GENERATED, kind="choice", choices=(GENERATED,), doc="the developed flow of developed_convection()"
     )
