@@ -114,3 +114,12 @@ def test_the_page_shows_the_recorded_validation_within_two_percent():
     # the flow's own Nusselt number converges with the grid
     first, second, third = (r["nusselt"] for r in rows)
     assert abs(third - second) < abs(second - first)
+
+
+def test_the_page_shows_the_recorded_trials():
+    from pathlib import Path
+
+    from conftest import script
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "rayleigh-separable.md").read_text()
+    assert script("benchmarks/rayleigh_separable_trials.py").table() in page

@@ -13,6 +13,11 @@ on the shared staggered-grid projection solver (``beacon_torch.numerics.projecti
 the temperatures of n_sgts bottom segments around the mean 1/2; the reward is minus the
 Nusselt number. Every episode starts from the developed single convection roll
 (:func:`developed_convection`, shipped for the defaults).
+
+``sides="periodic"`` makes the cavity a channel of period L (no side walls), the case of
+Vignon et al. (2023) with ``**VIGNON``; ``rayleigh-separable-v0`` is that channel with
+each segment an agent (TorchRL's multi-agent layout), its own Nusselt number mixed into
+its reward.
 """
 
 from __future__ import annotations
@@ -92,7 +97,7 @@ def resolution_param(default: int):
 
 @dataclass(frozen=True)
 class RayleighParams:
-    L: float = param(1.0, low=0.2, high=8.0, per_member=False, doc="cavity length (50 cells per unit)")
+    L: float = param(1.0, low=0.2, high=8.0, per_member=False, doc="length (the period of a channel)")
     H: float = param(1.0, low=0.2, high=4.0, per_member=False, doc="cavity height")
     n_sgts: int = param(
         10,
