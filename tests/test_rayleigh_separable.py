@@ -100,9 +100,9 @@ def test_vignon_case_is_the_default():
 def test_the_page_shows_the_recorded_validation_within_two_percent():
     from pathlib import Path
 
-    from conftest import script
-
     from beacon_torch import received
+
+    from conftest import script
 
     validation = script("benchmarks/rayleigh_channel_validation.py")
     page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "rayleigh-separable.md").read_text()
