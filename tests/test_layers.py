@@ -17,8 +17,8 @@ LAYERS = [
     # the compiled-call helpers, figures, argument types, the numerics
     {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics", "card"},
     # the core: the physics' interface and the step function, the env machinery and
-    # its caches, starts and bookkeeping
-    {"cache", "starts", "history", "autograd", "core", "base", "episodes"},
+    # its caches, starts and bookkeeping, the multi-agent layout
+    {"cache", "starts", "history", "autograd", "core", "base", "episodes", "agents"},
     # the physics of each case
     {"envs"},
     # the registry and what works on any registered env
