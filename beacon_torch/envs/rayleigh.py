@@ -292,12 +292,17 @@ class RayleighPhysics(CavityPhysics):
         bottom = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)
         return RayleighState(*flow, bottom=bottom, probes=self.probes.start(flow))
 
-    def advance(self, p, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+    def heat(self, p, state: RayleighState, action: torch.Tensor) -> RayleighState:
+        """The state after one action: the segments at the temperatures of ``action``
+        (``[B, n_sgts]``) over the action's substeps."""
         segments = normalise(action)
         bottom = T_HOT + segments.repeat_interleave(self.nx // self.n_actions, dim=-1)
         offset = temperature_offset(bottom, self.ghosts, self.ny)
         flow = self.run(self.flow(state), self.substeps, self.nu(p), self.kappa(p), offset=offset)
-        new = RayleighState(*flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
+        return RayleighState(*flow, bottom=bottom, probes=self.probes.push(state.probes, flow))
+
+    def advance(self, p, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
+        new = self.heat(p, state, action)
         return new, -nusselt(new.theta, self.dy)
 
     def diagnose(self, p, state: RayleighState) -> dict[str, torch.Tensor]:
@@ -420,7 +425,7 @@ class RayleighSeparablePhysics(RayleighPhysics):
         return (p.H / self.kappa(p) * (v * theta[:, :, 1:-1]).mean(-1) + bottom - top) / (T_HOT - T_COLD)
 
     def advance(self, p, state: RayleighState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
-        new, _ = super().advance(p, state, action[..., 0], count, noise)
+        new = self.heat(p, state, action[..., 0])
         columns = self.column_nusselt(p, new)
         own = columns.reshape(columns.shape[0], self.n_actions, -1).mean(-1)
         return new, -(p.beta * own + (1.0 - p.beta) * columns.mean(-1, keepdim=True))
