@@ -107,7 +107,7 @@ def test_boundary_gives_the_first_fluid_faces_the_wall_distance_to_second_order(
         boundary = channel.body_u
         x, y = channel.x.faces[:, None] - cylinder.CENTRE[0], channel.y.centres[None, :] - cylinder.CENTRE[1]
         distance = (torch.hypot(x, y) - cylinder.RADIUS)[..., None]
-        forced = boundary(distance, torch.zeros(1, **F64))
+        forced = boundary(distance, torch.zeros(1, 1, **F64))
         first = boundary.targets
         errors.append(float((forced.reshape(-1)[first] - distance.reshape(-1)[first]).abs().max()))
         assert bool((distance.reshape(-1)[first] >= 0).all())
@@ -125,7 +125,7 @@ def test_boundary_gives_the_jets_their_velocity_at_the_wall(channel):
     channel = Channel(40, **F64)
     boundary = channel.body_v
     at_rest = torch.zeros(channel.nx, channel.ny + 1, 1, **F64)
-    forced = boundary(at_rest, torch.full((1,), 1e-2, **F64)).reshape(-1)
+    forced = boundary(at_rest, torch.full((1, 1), 1e-2, **F64)).reshape(-1)
     first = boundary.targets
     x = channel.x.centres[first // (channel.ny + 1)] - cylinder.CENTRE[0]
     y = channel.y.faces[first % (channel.ny + 1)] - cylinder.CENTRE[1]

@@ -58,7 +58,6 @@ from beacon_torch.envs.cylinder.channel import (
     CENTRE,
     DEVELOP_TIME,
     DIAMETER,
-    DIFFUSION_LIMIT,
     DRAG_OFFSET,
     DT,
     EPISODE_LENGTH,
@@ -81,23 +80,20 @@ from beacon_torch.envs.cylinder.channel import (
     U_MAX,
     U_MEAN,
     WIDEST,
-    Axis,
     Channel,
     Flow,
-    ImmersedBoundary,
     coefficient,
     developed_shedding,
     inside,
     jet_profile,
-    probe_stencil,
     rest,
     run,
-    stable,
     step,
     wall_velocity,
 )
 from beacon_torch.envs.cylinder.env import CylinderEnv, CylinderParams, CylinderPhysics, CylinderState, jet_target
 from beacon_torch.envs.cylinder.validation import SCHAEFER_TUREK, shedding_figures
+from beacon_torch.numerics.bodies import DIFFUSION_LIMIT, Axis, ImmersedBoundary, probe_stencil, stable
 
 __all__ = [
     "LENGTH",

@@ -11,6 +11,8 @@ import numpy as np
 import torch
 
 from beacon_torch.base import map_state
+from beacon_torch.numerics import bodies
+from beacon_torch.numerics.bodies import Axis, Circle, ImmersedBoundary, probe_stencil, stable
 from beacon_torch.numerics.grid import NEUMANN, VALUE, ZERO_FACE, Ghosts
 from beacon_torch.numerics.poisson import PoissonSolver
 from beacon_torch.numerics.staggered import Stretched, divergence, tendency
@@ -20,6 +22,7 @@ LENGTH, HEIGHT = 2.2, 0.41
 CENTRE = (0.2, 0.2)
 DIAMETER = 0.1
 RADIUS = 0.5 * DIAMETER
+CYLINDER = Circle(*CENTRE, RADIUS)
 NU = 1e-3
 U_MAX = 1.5  # the inflow's centre-line velocity; its mean is 1
 U_MEAN = 1.0
@@ -78,67 +81,6 @@ def _resolution(value: int) -> None:
         )
 
 
-# Adams-Bashforth 2 is stable on the negative real axis up to 1 (forward Euler: 2); the
-# grid-scale diffusion mode of a square cell sits at -8 nu dt / h^2. A margin for the
-# advection that comes on top of it.
-DIFFUSION_LIMIT = 0.8
-
-
-def stable(h: float, nu: float, dt: float) -> bool:
-    """Whether the explicit diffusion of cells of size ``h`` is stable at ``dt``."""
-    return 8.0 * nu * dt / h**2 < DIFFUSION_LIMIT
-
-
-class Axis:
-    """One axis of the stretched grid (float64): the faces, the cells' centres and
-    widths, and the distances between neighbouring centres, the mirrored ghost centres
-    beyond the ends included (``gaps[0]`` and ``gaps[-1]``: a cell's width)."""
-
-    def __init__(self, length: float, low: float, high: float, h: float, growth: float, widest: float) -> None:
-        def outwards(extent: float) -> np.ndarray:
-            # the ends of cells growing by a common ratio up to ``widest`` from the box
-            # outwards, as few as ``growth`` allows, the ratio then lowered to end there
-            def ends(ratio: float, n: int) -> np.ndarray:
-                return np.concatenate(([0.0], np.cumsum(np.minimum(h * ratio ** np.arange(1, n + 1), widest))))
-
-            n = 1
-            while ends(growth, n)[-1] < extent:
-                n += 1
-            if n * h >= extent:  # too short to grow: equal cells
-                return np.linspace(0.0, extent, round(extent / h) + 1)
-            low_ratio, high_ratio = 1.0, growth
-            for _ in range(80):
-                mid = 0.5 * (low_ratio + high_ratio)
-                low_ratio, high_ratio = (mid, high_ratio) if ends(mid, n)[-1] < extent else (low_ratio, mid)
-            e = ends(high_ratio, n)
-            return e * (extent / e[-1])
-
-        left, right = np.diff(outwards(low))[::-1], np.diff(outwards(length - high))
-        if math.isclose(low, length - high):
-            right = left[::-1]  # exactly mirror-symmetric, so that the solve folds
-        widths = torch.from_numpy(np.concatenate((left, np.full(round((high - low) / h), h), right)))
-        self.widths = widths
-        self.faces = torch.cat((widths.new_zeros(1), widths.cumsum(0)))
-        self.centres = self.faces[:-1] + 0.5 * widths
-        self.gaps = torch.cat((widths[:1], 0.5 * (widths[1:] + widths[:-1]), widths[-1:]))
-        self.n = len(self.widths)
-
-    def laplacian(self, low: str, high: str) -> torch.Tensor:
-        """The cells' ``[n, n]`` divergence of the gradient with zero gradient
-        (``NEUMANN``) or a zero value on the end face (``ZERO_FACE``) at each end."""
-        n, g = self.n, self.gaps
-        a = torch.zeros((n, n), dtype=torch.float64)
-        i = torch.arange(n - 1)
-        a[i, i + 1] = 1.0 / g[1:-1]
-        a[i + 1, i] = 1.0 / g[1:-1]
-        a[i, i] -= 1.0 / g[1:-1]
-        a[i + 1, i + 1] -= 1.0 / g[1:-1]
-        for end, kind in ((0, low), (n - 1, high)):
-            if kind == ZERO_FACE:
-                a[end, end] -= 2.0 / self.widths[end]
-        return a / self.widths[:, None]
-
-
 class Channel:
     """The stretched grid of the channel and the immersed cylinder: cells of size
     ``h = D / cells_per_diameter`` in a box around the cylinder and its near wake,
@@ -173,8 +115,9 @@ class Channel:
         solid_v = inside(x_cells[:, None], y_faces[None, :])
         # the jets' vertical stream through the body per unit flow rate, on the v faces
         stream = jet_profile(x_cells, h)[:, None] * solid_v
-        self.body_u = ImmersedBoundary(x_faces, y_cells, 0, torch.zeros(nx + 1, ny, dtype=torch.float64), h)
-        self.body_v = ImmersedBoundary(x_cells, y_faces, 1, stream, h)
+        body = (CYLINDER,)
+        self.body_u = ImmersedBoundary(x_faces, y_cells, 0, body, jet_wall, torch.zeros(nx + 1, ny, 1), h)
+        self.body_v = ImmersedBoundary(x_cells, y_faces, 1, body, jet_wall, stream[..., None], h)
         self.body_u.to(dtype=dtype, device=device)
         self.body_v.to(dtype=dtype, device=device)
         # the momentum the body's faces hold per unit flow rate
@@ -245,7 +188,7 @@ class Channel:
 
 def inside(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """1.0 where the point ``(x, y)`` lies inside the cylinder, else 0.0."""
-    return (torch.hypot(x - CENTRE[0], y - CENTRE[1]) < RADIUS).double()
+    return bodies.inside((CYLINDER,), x, y)
 
 
 def jet_profile(x_cells: torch.Tensor, h: float, points: int = 64) -> torch.Tensor:
@@ -276,97 +219,11 @@ def wall_velocity(theta: np.ndarray) -> np.ndarray:
     return velocity
 
 
-class ImmersedBoundary:
-    """The cylinder's direct forcing on one velocity component, whose nodes are the grid
-    ``xs`` x ``ys``, applied to a predicted field ``[X, Y, B]`` with the top jet's rate
-    ``q`` (``[B]``). Nodes inside the circle take the body's velocity (``inside`` per
-    unit rate: the jets' stream). Nodes outside it with a neighbour inside, the first
-    fluid nodes, take the value at their wall distance ``d`` of the quadratic in the
-    wall distance through the wall's velocity (zero, or the jets') and the flow at
-    ``d + h`` and ``d + 2 h`` along the wall normal, each read bilinearly from the nodes
-    around it: a boundary of second order, without the staircase's first-order shift of
-    the wall. Where those nodes are first fluid nodes themselves, the conditions are
-    coupled; they are solved once here, so that a step applies
-    ``forced = M @ free_values + m q``."""
-
-    def __init__(self, xs: torch.Tensor, ys: torch.Tensor, component: int, inside_value: torch.Tensor, h: float):
-        xs, ys = xs.numpy(), ys.numpy()
-        x, y = np.meshgrid(xs - CENTRE[0], ys - CENTRE[1], indexing="ij")
-        nx, ny = x.shape
-        r = np.hypot(x, y)
-        solid = r < RADIUS
-        near = np.zeros_like(solid)
-        near[1:] |= solid[:-1]
-        near[:-1] |= solid[1:]
-        near[:, 1:] |= solid[:, :-1]
-        near[:, :-1] |= solid[:, 1:]
-        first = np.flatnonzero(near & ~solid)
-        row = {node: k for k, node in enumerate(first)}
-        normal = np.stack((x.flat[first], y.flat[first])) / r.flat[first]
-        d = r.flat[first] - RADIUS
-        # the quadratic's weights of the points at d + h and d + 2 h; the wall has the rest
-        points = ((h, 2.0 * d / (d + h)), (2.0 * h, -d / (d + 2.0 * h)))
-        wall = 1.0 - points[0][1] - points[1][1]
-        coupled = np.zeros((len(first), len(first)))
-        free: dict[int, int] = {}
-        free_weights: list[tuple[int, int, float]] = []
-        rate = wall * wall_velocity(np.arctan2(normal[1], normal[0])) * normal[component]
-        for distance, weight in points:
-            px = x.flat[first] + CENTRE[0] + distance * normal[0]
-            py = y.flat[first] + CENTRE[1] + distance * normal[1]
-            i = np.clip(np.searchsorted(xs, px) - 1, 0, nx - 2)
-            j = np.clip(np.searchsorted(ys, py) - 1, 0, ny - 2)
-            tx, ty = (px - xs[i]) / (xs[i + 1] - xs[i]), (py - ys[j]) / (ys[j + 1] - ys[j])
-            corners = ((0, 0, (1 - tx) * (1 - ty)), (1, 0, tx * (1 - ty)), (0, 1, (1 - tx) * ty), (1, 1, tx * ty))
-            for di, dj, w in corners:
-                for k, node in enumerate((i + di) * ny + j + dj):
-                    c = weight[k] * w[k]
-                    if node in row:
-                        coupled[k, row[node]] += c
-                    elif solid.flat[node]:
-                        rate[k] += c * float(inside_value.reshape(-1)[node])
-                    else:
-                        free_weights.append((k, free.setdefault(int(node), len(free)), c))
-        weights = np.zeros((len(first), len(free)))
-        for k, column, c in free_weights:
-            weights[k, column] += c
-        system = np.eye(len(first)) - coupled
-        self.matrix = torch.from_numpy(np.linalg.solve(system, weights))  # [first, free]
-        self.rate = torch.from_numpy(np.linalg.solve(system, rate))[:, None]  # [first, 1]
-        self.sources = torch.tensor(sorted(free, key=free.get))  # the free nodes read
-        self.targets = torch.from_numpy(first)  # the first fluid nodes
-        forced = solid | (near & ~solid)
-        self.free = torch.from_numpy(~forced.reshape(-1)).double()[:, None]  # [nodes, 1]
-        self.inside = torch.where(torch.from_numpy(solid), inside_value, 0.0).reshape(-1, 1)
-
-    def to(self, dtype, device) -> None:
-        for name in ("matrix", "rate", "free", "inside"):
-            setattr(self, name, getattr(self, name).to(dtype=dtype, device=device, copy=True))
-        self.sources, self.targets = self.sources.to(device), self.targets.to(device)
-
-    def __call__(self, f: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        nx, ny, batch = f.shape
-        flat = f.reshape(nx * ny, batch)
-        first = self.matrix @ flat[self.sources] + self.rate * q
-        return (flat * self.free + self.inside * q).index_add(0, self.targets, first).reshape(nx, ny, batch)
-
-
-def probe_stencil(
-    points: np.ndarray, x_cells: torch.Tensor, y_cells: torch.Tensor
-) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
-    """The four cells around each point and their bilinear weights: indices
-    ``([P, 4], [P, 4])`` and weights ``[P, 4]``."""
-
-    def along(coordinate: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        i = np.clip(np.searchsorted(centres, coordinate) - 1, 0, len(centres) - 2)
-        return i, (coordinate - centres[i]) / (centres[i + 1] - centres[i])
-
-    i0, wx = along(points[:, 0], x_cells.numpy())
-    j0, wy = along(points[:, 1], y_cells.numpy())
-    ix = np.stack((i0, i0 + 1, i0, i0 + 1), 1)
-    iy = np.stack((j0, j0, j0 + 1, j0 + 1), 1)
-    w = np.stack(((1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy), 1)
-    return (torch.from_numpy(ix), torch.from_numpy(iy)), torch.from_numpy(w)
+def jet_wall(body: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """The wall's velocity per unit flow rate of the top jet (``[n, 2, 1]``): outward,
+    :func:`wall_velocity` along the normal."""
+    theta = np.arctan2(normal[1], normal[0])
+    return (wall_velocity(theta) * normal).T[:, :, None]
 
 
 def step(i, carried: tuple[Flow, torch.Tensor, torch.Tensor], target: torch.Tensor, channel: Channel, nu, dt: float):
@@ -386,7 +243,7 @@ def step(i, carried: tuple[Flow, torch.Tensor, torch.Tensor], target: torch.Tens
     v_star = torch.nn.functional.pad(v_star, (0, 0, 1, 1))
     # the body: its faces take its velocity, the first fluid faces around it the value
     # the wall and the flow further out give them; what that removes is the force
-    u_new, v_new = c.body_u(u_star, q), c.body_v(v_star, q)
+    u_new, v_new = c.body_u(u_star, q[None]), c.body_v(v_star, q[None])
     cell = h * h / dt
     drag = (u_star - u_new).sum((0, 1)) * cell
     lift = (v_star - v_new).sum((0, 1)) * cell + c.jet_momentum * (q - flow.q) / dt

@@ -15,7 +15,6 @@ from beacon_torch.envs.cylinder.channel import (
     CENTRE,
     DEVELOP_TIME,
     DIAMETER,
-    DIFFUSION_LIMIT,
     DRAG_OFFSET,
     DT,
     EPISODE_LENGTH,
@@ -38,6 +37,7 @@ from beacon_torch.envs.cylinder.channel import (
     stable,
     step,
 )
+from beacon_torch.numerics.bodies import DIFFUSION_LIMIT
 from beacon_torch.params import number, param
 
 

@@ -1,0 +1,226 @@
+"""Circular bodies immersed in the stretched staggered grid: the grid's axes, the
+bodies' direct forcing, the probes' stencil and the explicit step's diffusion limit.
+Shared by the flows past cylinders (one cylinder in a channel, three in a free stream).
+
+Layout: fields batch last, ``[X, Y, B]``, as everywhere in the staggered numerics. A
+body's motion is driven by ``C`` controls (a jet's flow rate, the cylinders' rotation
+rates), passed to the forcing as ``[C, B]``."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from beacon_torch.numerics.grid import ZERO_FACE
+
+# Adams-Bashforth 2 is stable on the negative real axis up to 1 (forward Euler: 2); the
+# grid-scale diffusion mode of a square cell sits at -8 nu dt / h^2. A margin for the
+# advection that comes on top of it.
+DIFFUSION_LIMIT = 0.8
+
+
+def stable(h: float, nu: float, dt: float) -> bool:
+    """Whether the explicit diffusion of cells of size ``h`` is stable at ``dt``."""
+    return 8.0 * nu * dt / h**2 < DIFFUSION_LIMIT
+
+
+class Circle(NamedTuple):
+    """A circular body: its centre and radius."""
+
+    x: float
+    y: float
+    radius: float
+
+
+class Axis:
+    """One axis of the stretched grid (float64): the faces, the cells' centres and
+    widths, and the distances between neighbouring centres, the mirrored ghost centres
+    beyond the ends included (``gaps[0]`` and ``gaps[-1]``: a cell's width). Cells of
+    size ``h`` fill ``[low, high]``; outside, they grow by ``growth`` a cell up to
+    ``widest``, as few as fit the ends at 0 and ``length``."""
+
+    def __init__(self, length: float, low: float, high: float, h: float, growth: float, widest: float) -> None:
+        def outwards(extent: float) -> np.ndarray:
+            # the ends of cells growing by a common ratio up to ``widest`` from the box
+            # outwards, as few as ``growth`` allows, the ratio then lowered to end there
+            def ends(ratio: float, n: int) -> np.ndarray:
+                return np.concatenate(([0.0], np.cumsum(np.minimum(h * ratio ** np.arange(1, n + 1), widest))))
+
+            n = 1
+            while ends(growth, n)[-1] < extent:
+                n += 1
+            if n * h >= extent:  # too short to grow: equal cells
+                return np.linspace(0.0, extent, round(extent / h) + 1)
+            low_ratio, high_ratio = 1.0, growth
+            for _ in range(80):
+                mid = 0.5 * (low_ratio + high_ratio)
+                low_ratio, high_ratio = (mid, high_ratio) if ends(mid, n)[-1] < extent else (low_ratio, mid)
+            e = ends(high_ratio, n)
+            return e * (extent / e[-1])
+
+        left, right = np.diff(outwards(low))[::-1], np.diff(outwards(length - high))
+        if math.isclose(low, length - high):
+            right = left[::-1]  # exactly mirror-symmetric, so that the solve folds
+        widths = torch.from_numpy(np.concatenate((left, np.full(round((high - low) / h), h), right)))
+        self.widths = widths
+        self.faces = torch.cat((widths.new_zeros(1), widths.cumsum(0)))
+        self.centres = self.faces[:-1] + 0.5 * widths
+        self.gaps = torch.cat((widths[:1], 0.5 * (widths[1:] + widths[:-1]), widths[-1:]))
+        self.n = len(self.widths)
+
+    def laplacian(self, low: str, high: str) -> torch.Tensor:
+        """The cells' ``[n, n]`` divergence of the gradient with zero gradient
+        (``NEUMANN``) or a zero value on the end face (``ZERO_FACE``) at each end."""
+        n, g = self.n, self.gaps
+        a = torch.zeros((n, n), dtype=torch.float64)
+        i = torch.arange(n - 1)
+        a[i, i + 1] = 1.0 / g[1:-1]
+        a[i + 1, i] = 1.0 / g[1:-1]
+        a[i, i] -= 1.0 / g[1:-1]
+        a[i + 1, i + 1] -= 1.0 / g[1:-1]
+        for end, kind in ((0, low), (n - 1, high)):
+            if kind == ZERO_FACE:
+                a[end, end] -= 2.0 / self.widths[end]
+        return a / self.widths[:, None]
+
+
+def inside(circles: Sequence[Circle], x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """1.0 where the point ``(x, y)`` lies inside one of the circles, else 0.0."""
+    solid = torch.zeros(torch.broadcast_shapes(x.shape, y.shape), dtype=torch.bool)
+    for c in circles:
+        solid |= torch.hypot(x - c.x, y - c.y) < c.radius
+    return solid.double()
+
+
+# The wall's velocity per unit of each control: given each wall point's body index
+# (``[n]``) and the body's outward unit normal there (``[2, n]``), the ``[n, 2, C]``
+# velocity (x and y components) of the wall there per unit of each of the ``C`` controls.
+WallVelocity = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+class ImmersedBoundary:
+    """The bodies' direct forcing on one velocity component, whose nodes are the grid
+    ``xs`` x ``ys``, applied to a predicted field ``[X, Y, B]`` with the controls ``q``
+    (``[C, B]``). Nodes inside a circle take the body's velocity (``inside_value``,
+    ``[X * Y, C]`` per unit of each control). Nodes outside with a neighbour inside, the
+    first fluid nodes, belong to the nearest body's wall and take the value at their
+    wall distance ``d`` of the quadratic in the wall distance through the wall's velocity
+    (``wall``) and the flow at ``d + h`` and ``d + 2 h`` along the wall normal, each read
+    bilinearly from the nodes around it: a boundary of second order, without the
+    staircase's first-order shift of the wall. Where those nodes are first fluid nodes
+    themselves, the conditions are coupled; they are solved once here, so that a step
+    applies ``forced = M @ free_values + m @ q``.
+
+    ``groups`` (``[G, F]`` over the forced nodes ``forced``) sums what the forcing
+    changed body by body: the momentum each body takes from the flow."""
+
+    def __init__(
+        self,
+        xs: torch.Tensor,
+        ys: torch.Tensor,
+        component: int,
+        circles: Sequence[Circle],
+        wall: WallVelocity,
+        inside_value: torch.Tensor,
+        h: float,
+    ):
+        xs, ys = xs.numpy(), ys.numpy()
+        x, y = np.meshgrid(xs, ys, indexing="ij")
+        nx, ny = x.shape
+        # each node's distance to each wall, its nearest body and that body's geometry
+        centres = np.array([(c.x, c.y) for c in circles])
+        radii = np.array([c.radius for c in circles])
+        offsets = np.stack((x.reshape(-1)[:, None] - centres[:, 0], y.reshape(-1)[:, None] - centres[:, 1]))
+        r_all = np.hypot(offsets[0], offsets[1])  # [nodes, bodies]
+        body_of = np.argmin(r_all - radii, axis=1)
+        nodes = np.arange(nx * ny)
+        r = r_all[nodes, body_of].reshape(nx, ny)
+        solid = (r_all < radii).any(1).reshape(nx, ny)
+        near = np.zeros_like(solid)
+        near[1:] |= solid[:-1]
+        near[:-1] |= solid[1:]
+        near[:, 1:] |= solid[:, :-1]
+        near[:, :-1] |= solid[:, 1:]
+        first = np.flatnonzero(near & ~solid)
+        row = {node: k for k, node in enumerate(first)}
+        body = body_of[first]
+        normal = np.stack((offsets[0][first, body], offsets[1][first, body])) / r.flat[first]
+        d = r.flat[first] - radii[body]
+        # the quadratic's weights of the points at d + h and d + 2 h; the wall has the rest
+        points = ((h, 2.0 * d / (d + h)), (2.0 * h, -d / (d + 2.0 * h)))
+        wall_weight = 1.0 - points[0][1] - points[1][1]
+        inside_value = inside_value.reshape(nx * ny, -1).numpy()
+        coupled = np.zeros((len(first), len(first)))
+        free: dict[int, int] = {}
+        free_weights: list[tuple[int, int, float]] = []
+        rate = wall_weight[:, None] * wall(body, normal)[:, component]
+        for distance, weight in points:
+            px = x.flat[first] + distance * normal[0]
+            py = y.flat[first] + distance * normal[1]
+            i = np.clip(np.searchsorted(xs, px) - 1, 0, nx - 2)
+            j = np.clip(np.searchsorted(ys, py) - 1, 0, ny - 2)
+            tx, ty = (px - xs[i]) / (xs[i + 1] - xs[i]), (py - ys[j]) / (ys[j + 1] - ys[j])
+            corners = ((0, 0, (1 - tx) * (1 - ty)), (1, 0, tx * (1 - ty)), (0, 1, (1 - tx) * ty), (1, 1, tx * ty))
+            for di, dj, w in corners:
+                for k, node in enumerate((i + di) * ny + j + dj):
+                    c = weight[k] * w[k]
+                    if node in row:
+                        coupled[k, row[node]] += c
+                    elif solid.flat[node]:
+                        rate[k] += c * inside_value[node]
+                    else:
+                        free_weights.append((k, free.setdefault(int(node), len(free)), c))
+        weights = np.zeros((len(first), len(free)))
+        for k, column, c in free_weights:
+            weights[k, column] += c
+        system = np.eye(len(first)) - coupled
+        self.matrix = torch.from_numpy(np.linalg.solve(system, weights))  # [first, free]
+        self.rate = torch.from_numpy(np.linalg.solve(system, rate))  # [first, C]
+        self.sources = torch.tensor(sorted(free, key=free.get))  # the free nodes read
+        self.targets = torch.from_numpy(first)  # the first fluid nodes
+        forced = solid | (near & ~solid)
+        self.free = torch.from_numpy(~forced.reshape(-1)).double()[:, None]  # [nodes, 1]
+        self.inside = torch.from_numpy(np.where(solid.reshape(-1, 1), inside_value, 0.0))  # [nodes, C]
+        # the forced nodes, each counted to its nearest body
+        self.forced = torch.from_numpy(np.flatnonzero(forced))
+        owner = body_of[self.forced.numpy()]
+        self.groups = torch.from_numpy((owner[None, :] == np.arange(len(circles))[:, None]).astype(np.float64))
+
+    def to(self, dtype, device) -> None:
+        for name in ("matrix", "rate", "free", "inside", "groups"):
+            setattr(self, name, getattr(self, name).to(dtype=dtype, device=device, copy=True))
+        self.sources, self.targets, self.forced = (t.to(device) for t in (self.sources, self.targets, self.forced))
+
+    def __call__(self, f: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        nx, ny, batch = f.shape
+        flat = f.reshape(nx * ny, batch)
+        first = self.matrix @ flat[self.sources] + self.rate @ q
+        return (flat * self.free + self.inside @ q).index_add(0, self.targets, first).reshape(nx, ny, batch)
+
+    def per_body(self, change: torch.Tensor) -> torch.Tensor:
+        """The sum over each body's forced nodes of ``change`` (``[X, Y, B]``, zero off
+        the forced nodes): ``[G, B]``."""
+        nx, ny, batch = change.shape
+        return self.groups @ change.reshape(nx * ny, batch)[self.forced]
+
+
+def probe_stencil(
+    points: np.ndarray, x_cells: torch.Tensor, y_cells: torch.Tensor
+) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
+    """The four cells around each point and their bilinear weights: indices
+    ``([P, 4], [P, 4])`` and weights ``[P, 4]``."""
+
+    def along(coordinate: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        i = np.clip(np.searchsorted(centres, coordinate) - 1, 0, len(centres) - 2)
+        return i, (coordinate - centres[i]) / (centres[i + 1] - centres[i])
+
+    i0, wx = along(points[:, 0], x_cells.numpy())
+    j0, wy = along(points[:, 1], y_cells.numpy())
+    ix = np.stack((i0, i0 + 1, i0, i0 + 1), 1)
+    iy = np.stack((j0, j0, j0 + 1, j0 + 1), 1)
+    w = np.stack(((1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy), 1)
+    return (torch.from_numpy(ix), torch.from_numpy(iy)), torch.from_numpy(w)
