@@ -30,6 +30,7 @@ BUILT_IN = {
     "mixing-continuous-v0": 100,
     "cylinder-v0": 80,
     "ks-v0": 3000,
+    "pinball-v0": 100,
 }
 
 

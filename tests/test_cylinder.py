@@ -82,7 +82,7 @@ def test_steps_keep_the_flow_divergence_free_and_the_jets_carry_their_rate(chann
     div = channel.divergence(u, v)
     assert (div * channel.fluid_cells).abs().max() < 1e-9
     area = (channel.dx_cells * channel.dy_cells)[..., None]
-    assert (div[..., None] * channel.halves[:, :, None] * area).sum((0, 1)).abs().max() < 1e-14
+    assert (div[..., None] * channel.groups[:, :, None] * area).sum((0, 1)).abs().max() < 1e-14
     dy = channel.y.widths[:, None]
     inflow, outflow = (u[0] * dy).sum(0), (u[-1] * dy).sum(0)
     # zero net mass flux of the jets: what comes in goes out, with or without them

@@ -12,10 +12,8 @@ import torch
 
 from beacon_torch.base import map_state
 from beacon_torch.numerics import bodies
-from beacon_torch.numerics.bodies import Axis, Circle, ImmersedBoundary, probe_stencil, stable
-from beacon_torch.numerics.grid import NEUMANN, VALUE, ZERO_FACE, Ghosts
-from beacon_torch.numerics.poisson import PoissonSolver
-from beacon_torch.numerics.staggered import Stretched, divergence, tendency
+from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, stable
+from beacon_torch.numerics.grid import VALUE
 
 LENGTH, HEIGHT = 2.2, 0.41
 
@@ -81,109 +79,50 @@ def _resolution(value: int) -> None:
         )
 
 
-class Channel:
+class Channel(StretchedBox):
     """The stretched grid of the channel and the immersed cylinder: cells of size
     ``h = D / cells_per_diameter`` in a box around the cylinder and its near wake,
-    growing by 5 % a cell outside it up to 8 h; the inflow, the body's forcing of each
-    velocity component and its cells, the jets' stream, the ghost maps, the pressure
-    solver and the probes.
+    growing by 5 % a cell outside it up to 8 h; the parabolic inflow, no-slip walls, the
+    body's forcing of each velocity component, the jets' stream, and the probes.
     Fields are batch-last inside the steps (``[X, Y, B]``), as in the cavities'
     solver."""
 
     def __init__(self, cells_per_diameter: int, *, dtype, device) -> None:
         _resolution(cells_per_diameter)
-        self.h = h = DIAMETER / cells_per_diameter
-        self.x = Axis(LENGTH, *FINE_X, h, GROWTH, WIDEST * h)
-        self.y = Axis(HEIGHT, *FINE_Y, h, GROWTH, WIDEST * h)
-        self.nx, self.ny = nx, ny = self.x.n, self.y.n
-        # copies: a compiled loop takes no two inputs that share memory
-        cast = lambda t: t.to(dtype=dtype, device=device, copy=True)
-        # spacings, shaped to broadcast against [X, Y, B]
-        along, across = (lambda t: cast(t)[:, None, None]), (lambda t: cast(t)[None, :, None])
-        self.dx_cells, self.dy_cells = along(self.x.widths), across(self.y.widths)
-        self.dx_gaps, self.dy_gaps = along(self.x.gaps), across(self.y.gaps)
-        # the x-gradient's distances on the faces 1..nx (the outlet's mirrored ghost last)
-        self.dx_grad = along(self.x.gaps[1:])
-        # the axes as the shared staggered operators take them
-        self.x_spacing, self.y_spacing = (
-            Stretched(self.dx_cells, self.dx_gaps, 0),
-            Stretched(self.dy_cells, self.dy_gaps, 1),
-        )
-        x_faces, x_cells, y_faces, y_cells = self.x.faces, self.x.centres, self.y.faces, self.y.centres
-        self.inflow = cast(4.0 * U_MAX * y_cells * (HEIGHT - y_cells) / HEIGHT**2)[:, None]  # [ny, 1]
-        # the body: the faces inside it and the first fluid faces around it, per component
-        solid_v = inside(x_cells[:, None], y_faces[None, :])
+        h = DIAMETER / cells_per_diameter
+        x, y = Axis(LENGTH, *FINE_X, h, GROWTH, WIDEST * h), Axis(HEIGHT, *FINE_Y, h, GROWTH, WIDEST * h)
+        nx, ny = x.n, y.n
         # the jets' vertical stream through the body per unit flow rate, on the v faces
-        stream = jet_profile(x_cells, h)[:, None] * solid_v
-        body = (CYLINDER,)
-        self.body_u = ImmersedBoundary(x_faces, y_cells, 0, body, jet_wall, torch.zeros(nx + 1, ny, 1), h)
-        self.body_v = ImmersedBoundary(x_cells, y_faces, 1, body, jet_wall, stream[..., None], h)
-        self.body_u.to(dtype=dtype, device=device)
-        self.body_v.to(dtype=dtype, device=device)
-        # the momentum the body's faces hold per unit flow rate
-        self.jet_momentum = float(stream.sum()) * h * h
-        # cells whose centre lies in the body: they need not conserve mass one by one
-        # (their faces are forced), only each half of the body together, so that the
-        # jets' stream carries its rate from the bottom jet to the top one
-        body_cells = inside(x_cells[:, None], y_cells[None, :])
-        self.fluid_cells = cast(1.0 - body_cells)[..., None]
-        upper = (y_cells > CENTRE[1]).double()[None, :]
+        solid_v = inside(x.centres[:, None], y.faces[None, :])
+        stream = jet_profile(x.centres, h)[:, None] * solid_v
+        # the body's cells conserve mass by halves, so that the jets' stream carries its
+        # rate from the bottom jet to the top one
+        body_cells = inside(x.centres[:, None], y.centres[None, :])
+        upper = (y.centres > CENTRE[1]).double()[None, :]
         halves = torch.stack((body_cells * upper, body_cells * (1.0 - upper)), -1)  # [nx, ny, 2]
-        self.halves = cast(halves)
-        self.half_share = cast(halves / halves.sum((0, 1)))
-        # cells with a free face: the pressure of the others acts on forced faces only
-        # (each step overwrites them), so it is not carried from step to step
-        free_u, free_v = self.body_u.free.reshape(nx + 1, ny), self.body_v.free.reshape(nx, ny + 1)
-        enclosed = (1 - free_u[1:]) * (1 - free_u[:-1]) * (1 - free_v[:, 1:]) * (1 - free_v[:, :-1])
-        self.live = cast(1.0 - enclosed)[..., None]
-        # impermeable, no-slip walls below and above; v = 0 at the inflow, carried out
-        self.u_ghosts = Ghosts(None, [1.0] * (nx + 1), *Ghosts._cell_axis(ny, VALUE, VALUE), dtype=dtype, device=device)
-        v_x = Ghosts._cell_axis(nx, VALUE, 1.0)
-        self.v_ghosts = Ghosts(*v_x, None, [0.0, *[1.0] * (ny - 1), 0.0], dtype=dtype, device=device)
-        # solved across the channel first (a mirror-symmetric grid: the folded basis),
-        # then along it: the fields are transposed for the solve
-        self.solver = PoissonSolver.stretched(
-            self.y.laplacian(NEUMANN, NEUMANN),
-            self.y.widths,
-            self.x.laplacian(NEUMANN, ZERO_FACE),
-            self.x.widths,
+        super().__init__(
+            x,
+            y,
+            h,
+            4.0 * U_MAX * y.centres * (HEIGHT - y.centres) / HEIGHT**2,
+            VALUE,
+            (CYLINDER,),
+            jet_wall,
+            torch.zeros(nx + 1, ny, 1),
+            stream[..., None],
+            halves,
+            outflow=U_MEAN,
             dtype=dtype,
             device=device,
         )
-        self.probe_index, self.probe_weight = probe_stencil(PROBES + np.array(CENTRE), x_cells, y_cells)
-        self.probe_index = tuple(i.to(device) for i in self.probe_index)
-        self.probe_weight = cast(self.probe_weight)
+        # the momentum the body's faces hold per unit flow rate
+        self.jet_momentum = float(stream.sum()) * h * h
+        self.probe_index, self.probe_weight = self.probes(PROBES + np.array(CENTRE))
 
     def pressure_probes(self, p: torch.Tensor) -> torch.Tensor:
         """The pressure ``[B, nx, ny]`` at the probes, ``[B, N_PROBES]``."""
         ix, iy = self.probe_index
         return (p[:, ix, iy] * self.probe_weight).sum(-1)
-
-    def x_gradient(self, f: torch.Tensor) -> torch.Tensor:
-        """d/dx of a cell field on the x-faces 1..nx, zero on the outlet face."""
-        ext = torch.cat((f, -f[-1:]), 0)
-        return (ext[1:] - ext[:-1]) / self.dx_grad
-
-    def y_gradient(self, f: torch.Tensor) -> torch.Tensor:
-        """d/dy of a cell field on the interior y-faces 1..ny-1."""
-        return (f[:, 1:] - f[:, :-1]) / self.dy_gaps[:, 1:-1]
-
-    def divergence(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        return divergence(u, v, self.dx_cells, self.dy_cells)
-
-    def continuity(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """The divergence the projection removes: all of it in the fluid's cells; in the
-        body's cells, each half's mean only, so that the faces around the body keep the
-        values the forcing gave them while each half of the body passes on exactly
-        what its jet's stream brings (no fluid made or lost, the jets' rates exact)."""
-        div = self.divergence(u, v)
-        total = torch.einsum("xyb,xyh->hb", div, self.halves)  # [2, B]
-        return div * self.fluid_cells + torch.einsum("xyh,hb->xyb", self.half_share, total)
-
-    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
-        """phi with lap phi = rhs in the cells: zero normal gradient on the walls and
-        the inflow, zero on the outlet face."""
-        return self.solver.solve(rhs.transpose(0, 1).contiguous()).transpose(0, 1)
 
 
 def inside(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -232,26 +171,16 @@ def step(i, carried: tuple[Flow, torch.Tensor, torch.Tensor], target: torch.Tens
     ``target`` (``[B]``)."""
     flow, drag_sum, lift_sum = carried
     c, h = channel, channel.h
-    u, v, p = flow.u, flow.v, flow.p
     q = flow.q + SMOOTHING * (target - flow.q)
-    # explicit terms: centred advection and diffusion inside, the outlet face carried out
-    hu, hv = tendency(c.u_ghosts(u), c.v_ghosts(v), nu, c.x_spacing, c.y_spacing)
-    hu = torch.cat((hu, -U_MEAN * (u[-1:] - u[-2:-1]) / c.dx_cells[-1:]), 0)
-    u_star = u[1:] + dt * (1.5 * hu - 0.5 * flow.hu - c.x_gradient(p))
-    v_star = v[:, 1:-1] + dt * (1.5 * hv - 0.5 * flow.hv - c.y_gradient(p))
-    u_star = torch.cat((c.inflow.expand_as(u[:1]), u_star), 0)
-    v_star = torch.nn.functional.pad(v_star, (0, 0, 1, 1))
+    u_star, v_star, hu, hv = c.predict(flow.u, flow.v, flow.p, flow.hu, flow.hv, nu, dt)
     # the body: its faces take its velocity, the first fluid faces around it the value
     # the wall and the flow further out give them; what that removes is the force
     u_new, v_new = c.body_u(u_star, q[None]), c.body_v(v_star, q[None])
     cell = h * h / dt
     drag = (u_star - u_new).sum((0, 1)) * cell
     lift = (v_star - v_new).sum((0, 1)) * cell + c.jet_momentum * (q - flow.q) / dt
-    # projection on the rectangle
-    phi = c.solve(c.continuity(u_new, v_new) / dt)
-    u_new = torch.cat((u_new[:1], u_new[1:] - dt * c.x_gradient(phi)), 0)
-    v_new = torch.cat((v_new[:, :1], v_new[:, 1:-1] - dt * c.y_gradient(phi), v_new[:, -1:]), 1)
-    return Flow(u=u_new, v=v_new, p=p * c.live + phi, hu=hu, hv=hv, q=q), drag_sum + drag, lift_sum + lift
+    u_new, v_new, p = c.project(u_new, v_new, flow.p, dt)
+    return Flow(u=u_new, v=v_new, p=p, hu=hu, hv=hv, q=q), drag_sum + drag, lift_sum + lift
 
 
 def rest(num_envs: int, channel: Channel, dtype, device) -> Flow:
