@@ -243,6 +243,7 @@ REACH = {
     "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].test_settings),
     "cylinder-v0": (0, 1, ENVS["cylinder-v0"].test_settings),
     "ks-v0": (2, 2, {}),
+    "pinball-v0": (0, 1, ENVS["pinball-v0"].test_settings),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)

@@ -156,6 +156,7 @@ def test_list_envs():
         "lorenz-v0",
         "mixing-continuous-v0",
         "mixing-v0",
+        "pinball-v0",
         "rayleigh-separable-v0",
         "rayleigh-v0",
         "shkadov-separable-v0",

@@ -36,7 +36,7 @@ from beacon_torch.params import number, param
 START_VERSION = 1
 # time units from the free stream to the developed flow, and the front cylinder's
 # kick in the first of them that breaks the mirror symmetry
-DEVELOP_TIME = 150.0
+DEVELOP_TIME = 400.0
 KICK = 0.5
 # the largest rotation rate, in U / D (HydroGym's pinball bound, pi / 2)
 MAX_ROTATION = 0.5 * math.pi
@@ -60,11 +60,12 @@ class PinballState(NamedTuple):
 class PinballParams:
     re: float = param(
         30.0,
-        low=20.0,
+        low=10.0,
         high=200.0,
         per_member=False,
         differentiable=True,
-        doc="Reynolds number U D / nu (steady below about 18, periodic to about 104, chaotic beyond 115)",
+        doc="Reynolds number U D / nu (Deng et al.: steady below about 18, then shedding, asymmetric beyond about 68, "
+        "quasi-periodic beyond 104, chaotic beyond 115)",
     )
     cells_per_diameter: int = param(
         20,

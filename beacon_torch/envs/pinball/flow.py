@@ -142,6 +142,12 @@ class Box(StretchedBox):
             device=device,
         )
         self.cylinders = cylinders
+        # the angular momentum the faces inside each cylinder hold per unit angular
+        # velocity: what its forcing spends on turning them is not the flow's torque
+        inner_u = rigid_rotation(x.faces, y.centres, 0, cylinders)
+        inner_v = rigid_rotation(x.centres, y.faces, 1, cylinders)
+        spin = (inner_u**2).sum((0, 1)) + (inner_v**2).sum((0, 1))
+        self.spin = self.cast(spin * h * h)[:, None]  # [3, 1]
         self.probe_index, self.probe_weight = self.probes(PROBES)
 
     def velocity_probes(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -151,10 +157,11 @@ class Box(StretchedBox):
         at = lambda f: (f[:, ix, iy] * self.probe_weight).sum(-1)
         return torch.cat((at(uc), at(vc)), -1)
 
-    def loads(self, du: torch.Tensor, dv: torch.Tensor, dt: float) -> torch.Tensor:
+    def loads(self, du: torch.Tensor, dv: torch.Tensor, spun: torch.Tensor, dt: float) -> torch.Tensor:
         """Each cylinder's force and torque from what its forcing removed from the
-        predicted faces (``du``, ``dv``, batch last): ``[3, 3, B]`` (drag, lift,
-        torque), per unit density."""
+        predicted faces (``du``, ``dv``, batch last), the torque less what turned the
+        faces inside it faster (``spun``, the change of its angular velocity,
+        ``[3, B]``): ``[3, 3, B]`` (drag, lift, torque), per unit density."""
         cell = self.h * self.h / dt
         bu, bv = self.body_u, self.body_v
         u_taken = du.reshape(-1, du.shape[-1])[bu.forced]  # [F_u, B]
@@ -162,6 +169,7 @@ class Box(StretchedBox):
         drag = bu.groups @ u_taken
         lift = bv.groups @ v_taken
         torque = bv.groups @ (bv.arm[0][:, None] * v_taken) - bu.groups @ (bu.arm[1][:, None] * u_taken)
+        torque = torque + self.spin * spun / (self.h * self.h)
         return torch.stack((drag, lift, torque)) * cell
 
 
@@ -173,7 +181,7 @@ def step(i, carried: tuple[Flow, torch.Tensor], target: torch.Tensor, box: Box, 
     omega = flow.omega + SMOOTHING * (target - flow.omega)
     u_star, v_star, hu, hv = box.predict(flow.u, flow.v, flow.p, flow.hu, flow.hv, nu, dt)
     u_new, v_new = box.body_u(u_star, omega), box.body_v(v_star, omega)
-    loads = loads + box.loads(u_star - u_new, v_star - v_new, dt)
+    loads = loads + box.loads(u_star - u_new, v_star - v_new, omega - flow.omega, dt)
     u_new, v_new, p = box.project(u_new, v_new, flow.p, dt)
     return Flow(u=u_new, v=v_new, p=p, hu=hu, hv=hv, omega=omega), loads
 

@@ -1,0 +1,313 @@
+"""pinball-v0's validation: the steady flow at Re 30 against HydroGym's recorded
+forces, and the Reynolds numbers of the first two bifurcations against Deng et al.'s.
+
+    .venv/bin/python benchmarks/pinball_validation.py steady [--cells 10 20 30] [--setups ...]
+    .venv/bin/python benchmarks/pinball_validation.py thresholds [--cells 10 20] [--hopf RE ...] [--pitchfork RE ...]
+    .venv/bin/python benchmarks/pinball_validation.py page
+
+HydroGym's pinball test solves the steady flow at Re 30 on its fine mesh by Newton's
+method and records each cylinder's drag and lift coefficients (front, top, bottom):
+C_D = (1.451, 1.566, 1.566), C_L = (0, 0.521, -0.521). Its mesh puts the front
+cylinder at the origin of the box [-6, 20] x [-6, 6] (so the inflow is 6 D ahead of
+it, 4.7 D in Deng et al.'s box, where the origin lies between the rear cylinders), and
+the mesh file of that test's time puts the rear cylinders 1.5 x 1.866 R behind the
+front one, not the triangle's 1.5 x 1.732 R. Each set-up here starts from the free
+stream and runs in float64 at Re 30 without control until the drag changes by less
+than 1e-6 over a time unit (or ``--time`` units):
+
+- ``hydrogym-mesh``: HydroGym's box and its mesh's cylinders (the reference's set-up);
+- ``hydrogym-box``: HydroGym's box with the equilateral triangle;
+- ``pinball-v0``: the env's own box and triangle (Deng et al.'s).
+
+Prints each set-up's coefficients beside the reference and writes them to a new dated
+``pinball_steady-DATE-TIME.json`` in ``--out`` (benchmarks/results/pinball/).
+
+``thresholds``: the bifurcations of the steady symmetric flow (Deng et al.: a Hopf
+bifurcation near Re 18, a pitchfork near Re 68, both breaking the mirror symmetry; the
+pitchfork acts on the steady solution as on the periodic one). At each Re of a sweep,
+the steady symmetric solution (the mirror-symmetric grid keeps a flow started from the
+free stream symmetric, so it settles there whether or not it is stable) is disturbed
+by turning the front cylinder at 1e-6 for one time unit, an antisymmetric kick, and the
+front cylinder's lift (zero on the symmetric flow) followed in the linear regime:
+
+- the Hopf mode is the leading oscillating one: its growth rate is that of the lift's
+  oscillation (a two-mode fit of the delayed signal, dynamic mode decomposition);
+- the pitchfork mode is a real one, which the Hopf mode's faster growth hides: the run
+  is repeated with selective frequency damping (Akervik et al. 2006: every step the flow
+  is pulled towards its own low-pass filtered self), which damps oscillating modes but
+  leaves a real eigenvalue's sign as it is (the damped system's determinant changes sign
+  with it), and the growth rate is that of the lift's steady drift (a one-mode fit).
+
+Each threshold is where the growth rate changes sign, interpolated linearly between the
+sweep's neighbours. Writes ``pinball_thresholds-DATE-TIME.json``.
+
+``page``: writes the newest records' tables to the env's page. Each run is its own
+process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import math
+import os
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "benchmarks" / "results" / "pinball"
+BEGIN, END = "<!-- steady: benchmarks/pinball_validation.py -->", "<!-- end of the steady -->"
+THRESHOLDS_BEGIN = "<!-- thresholds: benchmarks/pinball_validation.py -->"
+THRESHOLDS_END = "<!-- end of the thresholds -->"
+
+RE = 30.0
+# HydroGym's test_steady (fine mesh): front, top, bottom
+HYDROGYM = {"drag": (1.451, 1.566, 1.566), "lift": (0.0, 0.521, -0.521)}
+SETUPS = ("hydrogym-mesh", "hydrogym-box", "pinball-v0")
+
+
+def geometry(setup: str):
+    """The cylinders and the box's x range of a set-up, in the env's coordinates."""
+    from beacon_torch.envs.pinball.flow import CYLINDERS, RADIUS, X_RANGE
+    from beacon_torch.numerics.bodies import Circle
+
+    if setup == "pinball-v0":
+        return CYLINDERS, X_RANGE
+    rear = 1.5 * (1.866 if setup == "hydrogym-mesh" else math.sqrt(3.0)) * RADIUS
+    cylinders = (Circle(-rear, 0.0, RADIUS), *CYLINDERS[1:])
+    # HydroGym's box is [-6, 20] from the front cylinder's centre
+    return cylinders, (-6.0 - rear, 20.0 - rear)
+
+
+def time_step(cells: int) -> float:
+    """The time step of a grid at Re 30: the env's, or less where that leaves the
+    grid-scale diffusion 8 nu dt / h^2 above 1/2."""
+    from beacon_torch.envs.pinball.flow import DT
+
+    h = 1.0 / cells
+    return min(DT, 0.5 * h * h * RE / 8.0)
+
+
+def measure(setup: str, cells: int, time: float) -> dict:
+    import numpy as np
+    import torch
+
+    from beacon_torch.envs.pinball.flow import Box, coefficient, rest, run
+
+    torch.set_num_threads(1)
+    cylinders, x_range = geometry(setup)
+    box = Box(cells, cylinders=cylinders, x_range=x_range, dtype=torch.float64, device="cpu")
+    dt = time_step(cells)
+    flow = rest(1, box, torch.float64, "cpu")
+    still = torch.zeros(1, 3, dtype=torch.float64)
+    per_unit = int(round(1.0 / dt))
+    history, change = [], float("inf")
+    with torch.no_grad():
+        for k in range(int(time)):
+            flow, loads = run(flow, per_unit, still, box, 1.0 / RE, dt)
+            drag, lift = coefficient(loads[0, 0]).numpy(), coefficient(loads[0, 1]).numpy()
+            if history:
+                change = float(np.abs(drag - history[-1]["drag"]).max())
+            history.append({"time": k + 1.0, "drag": drag.tolist(), "lift": lift.tolist()})
+            if change < 1e-6:
+                break
+    last = history[-1]
+    return {
+        "setup": setup,
+        "cells_per_diameter": cells,
+        "dt": dt,
+        "cells": box.nx * box.ny,
+        "time": last["time"],
+        "last_change": change,
+        "drag": last["drag"],
+        "lift": last["lift"],
+        "history": history,
+    }
+
+
+KICK = 1e-6  # the front cylinder's angular velocity for the first time unit
+SAMPLE = 0.5  # time units between the lift's samples
+# selective frequency damping: the damping rate and the filter's width in time
+SFD_CHI, SFD_DELTA = 1.0, 5.0
+
+
+def symmetric_base(box, re: float, dt: float, start=None, time: float = 200.0):
+    """The steady symmetric flow at ``re``: from ``start`` (or the free stream) until the
+    drag changes by less than 1e-8 over a time unit."""
+    import numpy as np
+    import torch
+
+    from beacon_torch.envs.pinball.flow import rest, run
+
+    flow = rest(1, box, torch.float64, "cpu") if start is None else start
+    still = torch.zeros(1, 3, dtype=torch.float64)
+    previous = None
+    with torch.no_grad():
+        for _ in range(int(time)):
+            flow, loads = run(flow, int(round(1.0 / dt)), still, box, 1.0 / re, dt)
+            drag = loads[0, 0].numpy()
+            if previous is not None and np.abs(drag - previous).max() < 1e-8:
+                break
+            previous = drag
+    return flow
+
+
+def antisymmetric_lift(box, re: float, dt: float, base, time: float, damped: bool):
+    """The front cylinder's lift coefficient every ``SAMPLE`` time units after the kick,
+    with selective frequency damping or without."""
+    import numpy as np
+    import torch
+
+    from beacon_torch.envs.pinball.flow import coefficient, run
+
+    flow, per_sample = base, int(round(SAMPLE / dt))
+    u_bar, v_bar = base.u.clone(), base.v.clone()
+    lift = []
+    with torch.no_grad():
+        for k in range(int(round(time / SAMPLE))):
+            kick = KICK if k * SAMPLE < 1.0 else 0.0
+            target = torch.tensor([[kick, 0.0, 0.0]], dtype=torch.float64)
+            total = 0.0
+            for _ in range(per_sample):
+                flow, loads = run(flow, 1, target, box, 1.0 / re, dt)
+                total += float(loads[0, 1, 0])
+                if damped:
+                    du, dv = flow.u - u_bar, flow.v - v_bar
+                    flow = flow._replace(u=flow.u - dt * SFD_CHI * du, v=flow.v - dt * SFD_CHI * dv)
+                    u_bar, v_bar = u_bar + dt * du / SFD_DELTA, v_bar + dt * dv / SFD_DELTA
+            lift.append(float(coefficient(torch.tensor(total / per_sample))))
+    return np.array(lift)
+
+
+def growth(signal, rank: int, skip: float, delays: int = 12) -> complex:
+    """The leading eigenvalue (growth rate + i angular frequency, per time unit) of a
+    ``rank``-mode fit of ``signal`` after ``skip`` time units (dynamic mode
+    decomposition of its delay embedding)."""
+    import numpy as np
+
+    s = signal[int(round(skip / SAMPLE)) :]
+    s = s / np.abs(s).max()
+    hankel = np.stack([s[i : len(s) - delays + i] for i in range(delays)])
+    x, y = hankel[:, :-1], hankel[:, 1:]
+    u, sv, vh = np.linalg.svd(x, full_matrices=False)
+    u, sv, vh = u[:, :rank], sv[:rank], vh[:rank]
+    a = u.T @ y @ vh.T / sv
+    rates = np.log(np.linalg.eigvals(a).astype(complex)) / SAMPLE
+    return complex(max(rates, key=lambda z: z.real))
+
+
+def sweep(cells: int, kind: str, reynolds: list[float], time: float) -> dict:
+    """The growth rates of the Hopf (``kind`` "hopf") or the pitchfork mode over a
+    sweep of Re, one grid, in one process."""
+    import torch
+
+    from beacon_torch.envs.pinball.flow import Box
+
+    torch.set_num_threads(1)
+    box = Box(cells, dtype=torch.float64, device="cpu")
+    dt = time_step(cells)
+    rows, base = [], None
+    for re in sorted(reynolds):
+        base = symmetric_base(box, re, dt, start=base)
+        lift = antisymmetric_lift(box, re, dt, base, time, damped=kind == "pitchfork")
+        rate = growth(lift, 2 if kind == "hopf" else 1, skip=0.4 * time)
+        rows.append({"re": re, "rate": rate.real, "frequency": abs(rate.imag), "lift": lift.tolist()})
+    return {"kind": kind, "cells_per_diameter": cells, "dt": dt, "time": time, "points": rows}
+
+
+def threshold(points: list[dict]) -> float:
+    """The Re where the growth rate changes sign, linear between the sweep's neighbours
+    (nan if it does not change sign in the sweep)."""
+    for a, b in zip(points, points[1:], strict=False):
+        if a["rate"] < 0 <= b["rate"]:
+            return a["re"] - a["rate"] * (b["re"] - a["re"]) / (b["rate"] - a["rate"])
+    return float("nan")
+
+
+# Deng et al. 2020's thresholds
+DENG = {"hopf": 18.0, "pitchfork": 68.0}
+
+
+def threshold_table(rows: list[dict]) -> str:
+    """The growth rates of each sweep and the thresholds against Deng et al.'s, as
+    markdown."""
+    lines = []
+    for kind, name in (("hopf", "Hopf"), ("pitchfork", "pitchfork")):
+        sweeps = sorted((r for r in rows if r["kind"] == kind), key=lambda r: r["cells_per_diameter"])
+        if not sweeps:
+            continue
+        res = sorted({p["re"] for r in sweeps for p in r["points"]})
+        lines += [
+            f"| {name}: growth rate at Re | " + " | ".join(f"{re:g}" for re in res) + " | threshold | Deng et al. |",
+            "|---|" + "---|" * (len(res) + 2),
+        ]
+        for r in sweeps:
+            rate = {p["re"]: p["rate"] for p in r["points"]}
+            cells = [f"{rate[re]:+.4f}" if re in rate else "" for re in res]
+            found = threshold(r["points"])
+            lines.append(
+                f"| {r['cells_per_diameter']} cells per D | "
+                + " | ".join(cells)
+                + f" | {found:.1f} ({100 * (found / DENG[kind] - 1):+.1f} %) | {DENG[kind]:g} |"
+            )
+        lines.append("")
+    return "\n".join(lines).strip()
+
+
+def table(rows: list[dict]) -> str:
+    """The rows against HydroGym's forces, as markdown."""
+    ref_d, ref_l = HYDROGYM["drag"], HYDROGYM["lift"]
+    lines = [
+        "| set-up | cells per D | dt | C_D front | C_D top | C_D bottom | C_L top | C_L bottom |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| HydroGym (fine mesh, Newton) | | | {ref_d[0]} | {ref_d[1]} | {ref_d[2]} | {ref_l[1]} | {ref_l[2]} |",
+    ]
+    order = {s: i for i, s in enumerate(SETUPS)}
+    for r in sorted(rows, key=lambda r: (order[r["setup"]], r["cells_per_diameter"])):
+        pct = lambda v, ref: f"{v:.4f} ({100 * (v / ref - 1):+.1f} %)"
+        drag = [pct(v, ref) for v, ref in zip(r["drag"], ref_d, strict=True)]
+        lift = [pct(v, ref) for v, ref in zip(r["lift"][1:], ref_l[1:], strict=True)]
+        lines.append(f"| {r['setup']} | {r['cells_per_diameter']} | {r['dt']:g} | " + " | ".join(drag + lift) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    from beacon_torch import received
+    from beacon_torch.files import save_rows
+    from beacon_torch.training.report import write_block
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("what", choices=("steady", "thresholds", "page"))
+    parser.add_argument("--cells", type=int, nargs="+", default=[10, 20], help="cells across a diameter")
+    parser.add_argument("--setups", nargs="+", default=list(SETUPS), choices=SETUPS)
+    parser.add_argument("--time", type=float, default=None, help="time units of each run (steady: the most)")
+    parser.add_argument("--hopf", type=float, nargs="*", default=[14.0, 17.0, 20.0, 23.0], help="Re of the sweep")
+    parser.add_argument("--pitchfork", type=float, nargs="*", default=[56.0, 64.0, 72.0, 80.0], help="Re")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--out", type=Path, default=RECORDS)
+    parser.add_argument("--page", type=Path, default=ROOT / "docs" / "envs" / "pinball.md")
+    args = parser.parse_args()
+    if args.what == "steady":
+        runs = [(s, c) for s in args.setups for c in args.cells]
+        with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:
+            rows = list(pool.map(measure, *zip(*runs, strict=True), [args.time or 80.0] * len(runs)))
+        print("results:", save_rows(rows, args.out, "pinball_steady"))
+    elif args.what == "thresholds":
+        runs = [
+            (c, k, res) for c in args.cells for k, res in (("hopf", args.hopf), ("pitchfork", args.pitchfork)) if res
+        ]
+        with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:
+            rows = list(pool.map(sweep, *zip(*runs, strict=True), [args.time or 80.0] * len(runs)))
+        print("results:", save_rows(rows, args.out, "pinball_thresholds"))
+    for name, begin, end, make in (
+        ("pinball_steady", BEGIN, END, table),
+        ("pinball_thresholds", THRESHOLDS_BEGIN, THRESHOLDS_END, threshold_table),
+    ):
+        records = sorted(args.out.glob(f"{name}-*.json"))
+        if records:
+            rows = received.json_file(records[-1], "a pinball validation record")["rows"]
+            print(make(rows))
+            print(write_block(args.page, begin, end, make(rows)))
+
+
+if __name__ == "__main__":
+    main()

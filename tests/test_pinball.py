@@ -1,0 +1,120 @@
+"""pinball-v0: the rotating cylinders' forcing, loads and power, the steady flow at
+Re 30 against the recorded validation, the page's tables."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+import beacon_torch
+from beacon_torch.envs import pinball
+
+from conftest import script
+
+ROOT = Path(__file__).resolve().parents[1]
+steady = script("benchmarks/pinball_validation.py")
+F64 = dict(dtype=torch.float64, device="cpu")
+
+
+def latest(pattern: str) -> dict:
+    (path,) = sorted((ROOT / "benchmarks" / "results" / "pinball").glob(pattern))[-1:]
+    return json.loads(path.read_text())
+
+
+def test_forcing_gives_a_turning_cylinder_its_rigid_rotation():
+    # a field that turns rigidly about the front cylinder's centre is what the forcing
+    # must leave on that cylinder's forced faces at a unit angular velocity: the wall's
+    # velocity is the field's there, and the quadratic along the normal is exact for it
+    box = pinball.Box(20, **F64)
+    front = pinball.CYLINDERS[0]
+    omega = torch.tensor([[1.0], [0.0], [0.0]], **F64)
+    for body, xs, ys, component in (
+        (box.body_u, box.x.faces, box.y.centres, 0),
+        (box.body_v, box.x.centres, box.y.faces, 1),
+    ):
+        x, y = xs[:, None], ys[None, :]
+        field = (-(y - front.y) if component == 0 else (x - front.x)).expand(len(xs), len(ys))[..., None].clone()
+        forced = body(field.to(torch.float64), omega).reshape(-1)
+        mine = body.forced[body.groups[0] == 1]
+        assert len(mine) > 50
+        torch.testing.assert_close(forced[mine], field.reshape(-1)[mine], rtol=0, atol=1e-12)
+        # the other cylinders stand still: their inner faces at rest
+        others = body.forced[body.groups[0] == 0]
+        inner = body.inside.reshape(-1, 3)[others].abs().sum(-1) > 0
+        assert forced[others][inner].abs().max() == 0
+
+
+def test_turning_cylinders_spend_power_and_feel_the_torque_against_them():
+    env = beacon_torch.make("pinball-v0", 2, dtype=torch.float64, **pinball.PinballEnv.test_settings)
+    td = env.reset()
+    action = torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0]], dtype=torch.float64)
+    td = env.step(td.set("action", action))["next"]
+    state = env.state
+    # the front cylinder turns counter-clockwise in the first member: the fluid's torque
+    # on it is clockwise; the rear pair turns outwards in the second
+    assert state.omega[0, 0] > 0 and state.torque[0, 0] < 0
+    assert state.omega[1, 1] < 0 and state.torque[1, 1] > 0
+    power = td["diagnostics", "power"]
+    assert bool((power > 0).all())
+    drag = td["diagnostics", "drag"]
+    assert torch.allclose(td["reward"][:, 0], -(drag + power))
+
+
+@pytest.mark.slow(seconds=40)
+def test_the_steady_flow_at_re_30_is_the_recorded_one():
+    # HydroGym's set-up at the tests' grid from the free stream, as the validation ran it
+    record = latest("pinball_steady-*.json")
+    (row,) = [r for r in record["rows"] if r["setup"] == "hydrogym-mesh" and r["cells_per_diameter"] == 10]
+    got = steady.measure("hydrogym-mesh", 10, row["time"])
+    torch.testing.assert_close(torch.tensor(got["drag"]), torch.tensor(row["drag"]), rtol=1e-6, atol=0)
+    torch.testing.assert_close(torch.tensor(got["lift"]), torch.tensor(row["lift"]), rtol=0, atol=1e-6)
+    # the steady flow on the mirror-symmetric grid is mirror-symmetric
+    assert abs(got["lift"][0]) < 1e-9 and got["lift"][1] == pytest.approx(-got["lift"][2], abs=1e-9)
+
+
+def test_the_recorded_steady_forces_are_within_2_percent_of_hydrogyms_and_on_the_page():
+    record = latest("pinball_steady-*.json")
+    rows = [r for r in record["rows"] if r["setup"] == "hydrogym-mesh"]
+    finest = max(rows, key=lambda r: r["cells_per_diameter"])
+    for got, want in zip(finest["drag"], steady.HYDROGYM["drag"], strict=True):
+        assert got == pytest.approx(want, rel=0.02)
+    for got, want in zip(finest["lift"][1:], steady.HYDROGYM["lift"][1:], strict=True):
+        assert got == pytest.approx(want, rel=0.02)
+    assert all(r["last_change"] < 1e-5 for r in record["rows"])  # converged
+    page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
+    block = re.search(r"<!-- steady: .*?-->\n(.*?)<!-- end of the steady -->", page, re.S)
+    assert block and block.group(1).strip() == steady.table(record["rows"]).strip()
+
+
+def test_bad_parameters_get_one_line():
+    with pytest.raises(ValueError, match="'cells_per_diameter' = 15 must be even"):
+        beacon_torch.make("pinball-v0", 1, cells_per_diameter=15)
+    with pytest.raises(ValueError, match="'re' = 25 and 'cells_per_diameter' = 30: the explicit diffusion is unstable"):
+        beacon_torch.make("pinball-v0", 1, re=25, cells_per_diameter=30)
+
+
+def test_the_recorded_thresholds_are_within_5_percent_of_deng_et_al_and_on_the_page():
+    record = latest("pinball_thresholds-*.json")
+    for kind in ("hopf", "pitchfork"):
+        sweeps = [r for r in record["rows"] if r["kind"] == kind]
+        finest = max(sweeps, key=lambda r: r["cells_per_diameter"])
+        assert steady.threshold(finest["points"]) == pytest.approx(steady.DENG[kind], rel=0.05), kind
+    page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
+    block = re.search(r"<!-- thresholds: .*?-->\n(.*?)<!-- end of the thresholds -->", page, re.S)
+    assert block and block.group(1).strip() == steady.threshold_table(record["rows"]).strip()
+
+
+def test_a_growth_rate_is_read_off_a_clean_mode():
+    # the fit of the validation recovers a known damped oscillation and a real growth
+    import numpy as np
+
+    t = np.arange(0, 80, steady.SAMPLE)
+    oscillating = 1e-6 * np.exp(0.031 * t) * np.cos(0.62 * t + 0.3) + 1e-9 * np.exp(-0.5 * t)
+    rate = steady.growth(oscillating, 2, skip=20.0)
+    assert rate.real == pytest.approx(0.031, abs=1e-6) and abs(rate.imag) == pytest.approx(0.62, abs=1e-6)
+    drifting = 1e-6 * np.exp(-0.012 * t)
+    assert steady.growth(drifting, 1, skip=20.0).real == pytest.approx(-0.012, abs=1e-9)
