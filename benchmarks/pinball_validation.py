@@ -78,13 +78,13 @@ def geometry(setup: str):
     return cylinders, (-6.0 - rear, 20.0 - rear)
 
 
-def time_step(cells: int) -> float:
-    """The time step of a grid at Re 30: the env's, or less where that leaves the
+def time_step(cells: int, re: float = RE) -> float:
+    """The time step of a grid at ``re``: the env's, or less where that leaves the
     grid-scale diffusion 8 nu dt / h^2 above 1/2."""
     from beacon_torch.envs.pinball.flow import DT
 
     h = 1.0 / cells
-    return min(DT, 0.5 * h * h * RE / 8.0)
+    return min(DT, 0.5 * h * h * re / 8.0)
 
 
 def measure(setup: str, cells: int, time: float) -> dict:
@@ -204,14 +204,14 @@ def sweep(cells: int, kind: str, reynolds: list[float], time: float) -> dict:
 
     torch.set_num_threads(1)
     box = Box(cells, dtype=torch.float64, device="cpu")
-    dt = time_step(cells)
     rows, base = [], None
     for re in sorted(reynolds):
+        dt = time_step(cells, re)
         base = symmetric_base(box, re, dt, start=base)
         lift = antisymmetric_lift(box, re, dt, base, time, damped=kind == "pitchfork")
         rate = growth(lift, 2 if kind == "hopf" else 1, skip=0.4 * time)
-        rows.append({"re": re, "rate": rate.real, "frequency": abs(rate.imag), "lift": lift.tolist()})
-    return {"kind": kind, "cells_per_diameter": cells, "dt": dt, "time": time, "points": rows}
+        rows.append({"re": re, "dt": dt, "rate": rate.real, "frequency": abs(rate.imag), "lift": lift.tolist()})
+    return {"kind": kind, "cells_per_diameter": cells, "time": time, "points": rows}
 
 
 def threshold(points: list[dict]) -> float:
