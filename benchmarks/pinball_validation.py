@@ -41,6 +41,12 @@ front cylinder's lift (zero on the symmetric flow) followed in the linear regime
 Each threshold is where the growth rate changes sign, interpolated linearly between the
 sweep's neighbours. Writes ``pinball_thresholds-DATE-TIME.json``.
 
+``regimes``: the developed flows at the levels' Reynolds numbers (the env's start, then
+``--time`` units): mean forces, the front lift's Strouhal number and spectrum, and the
+leading Lyapunov exponent from a twin trajectory 1e-8 away (in the velocity's 2-norm
+over the faces), its distance restored every time unit: about zero for a periodic or
+quasi-periodic flow, positive for a chaotic one. Writes ``pinball_regimes-DATE-TIME.json``.
+
 ``page``: writes the newest records' tables to the env's page. Each run is its own
 process.
 """
@@ -58,6 +64,7 @@ RECORDS = ROOT / "benchmarks" / "results" / "pinball"
 BEGIN, END = "<!-- steady: benchmarks/pinball_validation.py -->", "<!-- end of the steady -->"
 THRESHOLDS_BEGIN = "<!-- thresholds: benchmarks/pinball_validation.py -->"
 THRESHOLDS_END = "<!-- end of the thresholds -->"
+REGIMES_BEGIN, REGIMES_END = "<!-- regimes: benchmarks/pinball_validation.py -->", "<!-- end of the regimes -->"
 
 RE = 30.0
 # HydroGym's test_steady (fine mesh): front, top, bottom
@@ -253,6 +260,96 @@ def threshold_table(rows: list[dict]) -> str:
     return "\n".join(lines).strip()
 
 
+LYAPUNOV_SIZE = 1e-8  # the twin's distance in the velocity's 2-norm, restored every time unit
+REGIME_SAMPLE = 0.1
+
+
+def regime(cells: int, re: float, time: float) -> dict:
+    """The developed flow at ``re`` (the env's start: 400 time units from the free
+    stream, the front cylinder kicked in the first) followed for ``time`` more units
+    with a twin a tiny distance away: each cylinder's mean drag and lift, the front
+    lift's spectrum and dominant frequency (the Strouhal number f D / U), and the
+    leading Lyapunov exponent (the twin's distance restored every time unit, the mean
+    of the logarithm of its growth)."""
+    import numpy as np
+    import torch
+
+    from beacon_torch.cache import cache_dir, file_name, save
+    from beacon_torch.envs.pinball.env import DEVELOP_TIME, KICK, START_VERSION
+    from beacon_torch.envs.pinball.flow import DT, Box, Flow, coefficient, developed, run
+    from beacon_torch.numerics.bodies import stable
+
+    torch.set_num_threads(1)
+    # the env's own time step where the env takes it (its start is then the env's)
+    dt = DT if stable(1.0 / cells, 1.0 / re, DT) else time_step(cells, re)
+    start, _ = developed(cells, 1.0 / re, time=DEVELOP_TIME, dt=dt, kick=KICK)
+    if dt == DT:
+        # the env's own start for these parameters: kept in the user cache (when it has
+        # none yet), so that the env need not compute it again
+        key = dict(version=START_VERSION, cells=cells, re=float(re), time=DEVELOP_TIME, kick=KICK)
+        path = cache_dir() / file_name("pinball-developed", key)
+        if not path.exists():
+            save(start, path)
+    box = Box(cells, dtype=torch.float64, device="cpu")
+    # the twin: the front cylinder's rotation nudged for one step's worth of time
+    pair = Flow(*(torch.stack((f, f)) for f in start))
+    nudge = torch.tensor([[0.0, 0.0, 0.0], [1e-6, 0.0, 0.0]], dtype=torch.float64)
+    still = torch.zeros(2, 3, dtype=torch.float64)
+    per_sample, per_unit = int(round(REGIME_SAMPLE / dt)), int(round(1.0 / REGIME_SAMPLE))
+    drag, lift, logs = [], [], []
+    with torch.no_grad():
+        pair, _ = run(pair, 1, nudge, box, 1.0 / re, dt)
+        for k in range(int(round(time / REGIME_SAMPLE))):
+            pair, loads = run(pair, per_sample, still, box, 1.0 / re, dt)
+            drag.append(coefficient(loads[0, 0]).numpy())
+            lift.append(coefficient(loads[0, 1]).numpy())
+            if (k + 1) % per_unit == 0:
+                gap = [f[1] - f[0] for f in pair]
+                distance = float(torch.sqrt((gap[0] ** 2).sum() + (gap[1] ** 2).sum()))
+                if k + 1 > per_unit:  # the first unit only aligns the twin
+                    logs.append(float(np.log(distance / LYAPUNOV_SIZE)))
+                scale = LYAPUNOV_SIZE / distance
+                pair = Flow(*(torch.stack((f[0], f[0] + scale * g)) for f, g in zip(pair, gap, strict=True)))
+    drag, lift = np.array(drag), np.array(lift)
+    signal = lift[:, 0] - lift[:, 0].mean()
+    power = np.abs(np.fft.rfft(signal * np.hanning(len(signal)))) ** 2
+    frequency = np.fft.rfftfreq(len(signal), REGIME_SAMPLE)
+    peak = int(np.argmax(power[1:])) + 1
+    return {
+        "cells_per_diameter": cells,
+        "re": re,
+        "dt": dt,
+        "time": time,
+        "drag_mean": drag.mean(0).tolist(),
+        "lift_mean": lift.mean(0).tolist(),
+        "lift_amplitude": (lift.max(0) - lift.min(0)).tolist(),
+        "strouhal": float(frequency[peak]),
+        "lyapunov": float(np.mean(logs)),
+        "lyapunov_error": float(np.std(logs) / np.sqrt(len(logs))),
+        "spectrum": {
+            "frequency": frequency[: len(frequency) // 4].tolist(),
+            "power": power[: len(power) // 4].tolist(),
+        },
+        "front_lift": lift[:, 0].tolist(),
+    }
+
+
+def regime_table(rows: list[dict]) -> str:
+    """The developed flows' figures, as markdown."""
+    lines = [
+        "| Re | cells per D | mean C_D (front, top, bottom) | mean C_L (front, top, bottom) | St of the front lift "
+        "| leading Lyapunov exponent |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in sorted(rows, key=lambda r: (r["re"], r["cells_per_diameter"])):
+        three = lambda v: ", ".join(f"{x:+.3f}" for x in v)
+        lines.append(
+            f"| {r['re']:g} | {r['cells_per_diameter']} | {three(r['drag_mean'])} | {three(r['lift_mean'])} | "
+            f"{r['strouhal']:.4f} | {r['lyapunov']:+.4f} ± {r['lyapunov_error']:.4f} |"
+        )
+    return "\n".join(lines)
+
+
 def table(rows: list[dict]) -> str:
     """The rows against HydroGym's forces, as markdown."""
     ref_d, ref_l = HYDROGYM["drag"], HYDROGYM["lift"]
@@ -276,7 +373,8 @@ def main() -> None:
     from beacon_torch.training.report import write_block
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=("steady", "thresholds", "page"))
+    parser.add_argument("what", choices=("steady", "thresholds", "regimes", "page"))
+    parser.add_argument("--re", type=float, nargs="+", default=[30.0, 100.0, 130.0], help="regimes: Re of each run")
     parser.add_argument("--cells", type=int, nargs="+", default=[10, 20], help="cells across a diameter")
     parser.add_argument("--setups", nargs="+", default=list(SETUPS), choices=SETUPS)
     parser.add_argument("--time", type=float, default=None, help="time units of each run (steady: the most)")
@@ -298,9 +396,15 @@ def main() -> None:
         with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:
             rows = list(pool.map(sweep, *zip(*runs, strict=True), [args.time or 80.0] * len(runs)))
         print("results:", save_rows(rows, args.out, "pinball_thresholds"))
+    elif args.what == "regimes":
+        runs = [(c, re) for c in args.cells for re in args.re]
+        with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:
+            rows = list(pool.map(regime, *zip(*runs, strict=True), [args.time or 200.0] * len(runs)))
+        print("results:", save_rows(rows, args.out, "pinball_regimes"))
     for name, begin, end, make in (
         ("pinball_steady", BEGIN, END, table),
         ("pinball_thresholds", THRESHOLDS_BEGIN, THRESHOLDS_END, threshold_table),
+        ("pinball_regimes", REGIMES_BEGIN, REGIMES_END, regime_table),
     ):
         records = sorted(args.out.glob(f"{name}-*.json"))
         if records:

@@ -21,6 +21,7 @@ if __name__ == "__main__":
         ("mixing-v0", 10, {}),
         ("beacon_torch.envs.cylinder:cylinder-v0", 10, {}),
         ("ks-v0", 100, {}),
+        ("pinball-v0", 10, {}),
     )
     for env_id, steps, params in cases:
         env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True, **params)

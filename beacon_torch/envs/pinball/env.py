@@ -56,17 +56,17 @@ class PinballState(NamedTuple):
     torque: torch.Tensor  # [batch, 3] the fluid's torque on each cylinder
 
 
+def re_param(default: float):
+    doc = (
+        "Reynolds number U D / nu (Deng et al.: steady below about 18, then shedding, asymmetric beyond about 68, "
+        "quasi-periodic beyond 104, chaotic beyond 115)"
+    )
+    return param(default, low=10.0, high=200.0, per_member=False, differentiable=True, doc=doc)
+
+
 @dataclass(frozen=True)
 class PinballParams:
-    re: float = param(
-        30.0,
-        low=10.0,
-        high=200.0,
-        per_member=False,
-        differentiable=True,
-        doc="Reynolds number U D / nu (Deng et al.: steady below about 18, then shedding, asymmetric beyond about 68, "
-        "quasi-periodic beyond 104, chaotic beyond 115)",
-    )
+    re: float = re_param(30.0)
     cells_per_diameter: int = param(
         20,
         low=10,
@@ -206,8 +206,8 @@ class PinballEnv(FlowEnv):
         dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / b.x.gaps[1:-1, None]
         dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / b.y.gaps[None, 1:-1]
         vorticity = (dvdx - dudy).numpy()
-        fig = new_figure(size=(8.0, 3.2))
-        ax = fig.add_axes((0.05, 0.14, 0.66, 0.74))
+        fig = new_figure(size=(8.6, 3.2))
+        ax = fig.add_axes((0.05, 0.14, 0.62, 0.74))
         x, y = b.x.faces[1:-1].numpy(), b.y.faces[1:-1].numpy()
         field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-3, vmax=3, shading="nearest")
         omega = last.omega.double().numpy()
@@ -217,18 +217,53 @@ class PinballEnv(FlowEnv):
                 # an arc around the cylinder, its arrow in the sense of rotation
                 start, end = (c.x + 0.62, c.y), (c.x, c.y + 0.62 * np.sign(w))
                 arc = f"arc3,rad={0.4 * np.sign(w)}"
-                ax.add_patch(FancyArrowPatch(start, end, connectionstyle=arc, arrowstyle="->", color="k"))
+                style = dict(arrowstyle="-|>", mutation_scale=9, lw=1.6, color="gold")
+                ax.add_patch(FancyArrowPatch(start, end, connectionstyle=arc, **style))
         ax.set_xlim(-3.0, 9.0)
         ax.set_ylim(-3.0, 3.0)
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
-        fig.colorbar(field, cax=fig.add_axes((0.725, 0.2, 0.012, 0.62)), label="vorticity")
+        fig.colorbar(field, cax=fig.add_axes((0.685, 0.2, 0.012, 0.62)), label="vorticity")
         t = DT * SUBSTEPS * step
         drag = float(coefficient(last.drag).sum())
         re = float(self.params.re)
         ax.set_title(f"fluidic pinball   Re = {re:g}   t = {t:.1f}   sum C_D = {drag:.3f}", fontsize=9)
-        bars = fig.add_axes((0.84, 0.2, 0.12, 0.6))
+        bars = fig.add_axes((0.79, 0.2, 0.19, 0.6))
         bound = float(self.params.max_rotation) or 1.0
         action_bars(bars, list(omega / bound), ["front", "top", "bottom"], [(-1.0, 1.0)] * 3)
         bars.set_title("rotation / bound", fontsize=8)
         return to_rgb(fig)
+
+
+@dataclass(frozen=True)
+class PinballPeriodicParams(PinballParams):
+    re: float = re_param(100.0)
+
+
+@dataclass(frozen=True)
+class PinballChaoticParams(PinballParams):
+    re: float = re_param(130.0)
+
+
+class PinballPeriodicPhysics(PinballPhysics):
+    Params = PinballPeriodicParams
+
+
+class PinballChaoticPhysics(PinballPhysics):
+    Params = PinballChaoticParams
+
+
+class PinballPeriodicEnv(PinballEnv):
+    """pinball-v0 at Re 100: periodic shedding, past the pitchfork (asymmetric)."""
+
+    env_id = "pinball-periodic-v0"
+    physics_type = PinballPeriodicPhysics
+    gradcheck = GradCheck("re", 100.0, warmup=1, steps=1)
+
+
+class PinballChaoticEnv(PinballEnv):
+    """pinball-v0 at Re 130: chaotic (HydroGym's chaotic pinball)."""
+
+    env_id = "pinball-chaotic-v0"
+    physics_type = PinballChaoticPhysics
+    gradcheck = GradCheck("re", 130.0, warmup=1, steps=1)
