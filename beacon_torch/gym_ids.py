@@ -31,6 +31,8 @@ BUILT_IN = {
     "cylinder-v0": 80,
     "ks-v0": 3000,
     "pinball-v0": 100,
+    "pinball-periodic-v0": 100,
+    "pinball-chaotic-v0": 100,
 }
 
 

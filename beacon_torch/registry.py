@@ -18,7 +18,7 @@ from beacon_torch.envs.cylinder import CylinderEnv
 from beacon_torch.envs.ks import KSEnv
 from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
 from beacon_torch.envs.mixing import MixingContinuousEnv, MixingEnv
-from beacon_torch.envs.pinball import PinballEnv
+from beacon_torch.envs.pinball import PinballChaoticEnv, PinballEnv, PinballPeriodicEnv
 from beacon_torch.envs.rayleigh import RayleighEnv, RayleighSeparableEnv
 from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
 from beacon_torch.envs.sloshing import SloshingEnv
@@ -42,6 +42,8 @@ ENVS: dict[str, type[FlowEnv]] = {
         CylinderEnv,
         KSEnv,
         PinballEnv,
+        PinballPeriodicEnv,
+        PinballChaoticEnv,
     )
 }
 

@@ -244,6 +244,8 @@ REACH = {
     "cylinder-v0": (0, 1, ENVS["cylinder-v0"].test_settings),
     "ks-v0": (2, 2, {}),
     "pinball-v0": (0, 1, ENVS["pinball-v0"].test_settings),
+    "pinball-periodic-v0": (0, 1, ENVS["pinball-periodic-v0"].test_settings),
+    "pinball-chaotic-v0": (0, 1, ENVS["pinball-chaotic-v0"].test_settings),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)

@@ -156,6 +156,8 @@ def test_list_envs():
         "lorenz-v0",
         "mixing-continuous-v0",
         "mixing-v0",
+        "pinball-chaotic-v0",
+        "pinball-periodic-v0",
         "pinball-v0",
         "rayleigh-separable-v0",
         "rayleigh-v0",

@@ -320,6 +320,14 @@ class StretchedBox:
         index, weight = probe_stencil(points, self.x.centres, self.y.centres)
         return tuple(i.to(self.fluid_cells.device) for i in index), self.cast(weight)
 
+    def vorticity(self, u: torch.Tensor, v: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The vorticity of one member's faces (``[nx + 1, ny]``, ``[nx, ny + 1]``) at the
+        cells' inner corners, with the corners' x and y (for a figure), in float64."""
+        u, v = u.double(), v.double()
+        dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / self.x.gaps[1:-1, None]
+        dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / self.y.gaps[None, 1:-1]
+        return self.x.faces[1:-1].numpy(), self.y.faces[1:-1].numpy(), (dvdx - dudy).numpy()
+
     def x_gradient(self, f: torch.Tensor) -> torch.Tensor:
         """d/dx of a cell field on the x-faces 1..nx, zero on the outlet face."""
         ext = torch.cat((f, -f[-1:]), 0)

@@ -180,14 +180,9 @@ class CylinderEnv(FlowEnv):
         from beacon_torch.render import action_bars, new_figure, to_rgb
 
         last, c = history[-1], self.channel
-        u, v = last.u.double(), last.v.double()
-        # vorticity at the cells' corners inside the channel
-        dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / c.x.gaps[1:-1, None]
-        dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / c.y.gaps[None, 1:-1]
-        vorticity = (dvdx - dudy).numpy()
+        x, y, vorticity = c.vorticity(last.u, last.v)
         fig = new_figure(size=(8.0, 2.8))
         ax = fig.add_axes((0.05, 0.16, 0.66, 0.7))
-        x, y = c.x.faces[1:-1].numpy(), c.y.faces[1:-1].numpy()
         field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
         ax.add_patch(Circle(CENTRE, RADIUS, color="0.3"))
         ax.set_xlim(0.0, 1.2)

@@ -32,7 +32,15 @@ The package: the flow (:mod:`~beacon_torch.envs.pinball.flow`: the grid, the bod
 one time step, the developed start) and the env (:mod:`~beacon_torch.envs.pinball.env`).
 """
 
-from beacon_torch.envs.pinball.env import MAX_ROTATION, PinballEnv, PinballParams, PinballPhysics, PinballState
+from beacon_torch.envs.pinball.env import (
+    MAX_ROTATION,
+    PinballChaoticEnv,
+    PinballEnv,
+    PinballParams,
+    PinballPeriodicEnv,
+    PinballPhysics,
+    PinballState,
+)
 from beacon_torch.envs.pinball.flow import (
     CYLINDERS,
     DIAMETER,
@@ -70,4 +78,6 @@ __all__ = [
     "PinballState",
     "PinballPhysics",
     "PinballEnv",
+    "PinballPeriodicEnv",
+    "PinballChaoticEnv",
 ]

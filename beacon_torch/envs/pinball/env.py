@@ -201,14 +201,9 @@ class PinballEnv(FlowEnv):
         from beacon_torch.render import action_bars, new_figure, to_rgb
 
         last, b = history[-1], self.box
-        u, v = last.u.double(), last.v.double()
-        # vorticity at the cells' corners inside the box
-        dvdx = (v[1:, 1:-1] - v[:-1, 1:-1]) / b.x.gaps[1:-1, None]
-        dudy = (u[1:-1, 1:] - u[1:-1, :-1]) / b.y.gaps[None, 1:-1]
-        vorticity = (dvdx - dudy).numpy()
+        x, y, vorticity = b.vorticity(last.u, last.v)
         fig = new_figure(size=(8.6, 3.2))
         ax = fig.add_axes((0.05, 0.14, 0.62, 0.74))
-        x, y = b.x.faces[1:-1].numpy(), b.y.faces[1:-1].numpy()
         field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-3, vmax=3, shading="nearest")
         omega = last.omega.double().numpy()
         for c, w in zip(CYLINDERS, omega, strict=True):
