@@ -253,18 +253,18 @@ def threshold_table(rows: list[dict]) -> str:
         if not sweeps:
             continue
         res = sorted({p["re"] for r in sweeps for p in r["points"]})
+        label = f"{name} (damped)" if kind == "pitchfork" else name
         lines += [
-            f"| {name}: growth rate at Re | " + " | ".join(f"{re:g}" for re in res) + " | threshold | Deng et al. |",
+            f"| {label}: growth rate at Re | " + " | ".join(f"{re:g}" for re in res) + " | threshold | Deng et al. |",
             "|---|" + "---|" * (len(res) + 2),
         ]
         for r in sweeps:
             rate = {p["re"]: p["rate"] for p in r["points"]}
             cells = [f"{rate[re]:+.4f}" if re in rate else "" for re in res]
             found = threshold(r["points"])
+            where = f"{found:.1f} ({100 * (found / DENG[kind] - 1):+.1f} %)" if found == found else "none in the sweep"
             lines.append(
-                f"| {r['cells_per_diameter']} cells per D | "
-                + " | ".join(cells)
-                + f" | {found:.1f} ({100 * (found / DENG[kind] - 1):+.1f} %) | {DENG[kind]:g} |"
+                f"| {r['cells_per_diameter']} cells per D | " + " | ".join(cells) + f" | {where} | {DENG[kind]:g} |"
             )
         lines.append("")
     return "\n".join(lines).strip()
