@@ -292,6 +292,8 @@ def test_every_env_declares_its_card():
         "cylinder-v0",
         "ks-v0",
         "pinball-v0",
+        "pinball-periodic-v0",
+        "pinball-chaotic-v0",
     ]
     for env_id, cls in envs.items():
         assert cls.family in ("ode", "1-D", "2-D"), env_id
