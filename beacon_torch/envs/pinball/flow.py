@@ -126,6 +126,9 @@ class Box(StretchedBox):
             [(torch.hypot(x.centres[:, None] - c.x, y.centres[None, :] - c.y) < c.radius).double() for c in cylinders],
             -1,
         )
+        # the faces inside each cylinder turning with it at a unit angular velocity
+        inner_u = rigid_rotation(x.faces, y.centres, 0, cylinders)
+        inner_v = rigid_rotation(x.centres, y.faces, 1, cylinders)
         super().__init__(
             x,
             y,
@@ -134,8 +137,8 @@ class Box(StretchedBox):
             GRADIENT,
             cylinders,
             rotation_wall(cylinders),
-            rigid_rotation(x.faces, y.centres, 0, cylinders),
-            rigid_rotation(x.centres, y.faces, 1, cylinders),
+            inner_u,
+            inner_v,
             cells,
             outflow=U_INF,
             dtype=dtype,
@@ -144,8 +147,6 @@ class Box(StretchedBox):
         self.cylinders = cylinders
         # the angular momentum the faces inside each cylinder hold per unit angular
         # velocity: what its forcing spends on turning them is not the flow's torque
-        inner_u = rigid_rotation(x.faces, y.centres, 0, cylinders)
-        inner_v = rigid_rotation(x.centres, y.faces, 1, cylinders)
         spin = (inner_u**2).sum((0, 1)) + (inner_v**2).sum((0, 1))
         self.spin = self.cast(spin * h * h)[:, None]  # [3, 1]
         self.probe_index, self.probe_weight = self.probes(PROBES)
