@@ -240,6 +240,93 @@ def threshold(points: list[dict]) -> float:
     return float("nan")
 
 
+PITCHFORK_SAMPLE = 0.25  # time units between the lift's samples in the developed sweep
+PITCHFORK_FROM = 100.0  # the developed flow every member of the sweep starts from
+
+
+def whole_periods(front, total, window: int):
+    """The mean of ``total`` over the whole shedding periods (between the first and the
+    last upward zero crossing of the front lift's fluctuation) in its last ``window``
+    samples, and the periods' mean length in samples (nan where it has not shed)."""
+    import numpy as np
+
+    f, t = front[-window:], total[-window:]
+    f = f - f.mean()
+    up = np.flatnonzero((f[:-1] < 0) & (f[1:] >= 0))
+    if len(up) < 3 or np.abs(f).max() < 1e-6:
+        return float(t.mean()), float("nan")
+    return float(t[up[0] : up[-1]].mean()), float((up[-1] - up[0]) / (len(up) - 1))
+
+
+def pitchfork(cells: int, reynolds: list[float], time: float) -> dict:
+    """The developed flows' mean asymmetry over a sweep of Re, one batch of members on
+    one grid: each member starts from the asymmetric developed flow at Re 100 and runs
+    uncontrolled at its own Re for ``time`` units; the asymmetry is the mean of the
+    three cylinders' summed lift coefficient over the last 100 units' whole shedding
+    periods (zero for a flow whose mean is mirror-symmetric), its drift the change
+    from the 100 units before."""
+    import numpy as np
+    import torch
+
+    from beacon_torch.envs.pinball.env import developed_start
+    from beacon_torch.envs.pinball.flow import DT, Box, Flow, coefficient, run
+
+    torch.set_num_threads(1)
+    res = sorted(reynolds)
+    box = Box(cells, dtype=torch.float64, device="cpu")
+    start = developed_start(cells, PITCHFORK_FROM)
+    flow = Flow(*(f.expand(len(res), *f.shape).clone() for f in start))
+    nu = 1.0 / torch.tensor(res, dtype=torch.float64)
+    still = torch.zeros(len(res), 3, dtype=torch.float64)
+    per_sample = int(round(PITCHFORK_SAMPLE / DT))
+    lift = []
+    with torch.no_grad():
+        for _ in range(int(round(time / PITCHFORK_SAMPLE))):
+            flow, loads = run(flow, per_sample, still, box, nu, DT)
+            lift.append(coefficient(loads[:, 1]).numpy())
+    lift = np.array(lift)  # [samples, member, cylinder]
+    window = int(round(100.0 / PITCHFORK_SAMPLE))
+    rows = []
+    for m, re in enumerate(res):
+        front, total = lift[:, m, 0], lift[:, m].sum(-1)
+        last, period = whole_periods(front, total, window)
+        before, _ = whole_periods(front[:-window], total[:-window], window)
+        units = int(round(1.0 / PITCHFORK_SAMPLE))
+        rows.append(
+            {
+                "re": re,
+                "asymmetry": last,
+                "drift": last - before,
+                "strouhal": float(1.0 / (period * PITCHFORK_SAMPLE)) if period == period else 0.0,
+                # one value per time unit: the summed lift's course
+                "lift_history": total[: len(total) // units * units].reshape(-1, units).mean(1).tolist(),
+            }
+        )
+    return {
+        "kind": "pitchfork-developed",
+        "cells_per_diameter": cells,
+        "time": time,
+        "from_re": PITCHFORK_FROM,
+        "points": rows,
+    }
+
+
+def pitchfork_threshold(points: list[dict]) -> float:
+    """The pitchfork's Re from the supercritical normal form: the squared asymmetry of
+    the settled asymmetric flows grows linearly with Re from the threshold. A least
+    squares line through the points whose asymmetry has settled (drift under a tenth of
+    it over the last 100 units) and whose square is at least a twentieth of the
+    sweep's largest; its zero (nan with fewer than two such points)."""
+    import numpy as np
+
+    top = max(p["asymmetry"] ** 2 for p in points)
+    fit = [p for p in points if p["asymmetry"] ** 2 >= top / 20 and abs(p["drift"]) < 0.1 * abs(p["asymmetry"])]
+    if len(fit) < 2:
+        return float("nan")
+    slope, intercept = np.polyfit([p["re"] for p in fit], [p["asymmetry"] ** 2 for p in fit], 1)
+    return float(-intercept / slope)
+
+
 # Deng et al. 2020's thresholds
 DENG = {"hopf": 18.0, "pitchfork": 68.0}
 
@@ -383,13 +470,16 @@ def main() -> None:
     from beacon_torch.training.report import write_block
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=("steady", "thresholds", "regimes", "page"))
+    parser.add_argument("what", choices=("steady", "thresholds", "pitchfork", "regimes", "page"))
     parser.add_argument("--re", type=float, nargs="+", default=[30.0, 100.0, 130.0], help="regimes: Re of each run")
     parser.add_argument("--cells", type=int, nargs="+", default=[10, 20], help="cells across a diameter")
     parser.add_argument("--setups", nargs="+", default=list(SETUPS), choices=SETUPS)
     parser.add_argument("--time", type=float, default=None, help="time units of each run (steady: the most)")
     parser.add_argument("--hopf", type=float, nargs="*", default=[14.0, 17.0, 20.0, 23.0], help="Re of the sweep")
     parser.add_argument("--pitchfork", type=float, nargs="*", default=[56.0, 64.0, 72.0, 80.0], help="Re")
+    parser.add_argument(
+        "--developed", type=float, nargs="+", default=[60.0, 64.0, 68.0, 72.0, 76.0, 80.0, 84.0, 88.0], help="Re"
+    )
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--out", type=Path, default=RECORDS)
     parser.add_argument("--page", type=Path, default=ROOT / "docs" / "envs" / "pinball.md")
@@ -406,6 +496,11 @@ def main() -> None:
         with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:
             rows = list(pool.map(sweep, *zip(*runs, strict=True), [args.time or 80.0] * len(runs)))
         print("results:", save_rows(rows, args.out, "pinball_thresholds"))
+    elif args.what == "pitchfork":
+        with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(args.cells))) as pool:
+            runs = [pool.submit(pitchfork, c, args.developed, args.time or 400.0) for c in args.cells]
+            rows = [r.result() for r in runs]
+        print("results:", save_rows(rows, args.out, "pinball_pitchfork"))
     elif args.what == "regimes":
         runs = [(c, re) for c in args.cells for re in args.re]
         with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:

@@ -42,6 +42,16 @@ KICK = 0.5
 MAX_ROTATION = 0.5 * math.pi
 
 
+def developed_start(cells: int, re: float) -> Flow:
+    """The levels' start at ``re`` on a grid of ``cells`` per diameter: the developed
+    uncontrolled flow (float64, CPU, without batch dimension), shipped, cached or
+    computed once."""
+    key = dict(version=START_VERSION, cells=cells, re=re, time=DEVELOP_TIME, kick=KICK)
+    like = map_state(lambda v: v[0], rest(1, Box(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu"))
+    compute = lambda: developed(cells, 1.0 / re, time=DEVELOP_TIME, kick=KICK)[0]
+    return cached("pinball-developed", key, compute, like)
+
+
 class PinballState(NamedTuple):
     """The flow and the cylinders' loads averaged over the last action."""
 
@@ -141,11 +151,7 @@ class PinballPhysics(Physics):
         return self.remembered(("developed", cells, re), lambda: self._developed(cells, re))
 
     def _developed(self, cells: int, re: float) -> Flow:
-        key = dict(version=START_VERSION, cells=cells, re=re, time=DEVELOP_TIME, kick=KICK)
-        like = map_state(lambda v: v[0], rest(1, Box(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu"))
-        compute = lambda: developed(cells, 1.0 / re, time=DEVELOP_TIME, kick=KICK)[0]
-        start = cached("pinball-developed", key, compute, like)
-        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
+        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), developed_start(cells, re))
 
     def initial_state(self, p, generator, mask=None) -> PinballState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
