@@ -64,6 +64,9 @@ RECORDS = ROOT / "benchmarks" / "results" / "pinball"
 BEGIN, END = "<!-- steady: benchmarks/pinball_validation.py -->", "<!-- end of the steady -->"
 THRESHOLDS_BEGIN = "<!-- thresholds: benchmarks/pinball_validation.py -->"
 THRESHOLDS_END = "<!-- end of the thresholds -->"
+PITCHFORK_BEGIN = "<!-- pitchfork: benchmarks/pinball_validation.py -->"
+PITCHFORK_END = "<!-- end of the pitchfork -->"
+BASE_BEGIN, BASE_END = "<!-- base flows: benchmarks/pinball_validation.py -->", "<!-- end of the base flows -->"
 REGIMES_BEGIN, REGIMES_END = "<!-- regimes: benchmarks/pinball_validation.py -->", "<!-- end of the regimes -->"
 
 RE = 30.0
@@ -327,6 +330,69 @@ def pitchfork_threshold(points: list[dict]) -> float:
     return float(-intercept / slope)
 
 
+def base_flows(cells: int, reynolds: list[float], time: float) -> dict:
+    """Each level's reference: the steady symmetric base flow at each Re, with its
+    cylinders' drag beside the uncontrolled flow's mean. Two batches of one member per
+    Re start from the levels' developed flows: one runs uncontrolled (its mean forces
+    over the last half of ``time``), the other is made mirror-symmetric every time unit
+    and damped towards its own low-pass filtered self every step (selective frequency
+    damping, rate ``SFD_CHI``, filter width ``SFD_DELTA``), which leaves only a steady
+    solution of the unforced equations where it converges; ``converged_to`` is the last
+    unit's largest ``|u - ubar|``."""
+    import numpy as np
+    import torch
+
+    from beacon_torch.envs.pinball.env import developed_start
+    from beacon_torch.envs.pinball.flow import DT, Box, Flow, coefficient, run
+
+    torch.set_num_threads(1)
+    res = sorted(reynolds)
+    box = Box(cells, dtype=torch.float64, device="cpu")
+    starts = [developed_start(cells, re) for re in res]
+    free = Flow(*(torch.stack(f) for f in zip(*starts, strict=True)))
+    damped = mirrored(free)
+    nu = 1.0 / torch.tensor(res, dtype=torch.float64)
+    still = torch.zeros(len(res), 3, dtype=torch.float64)
+    u_bar, v_bar = damped.u.clone(), damped.v.clone()
+    per_unit, units = int(round(1.0 / DT)), int(round(time))
+    free_loads, history = [], []
+    with torch.no_grad():
+        for k in range(units):
+            free, loads = run(free, per_unit, still, box, nu, DT)
+            free_loads.append(coefficient(loads[:, :2]).numpy())
+            damped = mirrored(damped)
+            u_bar, v_bar = 0.5 * (u_bar + u_bar.flip(-1)), 0.5 * (v_bar - v_bar.flip(-1))
+            total = 0.0
+            for _ in range(per_unit):
+                damped, loads = run(damped, 1, still, box, nu, DT)
+                total = total + loads
+                du, dv = damped.u - u_bar, damped.v - v_bar
+                damped = damped._replace(u=damped.u - DT * SFD_CHI * du, v=damped.v - DT * SFD_CHI * dv)
+                u_bar, v_bar = u_bar + DT * du / SFD_DELTA, v_bar + DT * dv / SFD_DELTA
+            change = torch.maximum(du.abs().flatten(1).amax(1), dv.abs().flatten(1).amax(1))
+            forces = coefficient(total[:, :2] / per_unit).numpy()
+            history.append({"time": k + 1.0, "drag": forces[:, 0].tolist(), "change": change.tolist()})
+    mean = np.array(free_loads[units // 2 :]).mean(0)  # [Re, drag and lift, cylinder]
+    rows = []
+    for m, re in enumerate(res):
+        drag_base, drag_free = forces[m, 0], mean[m, 0]
+        rows.append(
+            {
+                "re": re,
+                "drag_base": drag_base.tolist(),
+                "lift_base": forces[m, 1].tolist(),
+                "converged_to": history[-1]["change"][m],
+                # the summed drag's change over the last 10 time units
+                "drag_drift": float(sum(history[-1]["drag"][m]) - sum(history[-11]["drag"][m])),
+                "drag_mean_uncontrolled": drag_free.tolist(),
+                "lift_mean_uncontrolled": mean[m, 1].tolist(),
+                "reduction": float(1.0 - drag_base.sum() / drag_free.sum()),
+                "history": [{"time": h["time"], "drag": h["drag"][m], "change": h["change"][m]} for h in history],
+            }
+        )
+    return {"cells_per_diameter": cells, "time": time, "sfd": [SFD_CHI, SFD_DELTA], "levels": rows}
+
+
 # Deng et al. 2020's thresholds
 DENG = {"hopf": 18.0, "pitchfork": 68.0}
 
@@ -355,6 +421,32 @@ def threshold_table(rows: list[dict]) -> str:
             )
         lines.append("")
     return "\n".join(lines).strip()
+
+
+def pitchfork_table(rows: list[dict]) -> str:
+    """The developed flows' mean asymmetry over the sweep and the threshold against
+    Deng et al.'s, as markdown (an asymmetry still drifting by a tenth of itself or more
+    over the last 100 units marked *)."""
+    res = sorted({p["re"] for r in rows for p in r["points"]})
+    lines = [
+        "| developed flow: mean summed C_L at Re | "
+        + " | ".join(f"{re:g}" for re in res)
+        + " | threshold | Deng et al. |",
+        "|---|" + "---|" * (len(res) + 2),
+    ]
+    for r in sorted(rows, key=lambda r: r["cells_per_diameter"]):
+        point = {p["re"]: p for p in r["points"]}
+        cells = []
+        for re in res:
+            p = point.get(re)
+            settled = p is not None and abs(p["drift"]) < 0.1 * abs(p["asymmetry"])
+            cells.append("" if p is None else f"{abs(p['asymmetry']):.4f}" + ("" if settled else "*"))
+        found = pitchfork_threshold(r["points"])
+        where = f"{found:.1f} ({100 * (found / DENG['pitchfork'] - 1):+.1f} %)" if found == found else "none found"
+        lines.append(
+            f"| {r['cells_per_diameter']} cells per D | " + " | ".join(cells) + f" | {where} | {DENG['pitchfork']:g} |"
+        )
+    return "\n".join(lines)
 
 
 LYAPUNOV_SIZE = 1e-8  # the twin's distance in the velocity's 2-norm, restored every time unit
@@ -447,6 +539,24 @@ def regime_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def base_table(rows: list[dict]) -> str:
+    """Each level's steady symmetric flow beside its uncontrolled mean, as markdown."""
+    lines = [
+        "| Re | cells per D | base flow C_D (front, top, bottom) | sum | uncontrolled mean C_D | sum | reduction "
+        "| base flow: sum's change over its last 10 units, largest u - ubar |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    levels = [(r["cells_per_diameter"], level) for r in rows for level in r["levels"]]
+    for cells, level in sorted(levels, key=lambda x: (x[1]["re"], x[0])):
+        three = lambda v: ", ".join(f"{x:.4f}" for x in v)
+        base, free = level["drag_base"], level["drag_mean_uncontrolled"]
+        lines.append(
+            f"| {level['re']:g} | {cells} | {three(base)} | {sum(base):.4f} | {three(free)} | {sum(free):.4f} "
+            f"| {100 * level['reduction']:.1f} % | {level['drag_drift']:+.1e}, {level['converged_to']:.0e} |"
+        )
+    return "\n".join(lines)
+
+
 def table(rows: list[dict]) -> str:
     """The rows against HydroGym's forces, as markdown."""
     ref_d, ref_l = HYDROGYM["drag"], HYDROGYM["lift"]
@@ -470,7 +580,7 @@ def main() -> None:
     from beacon_torch.training.report import write_block
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=("steady", "thresholds", "pitchfork", "regimes", "page"))
+    parser.add_argument("what", choices=("steady", "thresholds", "pitchfork", "base", "regimes", "page"))
     parser.add_argument("--re", type=float, nargs="+", default=[30.0, 100.0, 130.0], help="regimes: Re of each run")
     parser.add_argument("--cells", type=int, nargs="+", default=[10, 20], help="cells across a diameter")
     parser.add_argument("--setups", nargs="+", default=list(SETUPS), choices=SETUPS)
@@ -501,6 +611,11 @@ def main() -> None:
             runs = [pool.submit(pitchfork, c, args.developed, args.time or 400.0) for c in args.cells]
             rows = [r.result() for r in runs]
         print("results:", save_rows(rows, args.out, "pinball_pitchfork"))
+    elif args.what == "base":
+        with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(args.cells))) as pool:
+            runs = [pool.submit(base_flows, c, args.re, args.time or 200.0) for c in args.cells]
+            rows = [r.result() for r in runs]
+        print("results:", save_rows(rows, args.out, "pinball_base"))
     elif args.what == "regimes":
         runs = [(c, re) for c in args.cells for re in args.re]
         with concurrent.futures.ProcessPoolExecutor(min(args.workers, len(runs))) as pool:
@@ -509,6 +624,8 @@ def main() -> None:
     for name, begin, end, make in (
         ("pinball_steady", BEGIN, END, table),
         ("pinball_thresholds", THRESHOLDS_BEGIN, THRESHOLDS_END, threshold_table),
+        ("pinball_pitchfork", PITCHFORK_BEGIN, PITCHFORK_END, pitchfork_table),
+        ("pinball_base", BASE_BEGIN, BASE_END, base_table),
         ("pinball_regimes", REGIMES_BEGIN, REGIMES_END, regime_table),
     ):
         records = sorted(args.out.glob(f"{name}-*.json"))
