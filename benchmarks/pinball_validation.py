@@ -322,8 +322,9 @@ def pitchfork_threshold(points: list[dict]) -> float:
     sweep's largest; its zero (nan with fewer than two such points)."""
     import numpy as np
 
-    top = max(p["asymmetry"] ** 2 for p in points)
-    fit = [p for p in points if p["asymmetry"] ** 2 >= top / 20 and abs(p["drift"]) < 0.1 * abs(p["asymmetry"])]
+    settled = [p for p in points if abs(p["drift"]) < 0.1 * abs(p["asymmetry"])]
+    top = max((p["asymmetry"] ** 2 for p in settled), default=0.0)
+    fit = [p for p in settled if p["asymmetry"] ** 2 >= top / 20]
     if len(fit) < 2:
         return float("nan")
     slope, intercept = np.polyfit([p["re"] for p in fit], [p["asymmetry"] ** 2 for p in fit], 1)

@@ -134,3 +134,23 @@ def test_the_chaotic_level_is_chaotic_and_the_periodic_one_is_not():
     page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
     block = re.search(r"<!-- regimes: .*?-->\n(.*?)<!-- end of the regimes -->", page, re.S)
     assert block and block.group(1).strip() == steady.regime_table(record["rows"]).strip()
+
+
+def test_the_asymmetry_is_averaged_over_whole_periods_and_its_threshold_read_off_the_normal_form():
+    # a lift oscillating about a mean: the mean over whole periods is the mean, to the
+    # samples' resolution, where a window of 10.3 periods would be off by the part period
+    import numpy as np
+
+    t = np.arange(0.0, 200.0, steady.PITCHFORK_SAMPLE)
+    front = np.sin(2 * np.pi * t / 9.7)
+    total = 0.04 + 0.8 * np.sin(2 * np.pi * t / 9.7 + 0.4)
+    mean, period = steady.whole_periods(front, total, window=400)
+    assert mean == pytest.approx(0.04, abs=2e-3) and period * steady.PITCHFORK_SAMPLE == pytest.approx(9.7, rel=0.02)
+    # settled asymmetries A = sqrt(a (Re - Rc)) above the threshold, zero below: the
+    # threshold is the line's zero; drifting points and those near zero are left out
+    points = [
+        {"re": re, "asymmetry": float(np.sqrt(max(0.0, 2e-4 * (re - 67.0)))), "drift": 0.0} for re in range(60, 90, 4)
+    ]
+    points[-1]["drift"] = 0.5 * points[-1]["asymmetry"]  # not settled: a wrong value does not count
+    points[-1]["asymmetry"] *= 3
+    assert steady.pitchfork_threshold(points) == pytest.approx(67.0, abs=1e-9)
