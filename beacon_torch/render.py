@@ -53,7 +53,9 @@ def action_bars(
         ax.bar(i, frac(v) - frac(base), bottom=frac(base), color=ACTION_COLOR, width=0.6)
         ax.hlines(frac(base), i - 0.3, i + 0.3, color="#555555", lw=0.8)
         if n <= 4:  # more values than that do not fit above the bars
-            ax.text(i, 1.03, f"{v:+.3g}", ha="center", va="bottom", fontsize=8)
+            # a value decaying towards zero reads as zero, not as its last denormal
+            shown = v if abs(v) > 1e-6 * (hi - lo) else 0.0
+            ax.text(i, 1.03, f"{shown:+.3g}", ha="center", va="bottom", fontsize=8)
     ax.set_xticks(range(n), labels, fontsize=8)
     ax.set_ylim(0.0, 1.15)
     ax.set_yticks([])

@@ -61,6 +61,17 @@ PPO = {
         minibatches=5,
         gae_lambda=0.97,
     ),
+    # beyond the paper: the cylinder's agent, 16 episodes of 100 actions per update
+    "pinball-v0": dict(
+        n_rollout=1600,
+        frames=128_000,
+        hidden=512,
+        actor_lr=1e-3,
+        critic_lr=1e-3,
+        epochs=5,
+        minibatches=5,
+        gae_lambda=0.97,
+    ),
 }
 # TD3, where its settings differ from the paper's agent
 TD3 = {
