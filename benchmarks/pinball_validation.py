@@ -1,8 +1,12 @@
 """pinball-v0's validation: the steady flow at Re 30 against HydroGym's recorded
-forces, and the Reynolds numbers of the first two bifurcations against Deng et al.'s.
+forces, the Reynolds numbers of the first two bifurcations against Deng et al.'s, the
+levels' flows and their references.
 
     .venv/bin/python benchmarks/pinball_validation.py steady [--cells 10 20 30] [--setups ...]
     .venv/bin/python benchmarks/pinball_validation.py thresholds [--cells 10 20] [--hopf RE ...] [--pitchfork RE ...]
+    .venv/bin/python benchmarks/pinball_validation.py pitchfork [--cells 10 20] [--developed RE ...] [--time 400]
+    .venv/bin/python benchmarks/pinball_validation.py base [--cells 10 20] [--re 30 100 130] [--time 300] [--chi 0]
+    .venv/bin/python benchmarks/pinball_validation.py regimes [--cells 10 20] [--re 100 130]
     .venv/bin/python benchmarks/pinball_validation.py page
 
 HydroGym's pinball test solves the steady flow at Re 30 on its fine mesh by Newton's
@@ -24,7 +28,8 @@ Prints each set-up's coefficients beside the reference and writes them to a new 
 
 ``thresholds``: the bifurcations of the steady symmetric flow (Deng et al.: a Hopf
 bifurcation near Re 18, a pitchfork near Re 68, both breaking the mirror symmetry; the
-pitchfork acts on the steady solution as on the periodic one). At each Re of a sweep,
+sweeps here show the pitchfork to be the periodic flow's, not the steady one's, which
+``pitchfork`` measures). At each Re of a sweep,
 the steady symmetric solution (the mirror-symmetric grid keeps a flow started from the
 free stream symmetric, so it settles there whether or not it is stable) is disturbed
 by turning the front cylinder at 1e-6 for one time unit, an antisymmetric kick, and the
@@ -40,6 +45,14 @@ front cylinder's lift (zero on the symmetric flow) followed in the linear regime
 
 Each threshold is where the growth rate changes sign, interpolated linearly between the
 sweep's neighbours. Writes ``pinball_thresholds-DATE-TIME.json``.
+
+``pitchfork``: the developed flows' mean asymmetry over a sweep of Re (one batch of
+members, each from the asymmetric developed flow at Re 100) and the threshold where
+the supercritical normal form puts its zero. Writes ``pinball_pitchfork-DATE-TIME.json``.
+
+``base``: each level's reference, the steady symmetric flow (mirror-symmetric marching
+from the developed flow) and its drag beside the uncontrolled flow's mean. Writes
+``pinball_base-DATE-TIME.json``.
 
 ``regimes``: the developed flows at the levels' Reynolds numbers (the env's start, then
 ``--time`` units): mean forces, the front lift's Strouhal number and spectrum, and the
@@ -314,17 +327,22 @@ def pitchfork(cells: int, reynolds: list[float], time: float) -> dict:
     }
 
 
+def settled(point: dict) -> bool:
+    """Whether a sweep point's asymmetry has settled: it drifted by less than a tenth of
+    itself over the last 100 units, or there is none left (under 1e-3)."""
+    return abs(point["drift"]) < 0.1 * abs(point["asymmetry"]) or abs(point["asymmetry"]) + abs(point["drift"]) < 1e-3
+
+
 def pitchfork_threshold(points: list[dict]) -> float:
     """The pitchfork's Re from the supercritical normal form: the squared asymmetry of
     the settled asymmetric flows grows linearly with Re from the threshold. A least
-    squares line through the points whose asymmetry has settled (drift under a tenth of
-    it over the last 100 units) and whose square is at least a twentieth of the
+    squares line through the settled points whose square is at least a twentieth of the
     sweep's largest; its zero (nan with fewer than two such points)."""
     import numpy as np
 
-    settled = [p for p in points if abs(p["drift"]) < 0.1 * abs(p["asymmetry"])]
-    top = max((p["asymmetry"] ** 2 for p in settled), default=0.0)
-    fit = [p for p in settled if p["asymmetry"] ** 2 >= top / 20]
+    steady = [p for p in points if settled(p)]
+    top = max((p["asymmetry"] ** 2 for p in steady), default=0.0)
+    fit = [p for p in steady if p["asymmetry"] ** 2 >= top / 20]
     if len(fit) < 2:
         return float("nan")
     slope, intercept = np.polyfit([p["re"] for p in fit], [p["asymmetry"] ** 2 for p in fit], 1)
@@ -430,8 +448,7 @@ def threshold_table(rows: list[dict]) -> str:
 
 def pitchfork_table(rows: list[dict]) -> str:
     """The developed flows' mean asymmetry over the sweep and the threshold against
-    Deng et al.'s, as markdown (an asymmetry still drifting by a tenth of itself or more
-    over the last 100 units marked *)."""
+    Deng et al.'s, as markdown (an asymmetry that has not settled marked *)."""
     res = sorted({p["re"] for r in rows for p in r["points"]})
     lines = [
         "| developed flow: mean summed C_L at Re | "
@@ -444,8 +461,7 @@ def pitchfork_table(rows: list[dict]) -> str:
         cells = []
         for re in res:
             p = point.get(re)
-            settled = p is not None and abs(p["drift"]) < 0.1 * abs(p["asymmetry"])
-            cells.append("" if p is None else f"{abs(p['asymmetry']):.4f}" + ("" if settled else "*"))
+            cells.append("" if p is None else f"{abs(p['asymmetry']):.4f}" + ("" if settled(p) else "*"))
         found = pitchfork_threshold(r["points"])
         where = f"{found:.1f} ({100 * (found / DENG['pitchfork'] - 1):+.1f} %)" if found == found else "none found"
         lines.append(

@@ -154,3 +154,19 @@ def test_the_asymmetry_is_averaged_over_whole_periods_and_its_threshold_read_off
     points[-1]["drift"] = 0.5 * points[-1]["asymmetry"]  # not settled: a wrong value does not count
     points[-1]["asymmetry"] *= 3
     assert steady.pitchfork_threshold(points) == pytest.approx(67.0, abs=1e-9)
+
+
+def test_the_recorded_pitchfork_threshold_is_within_5_percent_of_deng_et_al_and_on_the_page():
+    # the developed flows: symmetric on average below the threshold, asymmetric past it
+    record = latest("pinball_pitchfork-*.json")
+    finest = max(record["rows"], key=lambda r: r["cells_per_diameter"])
+    found = steady.pitchfork_threshold(finest["points"])
+    assert found == pytest.approx(steady.DENG["pitchfork"], rel=0.05)
+    for p in finest["points"]:
+        if p["re"] < found - 4:
+            assert abs(p["asymmetry"]) < 1e-3
+        if p["re"] > found + 8:
+            assert abs(p["asymmetry"]) > 0.02 and steady.settled(p)
+    page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
+    block = re.search(r"<!-- pitchfork: .*?-->\n(.*?)<!-- end of the pitchfork -->", page, re.S)
+    assert block and block.group(1).strip() == steady.pitchfork_table(record["rows"]).strip()
