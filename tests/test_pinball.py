@@ -170,3 +170,18 @@ def test_the_recorded_pitchfork_threshold_is_within_5_percent_of_deng_et_al_and_
     page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
     block = re.search(r"<!-- pitchfork: .*?-->\n(.*?)<!-- end of the pitchfork -->", page, re.S)
     assert block and block.group(1).strip() == steady.pitchfork_table(record["rows"]).strip()
+
+
+def test_each_levels_reference_is_a_steady_symmetric_flow_below_the_uncontrolled_drag():
+    record = latest("pinball_base-*.json")
+    for row in record["rows"]:
+        for level in row["levels"]:
+            top, bottom = level["drag_base"][1:]
+            assert top == pytest.approx(bottom, rel=1e-9) and abs(level["lift_base"][0]) < 1e-9
+            assert abs(level["drag_drift"]) < 1e-4  # the drag has settled
+            if level["re"] < 120:  # the periodic flows' base flows are steady to round-off
+                assert level["converged_to"] < 1e-8
+            assert 0.01 < level["reduction"] < 0.1
+    page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
+    block = re.search(r"<!-- base flows: .*?-->\n(.*?)<!-- end of the base flows -->", page, re.S)
+    assert block and block.group(1).strip() == steady.base_table(record["rows"]).strip()
