@@ -33,6 +33,17 @@ from beacon_torch.training.run import CHECKPOINT, fits, load_checkpoint
 # table holds what differs from its class's defaults; a variant trains like its base env.
 # Why each entry is what it is, with the measurements, is in docs/training.md.
 
+# Rabault et al.'s PPO agent on the cylinder, the wakes' settings
+RABAULT = dict(
+    n_rollout=1600,
+    frames=128_000,
+    hidden=512,
+    actor_lr=1e-3,
+    critic_lr=1e-3,
+    epochs=5,
+    minibatches=5,
+    gae_lambda=0.97,
+)
 # the paper's PPO settings per env: its table, and what its runs used beyond the table
 # (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks)
 PPO = {
@@ -51,27 +62,9 @@ PPO = {
     # beyond the paper: Rabault et al.'s agent (512-wide networks, both rates 1e-3, 20
     # episodes of 80 actions per update, 25 minibatch steps of a fifth of them, GAE's
     # lambda 0.97)
-    "cylinder-v0": dict(
-        n_rollout=1600,
-        frames=128_000,
-        hidden=512,
-        actor_lr=1e-3,
-        critic_lr=1e-3,
-        epochs=5,
-        minibatches=5,
-        gae_lambda=0.97,
-    ),
+    "cylinder-v0": RABAULT,
     # beyond the paper: the cylinder's agent, 16 episodes of 100 actions per update
-    "pinball-v0": dict(
-        n_rollout=1600,
-        frames=128_000,
-        hidden=512,
-        actor_lr=1e-3,
-        critic_lr=1e-3,
-        epochs=5,
-        minibatches=5,
-        gae_lambda=0.97,
-    ),
+    "pinball-v0": RABAULT,
 }
 # TD3, where its settings differ from the paper's agent
 TD3 = {
