@@ -484,22 +484,18 @@ def regime(cells: int, re: float, time: float) -> dict:
     import numpy as np
     import torch
 
-    from beacon_torch.cache import cache_dir, file_name, save
-    from beacon_torch.envs.pinball.env import DEVELOP_TIME, KICK, START_VERSION
+    from beacon_torch.envs.pinball.env import DEVELOP_TIME, KICK, developed_start
     from beacon_torch.envs.pinball.flow import DT, Box, Flow, coefficient, developed, run
     from beacon_torch.numerics.bodies import stable
 
     torch.set_num_threads(1)
-    # the env's own time step where the env takes it (its start is then the env's)
-    dt = DT if stable(1.0 / cells, 1.0 / re, DT) else time_step(cells, re)
-    start, _ = developed(cells, 1.0 / re, time=DEVELOP_TIME, dt=dt, kick=KICK)
-    if dt == DT:
-        # the env's own start for these parameters: kept in the user cache (when it has
-        # none yet), so that the env need not compute it again
-        key = dict(version=START_VERSION, cells=cells, re=float(re), time=DEVELOP_TIME, kick=KICK)
-        path = cache_dir() / file_name("pinball-developed", key)
-        if not path.exists():
-            save(start, path)
+    # the env's own time step and start where the env takes them (shipped, cached or
+    # computed once), a smaller step's own development elsewhere
+    if stable(1.0 / cells, 1.0 / re, DT):
+        dt, start = DT, developed_start(cells, float(re))
+    else:
+        dt = time_step(cells, re)
+        start, _ = developed(cells, 1.0 / re, time=DEVELOP_TIME, dt=dt, kick=KICK)
     box = Box(cells, dtype=torch.float64, device="cpu")
     # the twin: the front cylinder's rotation nudged for one step's worth of time
     pair = Flow(*(torch.stack((f, f)) for f in start))
