@@ -191,9 +191,10 @@ def antisymmetric_lift(box, re: float, dt: float, base, time: float, damped: boo
     import torch
 
     from beacon_torch.envs.pinball.flow import coefficient, run
+    from beacon_torch.numerics import frequency_damping
 
     flow, per_sample = base, int(round(SAMPLE / dt))
-    u_bar, v_bar = base.u.clone(), base.v.clone()
+    filtered = base.u.clone(), base.v.clone()
     lift = []
     with torch.no_grad():
         for k in range(int(round(time / SAMPLE))):
@@ -204,9 +205,8 @@ def antisymmetric_lift(box, re: float, dt: float, base, time: float, damped: boo
                 flow, loads = run(flow, 1, target, box, 1.0 / re, dt)
                 total += float(loads[0, 1, 0])
                 if damped:
-                    du, dv = flow.u - u_bar, flow.v - v_bar
-                    flow = flow._replace(u=flow.u - dt * SFD_CHI * du, v=flow.v - dt * SFD_CHI * dv)
-                    u_bar, v_bar = u_bar + dt * du / SFD_DELTA, v_bar + dt * dv / SFD_DELTA
+                    (u, v), filtered = frequency_damping((flow.u, flow.v), filtered, dt, SFD_CHI, SFD_DELTA)
+                    flow = flow._replace(u=u, v=v)
             lift.append(float(coefficient(torch.tensor(total / per_sample))))
     return np.array(lift)
 

@@ -214,3 +214,27 @@ def test_interpolated_action():
     # the weights are those of the Python numbers i / n, rounded once to the dtype
     assert interpolation_weights(50, 10, torch.float32)[3].item() == torch.tensor(3 / 10, dtype=torch.float32).item()
     assert interpolation_weights(5, 0, torch.float64).eq(1.0).all()
+
+
+def test_frequency_damping_finds_an_unstable_focus_and_leaves_a_steady_state_alone():
+    from beacon_torch.numerics import frequency_damping
+
+    # an unstable focus at (1, -2): growth 0.1, angular frequency 6 (a shedding-like mode)
+    centre = torch.tensor([1.0, -2.0], dtype=torch.float64)
+    a = torch.tensor([[0.1, -6.0], [6.0, 0.1]], dtype=torch.float64)
+    dt = 1e-3
+
+    def march(chi: float, n: int):
+        x = centre + torch.tensor([0.3, 0.0], dtype=torch.float64)
+        filtered = (x.clone(),)
+        for _ in range(n):
+            x = x + dt * a @ (x - centre)
+            (x,), filtered = frequency_damping((x,), filtered, dt, chi, delta=1.0)
+        return x
+
+    assert (march(0.0, 30_000) - centre).norm() > 1.0  # left alone, the focus throws the state off
+    torch.testing.assert_close(march(1.0, 30_000), centre, atol=1e-8, rtol=0)
+    # a steady state is a fixed point of the damping, whatever its rate
+    fields = (torch.randn(3, 4, dtype=torch.float64), torch.randn(5, dtype=torch.float64))
+    damped, filtered = frequency_damping(fields, fields, 0.1, 7.0, 0.5)
+    assert all(torch.equal(q, d) and torch.equal(q, f) for q, d, f in zip(fields, damped, filtered, strict=True))

@@ -89,3 +89,20 @@ def interpolation_weights(substeps: int, n_interp: int, dtype: torch.dtype, devi
 def interpolated_action(previous: torch.Tensor, new: torch.Tensor, alpha) -> torch.Tensor:
     """The action applied at a substep of weight ``alpha`` (:func:`interpolation_weights`)."""
     return previous + alpha * (new - previous)
+
+
+def frequency_damping(
+    fields: tuple[torch.Tensor, ...], filtered: tuple[torch.Tensor, ...], dt: float, chi: float, delta: float
+) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+    """One step of selective frequency damping (Akervik et al., Phys. Fluids 18, 2006):
+    each field ``q`` is pulled towards its low-pass filtered self ``qbar`` at the rate
+    ``chi``, ``q <- q - dt chi (q - qbar)``, and the filter, of width ``delta`` in time,
+    follows, ``qbar <- qbar + dt (q - qbar) / delta``. Both updates are linear in the
+    fields, so divergence-free fields stay divergence-free, and a steady solution
+    (``q = qbar``) is left alone: what the damping converges to is a steady solution of
+    the undamped equations, stable or not. Returns the damped fields and the new
+    filtered ones."""
+    gaps = [q - bar for q, bar in zip(fields, filtered, strict=True)]
+    damped = tuple(q - dt * chi * gap for q, gap in zip(fields, gaps, strict=True))
+    followed = tuple(bar + dt * gap / delta for bar, gap in zip(filtered, gaps, strict=True))
+    return damped, followed
