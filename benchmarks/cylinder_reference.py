@@ -3,7 +3,7 @@ through the measured transient and then holds the steady base flow's drag with n
 
     .venv/bin/python benchmarks/cylinder_reference.py CONTROL.json BASE_FLOW.json [--out DIR]
 
-CONTROL.json is a record of ``benchmarks/cylinder_control.py`` (the drag and lift
+CONTROL.json is a record of ``benchmarks/wake_control.py`` (the drag and lift
 coefficients per action of trained policies from the developed start, beside no
 control), BASE_FLOW.json one of ``python -m beacon_torch.envs.cylinder.base_flow`` (the
 steady solution's drag). A controller that only stabilises the wake cannot bring the
@@ -92,7 +92,7 @@ def reference(control: dict, base_flow: dict) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("control", type=Path, help="a record of benchmarks/cylinder_control.py")
+    parser.add_argument("control", type=Path, help="a record of benchmarks/wake_control.py")
     parser.add_argument("base_flow", type=Path, help="a record of python -m beacon_torch.envs.cylinder.base_flow")
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "cylinder")
     args = parser.parse_args()

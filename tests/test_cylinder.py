@@ -232,13 +232,13 @@ def test_validation_figures_of_the_default_grid_are_the_recorded_ones():
 
 @pytest.mark.slow(seconds=40)
 def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_path):
-    """benchmarks/cylinder_control.py: a policy file acts for two episodes' worth of
+    """benchmarks/wake_control.py: a policy file acts for two episodes' worth of
     actions on the grid it was trained on; the flow goes on across the episode's end,
     and the member without control is the uncontrolled flow itself."""
     from beacon_torch import training
     from beacon_torch.training import networks
 
-    control = script("benchmarks/cylinder_control.py")
+    control = script("benchmarks/wake_control.py")
     params = {"cells_per_diameter": 10}
     env = training.env.make_env("cylinder-v0", 1, norm_steps=0, params=params)
     policy = networks.policy(env, "deterministic_actor", 16)
@@ -247,8 +247,13 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
             p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(p.numel()))
     record = {"env": "cylinder-v0", "algo": "td3", "network": "deterministic_actor", "hidden": 16}
     torch.save({**record, "params": params, "weights": policy.state_dict()}, tmp_path / "policy.pt")
-    row = control.control(str(tmp_path / "policy.pt"), 160, compile=False)
-    assert row["params"] == params and len(row["per_action"]["drag"]) == 160
+    row = control.control(str(tmp_path / "policy.pt"), 2, compile=False)
+    assert row["params"] == params and row["env"] == "cylinder-v0" and len(row["per_action"]["drag"]) == 160
+    # the rewards are the env's, Rabault et al.'s drag and lift penalty
+    drag, lift = (np.array(row["per_action"][key]) for key in ("drag", "lift"))
+    force = cylinder.U_MEAN**2 * cylinder.DIAMETER / 2.0
+    expected = cylinder.DRAG_OFFSET - force * drag - cylinder.LIFT_PENALTY * force * np.abs(lift)
+    np.testing.assert_allclose(row["per_action"]["reward"], expected, rtol=1e-5, atol=1e-5)
 
     # a separate env of the run's shape, both members uncontrolled: the run's second
     # member does the same arithmetic in the same batched operations, so it agrees to
@@ -278,10 +283,10 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
 
 @pytest.mark.parametrize("planted", ["file", "link"])
 def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted, monkeypatch):
-    """benchmarks/cylinder_control.py --plot and benchmarks/cylinder_learning.py
+    """benchmarks/wake_control.py --plot and benchmarks/cylinder_learning.py
     --figure refuse a figure's name that is taken, by a file or a link (dangling
     included), before any work, and leave it as it was."""
-    control = script("benchmarks/cylinder_control.py")
+    control = script("benchmarks/wake_control.py")
     learning = script("benchmarks/cylinder_learning.py")
     figure, target = tmp_path / "figure.png", tmp_path / "elsewhere.png"
     if planted == "file":

@@ -185,3 +185,37 @@ def test_each_levels_reference_is_a_steady_symmetric_flow_below_the_uncontrolled
     page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
     block = re.search(r"<!-- base flows: .*?-->\n(.*?)<!-- end of the base flows -->", page, re.S)
     assert block and block.group(1).strip() == steady.base_table(record["rows"]).strip()
+
+
+@pytest.mark.slow(seconds=20)
+def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_path, monkeypatch):
+    """benchmarks/wake_control.py on a pinball policy: the env and grid come from the
+    policy file, the turning member spends power and pays it in its reward, the member
+    beside it spends none, and a non-wake env is refused in one line."""
+    import numpy as np
+
+    for cls in (pinball.PinballPhysics, pinball.PinballEnv):  # short episodes: the test's time
+        monkeypatch.setattr(cls, "episode_length", 6)
+
+    from beacon_torch import training
+    from beacon_torch.training import networks
+
+    control = script("benchmarks/wake_control.py")
+    params = {"cells_per_diameter": 10}
+    env = training.env.make_env("pinball-v0", 1, norm_steps=0, params=params)
+    policy = networks.policy(env, "deterministic_actor", 8)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(p.numel()))
+    record = {"env": "pinball-v0", "algo": "td3", "network": "deterministic_actor", "hidden": 8}
+    torch.save({**record, "params": params, "weights": policy.state_dict()}, tmp_path / "policy.pt")
+    row = control.control(str(tmp_path / "policy.pt"), 2, compile=False)
+    seen = {key: np.array(values) for key, values in row["per_action"].items()}
+    assert row["env"] == "pinball-v0" and row["params"] == params and len(seen["drag"]) == 12
+    assert (seen["uncontrolled_power"] == 0).all() and seen["power"].mean() > 0.01
+    np.testing.assert_allclose(seen["reward"], -(seen["drag"] + seen["power"]), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(seen["uncontrolled_reward"], -seen["uncontrolled_drag"], rtol=1e-6)
+    assert row["score_episode"] == pytest.approx(seen["reward"][:6].sum(), rel=1e-9)
+    assert control.wake("pinball-chaotic-v0") == ("power", 0.5)
+    with pytest.raises(ValueError, match="burgers-v0 is not a wake-control env"):
+        control.wake("burgers-v0")
