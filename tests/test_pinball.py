@@ -219,3 +219,35 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     assert control.wake("pinball-chaotic-v0") == ("power", 0.5)
     with pytest.raises(ValueError, match="burgers-v0 is not a wake-control env"):
         control.wake("burgers-v0")
+
+
+def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measured_transient():
+    """benchmarks/wake_reference.py on the pinball: the held reward is minus the level's
+    recorded base-flow drag (summed, on the policies' grid, no power), the transient
+    ends where the best policy's drag stays within a tenth of the excess; a level the
+    record lacks is one line."""
+    import numpy as np
+
+    reference = script("benchmarks/wake_reference.py")
+    base = latest("pinball_base-*.json")
+    (level,) = [lv for row in base["rows"] if row["cells_per_diameter"] == 20 for lv in row["levels"] if lv["re"] == 30]
+    cd_base, n = sum(level["drag_base"]), pinball.EPISODE_LENGTH
+    free = np.full(n, cd_base + 0.2)
+    # one policy reaches the base flow's drag after 10 actions of 0.1 power, one never
+    fast = np.where(np.arange(n) < 10, cd_base + 0.15, cd_base + 0.001)
+    slow = np.full(n, cd_base + 0.1)
+
+    def row(name, drag, power):
+        per_action = {"drag": drag.tolist(), "uncontrolled_drag": free.tolist(), "reward": (-(drag + power)).tolist()}
+        return {"policy": name, "env": "pinball-v0", "params": {}, "episode_length": n, "per_action": per_action}
+
+    control = {"rows": [row("fast", fast, np.where(np.arange(n) < 10, 0.1, 0.0)), row("slow", slow, 0.0 * slow)]}
+    got = reference.reference(control, base)
+    assert got["env"] == "pinball-v0" and got["cd_base"] == pytest.approx(cd_base, rel=1e-12)
+    assert got["held_reward_per_action"] == -got["cd_base"] and got["transient_actions"] == 10
+    expected = -10 * (cd_base + 0.25) - (n - 10) * cd_base
+    assert got["transient_policy"] == "fast" and got["reference"] == pytest.approx(expected, rel=1e-12)
+    assert got["reference"] > max(p["score"] for p in got["policies"])
+    control["rows"][0]["params"] = {"re": 31.0}
+    with pytest.raises(ValueError, match="no flow at Re 31 on 20 cells"):
+        reference.reference(control, base)

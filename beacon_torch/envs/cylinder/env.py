@@ -167,7 +167,7 @@ class CylinderEnv(FlowEnv):
     # best trained policy's first 34 actions) and then the steady base flow's drag
     # (C_D 2.952) with no lift, 6.3 % below no control over the episode. Rabault et
     # al.'s 8 % at every action would need a drag below the steady flow's from the
-    # first action. Computed by benchmarks/cylinder_reference.py from the recorded
+    # first action. Computed by benchmarks/wake_reference.py from the recorded
     # base flow and policies (its record in benchmarks/results/cylinder/; the tests
     # check this value against it).
     paper_ppo = 0.6021481412219859
