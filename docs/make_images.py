@@ -10,6 +10,7 @@ from PIL import Image
 
 import beacon_torch
 from beacon_torch import episodes
+from beacon_torch.files import create_file
 from beacon_torch.render import save_animation
 
 OUT = Path(__file__).parent / "img"
@@ -55,9 +56,15 @@ def pinball_animation(path: Path) -> Path:
     return save_animation(frames[::2], path, fps=8)
 
 
-if __name__ == "__main__":
-    OUT.mkdir(exist_ok=True)
-    wanted = set(sys.argv[1:])
+def renew(path: Path) -> Path:
+    """``path`` cleared for this script's new version of it: its own earlier file is
+    removed (a link planted there is removed, not followed)."""
+    path.unlink(missing_ok=True)
+    return path
+
+
+def main(wanted: set[str], out: Path = OUT) -> None:
+    out.mkdir(exist_ok=True)
     for env_id, steps, params in FRAMES:
         name = f"{env_id.split(':')[-1]}"
         if wanted and name not in wanted:
@@ -65,10 +72,12 @@ if __name__ == "__main__":
         env = beacon_torch.make(env_id, 1, dtype="float64", seed=0, record_history=True, **params)
         policy = episodes.random_policy(env, seed=0)
         env.rollout(steps, policy=policy)
-        path = OUT / f"{name}.png"
-        Image.fromarray(env.render()).save(path)
-        print(path)
+        frame = Image.fromarray(env.render())
+        # a new file, refused if the name was taken meanwhile
+        print(create_file(renew(out / f"{name}.png"), lambda tmp, frame=frame: frame.save(tmp, format="PNG")))
     if not wanted or "pinball-periodic-v0.gif" in wanted:
-        gif = OUT / "pinball-periodic-v0.gif"
-        gif.unlink(missing_ok=True)  # regenerated: the animation is this script's own file
-        print(pinball_animation(gif))
+        print(pinball_animation(renew(out / "pinball-periodic-v0.gif")))
+
+
+if __name__ == "__main__":
+    main(set(sys.argv[1:]))

@@ -114,3 +114,24 @@ def test_shkadov_without_history_draws_no_one_row_diagram(monkeypatch):
     env.rollout(3)
     env.render()
     assert drawn == {"rows": 4, "space_time": True}
+
+
+def test_the_docs_images_replace_their_own_files_and_never_write_through_a_link(tmp_path, monkeypatch):
+    """docs/make_images.py regenerates its frames and animation: what stands at their
+    names, its own earlier file or a link planted there, is removed and a new file
+    written; the link's target is never created."""
+    from conftest import script
+
+    images = script("docs/make_images.py")
+    out = tmp_path / "img"
+    out.mkdir()
+    (out / "lorenz-v0.png").write_bytes(b"an earlier frame")
+    gif, target = out / "pinball-periodic-v0.gif", tmp_path / "elsewhere.gif"
+    gif.symlink_to(target)  # dangling: nothing may be created through it
+    # the pinball's episode stands in for two frames (the test's time)
+    two = [np.full((4, 4, 3), value) for value in (0, 255)]
+    monkeypatch.setattr(images, "pinball_animation", lambda path: save_animation(two, path))
+    images.main({"lorenz-v0", "pinball-periodic-v0.gif"}, out)
+    assert Image.open(out / "lorenz-v0.png").size[0] > 100
+    assert not gif.is_symlink() and Image.open(gif).n_frames == 2 and not target.exists()
+    assert sorted(p.name for p in out.iterdir()) == ["lorenz-v0.png", "pinball-periodic-v0.gif"]
