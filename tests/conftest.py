@@ -154,3 +154,20 @@ def short_lorenz():
     for table in (registry.ENVS, registry.DEFAULTS, registry.ORIGIN):
         table.pop("short-lorenz-v0", None)
     gymnasium.registry.pop("beacon/short-lorenz-v0", None)
+
+
+def random_policy_file(path: Path, env_id: str, params: dict, hidden: int = 16) -> Path:
+    """A policy file (``pretrained.export``'s format) of a deterministic actor of
+    ``env_id`` with ``params``, its weights drawn at random but reproducibly, large
+    enough that its actions move."""
+    from beacon_torch import training
+    from beacon_torch.training import networks
+
+    env = training.env.make_env(env_id, 1, norm_steps=0, params=params)
+    policy = networks.policy(env, "deterministic_actor", hidden)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(p.numel()))
+    record = {"env": env_id, "algo": "td3", "network": "deterministic_actor", "hidden": hidden}
+    torch.save({**record, "params": params, "weights": policy.state_dict()}, path)
+    return path

@@ -17,7 +17,7 @@ from beacon_torch.envs.cylinder import Channel, CylinderEnv, jet_target, rest, r
 from beacon_torch.numerics.grid import NEUMANN, ZERO_FACE
 from beacon_torch.numerics.poisson import PoissonSolver, laplacian_1d
 
-from conftest import script
+from conftest import random_policy_file, script
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = dict(dtype=torch.float64, device="cpu")
@@ -235,19 +235,10 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
     """benchmarks/wake_control.py: a policy file acts for two episodes' worth of
     actions on the grid it was trained on; the flow goes on across the episode's end,
     and the member without control is the uncontrolled flow itself."""
-    from beacon_torch import training
-    from beacon_torch.training import networks
-
     control = script("benchmarks/wake_control.py")
     params = {"cells_per_diameter": 10}
-    env = training.env.make_env("cylinder-v0", 1, norm_steps=0, params=params)
-    policy = networks.policy(env, "deterministic_actor", 16)
-    with torch.no_grad():
-        for p in policy.parameters():
-            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(p.numel()))
-    record = {"env": "cylinder-v0", "algo": "td3", "network": "deterministic_actor", "hidden": 16}
-    torch.save({**record, "params": params, "weights": policy.state_dict()}, tmp_path / "policy.pt")
-    row = control.control(str(tmp_path / "policy.pt"), 2, compile=False)
+    policy = random_policy_file(tmp_path / "policy.pt", "cylinder-v0", params)
+    row = control.control(str(policy), 2, compile=False)
     assert row["params"] == params and row["env"] == "cylinder-v0" and len(row["per_action"]["drag"]) == 160
     # the rewards are the env's, Rabault et al.'s drag and lift penalty
     drag, lift = (np.array(row["per_action"][key]) for key in ("drag", "lift"))

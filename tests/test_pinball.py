@@ -13,7 +13,7 @@ import torch
 import beacon_torch
 from beacon_torch.envs import pinball
 
-from conftest import script
+from conftest import random_policy_file, script
 
 ROOT = Path(__file__).resolve().parents[1]
 steady = script("benchmarks/pinball_validation.py")
@@ -197,19 +197,10 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     for cls in (pinball.PinballPhysics, pinball.PinballEnv):  # short episodes: the test's time
         monkeypatch.setattr(cls, "episode_length", 6)
 
-    from beacon_torch import training
-    from beacon_torch.training import networks
-
     control = script("benchmarks/wake_control.py")
     params = {"cells_per_diameter": 10}
-    env = training.env.make_env("pinball-v0", 1, norm_steps=0, params=params)
-    policy = networks.policy(env, "deterministic_actor", 8)
-    with torch.no_grad():
-        for p in policy.parameters():
-            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(p.numel()))
-    record = {"env": "pinball-v0", "algo": "td3", "network": "deterministic_actor", "hidden": 8}
-    torch.save({**record, "params": params, "weights": policy.state_dict()}, tmp_path / "policy.pt")
-    row = control.control(str(tmp_path / "policy.pt"), 2, compile=False)
+    policy = random_policy_file(tmp_path / "policy.pt", "pinball-v0", params, hidden=8)
+    row = control.control(str(policy), 2, compile=False)
     seen = {key: np.array(values) for key, values in row["per_action"].items()}
     assert row["env"] == "pinball-v0" and row["params"] == params and len(seen["drag"]) == 12
     assert (seen["uncontrolled_power"] == 0).all() and seen["power"].mean() > 0.01
