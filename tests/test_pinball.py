@@ -243,3 +243,29 @@ def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measu
     control["rows"][0]["params"] = {"re": 31.0}
     with pytest.raises(ValueError, match="no flow at Re 31 on 20 cells"):
         reference.reference(control, base)
+
+
+def test_the_recorded_ppo_policies_boat_tail_past_the_base_flows_reference_as_the_page_says():
+    """The page's control table and figures are the newest wake_control record's, and
+    its reference record is what benchmarks/wake_reference.py computes again from the
+    records it names: the policies' net drag power is below no control's and their
+    scores above the base flow's reference, which is no "= 1" at Re 30."""
+    import numpy as np
+
+    control, reference = script("benchmarks/wake_control.py"), script("benchmarks/wake_reference.py")
+    rows = latest("pinball_control-*.json")["rows"]
+    page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
+    block = re.search(r"<!-- control: .*?-->\n(.*?)<!-- end of the control -->", page, re.S)
+    assert block and block.group(1).strip() == control.table(rows).strip()
+    folder = ROOT / "benchmarks" / "results" / "pinball"
+    record = latest("pinball_reference-*.json")["rows"][0]
+    again = reference.reference(*(json.loads((folder / name).read_text()) for name in record["records"]))
+    assert again == {k: v for k, v in record.items() if k != "records"}
+    assert f"{record['reference']:.1f}" in page
+    for row, policy in zip(rows, record["policies"], strict=True):
+        seen = {key: np.array(values[:100]) for key, values in row["per_action"].items()}
+        net = 1 - (seen["drag"] + seen["power"]).mean() / seen["uncontrolled_drag"].mean()
+        assert row["score_episode"] > record["reference"] and policy["score"] == pytest.approx(row["score_episode"])
+        for number in (f"{100 * net:.1f} %", f"{seen['power'].mean():.2f}", f"{row['score_episode']:.1f}"):
+            assert number in page, number
+    assert pinball.PinballEnv.paper_ppo is None
