@@ -34,6 +34,15 @@ HERE = Path(__file__).resolve()
 SETTLED = 0.1
 
 
+def cylinder_rewards(drag, lift):
+    """cylinder-v0's reward of an action of mean drag and lift coefficients (Rabault et
+    al.'s: the drag below an offset, less a lift penalty, in force)."""
+    from beacon_torch.envs.cylinder.channel import DIAMETER, DRAG_OFFSET, LIFT_PENALTY, U_MEAN
+
+    force = U_MEAN**2 * DIAMETER / 2.0  # the force of a unit coefficient
+    return DRAG_OFFSET - force * drag - LIFT_PENALTY * force * np.abs(lift)
+
+
 def held(env_id: str, base_flow: dict, params: dict) -> tuple[float, float]:
     """The steady base flow's drag coefficient (the pinball's: summed over its
     cylinders) in the record ``base_flow``, for ``env_id`` with ``params``, and the
@@ -41,10 +50,8 @@ def held(env_id: str, base_flow: dict, params: dict) -> tuple[float, float]:
     from beacon_torch.registry import ENVS
 
     if env_id == "cylinder-v0":
-        from beacon_torch.envs.cylinder.channel import DIAMETER, DRAG_OFFSET, U_MEAN
-
         cd_base = base_flow["rows"][0]["cd_base"]
-        return cd_base, DRAG_OFFSET - U_MEAN**2 * DIAMETER / 2.0 * cd_base
+        return cd_base, float(cylinder_rewards(cd_base, 0.0))
     if env_id.startswith("pinball"):
         level = ENVS[env_id].Params(**params)
         cells, re = int(level.cells_per_diameter), float(level.re)
@@ -71,11 +78,7 @@ def reference(control: dict, base_flow: dict) -> dict:
         if "reward" in row["per_action"]:
             rewards = np.asarray(row["per_action"]["reward"][:n])
         else:  # the cylinder's first records hold the drag and lift, not the reward
-            from beacon_torch.envs.cylinder.channel import DIAMETER, DRAG_OFFSET, LIFT_PENALTY, U_MEAN
-
-            force = U_MEAN**2 * DIAMETER / 2.0  # the force of a unit coefficient
-            lift = np.asarray(row["per_action"]["lift"][:n])
-            rewards = DRAG_OFFSET - force * drag - LIFT_PENALTY * force * np.abs(lift)
+            rewards = cylinder_rewards(drag, np.asarray(row["per_action"]["lift"][:n]))
         policies.append(dict(policy=row["policy"], drag=drag, free=free, rewards=rewards))
     excess = np.mean(policies[0]["free"]) - cd_base
     threshold = cd_base + SETTLED * excess
