@@ -60,15 +60,16 @@ def policy_of(name: str):
     return pretrained.load(name), info["env"], info.get("params", {})
 
 
-def control(name: str, episodes: int, compile: bool = True) -> dict:
+def control(name: str, episodes: int, compile: bool = True, loaded=None) -> dict:
     """``episodes`` episodes' worth of actions of the policy ``name`` and of no control
-    from the developed start, per action and in the two means."""
+    from the developed start, per action and in the two means; ``loaded``: what
+    ``policy_of(name)`` gives, when already read."""
     import numpy as np
     import torch
 
     import beacon_torch
 
-    policy, env_id, params = policy_of(name)
+    policy, env_id, params = loaded or policy_of(name)
     wake(env_id)
     env = beacon_torch.make(env_id, 2, compile=compile, params=params)  # the policy's member, no control
     actions = episodes * env.episode_length
@@ -171,13 +172,14 @@ def main() -> None:
     if args.episodes < 1:
         parser.error(f"--episodes must be at least 1, got {args.episodes}")
     try:
-        envs = {policy_of(name)[1] for name in args.policies}
+        loaded = {name: policy_of(name) for name in args.policies}
+        envs = {env_id for _, env_id, _ in loaded.values()}
         wake(min(envs))
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))
     if len(envs) > 1:
         parser.error(f"the policies are of different envs ({', '.join(sorted(envs))}): one env a record")
-    rows = [control(name, args.episodes, not args.no_compile) for name in args.policies]
+    rows = [control(name, args.episodes, not args.no_compile, loaded[name]) for name in args.policies]
     print(table(rows))
     print("results:", save_rows(rows, args.out, f"{rows[0]['env'].removesuffix('-v0')}_control"))
 

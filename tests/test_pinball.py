@@ -60,6 +60,10 @@ def test_turning_cylinders_spend_power_and_feel_the_torque_against_them():
     assert state.omega[1, 1] < 0 and state.torque[1, 1] > 0
     power = td["diagnostics", "power"]
     assert bool((power > 0).all())
+    # the rates the diagnostics report are the state's, ramped towards the commanded bound
+    for k, name in enumerate(("front", "top", "bottom")):
+        assert torch.equal(td["diagnostics", f"omega_{name}"], state.omega[:, k])
+    assert 0 < state.omega[0, 0] <= float(env.params.max_rotation)
     drag = td["diagnostics", "drag"]
     assert torch.allclose(td["reward"][:, 0], -(drag + power))
 
@@ -205,6 +209,10 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     seen = {key: np.array(values) for key, values in row["per_action"].items()}
     assert row["env"] == "pinball-v0" and row["params"] == params and len(seen["drag"]) == 12
     assert (seen["uncontrolled_power"] == 0).all() and seen["power"].mean() > 0.01
+    # the rotation rates are recorded, within the bound, none for the member left alone
+    rates = np.stack([seen[f"omega_{name}"] for name in ("front", "top", "bottom")])
+    assert (np.abs(rates) <= float(pinball.PinballParams().max_rotation)).all() and np.abs(rates).max() > 0.1
+    assert all((seen[f"uncontrolled_omega_{name}"] == 0).all() for name in ("front", "top", "bottom"))
     np.testing.assert_allclose(seen["reward"], -(seen["drag"] + seen["power"]), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(seen["uncontrolled_reward"], -seen["uncontrolled_drag"], rtol=1e-6)
     assert row["score_episode"] == pytest.approx(seen["reward"][:6].sum(), rel=1e-9)

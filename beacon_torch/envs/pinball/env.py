@@ -127,6 +127,9 @@ class PinballPhysics(Physics):
         "drag_front": "the front cylinder's drag coefficient",
         "drag_top": "the top cylinder's drag coefficient",
         "drag_bottom": "the bottom cylinder's drag coefficient",
+        "omega_front": "the front cylinder's angular velocity at the action's end, in U / D (anticlockwise positive)",
+        "omega_top": "the top cylinder's angular velocity at the action's end, in U / D",
+        "omega_bottom": "the bottom cylinder's angular velocity at the action's end, in U / D",
     }
 
     @classmethod
@@ -183,6 +186,9 @@ class PinballPhysics(Physics):
             "drag_front": drag[:, 0],
             "drag_top": drag[:, 1],
             "drag_bottom": drag[:, 2],
+            "omega_front": state.omega[:, 0],
+            "omega_top": state.omega[:, 1],
+            "omega_bottom": state.omega[:, 2],
         }
 
     def observe(self, p, state: PinballState) -> torch.Tensor:
