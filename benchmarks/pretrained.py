@@ -29,10 +29,16 @@ import torch
 
 from beacon_torch import pretrained, starts
 from beacon_torch.training.evaluation import EVAL_SEED, evaluate_policy
-from beacon_torch.training.report import normalised, scaled, write_block
+from beacon_torch.training.report import normalisable, normalised, scaled, write_block
 
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of shipped policies -->"
+
+
+def scale(score: float, uncontrolled: float, env_id: str) -> float | None:
+    """The normalised score; None where the env's card has no paper score to
+    normalise by."""
+    return float(normalised(score, uncontrolled, env_id)) if normalisable(env_id) else None
 
 
 def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()) -> list[dict]:
@@ -55,8 +61,8 @@ def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()
             rows.append(
                 {
                     **old,
-                    "normalised": float(normalised(old["score"], old["uncontrolled"], env_id)),
-                    "test_normalised": float(normalised(old["test_score"], old["test_uncontrolled"], env_id)),
+                    "normalised": scale(old["score"], old["uncontrolled"], env_id),
+                    "test_normalised": scale(old["test_score"], old["test_uncontrolled"], env_id),
                 }
             )
             continue
@@ -72,7 +78,7 @@ def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()
                 "score": result["score_mean"],
                 "score_std": result["score_std"],
                 "uncontrolled": result["uncontrolled"],
-                "normalised": float(normalised(result["score_mean"], result["uncontrolled"], env_id)),
+                "normalised": scale(result["score_mean"], result["uncontrolled"], env_id),
                 "recorded": info.get("score"),
                 "seconds": time.perf_counter() - start,
             }
@@ -80,7 +86,7 @@ def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()
         row.update(
             test_score=test["score_mean"],
             test_uncontrolled=test["uncontrolled"],
-            test_normalised=float(normalised(test["score_mean"], test["uncontrolled"], env_id)),
+            test_normalised=scale(test["score_mean"], test["uncontrolled"], env_id),
         )
         rows.append(row)
         print(f"{name}: {row['score']:.4g} / test starts {row['test_score']:.4g}", flush=True)
@@ -99,12 +105,15 @@ def table(rows: list[dict], num_envs: int, seed: int) -> str:
     ]
     for r in rows:
         recorded = "-" if r["recorded"] is None else f"{r['recorded']:.4g}"
-        # no control from the developed starts above the paper's score: a backward scale
-        backward = not scaled(r["test_uncontrolled"], r["policy"].split("/", 1)[1])
-        test_normalised = "- (a)" if backward else f"{r['test_normalised']:.2f}"
+        if r["normalised"] is None:
+            own = test_normalised = "- (b)"
+        else:
+            # no control from the developed starts above the paper's score: a backward scale
+            backward = not scaled(r["test_uncontrolled"], r["policy"].split("/", 1)[1])
+            own, test_normalised = f"{r['normalised']:.2f}", "- (a)" if backward else f"{r['test_normalised']:.2f}"
         lines.append(
             f"| {r['policy']} | {r['frames']:,} ({r['trained_seed']}) | {r['score']:.4g} "
-            f"({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {r['normalised']:.2f} | {recorded} "
+            f"({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {own} | {recorded} "
             f"| {r['test_score']:.4g} | {r['test_uncontrolled']:.4g} | {test_normalised} |"
         )
     lines += [
@@ -113,7 +122,8 @@ def table(rows: list[dict], num_envs: int, seed: int) -> str:
         "(`beacon_torch.starts`, [quick start](quickstart.md#start-sets-train-validation-and-test-episodes)); "
         "each policy was trained from the env's own start only. (a): no control from these starts already "
         "scores above the paper's PPO, so the scale from one to the other runs backwards and is not used "
-        "(sloshing's and mixing's developed states are calmer than their own start).",
+        "(sloshing's and mixing's developed states are calmer than their own start). (b): the env's card has "
+        "no paper score, the scale's 1; its page sets the scores beside its own reference.",
     ]
     return "\n".join(lines)
 

@@ -113,7 +113,7 @@ def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, 
     assert "one of the two" in capsys.readouterr().err
 
 
-def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp_path):
+def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp_path, monkeypatch):
     """benchmarks/pretrained.py runs each shipped policy as a user loads it and writes
     its table between the page's markers; the folded normalisation scores what the
     training's checkpoint scores on the same episodes."""
@@ -152,6 +152,12 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     (again,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
     assert again["recorded"] == 2.0 and again["seconds"] != row["seconds"] and "| 2 |" in page.read_text()
+    # an env whose card has no paper score: its scores stand, not normalised
+    monkeypatch.setattr(beacon_torch.registry.env_class("vortex-v0"), "paper_ppo", None)
+    bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
+    (bare,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
+    assert bare["normalised"] is bare["test_normalised"] is None and bare["score"] == again["score"]
+    assert "| - (b) | 2 |" in page.read_text()
     with pytest.raises(SystemExit):
         bench.main(["--num-envs", "0", "--page", str(page)])
 

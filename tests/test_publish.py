@@ -110,6 +110,36 @@ def test_a_true_summary_is_published_from_its_checkpoints(pair, repo, tmp_path, 
     assert exit_.value.code == 2 and "summary.json: its env 'burgers-v0'" in err and len(err.strip().split("\n")) == 1
 
 
+def test_a_pair_of_an_env_without_a_paper_score_is_published_and_listed_by_its_own_scores(
+    pair, repo, tmp_path, monkeypatch
+):
+    """A case from beyond the paper has no paper score on its card: its pair is
+    published all the same (checked like any other), and the results page lists its
+    scores beside no control outside the normalised protocol, which still refuses it."""
+    from beacon_torch.registry import env_class
+    from beacon_torch.training import report
+
+    recorded, images, shipped = repo
+    monkeypatch.setattr(env_class("short-lorenz-v0"), "paper_ppo", None)
+    with pytest.raises(ValueError, match="its eval_mean 5.0 is not what its seeds give"):
+        reproduce.publish(
+            forged(pair, tmp_path / "forged", lambda s: s.update(eval_mean=5.0)), recorded, images, shipped
+        )
+    reproduce.publish(forged(pair, tmp_path, lambda s: None), recorded, images, shipped)
+    file = recorded / "ppo" / "short-lorenz-v0.json"
+    published = json.loads(file.read_text())
+    assert (shipped / "ppo" / "short-lorenz-v0.pt").read_bytes() != b"the shipped policy"
+    page = tmp_path / "results.md"
+    page.write_text(f"# Results\n\n{reproduce.BEGIN}\nold\n{reproduce.END}\n")
+    text = reproduce.write_results_page(recorded, page, images).read_text()
+    scores = [s["eval"] for s in published["seeds"]]
+    (row,) = [line for line in text.splitlines() if line.startswith("| short-lorenz-v0 | ppo | 2 |")]
+    assert f"{report.iqm(scores):.4g} ({', '.join(f'{x:.4g}' for x in scores)})" in row
+    assert f"| {published['uncontrolled']:.4g} | 400 |" in row and "normalised scores" not in text
+    with pytest.raises(ValueError, match="no paper score on its card"):
+        report.read(file)
+
+
 TRUE = {
     "algo": "ppo",
     "env": "short-lorenz-v0",

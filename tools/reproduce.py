@@ -95,9 +95,10 @@ def train_pair(
 
 
 def read_summary(file: Path) -> dict:
-    """A summary written by ``summarise``, checked (``report.read``) and of a known
-    algorithm. Its paths are not used: files are found by the pair's name."""
-    summary = report.read(file)
+    """A summary written by ``summarise``, checked (``report.read``; an env without a
+    reference on its card is recorded all the same) and of a known algorithm. Its
+    paths are not used: files are found by the pair's name."""
+    summary = report.read(file, scored=False)
     if summary["algo"] not in CONFIGS:
         raise ValueError(f"{file}: unknown algorithm {summary['algo']!r}; known: {', '.join(sorted(CONFIGS))}")
     return summary
@@ -204,11 +205,19 @@ def publish(root: Path, recorded: Path = RECORDED, images: Path = IMAGES, shippe
 
 def results_block(recorded: Path, page: Path, images: Path) -> str:
     """The results page's generated part: the protocol's figure and table over every
-    recorded summary, the PPO floors, and the curves."""
-    summaries = [read_summary(f) for f in sorted(recorded.glob("*/*.json"))]
+    recorded summary its envs' cards can normalise, the others' own scores, the PPO
+    floors, and the curves."""
+    rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
+    files = sorted(recorded.glob("*/*.json"))
+    everyone = [read_summary(f) for f in files]
+    summaries = [s for s in everyone if report.normalisable(s["env"])]
     names = [images / f"report.{suffix}" for suffix in ("md", "json", "png")]
     # every pair on the paper's episodes, where all are recorded and comparable
-    rows = report.report(sorted(recorded.glob("*/*.json")), *names, starts="own", replace=True)
+    scored = [f for f, s in zip(files, everyone, strict=True) if report.normalisable(s["env"])]
+    protocol = []
+    if scored:
+        rows = report.report(scored, *names, starts="own", replace=True)
+        protocol = [f"![normalised scores]({rel(rows['png'])})", rows["table"]]
     held = [report.row(s, "test") for s in summaries if report.test_scaled(s)]
     test_table = (
         "On the held-out test set's 8 developed starts (one episode each; 0 = no control from "
@@ -228,7 +237,6 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
             )
             + "."
         )
-    rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     floors = [
         "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "
         "deterministic policy | transitions (of the paper's budget) | floor met |",
@@ -246,16 +254,38 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
                 f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} "
                 f"of {paper_frames(s['env']):,} | {met} |"
             )
-    curves = ", ".join(f"[{s['algo']}/{s['env']}]({rel(images / s['algo'] / (s['env'] + '.png'))})" for s in summaries)
+    curves = ", ".join(f"[{s['algo']}/{s['env']}]({rel(images / s['algo'] / (s['env'] + '.png'))})" for s in everyone)
     return "\n\n".join(
         [
-            f"![normalised scores]({rel(rows['png'])})",
-            rows["table"],
+            *protocol,
             test_table,
+            *unnormalised([s for s in everyone if not report.normalisable(s["env"])]),
             "\n".join(floors),
             f"Curves: {curves}.",
         ]
     )
+
+
+def unnormalised(summaries: list[dict]) -> list[str]:
+    """The recorded pairs of envs without the paper's score on their card: their own
+    scores beside no control, for the env's page to set against its reference."""
+    if not summaries:
+        return []
+    lines = [
+        "Recorded, not normalised: their envs have no paper score on the card (each env's page sets the "
+        "scores beside its own reference):",
+        "",
+        "| env | algorithm | seeds | score, IQM (per seed) | uncontrolled | transitions | wall time per seed |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in sorted(summaries, key=lambda s: (s["algo"], s["env"])):
+        scores = [seed["eval"] for seed in s["seeds"]]
+        lines.append(
+            f"| {s['env']} | {s['algo']} | {len(scores)} | {report.iqm(scores):.4g} "
+            f"({', '.join(f'{x:.4g}' for x in scores)}) | {s['uncontrolled']:.4g} | {s['frames']:,} "
+            f"| {s['wall_s_per_seed'] / 60:.1f} min |"
+        )
+    return ["\n".join(lines)]
 
 
 def write_results_page(recorded: Path, page: Path, images: Path) -> Path:

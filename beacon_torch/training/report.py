@@ -30,14 +30,19 @@ BOOTSTRAP = 10_000  # resamples of the seeds
 CONFIDENCE = 0.95
 
 
+def normalisable(env_id: str) -> bool:
+    """Whether the protocol can normalise ``env_id``'s scores: its card gives the
+    paper's PPO score, the scale's "= 1"."""
+    return env_class(env_id).paper_ppo is not None
+
+
 def reference(env_id: str) -> float:
     """The paper's PPO score of ``env_id`` (its base env's for a variant)."""
-    value = env_class(env_id).paper_ppo
-    if value is None:
+    if not normalisable(env_id):
         raise ValueError(
             f"{env_id} has no paper score on its card (paper_ppo): the protocol has nothing to normalise by"
         )
-    return value
+    return env_class(env_id).paper_ppo
 
 
 def normalised(score, uncontrolled, env_id: str):
@@ -126,10 +131,11 @@ def row(summary: dict, starts: str = "test") -> dict:
     }
 
 
-def check_summary(summary, file: str | Path) -> dict:
+def check_summary(summary, file: str | Path, scored: bool = True) -> dict:
     """Refuse a summary the protocol cannot score: an unknown env, no seeds, a score
     or count that is not a finite number, an uncontrolled score equal to the
-    reference (nothing to normalise by)."""
+    reference (nothing to normalise by); with ``scored`` false, a summary of an env
+    without a reference on its card is data all the same (recorded, not normalised)."""
 
     def bad(what: str):
         return ValueError(f"{file}: not a summary of trained seeds ({what})")
@@ -139,7 +145,7 @@ def check_summary(summary, file: str | Path) -> dict:
         raise bad("not a JSON object")
     if not isinstance(summary.get("env"), str) or summary["env"] not in ENVS:
         raise bad(f"unknown env {summary.get('env')!r}")
-    if env_class(summary["env"]).paper_ppo is None:
+    if scored and not normalisable(summary["env"]):
         raise bad(f"{summary['env']} has no paper score on its card (paper_ppo) to normalise by")
     if not isinstance(summary.get("algo"), str):
         raise bad("no algorithm")
@@ -169,6 +175,8 @@ def check_summary(summary, file: str | Path) -> dict:
             )
     if "train_mean" in summary and not finite(summary["train_mean"]):
         raise bad(f"'train_mean' must be finite, got {_short(summary['train_mean'])}")
+    if not normalisable(summary["env"]):
+        return summary
     if summary["uncontrolled"] == reference(summary["env"]):
         raise bad(f"its uncontrolled score equals the reference {reference(summary['env'])}: no scale to normalise by")
     pairs = [([s["eval"] for s in seeds], summary["uncontrolled"])]
@@ -220,9 +228,9 @@ def _short(value) -> str:
     return repr(value)[:60]
 
 
-def read(file: str | Path) -> dict:
+def read(file: str | Path, scored: bool = True) -> dict:
     """A ``summary.json`` file, checked (:func:`check_summary`)."""
-    return check_summary(received.json_file(file, "summary"), file)
+    return check_summary(received.json_file(file, "summary"), file, scored)
 
 
 def summaries(run_dirs, progress: bool = False) -> list[dict]:
