@@ -95,6 +95,8 @@ GRAD = {
     # an action's 50 steps of the 2-D flow, kept whole for 8 members, take gigabytes:
     # each action is recomputed in the backward pass instead
     "cylinder-v0": dict(frames=16_000, num_envs=8, horizon=20, grad_checkpoint=True),
+    # the pinball's action is 100 steps of a larger box: 0.55 GB a member recomputed
+    "pinball-v0": dict(frames=16_000, num_envs=8, horizon=20, grad_checkpoint=True),
 }
 
 # the short-horizon actor-critic, where its settings differ from the defaults. Its budget
@@ -112,6 +114,7 @@ SHAC = {
     "rayleigh-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True),
     "cylinder-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True),
+    "pinball-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True),
 }
 
 # domains of real settings: (lowest, highest, whether the lowest itself is excluded)
