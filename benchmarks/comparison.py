@@ -34,6 +34,14 @@ WINDOW = 5
 GRID = 100
 
 
+def scored_envs() -> list[str]:
+    """The continuous envs whose cards give the paper's score to normalise by: the
+    comparison's scale (an env beyond the paper is compared on its own page)."""
+    from beacon_torch.training import report
+
+    return [env_id for env_id in continuous_envs() if report.normalisable(env_id)]
+
+
 def pairs(env_id: str, recorded: Path = RECORDED) -> list[tuple[str, dict]]:
     """The recorded summaries that stand for ``env_id``, as (algorithm, summary)."""
     from beacon_torch.training import report
@@ -116,7 +124,7 @@ def table(recorded: Path = RECORDED) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     levels = mpc_levels()
-    for env_id in continuous_envs():
+    for env_id in scored_envs():
         for algo, summary in pairs(env_id, recorded):
             row = report.row(summary, "test")
             name = algo if summary["env"] == env_id else f"{algo} ({summary['env']})"
@@ -144,7 +152,7 @@ def draw(path: Path, recorded: Path = RECORDED) -> None:
     from beacon_torch.files import save_figure
     from beacon_torch.training import report
 
-    levels, envs = mpc_levels(), continuous_envs()
+    levels, envs = mpc_levels(), scored_envs()
     fig = Figure(figsize=(10, 2.6 * len(envs)), dpi=80)
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(envs), 2, squeeze=False)
