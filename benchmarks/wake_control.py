@@ -126,6 +126,35 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def rotation_table(rows: list[dict]) -> str:
+    """The pinball policies' actuation beside their drag: the rotations' mean power and
+    the net drag power (drag and power coefficients summed) over the first episode
+    against no control's drag, the episode's reward, and over the second half of the
+    run each cylinder's mean rate as a fraction of the bound (positive
+    anticlockwise) and the summed lift."""
+    import numpy as np
+
+    from beacon_torch.envs import pinball
+
+    n = rows[0]["episode_length"]
+    lines = [
+        f"| policy | mean power, first episode ({n} actions) | net drag power against no control | episode reward "
+        "| no control | rates of the bound, second half: front, top, bottom | mean lift, second half |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        seen = {key: np.array(values) for key, values in r["per_action"].items()}
+        first, half = slice(0, n), slice(r["actions"] // 2, r["actions"])
+        net = 1.0 - (seen["drag"][first] + seen["power"][first]).mean() / seen["uncontrolled_drag"][first].mean()
+        bound = float(r["params"].get("max_rotation", pinball.PinballParams().max_rotation))
+        rates = ", ".join(f"{seen[f'omega_{c}'][half].mean() / bound:+.2f}" for c in ("front", "top", "bottom"))
+        lines.append(
+            f"| {r['policy']} | {seen['power'][first].mean():.2f} | {-100 * net:+.1f} % | {r['score_episode']:.1f} "
+            f"| {r['score_episode_uncontrolled']:.1f} | {rates} | {seen['lift'][half].mean():+.2f} |"
+        )
+    return "\n".join(lines)
+
+
 def plot(record: str, figure: str, base_flow: float | None = None) -> None:
     """A record's drag coefficients and actuation over time, drawn as ``beacon-torch
     eval`` draws an env's diagnostics (``evaluation.draw_diagnostics``); ``base_flow``:
@@ -181,6 +210,8 @@ def main() -> None:
         parser.error(f"the policies are of different envs ({', '.join(sorted(envs))}): one env a record")
     rows = [control(name, args.episodes, not args.no_compile, loaded[name]) for name in args.policies]
     print(table(rows))
+    if wake(rows[0]["env"])[0] == "power":  # the pinball's rotations
+        print(rotation_table(rows))
     print("results:", save_rows(rows, args.out, f"{rows[0]['env'].removesuffix('-v0')}_control"))
 
 

@@ -213,6 +213,13 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     rates = np.stack([seen[f"omega_{name}"] for name in ("front", "top", "bottom")])
     assert (np.abs(rates) <= float(pinball.PinballParams().max_rotation)).all() and np.abs(rates).max() > 0.1
     assert all((seen[f"uncontrolled_omega_{name}"] == 0).all() for name in ("front", "top", "bottom"))
+    # the actuation's table: the power and net drag power over the first episode, the
+    # rates over the second half as fractions of the bound
+    line = control.rotation_table([row]).splitlines()[2]
+    net = (seen["drag"][:6] + seen["power"][:6]).mean() / seen["uncontrolled_drag"][:6].mean() - 1
+    rates = (rates[:, 6:].mean(1) / float(pinball.PinballParams().max_rotation)).tolist()
+    assert line.startswith(f"| {policy} | {seen['power'][:6].mean():.2f} | {100 * net:+.1f} % |")
+    assert ", ".join(f"{x:+.2f}" for x in rates) in line
     np.testing.assert_allclose(seen["reward"], -(seen["drag"] + seen["power"]), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(seen["uncontrolled_reward"], -seen["uncontrolled_drag"], rtol=1e-6)
     assert row["score_episode"] == pytest.approx(seen["reward"][:6].sum(), rel=1e-9)
