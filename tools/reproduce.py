@@ -210,13 +210,13 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     rel = lambda path: os.path.relpath(Path(path).resolve(), page.resolve().parent)
     files = sorted(recorded.glob("*/*.json"))
     everyone = [read_summary(f) for f in files]
-    summaries = [s for s in everyone if report.normalisable(s["env"])]
+    scored = [report.normalisable(s["env"]) for s in everyone]
+    summaries = [s for s, ok in zip(everyone, scored, strict=True) if ok]
     names = [images / f"report.{suffix}" for suffix in ("md", "json", "png")]
-    # every pair on the paper's episodes, where all are recorded and comparable
-    scored = [f for f, s in zip(files, everyone, strict=True) if report.normalisable(s["env"])]
     protocol = []
-    if scored:
-        rows = report.report(scored, *names, starts="own", replace=True)
+    if summaries:
+        # every pair on the paper's episodes, where all are recorded and comparable
+        rows = report.report([f for f, ok in zip(files, scored, strict=True) if ok], *names, starts="own", replace=True)
         protocol = [f"![normalised scores]({rel(rows['png'])})", rows["table"]]
     held = [report.row(s, "test") for s in summaries if report.test_scaled(s)]
     test_table = (
@@ -259,7 +259,7 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
         [
             *protocol,
             test_table,
-            *unnormalised([s for s in everyone if not report.normalisable(s["env"])]),
+            *unnormalised([s for s, ok in zip(everyone, scored, strict=True) if not ok]),
             "\n".join(floors),
             f"Curves: {curves}.",
         ]

@@ -38,11 +38,12 @@ def normalisable(env_id: str) -> bool:
 
 def reference(env_id: str) -> float:
     """The paper's PPO score of ``env_id`` (its base env's for a variant)."""
-    if not normalisable(env_id):
+    score = env_class(env_id).paper_ppo
+    if score is None:
         raise ValueError(
             f"{env_id} has no paper score on its card (paper_ppo): the protocol has nothing to normalise by"
         )
-    return env_class(env_id).paper_ppo
+    return score
 
 
 def normalised(score, uncontrolled, env_id: str):
