@@ -176,7 +176,7 @@ def plot(record: str, figure: str, base_flow: float | None = None) -> None:
     lines = None if base_flow is None else {"drag": (base_flow, f"steady base flow ({base_flow:.3f})")}
     times = action_time * np.arange(1, rows[0]["actions"] + 1)
     length = rows[0].get("episode_length", 80)
-    title = f"{env_id} from the developed start: the episode's counter set back every {length} actions"
+    title = f"{env_id} from the developed start\n(the episode's counter set back every {length} actions)"
     print(
         "figure:",
         draw_diagnostics(series, figure, title=title, times=times, xlabel="time from the developed start", lines=lines),

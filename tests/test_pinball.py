@@ -12,6 +12,7 @@ import torch
 
 import beacon_torch
 from beacon_torch.envs import pinball
+from beacon_torch.registry import env_class
 
 from conftest import random_policy_file, script
 
@@ -260,21 +261,22 @@ def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measu
         reference.reference(control, base)
 
 
-def test_the_recorded_ppo_policies_boat_tail_past_the_base_flows_reference_as_the_page_says():
-    """The page's control table and figures are the newest wake_control record's, and
+@pytest.mark.parametrize("record, block", [("pinball", ""), ("pinball-periodic", "periodic ")])
+def test_the_recorded_ppo_policies_boat_tail_past_the_base_flows_reference_as_the_page_says(record, block):
+    """The page's control tables of a level are the newest wake_control record's, and
     its reference record is what benchmarks/wake_reference.py computes again from the
     records it names: the policies' net drag power is below no control's and their
-    scores above the base flow's reference, which is no "= 1" at Re 30."""
+    scores above the base flow's reference, which is no "= 1" at Re 30 or Re 100."""
     import numpy as np
 
     control, reference = script("benchmarks/wake_control.py"), script("benchmarks/wake_reference.py")
-    rows = latest("pinball_control-*.json")["rows"]
+    rows = latest(f"{record}_control-*.json")["rows"]
     page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
     for name, make in (("control", control.table), ("rotations", control.rotation_table)):
-        block = re.search(rf"<!-- {name}: .*?-->\n(.*?)<!-- end of the {name} -->", page, re.S)
-        assert block and block.group(1).strip() == make(rows).strip(), name
+        found = re.search(rf"<!-- {block}{name}: .*?-->\n(.*?)<!-- end of the {block}{name} -->", page, re.S)
+        assert found and found.group(1).strip() == make(rows).strip(), name
     folder = ROOT / "benchmarks" / "results" / "pinball"
-    record = latest("pinball_reference-*.json")["rows"][0]
+    record = latest(f"{record}_reference-*.json")["rows"][0]
     again = reference.reference(*(json.loads((folder / name).read_text()) for name in record["records"]))
     assert again == {k: v for k, v in record.items() if k != "records"}
     assert f"{record['reference']:.1f}" in page
@@ -284,4 +286,4 @@ def test_the_recorded_ppo_policies_boat_tail_past_the_base_flows_reference_as_th
         assert seen["omega_top"][50:].mean() < 0 < seen["omega_bottom"][50:].mean()
         assert (seen["drag"] + seen["power"]).mean() < seen["uncontrolled_drag"].mean()
         assert row["score_episode"] > record["reference"] and policy["score"] == pytest.approx(row["score_episode"])
-    assert pinball.PinballEnv.paper_ppo is None
+    assert env_class(row["env"]).paper_ppo is None
