@@ -100,7 +100,8 @@ def test_config_holds_the_papers_table_and_checks_overrides():
 
 def test_recipes_compile_by_default(monkeypatch):
     """Every env collects through its compiled step unless told otherwise (the flag, or
-    BEACON_TORCH_COMPILE=0 as this suite sets); gradient-based control stays eager."""
+    BEACON_TORCH_COMPILE=0 as this suite sets); gradient-based control stays eager except
+    where its table compiles, which the variable turns off too."""
     monkeypatch.delenv("BEACON_TORCH_COMPILE", raising=False)
     for algo, env_id in (
         ("ppo", "burgers-v0"),
@@ -112,8 +113,12 @@ def test_recipes_compile_by_default(monkeypatch):
     assert configure(PPOConfig, "burgers-v0", compile=False).compile is False
     assert parse(PPOConfig, ["--env", "shkadov-v0", "--no-compile"]).compile is False
     assert configure(GradConfig, "burgers-v0").compile is False
+    assert configure(GradConfig, "pinball-periodic-v0").compile is True
+    assert configure(SHACConfig, "pinball-v0").compile is True
+    assert configure(GradConfig, "pinball-v0", compile=False).compile is False
     monkeypatch.setenv("BEACON_TORCH_COMPILE", "0")
     assert configure(PPOConfig, "rayleigh-v0").compile is False
+    assert configure(GradConfig, "pinball-v0").compile is False
     assert configure(PPOConfig, "rayleigh-v0", compile=True).compile is True
 
 
