@@ -274,11 +274,11 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
 
 @pytest.mark.parametrize("planted", ["file", "link"])
 def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted, monkeypatch):
-    """benchmarks/wake_control.py --plot and benchmarks/cylinder_learning.py
+    """benchmarks/wake_control.py --plot and benchmarks/learning.py
     --figure refuse a figure's name that is taken, by a file or a link (dangling
     included), before any work, and leave it as it was."""
     control = script("benchmarks/wake_control.py")
-    learning = script("benchmarks/cylinder_learning.py")
+    learning = script("benchmarks/learning.py")
     figure, target = tmp_path / "figure.png", tmp_path / "elsewhere.png"
     if planted == "file":
         figure.write_bytes(b"mine")
@@ -288,7 +288,7 @@ def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted
     record.write_text(json.dumps({"rows": [{"policy": "p", "per_action": {"drag": [3.0]}}]}))
     with pytest.raises(FileExistsError, match="figure.png exists"):
         control.plot(str(record), str(figure))
-    monkeypatch.setattr("sys.argv", ["cylinder_learning.py", str(tmp_path / "no-run"), "--figure", str(figure)])
+    monkeypatch.setattr("sys.argv", ["learning.py", str(tmp_path / "no-run"), "--figure", str(figure)])
     with pytest.raises(FileExistsError, match="figure.png exists"):
         learning.main()
     if planted == "file":
@@ -296,3 +296,15 @@ def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted
     else:
         assert figure.is_symlink() and not target.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["figure.png", "record.json"])
+
+
+def test_the_learning_comparison_refuses_runs_of_different_envs(tmp_path, monkeypatch):
+    """benchmarks/learning.py compares runs on one env: runs trained on different envs
+    or parameters get one line naming both, before any episode is stepped."""
+    learning = script("benchmarks/learning.py")
+    trained = {"a": ("cylinder-v0", {}), "b": ("pinball-v0", {"re": 100.0})}
+    monkeypatch.setattr(learning, "curve", lambda run: {"env": trained[run.name][0], "params": trained[run.name][1]})
+    monkeypatch.setattr("sys.argv", ["learning.py", "a", "b", "--figure", str(tmp_path / "f.png")])
+    with pytest.raises(SystemExit, match="different envs or parameters.*cylinder-v0.*pinball-v0"):
+        learning.main()
+    assert list(tmp_path.iterdir()) == []

@@ -1,22 +1,25 @@
-"""PPO against gradient-based control on cylinder-v0: how many transitions and minutes
-each takes to learn.
+"""PPO against gradient-based control on one env (cylinder-v0, pinball-periodic-v0):
+how many transitions and minutes each takes to learn.
 
-    .venv/bin/python benchmarks/cylinder_learning.py RUN_DIR [RUN_DIR ...] --figure FIGURE.png [--out DIR]
+    .venv/bin/python benchmarks/learning.py RUN_DIR [RUN_DIR ...] --figure FIGURE.png [--out DIR]
 
 RUN_DIR: a folder of seeds of one algorithm (``runs/results/ppo/cylinder-v0``,
-``runs/results/grad/cylinder-v0``). For each, the training episodes' scores of its
-seeds (the deterministic policy's for gradient-based control, the sampled one's for
-PPO) are averaged over windows of transitions, and the transitions and wall-clock
+``runs/results/grad/cylinder-v0``), or one seed's folder, all trained on the same env
+and parameters. For each, the training episodes' scores of its seeds (the deterministic
+policy's for gradient-based control, the sampled one's for PPO) are averaged over
+windows of transitions, and the transitions and wall-clock
 minutes at which the seeds' mean first reaches a half and nine tenths of the way from
 no control to the first run's final score are printed beside each other. Draws both
 curves against transitions and against minutes into a new figure and writes a new dated
-``cylinder_learning-DATE-TIME.json``. The minutes are the runs' own logged wall time:
+``ENV_learning-DATE-TIME.json`` (the env's name without its version:
+``cylinder_learning-...``). The minutes are the runs' own logged wall time:
 compare them only between runs that shared the machine alike.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 WINDOWS = 40  # points of each curve
@@ -49,6 +52,8 @@ def curve(run: Path) -> dict:
     return {
         "run": str(run),
         "algo": state["algo"],
+        "env": state["env"],
+        "params": state["config"].get("params", {}),
         "seeds": len(seeds),
         "transitions": grid.tolist(),
         "minutes": minutes.tolist(),
@@ -78,11 +83,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", help="folders of seeds, the first one setting the levels")
     parser.add_argument("--figure", required=True, help="a new PNG file")
-    parser.add_argument("--out", default="runs/cylinder_learning")
+    parser.add_argument("--out", default="runs/learning")
     args = parser.parse_args()
     refuse_existing([args.figure], "give another --figure")
     curves = [curve(Path(run)) for run in args.runs]
-    env = beacon_torch.make("cylinder-v0", 1)  # float32, as the runs trained
+    trained = {(c["env"], json.dumps(c["params"], sort_keys=True)) for c in curves}
+    if len(trained) > 1:
+        raise SystemExit(f"the runs were trained on different envs or parameters: {sorted(trained)}")
+    env_id, params = curves[0]["env"], curves[0]["params"]
+    # float32 and from the developed start, as the runs trained
+    env = beacon_torch.make(env_id, 1, params=params or None)
     free = float(episodes.scores(episodes.episode(env, episodes.null_policy(env)))[0])
     final = curves[0]["score"][-1]
     rows = []
@@ -110,7 +120,7 @@ def main() -> None:
     fig.tight_layout()
     print("figure:", create_file(args.figure, lambda tmp: fig.savefig(tmp, dpi=110, format="png")))
     record = [{"uncontrolled": free, "levels": rows}, *curves]
-    print("results:", save_rows(record, args.out, "cylinder_learning"))
+    print("results:", save_rows(record, args.out, f"{env_id.removesuffix('-v0')}_learning"))
 
 
 if __name__ == "__main__":
