@@ -262,7 +262,7 @@ def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measu
 
 
 @pytest.mark.parametrize("record, block", [("pinball", ""), ("pinball-periodic", "periodic ")])
-def test_the_recorded_ppo_policies_boat_tail_past_the_base_flows_reference_as_the_page_says(record, block):
+def test_the_recorded_policies_boat_tail_past_the_base_flows_reference_as_the_page_says(record, block):
     """The page's control tables of a level are the newest wake_control record's, and
     its reference record is what benchmarks/wake_reference.py computes again from the
     records it names: the policies' net drag power is below no control's and their
