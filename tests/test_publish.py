@@ -221,3 +221,31 @@ def test_a_pairs_uncontrolled_episodes_run_once_for_all_its_seeds(pair, monkeypa
     assert [s["test_uncontrolled"] for s in summary["seeds"]] == [held["uncontrolled"]] * 2
     with pytest.raises(ValueError, match="a known uncontrolled score draws no side-by-side"):
         evaluation.evaluate_run(pair / "seed1", num_envs=1, figure="f.png", uncontrolled=1.0)
+
+
+def test_the_kept_campaigns_are_unpublished_run_folders_a_resume_reads_as_their_readme_says():
+    """A campaign kept in the repository between sessions: each seed's folder holds a
+    checkpoint that loads as a run of its folder's algorithm, env and seed, its logs
+    end at the checkpoint, the README lists exactly what is there, and no kept pair is
+    a published one (a published campaign's folders go)."""
+    from beacon_torch.training.run import load_checkpoint, read_log
+
+    root = reproduce.ROOT / "benchmarks" / "results" / "campaigns"
+    readme = (root / "README.md").read_text()
+    listed = {
+        tuple(cell.strip(" `") for cell in line.strip("|").split("|"))
+        for line in readme.splitlines()
+        if line.startswith("| `")
+    }
+    kept = set()
+    for checkpoint in sorted(root.glob("*/*/seed*/checkpoint.pt")):
+        folder = checkpoint.parent
+        algo, env_id, seed = folder.parts[-3:]
+        state = load_checkpoint(folder)
+        assert (state["algo"], state["env"], f"seed{state['config']['seed']}") == (algo, env_id, seed)
+        assert state["frames"] <= state["config"]["frames"]
+        scores = read_log(folder / algo / "scalars" / "episode_score.csv")
+        assert scores and scores[-1][0] == state["frames"], folder
+        assert not (reproduce.RECORDED / algo / f"{env_id}.json").exists(), f"{algo}/{env_id} is published"
+        kept.add((f"{algo}/{env_id}", seed, f"{state['frames']:,}", f"{state['config']['frames']:,}"))
+    assert listed == kept
