@@ -24,6 +24,9 @@ RECORDED = Path(__file__).parent / "data" / "trajectories.json"
 ENVS = beacon_torch.registry.ENVS
 MEMBERS = 2
 SEED = 11
+# ks-v0's rollout grows a machine's round-off more than the other envs': an Intel Xeon
+# differed from the recording's machine by 2.1e-9 (3.7e-9 relative) after its 10 actions
+ROUND_OFF = {"ks-v0": dict(rtol=1e-7, atol=1e-8)}
 
 
 def rollout(env_id: str) -> dict[str, list]:
@@ -57,7 +60,10 @@ def test_trajectories_are_the_recorded_ones(env_id):
             assert torch.equal(x, y), f"{env_id} {part} changed (largest difference {(x - y).abs().max().item():.3g})"
         else:
             torch.testing.assert_close(
-                x, y, rtol=1e-10, atol=1e-12, msg=lambda m, part=part: f"{env_id} {part} changed beyond round-off: {m}"
+                x,
+                y,
+                **ROUND_OFF.get(env_id, dict(rtol=1e-10, atol=1e-12)),
+                msg=lambda m, part=part: f"{env_id} {part} changed beyond round-off: {m}",
             )
 
 
