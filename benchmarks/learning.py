@@ -12,8 +12,11 @@ minutes at which the seeds' mean first reaches a half and nine tenths of the way
 no control to the first run's final score are printed beside each other. Draws both
 curves against transitions and against minutes into a new figure and writes a new dated
 ``ENV_learning-DATE-TIME.json`` (the env's name without its version:
-``cylinder_learning-...``). The minutes are the runs' own logged wall time:
-compare them only between runs that shared the machine alike.
+``cylinder_learning-...``). ``--carry RECORD`` puts an earlier record's curves ahead
+of the runs' (an algorithm added to a comparison whose other runs' folders are on
+another machine; the levels are then set by the record's first curve). The minutes are
+the runs' own logged wall time: compare them only between runs that shared the machine
+alike.
 """
 
 from __future__ import annotations
@@ -62,6 +65,35 @@ def curve(run: Path) -> dict:
     }
 
 
+# what a curve of a record holds: its numbers per point, and the rest
+CURVE_SERIES = ("transitions", "minutes", "score", "spread")
+
+
+def carried(path: str) -> list[dict]:
+    """The curves of an earlier record of this script (read as received data), each
+    with its series of equal length and finite numbers; a one-line error for any other
+    file."""
+    from beacon_torch import received
+
+    record = received.json_file(path, "learning record")
+    rows = record.get("rows") if isinstance(record, dict) else None
+    if not isinstance(rows, list) or len(rows) < 2:
+        raise ValueError(f"{path}: not a record of benchmarks/learning.py (no curves)")
+    for k, c in enumerate(rows[1:]):
+        where = f"{path}: curve {k}"
+        if not isinstance(c, dict) or not all(isinstance(c.get(key), str) for key in ("algo", "env")):
+            raise ValueError(f"{where} names no algorithm and env")
+        if not isinstance(c.get("params"), dict) or not isinstance(c.get("seeds"), int):
+            raise ValueError(f"{where}: its parameters or seeds are not a record's")
+        series = [c.get(key) for key in CURVE_SERIES]
+        if not all(isinstance(v, list) and v and len(v) == len(series[0]) for v in series) or not all(
+            received.finite_number(x) for v in series for x in v
+        ):
+            raise ValueError(f"{where}: its {', '.join(CURVE_SERIES)} are not series of finite numbers of one length")
+        c.setdefault("record", Path(path).name)
+    return rows[1:]
+
+
 def first_reaching(c: dict, level: float) -> tuple[float, float]:
     """Transitions and minutes at which the curve first reaches ``level`` (NaN if never)."""
     for n, m, s in zip(c["transitions"], c["minutes"], c["score"], strict=True):
@@ -82,11 +114,15 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", help="folders of seeds, the first one setting the levels")
+    parser.add_argument("--carry", metavar="RECORD", help="an earlier record whose curves go ahead of the runs'")
     parser.add_argument("--figure", required=True, help="a new PNG file")
     parser.add_argument("--out", default="runs/learning")
     args = parser.parse_args()
     refuse_existing([args.figure], "give another --figure")
-    curves = [curve(Path(run)) for run in args.runs]
+    try:
+        curves = (carried(args.carry) if args.carry else []) + [curve(Path(run)) for run in args.runs]
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(str(err))
     trained = {(c["env"], json.dumps(c["params"], sort_keys=True)) for c in curves}
     if len(trained) > 1:
         raise SystemExit(f"the runs were trained on different envs or parameters: {sorted(trained)}")

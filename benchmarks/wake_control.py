@@ -14,7 +14,10 @@ diagnostics (the drag and lift coefficients, the actuation) and rewards of both,
 reports the mean drag coefficient over the first episode (the actions every training
 and evaluation episode has) and over the second half of the run (the regime, what
 Rabault et al.'s single runs report), each against no control over the same actions.
-Writes a new dated ``ENV_control-DATE-TIME.json`` to ``--out``. ``--plot`` draws a
+Writes a new dated ``ENV_control-DATE-TIME.json`` to ``--out``; ``--carry RECORD``
+puts an earlier record's rows of the same env and run length ahead of the new ones (a
+policy added to a table whose other policies' run folders are on another machine), each
+naming the record and machine it was measured on. ``--plot`` draws a
 record's drag and actuation into a new figure (the cylinder page's
 docs/img/cylinder-control.png), with ``--base-flow`` the drag of the steady base flow
 as a line. The quantities are the env's diagnostics and the figure is drawn as
@@ -111,6 +114,50 @@ def control(name: str, episodes: int, compile: bool = True, loaded=None) -> dict
     }
 
 
+# what a row of a record holds that the tables and benchmarks/wake_reference.py read
+ROW_NUMBERS = (
+    "cd_episode",
+    "cd_episode_uncontrolled",
+    "reduction_episode",
+    "cd_second_half",
+    "cd_second_half_uncontrolled",
+    "reduction_second_half",
+    "score_episode",
+    "score_episode_uncontrolled",
+)
+
+
+def carried(path: str, episodes: int) -> list[dict]:
+    """The rows of an earlier record of this script (read as received data), each run
+    for ``episodes`` episodes' worth of actions with finite numbers, marked with the
+    record and machine they were measured on; a one-line error for any other file."""
+    from beacon_torch import received
+
+    record = received.json_file(path, "control record")
+    rows = record.get("rows") if isinstance(record, dict) else None
+    if not isinstance(rows, list) or not rows:
+        raise ValueError(f"{path}: not a record of benchmarks/wake_control.py (no rows)")
+    for k, row in enumerate(rows):
+        where = f"{path}: row {k}"
+        if not isinstance(row, dict) or not isinstance(row.get("policy"), str) or not isinstance(row.get("env"), str):
+            raise ValueError(f"{where} names no policy and env")
+        wake(row["env"])
+        length, actions = row.get("episode_length"), row.get("actions")
+        if not isinstance(length, int) or isinstance(length, bool) or actions != episodes * length:
+            raise ValueError(f"{where}: {actions!r} actions, not {episodes} episodes' worth")
+        if not isinstance(row.get("params"), dict) or not all(received.finite_number(row.get(k)) for k in ROW_NUMBERS):
+            raise ValueError(f"{where}: its parameters or its means are not a record's")
+        per_action = row.get("per_action")
+        if not isinstance(per_action, dict) or not all(
+            isinstance(v, list) and len(v) == actions and all(map(received.finite_number, v))
+            for v in per_action.values()
+        ):
+            raise ValueError(f"{where}: its per-action values are not {actions} finite numbers each")
+        row.setdefault("record", Path(path).name)
+        row.setdefault("machine", str(record.get("machine", "")))
+    return rows
+
+
 def table(rows: list[dict]) -> str:
     lines = [
         f"| policy | mean C_D, first episode ({rows[0]['episode_length']} actions) | no control | reduction "
@@ -191,6 +238,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=3, help="episodes' worth of actions from the developed start")
     parser.add_argument("--no-compile", action="store_true", help="eager physics")
     parser.add_argument("--out", default="runs/wake_control")
+    parser.add_argument("--carry", metavar="RECORD", help="an earlier record whose rows go ahead of the new ones")
     parser.add_argument("--plot", nargs=2, metavar=("RECORD", "FIGURE"), help="draw a record's drag and actuation")
     parser.add_argument("--base-flow", type=float, help="with --plot: the steady base flow's drag coefficient (a line)")
     args = parser.parse_args()
@@ -201,14 +249,18 @@ def main() -> None:
     if args.episodes < 1:
         parser.error(f"--episodes must be at least 1, got {args.episodes}")
     try:
+        earlier = carried(args.carry, args.episodes) if args.carry else []
         loaded = {name: policy_of(name) for name in args.policies}
-        envs = {env_id for _, env_id, _ in loaded.values()}
+        envs = {env_id for _, env_id, _ in loaded.values()} | {row["env"] for row in earlier}
         wake(min(envs))
     except (ValueError, FileNotFoundError) as err:
         parser.error(str(err))
     if len(envs) > 1:
         parser.error(f"the policies are of different envs ({', '.join(sorted(envs))}): one env a record")
-    rows = [control(name, args.episodes, not args.no_compile, loaded[name]) for name in args.policies]
+    twice = sorted({row["policy"] for row in earlier} & set(args.policies))
+    if twice:
+        parser.error(f"{', '.join(twice)}: in the carried record already")
+    rows = earlier + [control(name, args.episodes, not args.no_compile, loaded[name]) for name in args.policies]
     print(table(rows))
     if wake(rows[0]["env"])[0] == "power":  # the pinball's rotations
         print(rotation_table(rows))

@@ -308,3 +308,48 @@ def test_the_learning_comparison_refuses_runs_of_different_envs(tmp_path, monkey
     with pytest.raises(SystemExit, match="different envs or parameters.*cylinder-v0.*pinball-v0"):
         learning.main()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_learning_comparison_carries_an_earlier_records_curves(tmp_path, monkeypatch, capsys):
+    """benchmarks/learning.py --carry: an earlier record's curves go ahead of the new
+    run's, set the levels, and are kept in the new record naming where they came from;
+    a record whose curves are not series of finite numbers is one line, before any
+    episode is stepped."""
+    import beacon_torch.episodes
+
+    learning = script("benchmarks/learning.py")
+
+    def curve(algo, scores):
+        n = len(scores)
+        return {"algo": algo, "env": "cylinder-v0", "params": {}, "seeds": 1, "transitions": list(range(n)),
+                "minutes": [0.5 * k for k in range(n)], "score": scores, "spread": [0.0] * n}  # fmt: skip
+
+    earlier = tmp_path / "earlier.json"
+    earlier.write_text(json.dumps({"rows": [{"levels": []}, curve("ppo", [-10.0, -6.0, -2.0])]}))
+    monkeypatch.setattr(learning, "curve", lambda run: curve("shac", [-10.0, -4.0, -3.0]))
+    monkeypatch.setattr(beacon_torch.episodes, "episode", lambda env, policy: None)
+    monkeypatch.setattr(beacon_torch.episodes, "scores", lambda rollout: torch.tensor([-10.0]))
+    figure, out = tmp_path / "f.png", tmp_path / "out"
+    argv = ["learning.py", "new", "--carry", str(earlier), "--figure", str(figure), "--out", str(out)]
+    monkeypatch.setattr("sys.argv", argv)
+    learning.main()
+    (record,) = out.glob("cylinder_learning-*.json")
+    levels, ppo, shac = json.loads(record.read_text())["rows"]
+    assert (ppo["algo"], ppo["record"], shac["algo"]) == ("ppo", "earlier.json", "shac") and "record" not in shac
+    # halfway from no control (-10) to the carried curve's final score (-2): -6
+    half = {row["algo"]: row["transitions"] for row in levels["levels"] if row["fraction"] == 0.5}
+    assert half == {"ppo": 1, "shac": 1} and figure.is_file()
+    capsys.readouterr()
+    bad = curve("ppo", [-10.0, float("nan")])
+    for rows, message in (
+        ([{"levels": []}, bad], "curve 0: its transitions, minutes, score, spread are not series of finite numbers"),
+        ([{"levels": []}, {**bad, "env": 3}], "curve 0 names no algorithm and env"),
+        ([], "not a record of benchmarks/learning.py"),
+    ):
+        earlier.write_text(json.dumps({"rows": rows}))
+        argv = ["learning.py", "new", "--carry", str(earlier), "--figure", str(tmp_path / "g.png")]
+        monkeypatch.setattr("sys.argv", argv)
+        with pytest.raises(SystemExit):
+            learning.main()
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "g.png").exists()

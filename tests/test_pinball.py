@@ -229,6 +229,53 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
         control.wake("burgers-v0")
 
 
+def test_a_control_record_carries_an_earlier_records_rows_ahead_of_the_new_ones(tmp_path, monkeypatch, capsys):
+    """benchmarks/wake_control.py --carry: an earlier record's rows (policies whose run
+    folders are on another machine) go ahead of the new policies' in the new record,
+    naming the record and machine they were measured on; a record of another env or run
+    length, a policy carried already or rows that are not a record's are one line,
+    before any policy runs."""
+    control = script("benchmarks/wake_control.py")
+    n = 4
+    keys = ("drag", "power", "lift", "reward", "omega_front", "omega_top", "omega_bottom")
+
+    def row(name, env="pinball-periodic-v0", actions=3 * n, value=1.0):
+        per_action = {key: [value] * actions for key in keys} | {f"uncontrolled_{k}": [2.0] * actions for k in keys}
+        numbers = dict.fromkeys(control.ROW_NUMBERS, 1.0)
+        return (
+            {"policy": name, "env": env, "params": {}, "actions": actions, "episode_length": n}
+            | numbers
+            | {"per_action": per_action}
+        )
+
+    earlier = tmp_path / "earlier.json"
+    earlier.write_text(json.dumps({"machine": "elsewhere", "rows": [row("ppo/a"), row("grad/b")]}))
+    ran = []
+    monkeypatch.setattr(control, "policy_of", lambda name: (None, "pinball-periodic-v0", {}))
+    monkeypatch.setattr(control, "control", lambda name, episodes, compile, loaded: ran.append(name) or row(name))
+    out = tmp_path / "out"
+    monkeypatch.setattr("sys.argv", ["wake_control.py", "shac/c", "--carry", str(earlier), "--out", str(out)])
+    control.main()
+    (record,) = out.glob("pinball-periodic_control-*.json")
+    rows = json.loads(record.read_text())["rows"]
+    assert [r["policy"] for r in rows] == ["ppo/a", "grad/b", "shac/c"] and ran == ["shac/c"]
+    assert (rows[0]["record"], rows[0]["machine"]) == ("earlier.json", "elsewhere") and "record" not in rows[2]
+    capsys.readouterr()
+    for rows, message in (
+        ([row("ppo/a", env="burgers-v0")], "burgers-v0 is not a wake-control env"),
+        ([row("ppo/a", env="pinball-v0")], "the policies are of different envs"),
+        ([row("ppo/a", actions=2 * n)], "row 0: 8 actions, not 3 episodes' worth"),
+        ([row("shac/c")], "shac/c: in the carried record already"),
+        ([row("ppo/a", value=float("nan"))], "row 0: its per-action values are not 12 finite numbers each"),
+        ([], "not a record of benchmarks/wake_control.py"),
+    ):
+        earlier.write_text(json.dumps({"rows": rows}))
+        with pytest.raises(SystemExit):
+            control.main()
+        assert message in capsys.readouterr().err
+    assert ran == ["shac/c"] and len(list(out.iterdir())) == 1
+
+
 def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measured_transient():
     """benchmarks/wake_reference.py on the pinball: the held reward is minus the level's
     recorded base-flow drag (summed, on the policies' grid, no power), the transient
