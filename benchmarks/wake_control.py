@@ -178,7 +178,8 @@ def rotation_table(rows: list[dict]) -> str:
     the net drag power (drag and power coefficients summed) over the first episode
     against no control's drag, the episode's reward, and over the second half of the
     run each cylinder's mean rate as a fraction of the bound (positive
-    anticlockwise) and the summed lift."""
+    anticlockwise), the summed lift and the drag's standard deviation beside no
+    control's (how much of the shedding's fluctuation the control leaves)."""
     import numpy as np
 
     from beacon_torch.envs import pinball
@@ -186,8 +187,9 @@ def rotation_table(rows: list[dict]) -> str:
     n = rows[0]["episode_length"]
     lines = [
         f"| policy | mean power, first episode ({n} actions) | net drag power against no control | episode reward "
-        "| no control | rates of the bound, second half: front, top, bottom | mean lift, second half |",
-        "|---|---|---|---|---|---|---|",
+        "| no control | rates of the bound, second half: front, top, bottom | mean lift, second half "
+        "| standard deviation of C_D, second half: policy, no control |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         seen = {key: np.array(values) for key, values in r["per_action"].items()}
@@ -197,7 +199,8 @@ def rotation_table(rows: list[dict]) -> str:
         rates = ", ".join(f"{seen[f'omega_{c}'][half].mean() / bound:+.2f}" for c in ("front", "top", "bottom"))
         lines.append(
             f"| {r['policy']} | {seen['power'][first].mean():.2f} | {-100 * net:+.1f} % | {r['score_episode']:.1f} "
-            f"| {r['score_episode_uncontrolled']:.1f} | {rates} | {seen['lift'][half].mean():+.2f} |"
+            f"| {r['score_episode_uncontrolled']:.1f} | {rates} | {seen['lift'][half].mean():+.2f} "
+            f"| {seen['drag'][half].std():.4f}, {seen['uncontrolled_drag'][half].std():.4f} |"
         )
     return "\n".join(lines)
 

@@ -221,6 +221,8 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     rates = (rates[:, 6:].mean(1) / float(pinball.PinballParams().max_rotation)).tolist()
     assert line.startswith(f"| {policy} | {seen['power'][:6].mean():.2f} | {100 * net:+.1f} % |")
     assert ", ".join(f"{x:+.2f}" for x in rates) in line
+    # and how much the drag still fluctuates there, beside no control
+    assert line.endswith(f"| {seen['drag'][6:].std():.4f}, {seen['uncontrolled_drag'][6:].std():.4f} |")
     np.testing.assert_allclose(seen["reward"], -(seen["drag"] + seen["power"]), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(seen["uncontrolled_reward"], -seen["uncontrolled_drag"], rtol=1e-6)
     assert row["score_episode"] == pytest.approx(seen["reward"][:6].sum(), rel=1e-9)
