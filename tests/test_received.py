@@ -22,7 +22,7 @@ from beacon_torch import cache, pretrained, received, starts
 from beacon_torch.envs import shkadov
 from beacon_torch.training import report
 from beacon_torch.training.config import GradConfig, TD3Config, configure
-from beacon_torch.training.run import BadRun, load_checkpoint
+from beacon_torch.training.run import BadRun, buffer_folder, load_checkpoint
 
 from conftest import TD3, copy_run, recipe
 
@@ -196,14 +196,14 @@ def test_a_checkpoint_holding_more_than_its_networks_can_is_refused(ppo_run, tmp
 def forge_buffer(run: Path, key: str, shape: list, dtype: str | None = None) -> None:
     """Describe the buffer's ``key`` with another shape (and dtype), its file grown to
     match and the checkpoint's record of the files too: only the description can tell."""
-    meta = run / "buffer" / "storage" / "meta.json"
+    meta = buffer_folder(run) / "storage" / "meta.json"
     entries = json.loads(meta.read_text())
     entries[key] = {**entries[key], "shape": shape, **({"dtype": dtype} if dtype else {})}
     meta.write_text(json.dumps(entries))
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     files = state["counters"]["buffer_files"]
     files["storage/meta.json"] = meta.stat().st_size
-    memmap = run / "buffer" / "storage" / f"{key}.memmap"
+    memmap = buffer_folder(run) / "storage" / f"{key}.memmap"
     size = int(np.prod(shape)) * {"torch.float64": 8}.get(dtype, 4)
     with memmap.open("r+b") as f:
         f.truncate(min(size, 2**20))  # sparse files would do; the size recorded is what is compared
@@ -229,7 +229,7 @@ def test_a_forged_buffer_description_is_refused_before_anything_is_allocated(
 
 def test_corrupt_buffer_values_and_optimiser_states_are_named_corrupt(td3_run, tmp_path):
     run = copy_run(td3_run, tmp_path / "run")
-    memmap = run / "buffer" / "storage" / "observation.memmap"
+    memmap = buffer_folder(run) / "storage" / "observation.memmap"
     data = bytearray(memmap.read_bytes())
     data[40:48] = b"\xff" * 8  # a NaN among the observations
     memmap.write_bytes(bytes(data))

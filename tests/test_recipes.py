@@ -30,7 +30,7 @@ from beacon_torch.training.config import (
 )
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import evaluate_run
-from beacon_torch.training.run import BadRun
+from beacon_torch.training.run import BadRun, buffer_folder
 
 from conftest import TD3, recipe
 from conftest import script as load_script
@@ -342,7 +342,7 @@ def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, en
     state = checkpoint(tmp_path)
     assert state["algo"] == algo and state["frames"] == 256
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
-    assert (tmp_path / "buffer").exists()  # the collected transitions survive a stop
+    assert buffer_folder(tmp_path).exists()  # the collected transitions survive a stop
     # the schedules counted in updates (TD3's actor delay, DQN's copies into the target)
     # go on across a resume: 3 rounds of 4 updates after the warm-up round, then 2 more
     counter = {"td3": "updates", "dqn": "target_counter"}[algo]
@@ -417,7 +417,7 @@ def test_td3_n_step_targets_sum_their_window_and_stop_at_a_termination(tmp_path)
     td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), **TINY, n_steps=4))
     assert checkpoint(tmp_path)["counters"]["buffer_len"] == 256 - 4 * 4
     buffer = ReplayBuffer(storage=LazyTensorStorage(256))
-    buffer.loads(tmp_path / "buffer")
+    buffer.loads(buffer_folder(tmp_path))
     stored = buffer[:]
     assert (stored["steps_to_next_obs"] == 4).all()  # no episode ends in 64 of vortex's 800 steps
     assert not torch.equal(stored["next", "reward"], stored["next", "original_reward"])
@@ -1030,13 +1030,13 @@ def test_a_replay_buffer_carrying_a_pickle_is_refused_unrun(tmp_path):
     import pickle
 
     td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), **TINY))
-    assert not list((tmp_path / "buffer").rglob("*.pkl"))  # what we write holds no pickle
+    assert not list((buffer_folder(tmp_path)).rglob("*.pkl"))  # what we write holds no pickle
 
     class Payload:
         def __reduce__(self):
             return (open, (str(tmp_path / "pwned"), "w"))
 
-    (tmp_path / "buffer" / "prefetch.pkl").write_bytes(pickle.dumps(Payload()))
+    (buffer_folder(tmp_path) / "prefetch.pkl").write_bytes(pickle.dumps(Payload()))
     with pytest.raises(ValueError, match="pickle files is refused"):
         td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
     assert not (tmp_path / "pwned").exists()

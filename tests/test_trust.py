@@ -26,7 +26,15 @@ from beacon_torch.envs import shkadov
 from beacon_torch.training import report
 from beacon_torch.training.config import DQNConfig, PPOConfig, TD3Config, configure
 from beacon_torch.training.evaluation import summarise
-from beacon_torch.training.run import BadRun, Diverged, check_checkpoint, load_checkpoint, read_log
+from beacon_torch.training.run import (
+    BadRun,
+    Diverged,
+    buffer_folder,
+    buffer_folders,
+    check_checkpoint,
+    load_checkpoint,
+    read_log,
+)
 
 from conftest import PPO, TD3, copy_run, recipe, script
 
@@ -438,7 +446,7 @@ def test_any_forged_checkpoint_field_is_one_clear_error(key, value):
 def test_a_tampered_replay_buffer_is_named(tmp_path):
     run = tmp_path / "run"
     td3.main(configure(TD3Config, "vortex-v0", out=str(run), **TD3))
-    meta = next((run / "buffer").rglob("*.json"))
+    meta = next(buffer_folder(run).rglob("*.json"))
     meta.write_bytes(b"{" * len(meta.read_bytes()))  # the size it had: only its reading can tell
     with pytest.raises(BadRun, match="unreadable replay buffer"):
         td3.main(configure(TD3Config, "vortex-v0", out=str(run), resume=True, **{**TD3, "frames": 384}))
@@ -689,7 +697,7 @@ def test_a_replay_buffer_that_cannot_fit_on_the_disk_is_one_clear_error(tmp_path
     monkeypatch.setattr(files, "free_bytes", lambda folder: 1000)
     with pytest.raises(OSError, match="no room to save the replay buffer"):
         td3.main(configure(TD3Config, "vortex-v0", out=str(run), **{**TD3, "checkpoint_every": 1}))
-    assert not (run / "buffer").exists() and not list(run.glob(".*partial"))
+    assert not buffer_folders(run) and not list(run.glob(".*partial"))
 
 
 @pytest.mark.parametrize(

@@ -1,19 +1,21 @@
 """A training run's directory: ``checkpoint.pt``, the CSV logs
 ``<algo>/scalars/<name>.csv`` (``step,value`` lines, the step being transitions
 collected; what ``beacon-torch plot`` and ``eval`` read), TensorBoard event files in
-``<algo>/`` when asked for, the replay buffer of off-policy runs (``buffer/``) and the
-progress bar.
+``<algo>/`` when asked for, the replay buffer of off-policy runs (``buffer-N/``) and
+the progress bar.
 
 A checkpoint holds, next to the state of every module and optimiser of the run, the env
 id, the algorithm, the settings, the observation normalisation and, by name and width,
 the network of its policy: evaluation rebuilds the policy from the checkpoint alone.
 
-A run killed at any moment (``kill -9``) loses at most the work since its last
-checkpoint: the replay buffer is written to a new folder and swapped in, then the
-checkpoint, which records how many transitions the buffer held, replaces the old one in
-one step; a resume takes that many transitions from the buffer (an interrupted swap
-leaves the previous folder, which is used) and drops the log lines written after the
-checkpoint.
+A run killed at any moment (``kill -9``), or stopped by a full disk, loses at most the
+work since its last checkpoint: the replay buffer is written to a new folder of its own
+(``buffer-N``, N counting the saves), then the checkpoint, which names that folder and
+records how many transitions it holds and the size of each of its files, replaces the
+old one in one step. The buffer and the checkpoint are thus committed together: until
+the new checkpoint is in place the previous one names the previous folder, which is
+left as it was; only then are the folders no checkpoint names removed. A resume reads
+the folder its checkpoint names and drops the log lines written after the checkpoint.
 
 A run directory may come from someone else, so everything in it is read as data and
 checked: the checkpoint holds tensors and plain values only, each of the type and range
@@ -30,6 +32,7 @@ import csv
 import dataclasses
 import math
 import os
+import re
 import shutil
 import time
 from importlib.util import find_spec
@@ -199,6 +202,9 @@ def check_checkpoint(state, path: str | Path) -> None:
             for k, v in files_.items()
         ):
             raise bad("'buffer_files' must map file names inside the buffer to their sizes")
+        folder = counters.get("buffer_dir", LEGACY_BUFFER)
+        if not isinstance(folder, str) or not BUFFER_NAME.fullmatch(folder):
+            raise bad(f"'buffer_dir' must name a folder buffer-N of the run, got {folder!r}")
 
 
 def seed_dirs(run: str | Path) -> list[Path]:
@@ -213,16 +219,38 @@ def seed_dirs(run: str | Path) -> list[Path]:
     return found
 
 
+# the folder of a replay buffer saved with a checkpoint: ``buffer-N`` for the N-th save
+# (``buffer``, named by none, in runs of earlier versions)
+BUFFER_NAME = re.compile(r"buffer(-[0-9]{1,12})?")
+LEGACY_BUFFER = "buffer"
+
+
+def buffer_folders(run: str | Path) -> list[Path]:
+    """The replay buffer folders in a run directory, whichever checkpoint names them
+    (an earlier version's swap left ``buffer.old`` too)."""
+    run = Path(run)
+    found = [p for p in run.glob("buffer*") if BUFFER_NAME.fullmatch(p.name) or p.name == "buffer.old"]
+    return sorted(found, key=lambda p: (len(p.name), p.name))
+
+
+def buffer_folder(run: str | Path, counters: dict | None = None) -> Path:
+    """The replay buffer folder that the run's checkpoint (or ``counters``, a
+    checkpoint's) names: the one saved with it."""
+    if counters is None:
+        counters = load_checkpoint(run).get("counters", {})
+    return Path(run) / counters.get("buffer_dir", LEGACY_BUFFER)
+
+
 def holds_run(folder: str | Path, algo: str) -> str:
     """What in ``folder`` belongs to a run ("" when nothing does): its checkpoint,
-    its logs, its replay buffer or its curve."""
+    its logs, its replay buffers or its curve."""
     folder = Path(folder)
     found = [
         name
-        for name in (CHECKPOINT, algo, "buffer", "buffer.old", "learning_curve.png")
+        for name in (CHECKPOINT, algo, "learning_curve.png")
         if (folder / name).exists() or (folder / name).is_symlink()
     ]
-    return ", ".join(found)
+    return ", ".join(found + [p.name for p in buffer_folders(folder)])
 
 
 def read_log(file: str | Path) -> list[tuple[float, float]]:
@@ -613,9 +641,9 @@ class Run:
                 raise BadRun(f"{err}; resume from a copy of the run or start it again") from None
         if buffer is None or "buffer_len" not in self.counters:
             return
-        folder = self.out / "buffer"
-        if not folder.exists() and (self.out / "buffer.old").exists():
-            folder = self.out / "buffer.old"  # a stop between the two renames of a swap
+        folder = buffer_folder(self.out, self.counters)
+        if "buffer_dir" not in self.counters and not folder.exists() and (self.out / "buffer.old").exists():
+            folder = self.out / "buffer.old"  # an earlier version's stop between the two renames of a swap
         if not folder.exists():
             raise FileNotFoundError(
                 f"{self.out}: the checkpoint refers to a replay buffer of "
@@ -720,15 +748,20 @@ class Run:
                 f"{self.out}: training diverged after {self.frames:,} transitions (non-finite "
                 f"weights); its last checkpoint is kept. Lower the learning rate"
             )
+        # the buffer is committed with the checkpoint that names it: until this line,
+        # the previous checkpoint and its folder are the run
         files.save_tensors(state, self.path)
-        shutil.rmtree(self.out / "buffer.old", ignore_errors=True)
+        if buffer is not None:
+            for folder in buffer_folders(self.out):
+                if folder.name != self.counters["buffer_dir"]:
+                    shutil.rmtree(folder, ignore_errors=True)
 
     def _save_buffer(self, buffer) -> None:
-        """The buffer into a new folder, swapped for the previous one; the checkpoint
-        written next records its size."""
-        current, old = self.out / "buffer", self.out / "buffer.old"
+        """The buffer into a new folder of its own; the checkpoint written next names
+        it and records its size and files (``self.counters``: nothing on disk refers to
+        the new folder before that checkpoint)."""
         # a buffer's files are memory maps: on a full disk, writing them ends the
-        # process with SIGBUS, so the space is checked first (with room for the swap)
+        # process with SIGBUS, so the space is checked first (the previous folder stays)
         need, free = int(buffer.storage.max_size * _transition_bytes(buffer)), files.free_bytes(self.out)
         if need > free:
             raise OSError(
@@ -741,17 +774,24 @@ class Run:
         # that loading a buffer never unpickles
         for file in new.rglob("*.pkl"):
             file.unlink()
-        # the size of every file, which a resume checks (a truncated file is never read
-        # as zeros); a buffer's files have the size of its capacity, however full
-        self.counters["buffer_files"] = {
-            str(f.relative_to(new)): f.stat().st_size for f in sorted(new.rglob("*")) if f.is_file()
-        }
-        if current.exists():
-            shutil.rmtree(old, ignore_errors=True)
-            os.replace(current, old)
-        os.replace(new, current)
-        self.counters["buffer_capacity"] = buffer.storage.max_size
-        self.counters["buffer_len"] = len(buffer)
+        # the next free number: a folder of that name left by a save whose checkpoint
+        # was never written is named by no checkpoint, and replaced
+        numbers = [int(p.name.split("-")[1]) for p in buffer_folders(self.out) if "-" in p.name]
+        name = f"buffer-{max([0, *numbers]) + 1}"
+        shutil.rmtree(self.out / name, ignore_errors=True)
+        os.replace(new, self.out / name)
+        self.counters.update(
+            buffer_dir=name,
+            # the size of every file, which a resume checks (a truncated file is never
+            # read as zeros); a buffer's files have the size of its capacity, however full
+            buffer_files={
+                str(f.relative_to(self.out / name)): f.stat().st_size
+                for f in sorted((self.out / name).rglob("*"))
+                if f.is_file()
+            },
+            buffer_capacity=buffer.storage.max_size,
+            buffer_len=len(buffer),
+        )
 
     def close(self, save) -> dict[str, Any]:
         """End the run: the last checkpoint (``save()``), the loggers flushed, the lock
