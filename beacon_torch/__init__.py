@@ -13,12 +13,13 @@ from beacon_torch import gym_ids as _gym_ids  # noqa: F401
 
 __version__ = "0.1.0"
 
-# what the package offers at its top, and the module each comes from
+# what the package offers at its top, and the module each comes from ("module:name"
+# where it is named otherwise there)
 _TOP = {
     "FlowEnv": "beacon_torch.base",
     "Physics": "beacon_torch.core.physics",
     "functional": "beacon_torch.registry",
-    "step": "beacon_torch.core.step",
+    "step": "beacon_torch.core.step:checked_step",
     "list_envs": "beacon_torch.registry",
     "make": "beacon_torch.registry",
     "register": "beacon_torch.registry",
@@ -29,7 +30,8 @@ __all__ = [*_TOP, "__version__"]
 
 def __getattr__(name: str):
     if name in _TOP:
-        value = getattr(importlib.import_module(_TOP[name]), name)
+        module, _, attribute = _TOP[name].partition(":")
+        value = getattr(importlib.import_module(module), attribute or name)
     else:
         try:
             value = importlib.import_module(f"{__name__}.{name}")

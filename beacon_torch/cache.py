@@ -7,9 +7,11 @@ default parameters ship with the package), then in the user cache directory
 (``$BEACON_TORCH_CACHE``, default ``~/.cache/beacon-torch``); on a miss it is computed by
 the env's public generator function and written to the user cache.
 
-A file that cannot be read, holds anything but tensors, has non-finite values or shapes
-other than the ones expected is reported in a warning and the state computed again (and
-the user cache's file replaced): a damaged cache never breaks ``make()``.
+A file that cannot be read, holds anything but tensors, has non-finite values, shapes
+other than the ones expected or values beyond the bounds its case declares (the physical
+bounds past which an episode ends: a start outside them would end every episode at its
+first action) is reported in a warning and the state computed again (and the user
+cache's file replaced): a damaged cache never breaks ``make()``.
 """
 
 from __future__ import annotations
@@ -45,12 +47,16 @@ def file_name(name: str, key: dict) -> str:
     return f"{name}-{digest}.pt"
 
 
-def _load(path: Path, like: State) -> State | None:
-    """The state in ``path``, of ``like``'s type and shapes, or None (with a warning
-    saying why) if it is unusable."""
+# per field, the least and greatest value a stored state may hold
+Bounds = dict[str, tuple[float, float]]
+
+
+def _load(path: Path, like: State, bounds: Bounds | None = None) -> State | None:
+    """The state in ``path``, of ``like``'s type and shapes, within ``bounds``, or None
+    (with a warning saying why) if it is unusable."""
 
     def check(state) -> None:
-        problem = _problem(state, like)
+        problem = _problem(state, like, bounds or {})
         if problem is not None:
             raise ValueError(problem)
 
@@ -63,7 +69,7 @@ def _load(path: Path, like: State) -> State | None:
     return type(like)(**state)
 
 
-def _problem(state, like: State) -> str | None:
+def _problem(state, like: State, bounds: Bounds) -> str | None:
     if not isinstance(state, dict) or not all(
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
     ):
@@ -79,6 +85,13 @@ def _problem(state, like: State) -> str | None:
             return f"{key!r} holds {value.dtype} values"
         if value.is_floating_point() and not bool(torch.isfinite(value.to(like._asdict()[key].dtype)).all()):
             return f"non-finite values in {key!r}"
+    for key, (low, high) in bounds.items():
+        value = state[key]
+        if value.numel() and not (low <= float(value.min()) and float(value.max()) <= high):
+            return (
+                f"{key!r} holds values in [{float(value.min()):.4g}, {float(value.max()):.4g}], beyond its case's "
+                f"bounds [{low:g}, {high:g}]"
+            )
     return None
 
 
@@ -89,17 +102,18 @@ def save(state: State, path: Path) -> None:
     save_tensors({k: v.detach().cpu() for k, v in state._asdict().items()}, path)
 
 
-def cached(name: str, key: dict, compute: Callable[[], State], like: State) -> State:
+def cached(name: str, key: dict, compute: Callable[[], State], like: State, bounds: Bounds | None = None) -> State:
     """The state ``compute()`` returns, computed at most once per key and machine.
     ``like`` is a cheap state of the same type and shapes (at rest, say): a stored file
-    must have its fields and shapes."""
+    must have its fields and shapes, and its fields named in ``bounds`` their values
+    within them."""
     fname = file_name(name, key)
     if fname in _memory:
         return _memory[fname]
     state = None
     for folder in (PACKAGE_DATA, cache_dir()):
         if (folder / fname).is_file():
-            state = _load(folder / fname, like)
+            state = _load(folder / fname, like, bounds)
             if state is not None:
                 break
     if state is None:

@@ -31,10 +31,17 @@ class UnsafeFile(ValueError):
     directory another run holds)."""
 
 
+# the folders an experiment tracker keeps in a run directory, with links of its own
+# (Weights & Biases' ``latest-run``); nothing of this library reads or writes there
+TRACKER_FOLDERS = ("wandb",)
+
+
 def refuse_links(root: str | Path) -> None:
     """Refuse ``root`` when a symbolic link lies anywhere below it (``root`` itself may
-    be one: the user names it)."""
+    be one: the user names it), outside the experiment trackers' own folders."""
     for folder, dirs, names in os.walk(root):  # links to folders are listed, not entered
+        if Path(folder) == Path(root):
+            dirs[:] = [d for d in dirs if d not in TRACKER_FOLDERS or (Path(folder) / d).is_symlink()]
         for name in (*dirs, *names):
             path = Path(folder) / name
             if path.is_symlink():

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -280,26 +281,36 @@ def resolve_params(
 
 def parse_value(text: str) -> Any:
     """A parameter's value as written on a command line: an integer, a real or a complex
-    number, a comma-separated list of them (one per member), or else a string."""
+    number, a comma-separated list of them (one per member), or else a string. A
+    number written non-zero that a float rounds to zero (``1e-400``) is refused."""
     for cast in (int, float, complex):
         try:
-            return cast(text.replace(" ", ""))
+            value = cast(text.replace(" ", ""))
         except ValueError:
-            pass
+            continue
+        if value == 0 and re.search(r"[1-9]", re.split(r"[eE]", text)[0]):
+            raise ValueError(f"{text!r} is too small for a float: it would be 0")
+        return value
     if "," in text:
         return [parse_value(t) for t in text.split(",")]
     return text
 
 
-def parse_assignments(items: Sequence[str]) -> dict[str, Any]:
+def parse_assignments(items: Sequence[str], flag: str = "--param") -> dict[str, Any]:
     """``["re=80", "amp=5"]`` (the ``--param NAME=VALUE`` options of the command line and
-    the recipes) as ``{"re": 80, "amp": 5}``."""
+    the recipes) as ``{"re": 80, "amp": 5}``; a name given twice is refused (which of
+    the two was meant?)."""
     params = {}
     for item in items:
         name, sep, value = item.partition("=")
         if not sep or not name.strip():
-            raise ValueError(f"--param expects NAME=VALUE, got {item!r}")
-        params[name.strip()] = parse_value(value.strip())
+            raise ValueError(f"{flag} expects NAME=VALUE, got {item!r}")
+        if name.strip() in params:
+            raise ValueError(f"{flag} {name.strip()} is given twice; give each parameter once")
+        try:
+            params[name.strip()] = parse_value(value.strip())
+        except ValueError as err:
+            raise ValueError(f"{flag} {item}: {err}") from None
     return params
 
 

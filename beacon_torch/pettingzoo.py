@@ -75,11 +75,40 @@ class BeaconParallelEnv(ParallelEnv):
         self._observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np_dtype)
         self._action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np_dtype)
 
+    def _known(self, agent: Any) -> str:
+        if agent not in self.possible_agents:
+            raise ValueError(
+                f"{self.env.env_id}: unknown agent {str(agent)[:60]!r}; the agents are "
+                f"{self.possible_agents[0]} ... {self.possible_agents[-1]}"
+            )
+        return agent
+
     def observation_space(self, agent: str) -> spaces.Box:
+        self._known(agent)
         return self._observation_space
 
     def action_space(self, agent: str) -> spaces.Box:
+        self._known(agent)
         return self._action_space
+
+    def _action(self, agent: str, value: Any) -> float:
+        """One agent's action as a number, refused in one line naming the agent unless
+        it is a real number or an array of one real number."""
+        expected = f"a real number in [-1, 1] (or an array of shape (1,)), got {str(value)[:40]!r}"
+        where = f"{self.env.env_id}: the action of {agent} must be"
+        if isinstance(value, torch.Tensor):
+            value = value.detach().cpu().numpy()
+        if value is None or isinstance(value, (bool, np.bool_, str, bytes)):
+            raise TypeError(f"{where} {expected}")
+        try:
+            array = np.asarray(value)
+        except (TypeError, ValueError):
+            raise TypeError(f"{where} {expected}") from None
+        if array.dtype.kind not in "fiu":
+            raise TypeError(f"{where} {expected} (of dtype {array.dtype})")
+        if array.shape not in ((), (1,)):
+            raise ValueError(f"{where} {expected} (of shape {array.shape})")
+        return float(array.reshape(()))
 
     def _observations(self, obs: torch.Tensor) -> dict[str, np.ndarray]:
         values = obs[0].detach().cpu().numpy().astype(self._observation_space.dtype)
@@ -96,11 +125,21 @@ class BeaconParallelEnv(ParallelEnv):
     def step(self, actions: dict[str, Any]):
         if not self.agents:
             raise RuntimeError(f"{self.env.env_id}: the episode has ended; call reset()")
+        if not isinstance(actions, dict):
+            raise TypeError(
+                f"{self.env.env_id}: actions must be a dict of agent to action, got {type(actions).__name__}"
+            )
+        unknown = [str(agent)[:60] for agent in actions if agent not in self.agents]
+        if unknown:
+            raise ValueError(
+                f"{self.env.env_id}: actions for unknown agents {unknown[:3]}; the agents are "
+                f"{self.agents[0]} ... {self.agents[-1]}"
+            )
         missing = [agent for agent in self.agents if agent not in actions]
         if missing:
             raise ValueError(f"{self.env.env_id}: no action for {missing}; every agent acts at each step")
-        action = np.stack([np.asarray(actions[agent], dtype=np.float64).reshape(1) for agent in self.possible_agents])
-        obs, reward, terminated, truncated = self.env.step_members(torch.as_tensor(action)[None])
+        action = [[self._action(agent, actions[agent])] for agent in self.possible_agents]
+        obs, reward, terminated, truncated = self.env.step_members(torch.tensor(action, dtype=torch.float64)[None])
         rewards = reward[0].detach().cpu().to(torch.float64).numpy()
         ended_by = (bool(terminated[0]), bool(truncated[0]))
         agents = self.agents

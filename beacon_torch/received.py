@@ -21,6 +21,7 @@ Each refusal is one line naming the file and what is wrong (:class:`BadFile`).
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import pickle
@@ -81,7 +82,7 @@ def _entries(path: Path, size: int, what: str) -> dict[str, int]:
             infos = archive.infolist()
             if len(infos) > MAX_ENTRIES:
                 raise BadFile(f"{path}: {len(infos):,} entries, more than a {what} holds")
-            sizes = {}
+            sizes, starts = {}, {}
             for info in infos:
                 name = info.filename
                 if info.compress_type != zipfile.ZIP_STORED or info.compress_size != info.file_size:
@@ -94,10 +95,12 @@ def _entries(path: Path, size: int, what: str) -> dict[str, int]:
                 if len(header) != _LOCAL_HEADER.size or header[:4] != b"PK\x03\x04":
                     raise BadFile(f"{path}: its entry {name!r} has no header where the archive says")
                 name_len, extra_len = _LOCAL_HEADER.unpack(header)[-2:]
-                end = info.header_offset + _LOCAL_HEADER.size + name_len + extra_len + info.file_size
+                start = info.header_offset + _LOCAL_HEADER.size + name_len + extra_len
+                end = start + info.file_size
                 if end > size:
                     raise BadFile(f"{path}: its entry {name!r} reaches past the end of the file ({end:,} > {size:,})")
                 sizes[name] = info.file_size
+                starts[name] = start
     except BadFile:
         raise
     # zipfile's own errors on a damaged directory: a bad archive, an entry name that is
@@ -115,7 +118,99 @@ def _entries(path: Path, size: int, what: str) -> dict[str, int]:
     for name, n in sizes.items():
         if "/data/" not in name and not name.startswith("data/") and name != pickles[0] and n > SMALL_ENTRY:
             raise BadFile(f"{path}: its entry {name!r} takes {n:,} bytes, not one of torch.save's")
+    # torch maps each stored tensor from where its entry starts, over as many bytes as
+    # the structure declares: an entry shorter than that would lend it the next
+    # entries' bytes
+    with path.open("rb") as raw:
+        raw.seek(starts[pickles[0]])
+        structure = raw.read(sizes[pickles[0]])
+    for entry, need in _declared_storages(path, structure, pickles[0], what).items():
+        if entry not in sizes:
+            raise BadFile(f"{path}: its structure names a stored tensor {entry!r} that the file does not hold")
+        if sizes[entry] < need:
+            raise BadFile(
+                f"{path}: its stored tensor {entry!r} holds {sizes[entry]:,} bytes, fewer than the "
+                f"{need:,} its shape needs"
+            )
     return sizes
+
+
+# bytes of an element of each storage kind a structure may name (torch.save records the
+# legacy typed storage's class and the count of its elements)
+_ELEMENT_BYTES = {
+    "FloatStorage": 4,
+    "DoubleStorage": 8,
+    "HalfStorage": 2,
+    "BFloat16Storage": 2,
+    "LongStorage": 8,
+    "IntStorage": 4,
+    "ShortStorage": 2,
+    "CharStorage": 1,
+    "ByteStorage": 1,
+    "BoolStorage": 1,
+    "ComplexFloatStorage": 8,
+    "ComplexDoubleStorage": 16,
+}
+
+
+class _Inert:
+    """What every class and call in a structure read by :func:`_declared_storages`
+    stands for: it accepts anything and does nothing."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        pass
+
+    def __setitem__(self, key, value) -> None:
+        pass
+
+    def __setstate__(self, state) -> None:
+        pass
+
+    def append(self, value) -> None:
+        pass
+
+    def extend(self, values) -> None:
+        pass
+
+
+class _StorageLister(pickle.Unpickler):
+    """Reads a structure's pickle only to list the storages it names: every class it
+    names is an inert stand-in (nothing is imported, nothing it names runs)."""
+
+    def __init__(self, data: bytes) -> None:
+        super().__init__(io.BytesIO(data))
+        self.storages: list[tuple] = []
+
+    def find_class(self, module: str, name: str):
+        return type(str(name)[:100], (_Inert,), {"origin": f"{module}.{name}"[:200]})
+
+    def persistent_load(self, pid):
+        self.storages.append(tuple(pid) if isinstance(pid, tuple) else (pid,))
+        return _Inert()
+
+
+def _declared_storages(path: Path, data: bytes, archive_pickle: str, what: str) -> dict[str, int]:
+    """The stored tensors that the structure of a torch archive (``data``, its entry
+    ``archive_pickle``) names, by entry, with the bytes each declares (its elements
+    times their size)."""
+    lister = _StorageLister(data)
+    try:
+        lister.load()
+    except Exception as err:  # a damaged pickle: the stand-ins themselves raise nothing
+        raise BadFile(f"{path}: not a {what} (its structure is unreadable: {_first_line(err)[:120]})") from None
+    prefix = archive_pickle[: -len("data.pkl")]
+    declared: dict[str, int] = {}
+    for pid in lister.storages:
+        kind = getattr(pid[1], "origin", "") if len(pid) == 5 else ""
+        name = kind.removeprefix("torch.")
+        if pid[0] != "storage" or name not in _ELEMENT_BYTES or not isinstance(pid[2], str):
+            raise BadFile(f"{path}: not a {what} (its structure names a stored value of an unknown kind)")
+        numel = pid[4]
+        if isinstance(numel, bool) or not isinstance(numel, int) or numel < 0:
+            raise BadFile(f"{path}: not a {what} (a stored tensor of {numel!r} elements)")
+        entry = f"{prefix}data/{pid[2]}"
+        declared[entry] = max(declared.get(entry, 0), numel * _ELEMENT_BYTES[name])
+    return declared
 
 
 def tensors_in(tree: Any) -> list[torch.Tensor]:
@@ -211,14 +306,31 @@ def load_into(module: nn.Module, weights: dict, name: str, network: str) -> None
             raise ValueError(f"{name}: {key} has non-finite values in {value.dtype}")
 
 
-def json_file(path: str | Path, what: str, limit: int = JSON_BYTES) -> Any:
-    """A JSON file of at most ``limit`` bytes; numbers beyond a float's range read as
-    what JSON means by them (``1e400`` is infinite), which the caller's checks refuse."""
+def text_file(path: str | Path, what: str, limit: int) -> str:
+    """The text of the regular file ``path`` (UTF-8), of at most ``limit`` bytes; a
+    device, a FIFO or a folder is refused before anything is read from it."""
     path = Path(path)
     size_of(path, what, limit)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
+        with path.open("rb") as f:
+            data = f.read(limit + 1)  # a file that grew since its size was taken
+    except OSError as err:
+        raise BadFile(f"{path}: unreadable {what} ({err.strerror or _first_line(err)})") from None
+    if len(data) > limit:
+        raise BadFile(f"{path}: more than a {what} holds (at most {limit:,} bytes)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise BadFile(f"{path}: not a {what} (not UTF-8 text)") from None
+
+
+def json_file(path: str | Path, what: str, limit: int = JSON_BYTES) -> Any:
+    """A JSON file of at most ``limit`` bytes; numbers beyond a float's range read as
+    what JSON means by them (``1e400`` is infinite), which the caller's checks refuse."""
+    text = text_file(path, what, limit)
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as err:
         raise BadFile(f"{path}: unreadable {what} ({type(err).__name__}: {_first_line(err)[:200]})") from None
 
 

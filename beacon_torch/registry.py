@@ -11,7 +11,7 @@ from typing import Any
 
 from beacon_torch import gym_ids
 from beacon_torch.base import FlowEnv
-from beacon_torch.core.checks import as_batch_size, as_device, as_dtype
+from beacon_torch.core.checks import as_batch_size, as_device, as_dtype, check_memory
 from beacon_torch.core.physics import Physics
 from beacon_torch.envs.burgers import BurgersEnv
 from beacon_torch.envs.cylinder import CylinderEnv
@@ -125,11 +125,20 @@ def resolve_id(env_id: str) -> str:
         raise TypeError(f"env id must be a string, got {type(env_id).__name__}")
     module, sep, bare = env_id.rpartition(":")
     if sep:
+        if not MODULE_NAME.fullmatch(module) or not bare:
+            raise ValueError(
+                f"env id {env_id[:80]!r}: an id is NAME-vN, or MODULE:NAME-vN with MODULE a Python module that "
+                f"registers it, named as import names it (my_envs.heat:heat-v0)"
+            )
         try:
             importlib.import_module(module)
-        except ImportError as err:
+        except (ImportError, SyntaxError) as err:
             raise ValueError(f"{env_id}: cannot import {module!r} to register it ({err})") from None
     return bare
+
+
+# a module as ``import`` names it: dotted identifiers, no path, nothing relative
+MODULE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
 
 
 def qualified_id(env_id: str) -> str:
@@ -174,9 +183,18 @@ def env_class(env_id: str) -> type[FlowEnv]:
 def compiles_by_default() -> bool:
     """Whether the gymnasium and Stable-Baselines3 adapters and the training recipes
     compile their env when not told (``compile=...``, ``--no-compile``): yes, unless the
-    environment variable ``BEACON_TORCH_COMPILE`` is ``0`` (a debugging session, a test
-    suite that checks behaviour rather than speed)."""
-    return os.environ.get("BEACON_TORCH_COMPILE", "1") != "0"
+    environment variable ``BEACON_TORCH_COMPILE`` says no (``0``, ``false``, ``no`` or
+    ``off``: a debugging session, a test suite that checks behaviour rather than speed);
+    any other value than those and ``1``, ``true``, ``yes``, ``on`` or empty is refused."""
+    value = os.environ.get("BEACON_TORCH_COMPILE", "").strip().lower()
+    if value in ("", "1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(
+        f"$BEACON_TORCH_COMPILE must be 1, true, yes or on (compile) or 0, false, no or off (eager), got "
+        f"{os.environ['BEACON_TORCH_COMPILE'][:40]!r}"
+    )
 
 
 def make(
@@ -283,7 +301,9 @@ def functional(
     resolved = resolve_params(
         cls.Params, {**defaults, **physical, **given}, batch_size=members, device=device, dtype=dtype, env_id=env_id
     )
-    return cls.physics_type(resolved, members, dtype=dtype, device=device), resolved
+    physics = cls.physics_type(resolved, members, dtype=dtype, device=device)
+    check_memory(env_id, physics)  # before a state of that batch is ever allocated
+    return physics, resolved
 
 
 def params_dict(cls: type[FlowEnv], params: Any) -> dict[str, Any]:

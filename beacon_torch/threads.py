@@ -49,13 +49,13 @@ def fastest(env_id: str, batch: int, training: bool = False) -> int | None:
     env = env_class(env_id).base_id()
     if training:
         count = _count((_table().get("training") or {}).get(env))
-        return None if count is None else min(count, os.cpu_count() or 1)
+        return None if count is None else min(count, cores())
     measured = (_table().get("steps") or {}).get(env, {})
     sizes = [int(b) for b in measured if str(b).isdigit() and _count(measured[b])]
     if not sizes:
         return None
     nearest = min(sizes, key=lambda b: (abs(_log(b) - _log(batch)), b))
-    return min(measured[str(nearest)], os.cpu_count() or 1)
+    return min(measured[str(nearest)], cores())
 
 
 def _log(n: int) -> float:
@@ -64,21 +64,40 @@ def _log(n: int) -> float:
     return math.log(max(n, 1))
 
 
+def cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def check(count, what: str = "threads", zero: str = "") -> int:
+    """``count`` if it is a thread count this machine can use: a positive integer up to
+    its cores (0 too, meaning ``zero``, where that is given); one line naming ``what``
+    otherwise. More threads than cores only wait on each other, and torch fails to
+    start hundreds of thousands."""
+    lowest = 0 if zero else 1
+    if isinstance(count, bool) or not isinstance(count, int) or not lowest <= count <= cores():
+        meaning = f" (0: {zero})" if zero else ""
+        raise ValueError(
+            f"{what} must be an integer in [{lowest}, {cores()}]{meaning}, this machine's cores being {cores()}, "
+            f"got {count!r}"
+        )
+    return count
+
+
 def choose(given: int | None, env_id: str | None = None, batch: int = 1, training: bool = False) -> tuple[int, str]:
-    """The thread count to use and why: ``given`` (a positive integer), else
-    ``$BEACON_TORCH_THREADS``, else the measured fastest for ``env_id`` at ``batch``
+    """The thread count to use and why: ``given`` (a positive integer up to the cores),
+    else ``$BEACON_TORCH_THREADS``, else the measured fastest for ``env_id`` at ``batch``
     (its training, with ``training``), else torch's default."""
     import torch
 
     if given is not None:
-        if isinstance(given, bool) or not isinstance(given, int) or given < 1:
-            raise ValueError(f"threads must be a positive integer, got {given!r}")
-        return given, "given"
+        return check(given), "given"
     env = os.environ.get("BEACON_TORCH_THREADS", "")
     if env:
-        if not env.isdigit() or int(env) < 1:
-            raise ValueError(f"$BEACON_TORCH_THREADS must be a positive integer, got {env!r}")
-        return int(env), "$BEACON_TORCH_THREADS"
+        return check(int(env) if env.isdigit() else env, "$BEACON_TORCH_THREADS"), "$BEACON_TORCH_THREADS"
     if env_id is not None:
         best = fastest(env_id, batch, training)
         if best is not None:

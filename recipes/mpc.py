@@ -25,22 +25,24 @@ episode takes too long to plan.
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
 import torch
 
 import beacon_torch
-from beacon_torch import threads
+from beacon_torch import files, threads
 from beacon_torch.core.state import map_state
-from beacon_torch.files import create_file, refuse_existing
-from beacon_torch.params import parse_assignments
 from beacon_torch.registry import env_class
-from beacon_torch.training.env import make_env
-from beacon_torch.training.evaluation import EVAL_SEED, HELD_OUT, evaluate_policy
+from beacon_torch.training import config
+from beacon_torch.training.config import MPCConfig
+from beacon_torch.training.env import horizon_bytes, make_env
+from beacon_torch.training.evaluation import EVAL_SEED, evaluate_policy
 from beacon_torch.training.report import normalised
+from beacon_torch.training.run import fits
 
 
 def predicted_return(base, model, plan: torch.Tensor, args, generator: torch.Generator) -> torch.Tensor:
@@ -119,54 +121,76 @@ def planner(args, stats: dict):
     return on
 
 
-def main(args) -> dict:
-    threads.use(args.threads or None, args.env, args.num_envs)
-    params = args.params
-    record_file = args.out / "mpc.json"
-    refuse_existing([record_file], "give another --out")  # before the episodes, not after
-    starts = None if args.starts == "own" else args.starts
-    stats = {"actions": 0, "cpu_s": 0.0, "dropped": 0}
-    control = planner(args, stats)
-    settings = vars(args) | {"out": str(args.out)}
-    record = {
-        "env": args.env,
-        "params": params,
-        "plan_params": args.plan_params,
-        "starts": args.starts,
-        "settings": settings,
-    }
-    if args.actions:
-        # the cost only: a few planned actions of the evaluation episodes
-        sets = {} if starts is None else {"starts": starts}
-        env = make_env(
-            args.env, args.num_envs, seed=EVAL_SEED, norm_steps=0, params=params, compile=args.compile, **sets
-        )
-        act, td = control(env), env.reset()
-        for _ in range(args.actions):
-            td = env.step(act(td))["next"]
-    else:
-        result = evaluate_policy(
-            args.env,
-            control,
-            num_envs=args.num_envs,
-            seed=EVAL_SEED,
-            params=params,
-            starts=starts,
-            progress=args.progress,
-            compile=args.compile,
-        )
-        record.update({k: result[k] for k in ("score_mean", "score_std", "uncontrolled")})
-        if env_class(args.env).paper_ppo is not None:  # else no reference score to scale by
-            record["normalised"] = float(normalised(result["score_mean"], result["uncontrolled"], args.env))
-    record.update(
-        planned_actions=stats["actions"],
-        cpu_s_per_action=stats["cpu_s"] / max(stats["actions"], 1),
-        dropped_iterations=stats["dropped"],
-        threads=torch.get_num_threads(),
+def main(args: MPCConfig) -> dict:
+    """Plan the evaluation episodes (or ``args.actions`` actions only) and write their
+    record, a new ``OUT/mpc.json``; returns the record."""
+    # the graph of a plan of every member, estimated from one action, must fit
+    model_params = {**args.params, **args.plan_params}
+    need = horizon_bytes(
+        args.env, args.horizon, args.num_envs, params=model_params, grad_checkpoint=args.grad_checkpoint
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(record, indent=1)
-    create_file(record_file, lambda tmp: tmp.write_text(text), "give another --out")
+    fits(f"the graph of a plan of {args.horizon} actions of {args.num_envs} members", need, args.device)
+    threads.use(args.threads or None, args.env, args.num_envs)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    lock = files.Lock(out)  # a second planner writing here is refused
+    try:
+        record_file = out / "mpc.json"
+        files.refuse_existing([record_file], "give another --out")  # before the episodes, not after
+        starts = None if args.starts == "own" else args.starts
+        stats = {"actions": 0, "cpu_s": 0.0, "dropped": 0}
+        control = planner(args, stats)
+        record = {
+            "env": args.env,
+            "params": args.params,
+            "plan_params": args.plan_params,
+            "starts": args.starts,
+            "settings": dataclasses.asdict(args),
+        }
+        if args.actions:
+            # the cost only: a few planned actions of the evaluation episodes
+            sets = {} if starts is None else {"starts": starts}
+            env = make_env(
+                args.env,
+                args.num_envs,
+                seed=EVAL_SEED,
+                norm_steps=0,
+                params=args.params,
+                compile=args.compile,
+                device=args.device,
+                **sets,
+            )
+            act, td = control(env), env.reset()
+            for _ in range(args.actions):
+                td = env.step(act(td))["next"]
+        else:
+            result = evaluate_policy(
+                args.env,
+                control,
+                num_envs=args.num_envs,
+                seed=EVAL_SEED,
+                params=args.params,
+                starts=starts,
+                progress=args.progress,
+                compile=args.compile,
+                device=args.device,
+            )
+            record.update({k: result[k] for k in ("score_mean", "score_std", "uncontrolled")})
+            if env_class(args.env).paper_ppo is not None:  # else no reference score to scale by
+                record["normalised"] = float(normalised(result["score_mean"], result["uncontrolled"], args.env))
+        record.update(
+            planned_actions=stats["actions"],
+            cpu_s_per_action=stats["cpu_s"] / max(stats["actions"], 1),
+            dropped_iterations=stats["dropped"],
+            threads=torch.get_num_threads(),
+        )
+        for key, value in record.items():
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"{args.env}: the planned episodes' {key} is {value}; nothing is recorded")
+        text = json.dumps(record, indent=1, allow_nan=False)
+        files.create_file(record_file, lambda tmp: tmp.write_text(text), "give another --out")
+    finally:
+        lock.release()
     if "score_mean" in record:
         scaled_text = f"normalised {record['normalised']:.2f}, " if "normalised" in record else ""
         print(
@@ -179,46 +203,11 @@ def main(args) -> dict:
     return record
 
 
-def parse(argv: list[str] | None = None):
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
-    )
-    parser.add_argument("--env", required=True, help="an env id with continuous actions (beacon-torch list)")
-    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="a physical parameter")
-    parser.add_argument(
-        "--plan-param",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a parameter of the planner's model only (lorenz's reward_width=1: a smooth stand-in for its\n"
-        "indicator reward, whose gradient is zero); the episodes are judged by the env's own",
-    )
-    parser.add_argument("--horizon", type=int, default=20, help="actions planned ahead (default 20)")
-    parser.add_argument("--iterations", type=int, default=10, help="gradient steps per action (default 10)")
-    parser.add_argument("--lr", type=float, default=0.1, help="Adam's rate on the actions, in [-1, 1] (default 0.1)")
-    parser.add_argument("--discount", type=float, default=1.0, help="of the predicted rewards (default 1)")
-    parser.add_argument("--starts", default=HELD_OUT, choices=("own", "validation", "test"), help="(default test)")
-    parser.add_argument("--num-envs", type=int, default=8, help="evaluation episodes, one member each (default 8)")
-    parser.add_argument("--actions", type=int, default=0, help="plan this many actions only, for their cost")
-    parser.add_argument("--grad-checkpoint", action="store_true", help="recompute each action in the backward pass")
-    parser.add_argument("--compile", action=argparse.BooleanOptionalAction, default=False, help="(default: eager)")
-    parser.add_argument("--seed", type=int, default=0, help="of the planner's noise (default 0)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: the env's measured fastest)")
-    parser.add_argument("--out", type=Path, default=None, help="(default runs/mpc/ENV)")
-    parser.add_argument("--no-progress", dest="progress", action="store_false")
-    args = parser.parse_args(argv)
-    cls = env_class(args.env)
-    if cls.discrete:
-        parser.error(f"{args.env} has discrete actions: the planner differentiates continuous ones")
-    for name in ("horizon", "iterations", "num_envs"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be a positive integer")
-    args.params = dict(parse_assignments(args.param))
-    args.plan_params = dict(parse_assignments(args.plan_param))
-    if args.out is None:
-        args.out = Path("runs") / "mpc" / args.env
-    return args
+def parse(argv: list[str] | None = None) -> MPCConfig:
+    """The planner's settings from a command line (``--help`` lists them), checked as
+    every recipe's are."""
+    return config.parse(MPCConfig, argv)
 
 
 if __name__ == "__main__":
-    main(parse())
+    config.script(main, MPCConfig)

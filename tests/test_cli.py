@@ -164,7 +164,10 @@ def test_threads_default_to_the_measured_fastest_unless_told(monkeypatch, tmp_pa
 
     monkeypatch.delenv("BEACON_TORCH_THREADS", raising=False)
     steps, training = threads._table()["steps"], threads._table()["training"]
-    assert threads.choose(3, "lorenz-v0", 1) == (3, "given")
+    assert threads.choose(threads.cores(), "lorenz-v0", 1) == (threads.cores(), "given")
+    # more threads than cores only wait on each other
+    with pytest.raises(ValueError, match=f"threads must be an integer in \\[1, {threads.cores()}\\]"):
+        threads.choose(threads.cores() + 1, "lorenz-v0", 1)
     # the nearest measured batch, on a log scale; a variant steps its base env's physics
     assert threads.fastest("lorenz-continuous-v0", 1) == min(steps["lorenz-v0"]["1"], os.cpu_count())
     assert threads.fastest("cylinder-v0", 8) == min(steps["cylinder-v0"]["16"], os.cpu_count())
@@ -175,9 +178,9 @@ def test_threads_default_to_the_measured_fastest_unless_told(monkeypatch, tmp_pa
     monkeypatch.setenv("BEACON_TORCH_THREADS", "1")
     assert threads.choose(None, "cylinder-v0", 64) == (1, "$BEACON_TORCH_THREADS")
     monkeypatch.setenv("BEACON_TORCH_THREADS", "two")
-    with pytest.raises(ValueError, match="BEACON_TORCH_THREADS must be a positive integer"):
+    with pytest.raises(ValueError, match="BEACON_TORCH_THREADS must be an integer in"):
         threads.choose(None, "lorenz-v0", 1)
-    with pytest.raises(ValueError, match="threads must be a positive integer"):
+    with pytest.raises(ValueError, match="threads must be an integer in \\[1, "):
         threads.choose(0)
     before = torch.get_num_threads()
     try:

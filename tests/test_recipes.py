@@ -87,7 +87,7 @@ def test_config_holds_the_papers_table_and_checks_overrides():
     assert configure(GradConfig, "burgers-v0").horizon == 40 and configure(DQNConfig, "mixing-v0").frames == 100_000
     # the members decide the collected batch: rounded when not given, refused when given
     assert configure(PPOConfig, "lorenz-v0", num_envs=16, collectors=3).n_rollout == 9984
-    with pytest.raises(ValueError, match="multiple of num_envs x collectors"):
+    with pytest.raises(ValueError, match="multiple of the members collecting it, num_envs x collectors"):
         configure(PPOConfig, "lorenz-v0", num_envs=16, n_rollout=1000)
     assert configure(PPOConfig, "lorenz-v0", seed=2).out == "runs/ppo/lorenz-v0/seed2"
     # the recorded campaign's ways of stepping are the defaults: 16 members, mixing on two
@@ -1105,15 +1105,16 @@ def test_experiment_trackers_log_beside_the_csv_logs(tracker, tmp_path, monkeypa
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")
-    monkeypatch.setenv("WANDB_DIR", str(tmp_path))
+    monkeypatch.delenv("WANDB_DIR", raising=False)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     out = tmp_path / "run"
     settings = dict(frames=400, n_rollout=200, num_envs=4, epochs=1, progress=False, logger=tracker)
     ppo.main(configure(PPOConfig, "vortex-v0", out=str(out), **settings))
     ppo.main(configure(PPOConfig, "vortex-v0", out=str(out), resume=True, **{**settings, "frames": 600}))
     assert len((out / "ppo" / "scalars" / "reward.csv").read_text().splitlines()) == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["run"], "a tracker wrote outside the run directory"
     if tracker == "wandb":
-        assert len(list((tmp_path / "wandb").glob("offline-run-*"))) == 2  # one for each run of the process
+        assert len(list((out / "wandb").glob("offline-run-*"))) == 2  # one for each run of the process
     else:
         import mlflow
 

@@ -93,20 +93,27 @@ def available_bytes(device: torch.device) -> int | None:
     return None
 
 
+def check_memory(name: str, batch) -> None:
+    """Refuse a batch (an env or a physics: its members, device, dtype and
+    ``member_floats()``) whose states would not fit in the device's free memory, before
+    anything of its size is allocated."""
+    free = available_bytes(batch.device)
+    per_member = batch.member_floats() * batch.dtype.itemsize * WORKSPACE
+    need = batch.num_envs * per_member
+    if free is not None and need > free:
+        raise ValueError(
+            f"{name}: {batch.num_envs:,} members need about {need / 2**30:,.1f} GiB on {batch.device}, "
+            f"{free / 2**30:,.1f} GiB are free; at most about {max(1, free // per_member):,} members fit"
+        )
+
+
 class Checks:
     """The checks of :class:`~beacon_torch.base.FlowEnv` (a part of it)."""
 
     def _check_memory(self) -> None:
         """Refuse a batch whose states would not fit in the device's free memory, before
         anything of its size is allocated."""
-        free = available_bytes(self.device)
-        need = self.num_envs * self.member_floats() * self.dtype.itemsize * WORKSPACE
-        if free is not None and need > free:
-            fits = max(1, free // (self.member_floats() * self.dtype.itemsize * WORKSPACE))
-            raise ValueError(
-                f"{self.env_id}: {self.num_envs:,} members need about {need / 2**30:,.1f} GiB on "
-                f"{self.device}, {free / 2**30:,.1f} GiB are free; at most about {fits:,} members fit"
-            )
+        check_memory(self.env_id, self)
 
     def to(self, *args, **kwargs) -> Checks:
         """The env itself: its state, generator and kernels live on the device it was

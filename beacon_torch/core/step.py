@@ -168,3 +168,40 @@ def step(
     new = map_state(standard, new)
     terminated, truncated = ~ok, after >= physics.episode_length
     return Step(new, standard(obs), reward, terminated, truncated, after, valid, physics.diagnose(params, new))
+
+
+def checked_step(
+    physics: Physics,
+    params: Any,
+    state: State,
+    action: torch.Tensor,
+    noise: Noise | None = None,
+    count: torch.Tensor | None = None,
+    observation: torch.Tensor | None = None,
+    stepping: torch.Tensor | None = None,
+    *,
+    keep_graph: bool = False,
+    checkpoint: bool = False,
+) -> Step:
+    """:func:`step`, what ``beacon_torch.step`` is, with its arguments checked first:
+    each one that is not what the physics steps (its params, a state of its type on its
+    device and in its dtype with a member per row, an action of the exact shape, the
+    noise its ``noise`` draws, int64 counts, a bool stepping mask) is refused in one line
+    naming it, and a state that is not finite too where the call is eager. The checks
+    read shapes alone under ``torch.func`` and ``torch.compile``, so that they map,
+    differentiate and compile the step as before."""
+    from beacon_torch.core.inputs import check_step_inputs
+
+    check_step_inputs(physics, params, state, action, noise, count, observation, stepping)
+    return step(
+        physics,
+        params,
+        state,
+        action,
+        noise,
+        count,
+        observation,
+        stepping,
+        keep_graph=keep_graph,
+        checkpoint=checkpoint,
+    )

@@ -284,7 +284,10 @@ class RayleighPhysics(CavityPhysics):
                 key.update(sides=p.sides, pr=p.pr, resolution=p.resolution)
                 key.update(n_sgts=p.n_sgts if p.sides == CHANNEL else None)
             like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
-            start = cached("rayleigh-convection", key, lambda: developed_convection(p), like)
+            # between the walls' temperatures, the ghost cells' reflections of them included
+            span = T_HOT - T_COLD
+            bounds = {"theta": (T_COLD - span, T_HOT + span)}
+            start = cached("rayleigh-convection", key, lambda: developed_convection(p), like, bounds)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
     def initial_state(self, p, generator, mask=None) -> RayleighState:

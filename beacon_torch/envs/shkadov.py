@@ -303,7 +303,8 @@ class ShkadovPhysics(Physics):
             delta = number(p.delta)
             n = int(round(DEVELOP_LENGTH / DX))
             like = Film(h=torch.ones(n, dtype=torch.float64), q=torch.ones(n, dtype=torch.float64))
-            film = cached("shkadov-film", dict(version=1, delta=delta), lambda: developed_film(delta), like)
+            develop = lambda: developed_film(delta)
+            film = cached("shkadov-film", dict(version=1, delta=delta), develop, like, {"h": (-H_MAX, H_MAX)})
         return map_state(lambda v: v[: self.n_cells].to(device=self.device, dtype=self.dtype), film)
 
     def noise(self, p, generator) -> Noise:

@@ -193,7 +193,8 @@ class SloshingPhysics(Physics):
             g = float(p.g[0])
             key = dict(version=2, L=p.L, g=g)
             like = at_rest(1, self.n_cells, torch.float64, "cpu")
-            start = cached("sloshing-excited", key, lambda: excited_state(p.L, g, 1, torch.float64, "cpu"), like)
+            excite = lambda: excited_state(p.L, g, 1, torch.float64, "cpu")
+            start = cached("sloshing-excited", key, excite, like, {"h": (H_MIN, H_MAX)})  # out_of_bounds's
             start = map_state(lambda v: v.expand(self.num_envs, *v.shape[1:]), start)
         # generated in float64 like the published code, then cast
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype).clone(), start)

@@ -13,8 +13,10 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import sys
 from dataclasses import MISSING, dataclass, field, fields, replace
+from importlib.util import find_spec
 from pathlib import Path
 from typing import ClassVar
 
@@ -24,10 +26,10 @@ from beacon_torch.arguments import find_user_modules, plain
 from beacon_torch.base import FlowEnv
 from beacon_torch.core.checks import as_device
 from beacon_torch.params import check_params, parse_assignments, resolved
-from beacon_torch.registry import compiles_by_default, env_class
+from beacon_torch.registry import ENVS, compiles_by_default, continuous_envs, env_class
 from beacon_torch.training.env import NORM_STEPS
-from beacon_torch.training.evaluation import learning_curve
-from beacon_torch.training.run import CHECKPOINT, fits, load_checkpoint
+from beacon_torch.training.evaluation import HELD_OUT, learning_curve
+from beacon_torch.training.run import CHECKPOINT, MAX_HIDDEN, fits, load_checkpoint
 
 # The per-env settings of the recipes: data of the library, read by ``configure``. Each
 # table holds what differs from its class's defaults; a variant trains like its base env.
@@ -121,46 +123,82 @@ SHAC = {
     "pinball-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True, compile=True),
 }
 
-# domains of real settings: (lowest, highest, whether the lowest itself is excluded)
+# domains of settings: (lowest, highest, whether the lowest itself is excluded)
 POSITIVE = (0.0, math.inf, True)
 NON_NEGATIVE = (0.0, math.inf, False)
+# a seed torch's generators take (a signed 64-bit integer's positive half)
+SEEDS = (0, 2**63 - 1, False)
+# the widths of hidden layers that evaluation, the curves and a resume rebuild
+WIDTHS = (1, MAX_HIDDEN, False)
 
 
-def setting(default, help: str, choices: tuple[str, ...] = (), domain: tuple[float, float, bool] | None = None):
-    return field(default=default, metadata={"help": help, "choices": choices, "domain": domain})
+def setting(
+    default,
+    help: str,
+    choices: tuple[str, ...] = (),
+    domain: tuple[float, float, bool] | None = None,
+    flag: str = "",
+):
+    """A field of a recipe's settings: its default, its help, and what is admissible
+    (``choices``, or a ``domain`` of numbers); ``flag``: the command line's name of a
+    dict field given as repeated NAME=VALUE options."""
+    metadata = {"help": help, "choices": choices, "domain": domain, "flag": flag}
+    if isinstance(default, dict):
+        return field(default_factory=dict, metadata=metadata)
+    return field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True, kw_only=True)
-class Config:
-    """The settings every recipe shares."""
+class Settings:
+    """The settings of every recipe's command line, training or not: the env and its
+    parameters, the members, the seed, the device, the threads, where it writes."""
 
     algo: ClassVar[str]
     # which actions the algorithm acts with: "any", "continuous" or "discrete"
-    actions: ClassVar[str] = "any"
+    action_kind: ClassVar[str] = "any"
     # whether it trains the multi-agent layout (one policy shared by the agents)
     multi_agent: ClassVar[bool] = False
-    # the field holding the transitions collected per round, a multiple of the members
-    batch: ClassVar[str] = "num_envs"
     # more fields that must be positive integers
     positive: ClassVar[tuple[str, ...]] = ()
     # per-env defaults (env id -> field values); a variant reads its base env's entry
     table: ClassVar[dict[str, dict]] = {}
+    # whether a run trains a policy, logs it and draws its learning curve
+    trains: ClassVar[bool] = True
+    # where a run writes by default ({algo}, {env}, {seed} filled in)
+    default_out: ClassVar[str] = "runs/{algo}/{env}/seed{seed}"
+    # the files a run creates in OUT and never overwrites (a training's run directory
+    # is checked as a whole when the run starts)
+    creates: ClassVar[tuple[str, ...]] = ()
+
+    env: str = setting("", "environment id (beacon-torch list)")
+    # the env's physical parameters (beacon-torch list), recorded with the checkpoints,
+    # so that evaluations and exported policies rebuild the env that was trained
+    params: dict = setting({}, "an env parameter as NAME=VALUE (repeatable)", flag="--param")
+    seed: int = setting(0, "seed of the networks, the env and the collection", domain=SEEDS)
+    num_envs: int = setting(8, "members of the batched env collecting together")
+    device: str = setting("cpu", "torch device of the env and the networks")
+    out: str = setting("", "run directory")
+    progress: bool = setting(True, "progress bar")
+    threads: int = setting(
+        0,
+        "torch threads, at most this machine's cores (0: $BEACON_TORCH_THREADS, else the count measured fastest "
+        "for training on the env on an idle machine; on a shared machine give 1)",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config(Settings):
+    """The settings every training recipe shares."""
+
+    # the field holding the transitions collected per round, a multiple of the members
+    batch: ClassVar[str] = "num_envs"
     # whether the algorithm needs the env in its own process (no collectors, no Ray)
     in_process: ClassVar[bool] = False
     # the default budget, as a share of the paper's PPO budget of the env
     budget_share: ClassVar[float] = 1.0
 
-    env: str = setting("", "environment id (beacon-torch list)")
-    # the env's physical parameters (beacon-torch list), recorded with the checkpoints,
-    # so that evaluations and exported policies rebuild the env that was trained
-    params: dict = field(
-        default_factory=dict,
-        metadata={"help": "an env parameter as NAME=VALUE (repeatable)", "choices": (), "domain": None},
-    )
-    seed: int = setting(0, "seed of the networks, the env and the collection")
     frames: int = setting(200_000, "total transitions")
-    num_envs: int = setting(8, "members of the batched env collecting together")
-    hidden: int = setting(64, "width of the hidden layers")
+    hidden: int = setting(64, "width of the hidden layers", domain=WIDTHS)
     gamma: float = setting(0.99, "discount", domain=(0.0, 1.0, True))
     # one compiled call per action: faster collection for a compilation at the start
     # (docs/performance.md)
@@ -178,8 +216,6 @@ class Config:
         "'': the env's own start, the paper's)",
         ("", "train"),
     )
-    device: str = setting("cpu", "torch device of the env and the networks")
-    out: str = setting("", "run directory")
     resume: bool = setting(False, "continue the run in OUT from its checkpoint to FRAMES")
     collectors: int = setting(1, "collector processes (or Ray actors), each with a batched env of NUM_ENVS members")
     ray: str = setting(
@@ -194,13 +230,7 @@ class Config:
         "(TensorBoard too when installed)",
         ("auto", "csv", "tensorboard", "wandb", "mlflow"),
     )
-    progress: bool = setting(True, "progress bar")
     checkpoint_every: int = setting(10, "rounds of updates between two checkpoints")
-    threads: int = setting(
-        0,
-        "torch threads (0: $BEACON_TORCH_THREADS, else the count measured fastest for training on the env "
-        "on an idle machine; on a shared machine give 1)",
-    )
 
     @property
     def tensorboard(self) -> bool | None:
@@ -260,12 +290,12 @@ class TD3Config(OffPolicyConfig):
     """TD3 (continuous actions)."""
 
     algo: ClassVar[str] = "td3"
-    actions: ClassVar[str] = "continuous"
+    action_kind: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = TD3
     positive: ClassVar[tuple[str, ...]] = (*OffPolicyConfig.positive, "n_steps")
 
-    hidden: int = setting(128, "width of the hidden layers")
-    init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
+    hidden: int = setting(128, "width of the hidden layers", domain=WIDTHS)
+    init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts", domain=NON_NEGATIVE)
     lr: float = setting(
         1e-3, "learning rate of the critics, and of the actor unless ACTOR_LR is given (Adam)", domain=POSITIVE
     )
@@ -283,11 +313,11 @@ class SACConfig(OffPolicyConfig):
     actor, the entropy's weight tuned to a target entropy."""
 
     algo: ClassVar[str] = "sac"
-    actions: ClassVar[str] = "continuous"
+    action_kind: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = SAC
 
-    hidden: int = setting(256, "width of the hidden layers")
-    init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts")
+    hidden: int = setting(256, "width of the hidden layers", domain=WIDTHS)
+    init_random_frames: int = setting(1_000, "uniformly random actions before the policy acts", domain=NON_NEGATIVE)
     lr: float = setting(3e-4, "learning rate of the actor and the critics (Adam)", domain=POSITIVE)
     alpha_lr: float = setting(3e-4, "learning rate of the entropy's weight", domain=POSITIVE)
     alpha_init: float = setting(1.0, "the entropy's weight at the start", domain=POSITIVE)
@@ -299,15 +329,17 @@ class DQNConfig(OffPolicyConfig):
     """DQN (discrete actions)."""
 
     algo: ClassVar[str] = "dqn"
-    actions: ClassVar[str] = "discrete"
+    action_kind: ClassVar[str] = "discrete"
     positive: ClassVar[tuple[str, ...]] = (*OffPolicyConfig.positive, "target_every")
 
-    init_random_frames: int = setting(0, "uniformly random actions before the policy acts")
+    init_random_frames: int = setting(0, "uniformly random actions before the policy acts", domain=NON_NEGATIVE)
     lr: float = setting(5e-4, "learning rate (Adam)", domain=POSITIVE)
     target_every: int = setting(50, "updates between two copies of the network into the target")
     eps_init: float = setting(0.5, "initial exploration rate", domain=(0.0, 1.0, False))
     eps_end: float = setting(0.05, "final exploration rate", domain=(0.0, 1.0, False))
-    eps_frames: int = setting(2_000_000, "transitions over which the exploration rate anneals linearly")
+    eps_frames: int = setting(
+        2_000_000, "transitions over which the exploration rate anneals linearly", domain=POSITIVE
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -317,7 +349,7 @@ class GradConfig(Config):
     critic: the short-horizon actor-critic's critic-less setting."""
 
     algo: ClassVar[str] = "grad"
-    actions: ClassVar[str] = "continuous"
+    action_kind: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = GRAD
     in_process: ClassVar[bool] = True
     positive: ClassVar[tuple[str, ...]] = ("horizon",)
@@ -369,18 +401,54 @@ class SHACConfig(GradConfig):
     )
 
 
+@dataclass(frozen=True, kw_only=True)
+class MPCConfig(Settings):
+    """Gradient model-predictive control (no learned policy): before each action, the
+    next HORIZON actions of every member are improved by ITERATIONS steps of gradient
+    ascent on their predicted return, differentiated through the physics."""
+
+    algo: ClassVar[str] = "mpc"
+    action_kind: ClassVar[str] = "continuous"
+    positive: ClassVar[tuple[str, ...]] = ("horizon", "iterations")
+    trains: ClassVar[bool] = False
+    default_out: ClassVar[str] = "runs/mpc/{env}"
+    creates: ClassVar[tuple[str, ...]] = ("mpc.json",)
+
+    plan_params: dict = setting(
+        {},
+        "a parameter of the planner's model only, as NAME=VALUE (lorenz's reward_width=1: a smooth stand-in for "
+        "its indicator reward, whose gradient is zero); the episodes are judged by the env's own",
+        flag="--plan-param",
+    )
+    horizon: int = setting(20, "actions planned ahead")
+    iterations: int = setting(10, "gradient steps per action")
+    lr: float = setting(0.1, "Adam's rate on the actions, which lie in [-1, 1]", domain=POSITIVE)
+    discount: float = setting(1.0, "of the predicted rewards", domain=(0.0, 1.0, True))
+    starts: str = setting(HELD_OUT, "the evaluation episodes' starts", ("own", "validation", "test"))
+    num_envs: int = setting(8, "evaluation episodes, one member each")
+    actions: int = setting(0, "plan this many actions only, for their cost (0: whole episodes)", domain=NON_NEGATIVE)
+    grad_checkpoint: bool = setting(False, "recompute each action in the backward pass")
+    compile: bool = setting(False, "the env's compiled physics")
+    seed: int = setting(0, "of the planner's noise", domain=SEEDS)
+    out: str = setting("", "the folder of mpc.json")
+
+
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, SACConfig, DQNConfig, GradConfig, SHACConfig)}
 
 
-def unfit(cls: type[Config], env: type[FlowEnv]) -> str | None:
-    """Why ``cls``'s algorithm cannot train ``env`` (its actions, its agents), or None."""
-    if cls.actions == "continuous" and env.discrete:
-        return f"{cls.algo} needs continuous actions; {env.env_id} has discrete ones (use ppo or dqn)"
-    if cls.actions == "discrete" and not env.discrete:
+def unfit(cls: type[Settings], env: type[FlowEnv]) -> str | None:
+    """Why ``cls``'s algorithm cannot control ``env`` (its actions, its agents), or None."""
+    trainer = issubclass(cls, Config)
+    if cls.action_kind == "continuous" and env.discrete:
+        twin = next((e for e in continuous_envs() if ENVS[e].base_id() == env.base_id()), None)
+        hint = f" (use ppo or dqn{f', or {twin}' if twin else ''})" if trainer else (f" (use {twin})" if twin else "")
+        return f"{cls.algo} needs continuous actions; {env.env_id} has discrete ones{hint}"
+    if cls.action_kind == "discrete" and not env.discrete:
         return f"{cls.algo} needs discrete actions; {env.env_id} has continuous ones (use ppo or td3)"
     if isinstance(env.observation_key, tuple) and not cls.multi_agent:
         single = env.base_id() if env.base_id() != env.env_id else "its single-agent layout"
-        return f"{cls.algo} trains single-agent layouts; {env.env_id} has one agent per jet (use ppo, or {single})"
+        use = f"use ppo, or {single}" if trainer else f"use {single}"
+        return f"{cls.algo} controls single-agent layouts; {env.env_id} has one agent per jet ({use})"
     return None
 
 
@@ -396,13 +464,13 @@ def paper_frames(env_id: str) -> int:
     return PPO.get(env_class(env_id).base_id(), {}).get("frames", Config.frames)
 
 
-def defaults(cls: type[Config], env_id: str) -> dict:
-    """The per-env defaults of an algorithm: its share of the paper's PPO budget, then
-    the entry of the algorithm's own table."""
-    off = {} if compiles_by_default() else {"compile": False}
-    frames = int(paper_frames(env_id) * cls.budget_share)
+def defaults(cls: type[Settings], env_id: str) -> dict:
+    """The per-env defaults of an algorithm: its share of the paper's PPO budget (a
+    training's), then the entry of the algorithm's own table."""
     # BEACON_TORCH_COMPILE=0 turns a table's compilation off too
-    return {"frames": frames, **cls.table.get(env_class(env_id).base_id(), {}), **off}
+    off = {} if compiles_by_default() else {"compile": False}
+    budget = {"frames": int(paper_frames(env_id) * cls.budget_share)} if issubclass(cls, Config) else {}
+    return {**budget, **cls.table.get(env_class(env_id).base_id(), {}), **off}
 
 
 def _typed(name: str, kind: str, value):
@@ -414,7 +482,11 @@ def _typed(name: str, kind: str, value):
         if value in (0, 1):
             return bool(value)
     elif (
-        kind == "int" and isinstance(value, (int, float)) and not isinstance(value, bool) and float(value).is_integer()
+        kind == "int"
+        and isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and float(value).is_integer()
     ):
         return int(value)
     elif kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -426,14 +498,81 @@ def _typed(name: str, kind: str, value):
     raise ValueError(f"setting '{name}' must be of type {kind}, got {value!r}")
 
 
-def _check(cfg: Config) -> Config:
-    if cfg.threads < 0:
-        raise ValueError(f"setting 'threads' must be 0 (the measured default) or a positive integer, got {cfg.threads}")
+def _domain_text(low: float, high: float, open_low: bool, integer: bool) -> str:
+    kind = "an integer" if integer else "finite and"
+    if math.isfinite(high):
+        shown = (f"{int(low)}", f"{int(high)}") if integer else (f"{low:g}", f"{high:g}")
+        return f"{kind} in {'(' if open_low else '['}{shown[0]}, {shown[1]}]"
+    if integer:
+        return "a positive integer" if (low > 0 or open_low) else "a non-negative integer"
+    return f"{kind} {'>' if open_low else '>='} {low:g}"
+
+
+def _wandb_ready() -> bool:
+    """Whether Weights & Biases can log without asking for a key: offline or disabled,
+    a key in the environment, or a login saved in ~/.netrc."""
+    if os.environ.get("WANDB_MODE", "").lower() in ("offline", "disabled", "dryrun") or os.environ.get("WANDB_API_KEY"):
+        return True
+    try:
+        import netrc
+
+        return netrc.netrc().authenticators("api.wandb.ai") is not None
+    except (OSError, netrc.NetrcParseError):
+        return False
+
+
+def check_settings(cfg: Settings) -> Settings:
+    """Refuse, in one line naming the setting and what it admits, settings that a run or
+    a tool reading it later would refuse or fail on: what every recipe shares."""
+    threads.check(cfg.threads, "setting 'threads'", zero="the measured default")
+    threads.choose(cfg.threads or None)  # $BEACON_TORCH_THREADS too
+    for name in ("num_envs", *cfg.positive):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.metadata["domain"] is not None:
+            low, high, open_low = f.metadata["domain"]
+            if not (math.isfinite(value) and (value > low if open_low else value >= low) and value <= high):
+                where = _domain_text(low, high, open_low, f.type == "int")
+                raise ValueError(f"setting '{f.name}' must be {where}, got {value!r}")
+        if f.metadata["choices"] and value not in f.metadata["choices"]:
+            raise ValueError(
+                f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, got {value!r}"
+            )
+    env = beacon_torch.registry.env_class(cfg.env)
+    for f in fields(cfg):
+        if f.type == "dict":
+            try:
+                check_params(env, {**cfg.params, **getattr(cfg, f.name)})
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"setting '{f.name}' ({f.metadata['flag']}): {err}") from None
+    as_device(cfg.device)
+    reason = unfit(type(cfg), env)
+    if reason:
+        raise ValueError(reason)
+    out = Path(cfg.out)
+    if out.is_symlink() and not out.exists():
+        raise ValueError(f"setting 'out': {out} is a symbolic link to nothing; give a directory")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"setting 'out': {out} is a file, not a directory; give a directory")
+    for name in cfg.creates:
+        if (out / name).exists() or (out / name).is_symlink():
+            raise ValueError(f"setting 'out': {out / name} exists and is not overwritten; give another --out")
+    return cfg
+
+
+def _check(cfg: Settings) -> Settings:
+    check_settings(cfg)
+    if not isinstance(cfg, Config):
+        return cfg
+    if cfg.in_process and (cfg.collectors != 1 or cfg.ray):
+        raise ValueError(f"{cfg.algo} differentiates through the env in this process: collectors and ray do not apply")
     if cfg.norm_steps < 0:
         raise ValueError(
             f"setting 'norm_steps' must be 0 (raw observations) or a positive integer, got {cfg.norm_steps}"
         )
-    for name in ("frames", "num_envs", "hidden", "collectors", "checkpoint_every", *cfg.positive):
+    for name in ("frames", "collectors", "checkpoint_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
     members = cfg.num_envs * cfg.collectors
@@ -443,36 +582,19 @@ def _check(cfg: Config) -> Config:
         )
     if getattr(cfg, cfg.batch) % members:
         raise ValueError(
-            f"{cfg.batch} ({getattr(cfg, cfg.batch)}) must be a multiple of num_envs x collectors ({members})"
+            f"{cfg.batch} ({getattr(cfg, cfg.batch)}) must be a multiple of the members collecting it, num_envs x "
+            f"collectors ({cfg.num_envs} x {cfg.collectors} = {members})"
         )
-    for f in fields(cfg):
-        value = getattr(cfg, f.name)
-        if f.metadata["domain"] is not None:
-            low, high, open_low = f.metadata["domain"]
-            if not (math.isfinite(value) and (value > low if open_low else value >= low) and value <= high):
-                where = (
-                    f"{'(' if open_low else '['}{low:g}, {high:g}]"
-                    if math.isfinite(high)
-                    else (f"> {low:g}" if open_low else f">= {low:g}")
-                )
-                raise ValueError(
-                    f"setting '{f.name}' must be finite and "
-                    f"{'in ' if math.isfinite(high) else ''}{where}, got {value!r}"
-                )
-        if f.metadata["choices"] and getattr(cfg, f.name) not in f.metadata["choices"]:
-            raise ValueError(
-                f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, "
-                f"got {getattr(cfg, f.name)!r}"
-            )
+    if cfg.logger == "wandb" and find_spec("wandb") is not None and not _wandb_ready():
+        raise ValueError(
+            "setting 'logger' = 'wandb' needs a Weights & Biases key (wandb login, or $WANDB_API_KEY), or "
+            "WANDB_MODE=offline to log into the run directory only"
+        )
     env = beacon_torch.registry.env_class(cfg.env)
-    try:
-        check_params(env, cfg.params)
-    except TypeError as err:
-        raise ValueError(f"setting 'params': {err}") from None
-    as_device(cfg.device)
-    reason = unfit(type(cfg), env)
-    if reason:
-        raise ValueError(reason)
+    # a collected batch is held whole (with the advantages, for PPO)
+    fits(
+        f"a collected batch of {cfg.per_round():,} transitions", 2 * cfg.per_round() * transition_bytes(env, cfg.params)
+    )
     if isinstance(cfg, OffPolicyConfig):
         # the replay buffer is allocated whole at the first transition: refused now if
         # it cannot fit
@@ -481,8 +603,6 @@ def _check(cfg: Config) -> Config:
         capacity = cfg.buffer_size or cfg.frames
         need = capacity * transition_bytes(env, cfg.params)
         fits(f"a replay buffer of {capacity:,} transitions", need, cfg.device)
-    if cfg.in_process and (cfg.collectors != 1 or cfg.ray):
-        raise ValueError(f"{cfg.algo} differentiates through the env in this process: collectors and ray do not apply")
     return cfg
 
 
@@ -494,7 +614,7 @@ def transition_bytes(env: type[FlowEnv], params: dict) -> int:
     return 4 * (2 * n_obs + 3 * n_actions + 4) + 6 + 8
 
 
-def configure(cls: type[Config], env_id: str, **overrides) -> Config:
+def configure(cls: type[Settings], env_id: str, **overrides) -> Settings:
     """The settings of one run of ``cls.algo`` on ``env_id``: the per-env defaults with
     ``overrides`` (field=value, in the field's type or as text), checked. When the
     members change and the collected batch is not given, the batch is rounded to a
@@ -506,12 +626,13 @@ def configure(cls: type[Config], env_id: str, **overrides) -> Config:
         raise ValueError(f"unknown {cls.algo} setting(s) {sorted(unknown)}; known: {sorted(known)}")
     values = {**defaults(cls, env_id), **{name: _typed(name, known[name], value) for name, value in overrides.items()}}
     cfg = cls(env=env_id, **{k: v for k, v in values.items() if k != "env"})
-    members = cfg.num_envs * cfg.collectors
-    if cls.batch not in overrides and members >= 1 and getattr(cfg, cls.batch) % members:
-        cfg = replace(cfg, **{cls.batch: max(members, getattr(cfg, cls.batch) // members * members)})
+    if isinstance(cfg, Config):
+        members = cfg.num_envs * cfg.collectors
+        if cls.batch not in overrides and members >= 1 and getattr(cfg, cls.batch) % members:
+            cfg = replace(cfg, **{cls.batch: max(members, getattr(cfg, cls.batch) // members * members)})
     if not cfg.out:
-        cfg = replace(cfg, out=f"runs/{cls.algo}/{env_id}/seed{cfg.seed}")
-    if cfg.resume and (Path(cfg.out) / CHECKPOINT).is_file():
+        cfg = replace(cfg, out=cls.default_out.format(algo=cls.algo, env=env_id, seed=cfg.seed))
+    if isinstance(cfg, Config) and cfg.resume and (Path(cfg.out) / CHECKPOINT).is_file():
         cfg = resumed(cfg, {name: getattr(cfg, name) for name in overrides})
     return _check(cfg)
 
@@ -564,35 +685,47 @@ def _env_of(argv: list[str] | None) -> str | None:
         return None  # reported by the full parse
 
 
-def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
+def parse(cls: type[Settings], argv: list[str] | None = None) -> Settings:
     """A run's settings from the command line: ``--env`` and any field as
-    ``--name value`` (booleans as ``--name``/``--no-name``); what is not given takes the
-    env's default. ``--help`` after ``--env ENV`` shows the values that env's run uses.
-    Modules named in ``--env module:env-id`` are found from the working directory."""
+    ``--name value`` (booleans as ``--name``/``--no-name``, a dict as repeated
+    ``--flag NAME=VALUE``); what is not given takes the env's default. ``--help`` after
+    ``--env ENV`` shows the values that env's run uses. Modules named in
+    ``--env module:env-id`` are found from the working directory."""
     find_user_modules()
     env_id = _env_of(argv)
     values = {f.name: f.default for f in fields(cls) if f.default is not MISSING}
+    shown_threads = "0"
     if env_id is not None:
-        values.update(defaults(cls, env_id), out=f"runs/{cls.algo}/{env_id}/seedSEED")
+        values.update(out=cls.default_out.format(algo=cls.algo, env=env_id, seed="SEED"))
         note = f"The defaults shown are {env_id}'s."
+        try:
+            count, why = threads.choose(None, env_id, values["num_envs"], training=cls.trains)
+            shown_threads = f"0, which here is {count}: {why}"
+        except ValueError:  # a bad $BEACON_TORCH_THREADS, refused by the full parse
+            pass
     else:
         note = (
             "The defaults shown are those of an env without entries in the tables; give --env ENV with --help "
             "for ENV's."
         )
     parser = argparse.ArgumentParser(description=f"{plain(cls.__doc__)} {note}")
+    try:
+        values.update(defaults(cls, env_id) if env_id is not None else {})
+    except ValueError as err:  # $BEACON_TORCH_COMPILE
+        parser.error(str(err))
     for f in fields(cls):
         flag = "--" + f.name.replace("_", "-")
         default = values.get(f.name)
-        shown = default if f.name != "out" or default else "runs/ALGO/ENV/seedSEED"
+        shown = default if f.name != "out" or default else cls.default_out.format(algo="ALGO", env="ENV", seed="SEED")
+        shown = shown_threads if f.name == "threads" else shown
         helptext = f"{f.metadata.get('help', '')} (default: {'none' if shown == '' else shown})"
-        if cls.in_process and f.name in ("collectors", "ray"):
+        if getattr(cls, "in_process", False) and f.name in ("collectors", "ray"):
             helptext = argparse.SUPPRESS  # refused by a run in this process, not offered
         if f.name == "env":
             parser.add_argument(flag, required=True, help=f.metadata.get("help", ""))
-        elif f.name == "params":
+        elif f.type == "dict":
             parser.add_argument(
-                "--param", dest="params", action="append", metavar="NAME=VALUE", help=f.metadata.get("help", "")
+                f.metadata["flag"], dest=f.name, action="append", metavar="NAME=VALUE", help=f.metadata.get("help", "")
             )
         elif f.type == "bool":
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=helptext)
@@ -602,14 +735,15 @@ def parse(cls: type[Config], argv: list[str] | None = None) -> Config:
     args = vars(parser.parse_args(argv))
     env_id = args.pop("env")
     try:
-        if args["params"] is not None:
-            args["params"] = parse_assignments(args["params"])
+        for f in fields(cls):
+            if f.type == "dict" and args[f.name] is not None:
+                args[f.name] = parse_assignments(args[f.name], f.metadata["flag"])
         return configure(cls, env_id, **{k: v for k, v in args.items() if v is not None})
     except (ValueError, KeyError, TypeError) as err:
         parser.error(str(err))
 
 
-def settings_text(cfg: Config) -> str:
+def settings_text(cfg: Settings) -> str:
     """The resolved settings of a run, one per line, as a recipe prints them at its
     start: what the run uses, whichever table, option or resumed checkpoint set it."""
     lines = [f"{cfg.algo} on {cfg.env}, settings:"]
@@ -618,7 +752,7 @@ def settings_text(cfg: Config) -> str:
         if f.name == "env":
             continue
         text = f"{value:,}" if isinstance(value, int) and not isinstance(value, bool) else repr(value)
-        if f.name == "frames" and value % cfg.per_round():
+        if f.name == "frames" and isinstance(cfg, Config) and value % cfg.per_round():
             rounded = -(-value // cfg.per_round()) * cfg.per_round()
             text += f" (runs {rounded:,}: whole rounds of {cfg.per_round():,} transitions)"
         lines.append(f"  {f.name:<18} {text}")
@@ -631,19 +765,20 @@ def quiet_torchrl() -> None:
     logging.getLogger("torchrl").setLevel(logging.WARNING)
 
 
-def script(main, cls: type[Config], argv: list[str] | None = None) -> None:
-    """A recipe run from the command line: its settings parsed, then ``main``, then its
-    learning curve drawn into ``OUT/learning_curve.png``; a bad run directory, a
-    diverged training or a full disk end it with one line naming the problem (exit
-    status 2), as a bad setting does."""
+def script(main, cls: type[Settings], argv: list[str] | None = None) -> None:
+    """A recipe run from the command line: its settings parsed, then ``main``, then (for
+    a training) its learning curve drawn into ``OUT/learning_curve.png``; a bad run
+    directory, a diverged training, a memory or disk too small end it with one line
+    naming the problem (exit status 2), as a bad setting does."""
     cfg = parse(cls, argv)
     quiet_torchrl()
     print(settings_text(cfg), flush=True)
-    count, why = threads.choose(cfg.threads or None, cfg.env, cfg.num_envs, training=True)
+    count, why = threads.choose(cfg.threads or None, cfg.env, cfg.num_envs, training=cls.trains)
     print(f"  torch threads: {count} ({why})", flush=True)
     try:
         main(cfg)
-        print(learning_curve(cfg.out, progress=cfg.progress))
+        if cls.trains:
+            print(learning_curve(cfg.out, progress=cfg.progress))
     except (ValueError, OSError) as err:
         print(f"{cls.algo}: error: {err}", file=sys.stderr)
         sys.exit(2)

@@ -16,6 +16,7 @@ RUN_DIRS...`` reads the ``summary.json`` of each run directory
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from beacon_torch import received
 from beacon_torch.files import create_file, refuse_existing, save_figure, write_text
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training.evaluation import CURVE_POINTS, summarise
+from beacon_torch.training.run import ALGORITHMS as RUN_ALGORITHMS
 
 BOOTSTRAP = 10_000  # resamples of the seeds
 CONFIDENCE = 0.95
@@ -111,6 +113,12 @@ def row(summary: dict, starts: str = "test") -> dict:
         raise ValueError(f"starts must be one of {', '.join(EPISODES)}, got {starts!r}")
     env_id = summary["env"]
     test = starts == "test" and test_scaled(summary)
+    if not test and "uncontrolled" not in summary:
+        why = "asked for the own start" if starts == "own" else "its test-set scores cannot be normalised"
+        raise ValueError(
+            f"{summary['algo']}/{env_id}: scored from the test set's starts only, and {why} (no control scores "
+            f"above the reference from those starts, or --starts own)"
+        )
     scores = [s["test"] if test else s["eval"] for s in summary["seeds"]]
     uncontrolled = summary["test_uncontrolled"] if test else summary["uncontrolled"]
     norm = normalised(scores, uncontrolled, env_id)
@@ -141,28 +149,46 @@ def check_summary(summary, file: str | Path, scored: bool = True) -> dict:
     def bad(what: str):
         return ValueError(f"{file}: not a summary of trained seeds ({what})")
 
+    def score(value) -> bool:
+        return received.finite_number(value) and abs(value) <= MAX_SCORE
+
     finite = received.finite_number
     if not isinstance(summary, dict):
         raise bad("not a JSON object")
     if not isinstance(summary.get("env"), str) or summary["env"] not in ENVS:
-        raise bad(f"unknown env {summary.get('env')!r}")
+        raise bad(f"unknown env {_short(summary.get('env'))}")
     if scored and not normalisable(summary["env"]):
         raise bad(f"{summary['env']} has no paper score on its card (paper_ppo) to normalise by")
-    if not isinstance(summary.get("algo"), str):
-        raise bad("no algorithm")
+    if not isinstance(summary.get("algo"), str) or summary["algo"] not in ALGORITHMS:
+        raise bad(f"unknown algorithm {_short(summary.get('algo'))}; known: {', '.join(ALGORITHMS)}")
     seeds = summary.get("seeds")
+    # a summary holds the scores from the env's own start (``eval`` beside
+    # ``uncontrolled``), from the test set's (``test`` beside ``test_uncontrolled``), or
+    # both; a planner's record may hold the test set's alone
+    own = "uncontrolled" in summary or "test_uncontrolled" not in summary
     if (
         not isinstance(seeds, list)
         or not seeds
-        or not all(isinstance(s, dict) and finite(s.get("eval")) for s in seeds)
+        or not all(isinstance(s, dict) and (not own or score(s.get("eval"))) for s in seeds)
     ):
-        raise bad("'seeds' must list at least one seed, each with a finite 'eval' score")
+        raise bad(f"'seeds' must list at least one seed, each with a finite 'eval' score of at most {MAX_SCORE:.0e}")
     if ("test_uncontrolled" in summary or any("test" in s for s in seeds)) and not (
-        finite(summary.get("test_uncontrolled")) and all(finite(s.get("test")) for s in seeds)
+        score(summary.get("test_uncontrolled")) and all(score(s.get("test")) for s in seeds)
     ):
-        raise bad("test-set scores must be finite numbers, one per seed, with a finite 'test_uncontrolled'")
-    for key in ("uncontrolled", "frames", "wall_s_per_seed"):
-        if not finite(summary.get(key)) or summary[key] < 0 and key != "uncontrolled":
+        raise bad(
+            f"test-set scores must be finite numbers of at most {MAX_SCORE:.0e}, one per seed, with a finite "
+            f"'test_uncontrolled'"
+        )
+    names = [s["seed"] for s in seeds if "seed" in s]
+    if not all(isinstance(n, (str, int)) and not isinstance(n, bool) for n in names) or len(set(names)) < len(names):
+        raise bad("each seed must be listed once, under a name of its own ('seed')")
+    if own and not score(summary.get("uncontrolled")):
+        raise bad(
+            f"'uncontrolled' must be a finite number of at most {MAX_SCORE:.0e}, got "
+            f"{_short(summary.get('uncontrolled'))}"
+        )
+    for key in ("frames", "wall_s_per_seed"):
+        if not finite(summary.get(key)) or summary[key] < 0:
             raise bad(f"{key!r} must be a finite number, got {_short(summary.get(key))}")
     if not isinstance(summary["frames"], int) or summary["frames"] > MAX_COUNT:
         raise bad(f"'frames' must be a count of transitions (an integer up to {MAX_COUNT:.0e})")
@@ -178,18 +204,23 @@ def check_summary(summary, file: str | Path, scored: bool = True) -> dict:
         raise bad(f"'train_mean' must be finite, got {_short(summary['train_mean'])}")
     if not normalisable(summary["env"]):
         return summary
-    if summary["uncontrolled"] == reference(summary["env"]):
-        raise bad(f"its uncontrolled score equals the reference {reference(summary['env'])}: no scale to normalise by")
-    pairs = [([s["eval"] for s in seeds], summary["uncontrolled"])]
+    ref = reference(summary["env"])
+    pairs = [("own-start", [s["eval"] for s in seeds], summary["uncontrolled"])] if own else []
     if held_out(summary):
-        if summary["test_uncontrolled"] == reference(summary["env"]):
-            raise bad("its test-set uncontrolled score equals the reference: no scale to normalise by")
-        pairs.append(([s["test"] for s in seeds], summary["test_uncontrolled"]))
-    with np.errstate(over="ignore", invalid="ignore"):
-        for scores, uncontrolled in pairs:
-            norm = normalised(scores, uncontrolled, summary["env"])
-            if not np.isfinite(norm).all() or not np.isfinite(np.abs(norm).sum()):
-                raise bad("its scores are too far from the uncontrolled one to normalise in floating point")
+        pairs.append(("test-set", [s["test"] for s in seeds], summary["test_uncontrolled"]))
+    for name, scores, uncontrolled in pairs:
+        # a scale within round-off of zero would turn round-off into the score
+        if abs(ref - uncontrolled) <= SCALE_TOLERANCE * max(abs(ref), abs(uncontrolled), 1.0):
+            raise bad(
+                f"its {name} uncontrolled score {uncontrolled:.6g} is within round-off of the reference {ref:g}: "
+                f"no scale to normalise by"
+            )
+        norm = normalised(scores, uncontrolled, summary["env"])
+        if not (np.abs(norm) <= MAX_NORMALISED).all():
+            raise bad(
+                f"its {name} scores normalise to {_short(float(np.abs(norm).max()))}, beyond any policy's "
+                f"(at most {MAX_NORMALISED:g} times the way from no control to the reference)"
+            )
     return summary
 
 
@@ -217,6 +248,16 @@ def _curve(curve) -> bool:
 # beyond any run (a billion transitions a second for three centuries; a century)
 MAX_COUNT = 10**19
 MAX_SECONDS = 3.2e9
+# beyond any score of an env (the largest, lorenz's, counts at most its 2,000 steps)
+MAX_SCORE = 1e9
+# a normalised score beyond a thousand times the way to the reference is no policy's:
+# a scale too small for its scores
+MAX_NORMALISED = 1e3
+# the least scale from no control to the reference, relative to their size: float32
+# episodes round at about 1e-7
+SCALE_TOLERANCE = 1e-6
+# the algorithms whose results a report may show: the recipes' and the planner's
+ALGORITHMS = (*RUN_ALGORITHMS, "mpc")
 
 
 def _short(value) -> str:
@@ -234,25 +275,77 @@ def read(file: str | Path, scored: bool = True) -> dict:
     return check_summary(received.json_file(file, "summary"), file, scored)
 
 
+# the record the gradient model-predictive control (recipes/mpc.py) writes
+PLANNER_RECORD = "mpc.json"
+
+
+def planner_summary(file: str | Path, scored: bool = True) -> dict:
+    """A planner's record (``mpc.json``) as a summary of one "seed" (nothing is trained;
+    its seed is that of the planner's noise): its score on the episodes it planned, the
+    test set's or the env's own, beside no control from the same starts; no training
+    transitions; its CPU time as the wall time."""
+    record = received.json_file(file, "planner's record")
+
+    def bad(what: str):
+        return ValueError(f"{file}: not a planner's record to report ({what})")
+
+    if not isinstance(record, dict) or not isinstance(record.get("env"), str):
+        raise bad("no env")
+    if "score_mean" not in record:
+        raise bad(f"it holds the cost of {_short(record.get('planned_actions'))} planned actions, no episode's score")
+    if record.get("starts") not in EPISODES:
+        raise bad(f"episodes from {_short(record.get('starts'))} starts; the protocol scores 'test' or 'own'")
+    cost = [record.get(k) for k in ("cpu_s_per_action", "planned_actions")]
+    if not all(received.finite_number(c) and 0 <= c <= MAX_SECONDS for c in cost):
+        raise bad("its cost per action and count of planned actions must be finite and non-negative")
+    test = record["starts"] == "test"
+    seed = {"seed": str((record.get("settings") or {}).get("seed", 0))[:20]}
+    seed["test" if test else "eval"] = record["score_mean"]
+    summary = {
+        "env": record["env"],
+        "algo": "mpc",
+        "seeds": [seed],
+        "test_uncontrolled" if test else "uncontrolled": record.get("uncontrolled"),
+        "frames": 0,
+        "wall_s_per_seed": cost[0] * cost[1],
+    }
+    return check_summary(summary, file, scored)
+
+
 def summaries(run_dirs, progress: bool = False) -> list[dict]:
     """The summary of each run directory (a ``summary.json`` file, or a directory
-    holding one or to be summarised, with progress bars if ``progress``), checked."""
+    holding one or to be summarised, with progress bars if ``progress``) or planner's
+    record (``mpc.json``, or a directory holding one), checked; a pair of an env and an
+    algorithm given twice is refused (its seeds would count twice)."""
     out = []
     for run in map(Path, run_dirs):
         if run.is_file():
-            out.append(read(run))
+            out.append(planner_summary(run) if run.name == PLANNER_RECORD else read(run))
         elif (run / "summary.json").is_file():
             out.append(read(run / "summary.json"))
+        elif (run / PLANNER_RECORD).is_file():
+            out.append(planner_summary(run / PLANNER_RECORD))
         else:
             out.append(check_summary(summarise(run, progress=progress), run / "summary.json"))
     if not out:
         raise ValueError("no summaries to report")
+    pairs = [f"{s['algo']}/{s['env']}" for s in out]
+    twice = sorted({p for p in pairs if pairs.count(p) > 1})
+    if twice:
+        raise ValueError(f"{', '.join(twice)}: given more than once; a pair's seeds are one summary")
     return out
 
 
 def _fixed(x: float) -> str:
     """Two decimals, or three significant digits for a number too large for them."""
     return f"{x:.2f}" if abs(x) < 1e6 else f"{x:.3g}"
+
+
+def _cell(text) -> str:
+    """``text`` as a markdown table's cell shows it, whatever it holds: no markup, no
+    HTML, no column break."""
+    escaped = str(text).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    return re.sub(r"([\\`*_{}\[\]|~])", r"\\\1", escaped).replace("\n", " ")
 
 
 def table(rows: list[dict]) -> str:
@@ -264,7 +357,7 @@ def table(rows: list[dict]) -> str:
     for r in sorted(rows, key=lambda r: (r["algo"], r["env"])):
         per_seed = ", ".join(f"{s:.4g}" for s in r["scores"])
         lines.append(
-            f"| {r['env']} | {r['algo']} | {EPISODES[r['episodes']]} | {r['seeds']} | "
+            f"| {_cell(r['env'])} | {_cell(r['algo'])} | {EPISODES[r['episodes']]} | {r['seeds']} | "
             f"**{_fixed(r['iqm'])}** [{_fixed(r['ci'][0])}, {_fixed(r['ci'][1])}] | {r['score_iqm']:.4g} ({per_seed}) "
             f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
         )
@@ -320,11 +413,16 @@ def report(
         Path(path).parent.mkdir(parents=True, exist_ok=True)
     write = write_text if replace else lambda path, text: create_file(path, lambda tmp: tmp.write_text(text))
     write(md, text + "\n")
-    write(numbers, json.dumps(rows, indent=1))
+    write(numbers, json.dumps(rows, indent=1, allow_nan=False))
     if not replace:
         refuse_existing([png])
     png = figure(rows, png)
     return {"rows": rows, "table": text, "png": str(png)}
+
+
+# a documentation page that a generated block is written into (the largest is about
+# 60 kB)
+PAGE_BYTES = 4 * 2**20
 
 
 def write_block(page: str | Path, begin: str, end: str, block: str) -> Path:
@@ -332,7 +430,8 @@ def write_block(page: str | Path, begin: str, end: str, block: str) -> Path:
     ``end``, with ``block`` (appended with its markers when the page has none), leaving
     the hand-written rest as it is."""
     page = Path(page)
-    text = page.read_text() if page.exists() else ""
+    exists = page.exists() or page.is_symlink()
+    text = received.text_file(page, "markdown page", PAGE_BYTES) if exists else ""
     new = f"{begin}\n{block}\n{end}"
     if begin in text:
         if end not in text[text.index(begin) :]:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 import os
 import re
@@ -120,7 +121,10 @@ def check_checkpoint(state, path: str | Path) -> None:
         if key not in state:
             raise bad(f"no {key!r}")
     if not isinstance(state["env"], str) or state["env"] not in ENVS:
-        raise bad(f"unknown env {state['env']!r}")
+        hint = ""
+        if isinstance(state["env"], str) and len(state["env"]) < 100:
+            hint = "; an env registered by a module of your own needs it imported first: beacon-torch --import MODULE"
+        raise bad(f"unknown env {str(state['env'])[:100]!r}{hint}")
     if not isinstance(state["algo"], str) or state["algo"] not in ALGORITHMS:
         raise bad(f"unknown algorithm {state['algo']!r}; known: {', '.join(ALGORITHMS)}")
     if not _number(state["frames"]):
@@ -253,29 +257,38 @@ def holds_run(folder: str | Path, algo: str) -> str:
     return ", ".join(found + [p.name for p in buffer_folders(folder)])
 
 
+# a log holds a line of about 30 bytes per round of updates: 64 MiB is two million
+# rounds, beyond any run of the recipes (2 M transitions in rounds of 64: 31,250)
+LOG_BYTES = 64 * 2**20
+
+
 def read_log(file: str | Path) -> list[tuple[float, float]]:
-    """The ``(step, value)`` lines of a CSV log, checked: each line two numbers, the
-    step a non-negative integer count of transitions, the value finite."""
+    """The ``(step, value)`` lines of a CSV log, checked: a regular file of at most
+    :data:`LOG_BYTES`, each line two numbers, the step a non-negative integer count of
+    transitions, the value finite."""
     rows = []
     try:
-        with open(file, newline="", encoding="utf-8") as f:
-            for number, row in enumerate(csv.reader(f), 1):
-                try:
-                    step, value = (float(x) for x in row) if len(row) == 2 else (None, None)
-                except ValueError:
-                    step = None
-                # a run logs finite values only (a non-finite one stops it first)
-                if (
-                    step is None
-                    or not (math.isfinite(step) and step >= 0 and step.is_integer())
-                    or not math.isfinite(value)
-                ):
-                    raise BadRun(
-                        f"{file}, line {number}: not a log line of a run (a step and a finite value), got "
-                        f"{','.join(row)[:60]!r}"
-                    )
-                rows.append((step, value))
-    except (UnicodeDecodeError, csv.Error) as err:
+        text = received.text_file(file, "log of a run", LOG_BYTES)
+    except received.BadFile as err:
+        raise BadRun(str(err)) from None
+    try:
+        for number, row in enumerate(csv.reader(io.StringIO(text, newline="")), 1):
+            try:
+                step, value = (float(x) for x in row) if len(row) == 2 else (None, None)
+            except ValueError:
+                step = None
+            # a run logs finite values only (a non-finite one stops it first)
+            if (
+                step is None
+                or not (math.isfinite(step) and step >= 0 and step.is_integer())
+                or not math.isfinite(value)
+            ):
+                raise BadRun(
+                    f"{file}, line {number}: not a log line of a run (a step and a finite value), got "
+                    f"{','.join(row)[:60]!r}"
+                )
+            rows.append((step, value))
+    except csv.Error as err:
         raise BadRun(f"{file}: not a log of a run ({type(err).__name__})") from None
     return rows
 
@@ -441,14 +454,16 @@ def load_optimiser(optim: torch.optim.Optimizer, saved, where: str) -> None:
 
 def _tracker(name: str, algo: str, env_id: str, out: Path, settings: dict):
     """TorchRL's logger of an experiment tracker for a run in ``out``: Weights & Biases
-    (its files where W&B keeps them, ``$WANDB_DIR`` or ``./wandb``, not in the run
-    directory, which holds no symbolic link; ``WANDB_MODE=offline`` logs there only) or
+    (its files in ``out/wandb``, W&B's own folder, where it keeps links of its own;
+    ``WANDB_MODE=offline`` logs there only) or
     MLflow (to ``$MLFLOW_TRACKING_URI``, else a SQLite store ``out/mlflow.db`` with the
     artifacts in ``out/mlflow``), the run's settings recorded as its configuration."""
     if name == "wandb":
         from torchrl.record.loggers import WandbLogger
 
-        logger = WandbLogger(exp_name=f"{algo}-{env_id}", project="beacon-torch", log_env_packages=False)
+        logger = WandbLogger(
+            exp_name=f"{algo}-{env_id}", project="beacon-torch", log_env_packages=False, save_dir=str(out.resolve())
+        )
     else:
         from torchrl.record.loggers import MLFlowLogger
 

@@ -126,7 +126,8 @@ class CylinderPhysics(Physics):
         key = dict(version=START_VERSION, cells=cells, nu=nu, time=DEVELOP_TIME)
         at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
         like = map_state(lambda v: v[0], at_rest)
-        start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like)
+        bounds = {"u": (-10.0 * U_MAX, 10.0 * U_MAX)}  # what out_of_bounds ends an episode beyond
+        start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like, bounds)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
     def initial_state(self, p, generator, mask=None) -> CylinderState:

@@ -49,7 +49,8 @@ def developed_start(cells: int, re: float) -> Flow:
     key = dict(version=START_VERSION, cells=cells, re=re, time=DEVELOP_TIME, kick=KICK)
     like = map_state(lambda v: v[0], rest(1, Box(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu"))
     compute = lambda: developed(cells, 1.0 / re, time=DEVELOP_TIME, kick=KICK)[0]
-    return cached("pinball-developed", key, compute, like)
+    # what out_of_bounds ends an episode beyond
+    return cached("pinball-developed", key, compute, like, {"u": (-10.0 * U_INF, 10.0 * U_INF)})
 
 
 class PinballState(NamedTuple):
