@@ -19,7 +19,7 @@ _TOP = {
     "FlowEnv": "beacon_torch.base",
     "Physics": "beacon_torch.core.physics",
     "functional": "beacon_torch.registry",
-    "step": "beacon_torch.core.step:checked_step",
+    "step": "beacon_torch.core.inputs:checked_step",
     "list_envs": "beacon_torch.registry",
     "make": "beacon_torch.registry",
     "register": "beacon_torch.registry",

@@ -71,6 +71,20 @@ def diagnostics(env: FlowEnv, terminated: torch.Tensor | None = None) -> dict[st
     return out
 
 
+def reset_options(env, options: Any, known: tuple[str, ...]) -> None:
+    """Refuse reset options that the adapter does not take (a misspelt key would
+    otherwise be ignored and the reset do what was not asked), as the TorchRL env
+    refuses unknown keywords."""
+    if options is None:
+        return
+    if not isinstance(options, dict):
+        raise TypeError(f"{env.env_id}: reset options must be a dict, got {type(options).__name__}")
+    unknown = sorted(str(k)[:40] for k in options if k not in known)
+    if unknown:
+        takes = f"it takes {list(known)}" if known else "it takes none"
+        raise ValueError(f"{env.env_id}: unknown reset option(s) {unknown}; {takes}")
+
+
 def member_info(values: dict[str, np.ndarray], i: int) -> dict[str, Any]:
     """Member ``i``'s entries of :func:`diagnostics` as Python numbers."""
     return {name: (bool if name == "blew_up" else float)(v[i]) for name, v in values.items()}
@@ -122,6 +136,7 @@ class BeaconGymEnv(gymnasium.Env):
         return obs[0].detach().cpu().numpy().astype(self._np_dtype)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        reset_options(self.env, options, ())
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(seed)
@@ -208,6 +223,7 @@ class BeaconVectorEnv(VectorEnv):
                     f"they take one seed (or s, s + 1, ...), not {list(seed)}"
                 )
             seed = first
+        reset_options(self.env, options, ("reset_mask",))
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(seed)

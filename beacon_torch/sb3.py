@@ -43,7 +43,7 @@ except ImportError as err:  # pragma: no cover - exercised without the extra onl
     raise ImportError("beacon_torch.sb3 needs Stable-Baselines3: pip install 'beacon-torch[sb3]'") from err
 
 from beacon_torch.core.checks import as_flag, as_seed
-from beacon_torch.gym import _spaces, batched_action, diagnostics, member_info, team_reward
+from beacon_torch.gym import _spaces, batched_action, diagnostics, member_info, reset_options, team_reward
 from beacon_torch.registry import compiles_by_default, make
 
 # what ``set_attr`` may change on a made env, each with its check
@@ -86,6 +86,8 @@ class BeaconVecEnv(VecEnv):
         return obs.detach().cpu().numpy().astype(self._np_dtype)
 
     def reset(self) -> np.ndarray:
+        for options in self._options:  # set_options's: none is taken
+            reset_options(self.env, options or None, ())
         seed = self._seeds[0]
         if seed is not None:
             self.env.set_seed(int(seed))

@@ -99,8 +99,8 @@ def table(rows: list[dict], num_envs: int, seed: int) -> str:
         f"deterministically on {num_envs} episodes"
         f" of evaluation seed {seed} (float32), against no control on the same episodes (`benchmarks/pretrained.py`):",
         "",
-        "| policy | trained on (seed) | score (std over episodes) | uncontrolled | normalised | recorded at shipping "
-        "| test starts: score | uncontrolled | normalised |",
+        "| policy | trained on (seed) | own start: score (std over episodes) | uncontrolled | normalised "
+        "| recorded at shipping | test starts: score | uncontrolled | normalised |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:

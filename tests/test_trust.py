@@ -1101,7 +1101,7 @@ def test_commands_refuse_bad_outputs_and_misuses_in_one_line(ppo_run, tmp_path, 
                 dict(uncontrolled=10**400),
                 "'uncontrolled' must be a finite number of at most 1e+09, got an integer of 401",
             ),
-            (dict(seeds=[{"eval": 1e308}] * 3), "too far from the uncontrolled one"),
+            (dict(seeds=[{"eval": 1e308}] * 3), "each with a finite 'eval' score of at most 1e+09"),
         )
     ):
         file = tmp_path / f"summary-{k}.json"

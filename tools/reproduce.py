@@ -238,8 +238,8 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
             + "."
         )
     floors = [
-        "| env | PPO floor | training episodes, last tenth (mean over seeds) | best seed's "
-        "deterministic policy | transitions (of the paper's budget) | floor met |",
+        "| env | PPO floor | training episodes from the own start, last tenth (mean over seeds) | best seed's "
+        "deterministic policy, own start | transitions (of the paper's budget) | floor met |",
         "|---|---|---|---|---|---|",
     ]
     for s in summaries:
@@ -275,13 +275,14 @@ def unnormalised(summaries: list[dict]) -> list[str]:
         "Recorded, not normalised: their envs have no paper score on the card (each env's page sets the "
         "scores beside its own reference):",
         "",
-        "| env | algorithm | seeds | score, IQM (per seed) | uncontrolled | transitions | wall time per seed |",
-        "|---|---|---|---|---|---|---|",
+        "| env | algorithm | episodes | seeds | score, IQM (per seed) | uncontrolled | transitions "
+        "| wall time per seed |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for s in sorted(summaries, key=lambda s: (s["algo"], s["env"])):
         scores = [seed["eval"] for seed in s["seeds"]]
         lines.append(
-            f"| {s['env']} | {s['algo']} | {len(scores)} | {report.iqm(scores):.4g} "
+            f"| {s['env']} | {s['algo']} | {report.EPISODES['own']} | {len(scores)} | {report.iqm(scores):.4g} "
             f"({', '.join(f'{x:.4g}' for x in scores)}) | {s['uncontrolled']:.4g} | {s['frames']:,} "
             f"| {s['wall_s_per_seed'] / 60:.1f} min |"
         )

@@ -15,6 +15,10 @@ from typing import Any
 
 import torch
 
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise, State
+from beacon_torch.core.step import Step, step
+
 
 def _transformed() -> bool:
     """Whether the call runs under a ``torch.func`` transform or is being compiled:
@@ -70,8 +74,6 @@ def check_step_inputs(
     """Refuse, in one line naming it, an argument of :func:`beacon_torch.step` that is
     not what ``physics`` steps (see the module's docstring); with ``values``, a state
     that is not finite too (in eager calls)."""
-    from beacon_torch.core.physics import Physics
-
     if not isinstance(physics, Physics):
         raise TypeError(
             f"physics must be a case's Physics (beacon_torch.functional(env_id) returns it), got {_shown(physics)}"
@@ -137,3 +139,38 @@ def check_step_inputs(
         for key, value in state._asdict().items():
             if not bool(torch.isfinite(value.detach()).all()):
                 raise ValueError(f"{name}: state.{key} has values that are not finite in {physics.dtype}")
+
+
+def checked_step(
+    physics: Physics,
+    params: Any,
+    state: State,
+    action: torch.Tensor,
+    noise: Noise | None = None,
+    count: torch.Tensor | None = None,
+    observation: torch.Tensor | None = None,
+    stepping: torch.Tensor | None = None,
+    *,
+    keep_graph: bool = False,
+    checkpoint: bool = False,
+) -> Step:
+    """:func:`step`, what ``beacon_torch.step`` is, with its arguments checked first:
+    each one that is not what the physics steps (its params, a state of its type on its
+    device and in its dtype with a member per row, an action of the exact shape, the
+    noise its ``noise`` draws, int64 counts, a bool stepping mask) is refused in one line
+    naming it, and a state that is not finite too where the call is eager. The checks
+    read shapes alone under ``torch.func`` and ``torch.compile``, so that they map,
+    differentiate and compile the step as before."""
+    check_step_inputs(physics, params, state, action, noise, count, observation, stepping)
+    return step(
+        physics,
+        params,
+        state,
+        action,
+        noise,
+        count,
+        observation,
+        stepping,
+        keep_graph=keep_graph,
+        checkpoint=checkpoint,
+    )
