@@ -130,10 +130,24 @@ class CylinderPhysics(Physics):
         start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like, bounds)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
+    def _start_loads(self, p) -> tuple[torch.Tensor, torch.Tensor]:
+        """The drag and lift forces on the cylinder in the start's flow, over one time
+        step of it without control (what the diagnostics report before the first
+        action; the flow itself starts unchanged)."""
+        cells, nu = int(p.cells_per_diameter), number(p.nu)
+
+        def loads():
+            flow = Flow(*(f[None] for f in self._start(p)))
+            with torch.no_grad():
+                _, drag, lift = run(flow, 1, flow.q.new_zeros(1), self.channel, nu, DT)
+            return drag, lift
+
+        return self.remembered(("start loads", cells, nu), loads)
+
     def initial_state(self, p, generator, mask=None) -> CylinderState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
-        zeros = torch.zeros(self.num_envs, dtype=self.dtype, device=self.device)
-        return CylinderState(*flow, drag=zeros, lift=zeros.clone())
+        drag, lift = (f.expand(self.num_envs).clone() for f in self._start_loads(p))
+        return CylinderState(*flow, drag=drag, lift=lift)
 
     def advance(self, p, state: CylinderState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         flow = Flow(*state[: len(Flow._fields)])

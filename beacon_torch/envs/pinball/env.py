@@ -157,10 +157,24 @@ class PinballPhysics(Physics):
     def _developed(self, cells: int, re: float) -> Flow:
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), developed_start(cells, re))
 
+    def _start_loads(self, p) -> torch.Tensor:
+        """The cylinders' loads in the start's flow, over one time step of it without
+        rotation (``[1, 3, 3]``: drag, lift, torque of each cylinder; what the
+        diagnostics report before the first action, the flow itself starting
+        unchanged)."""
+        cells, re = int(p.cells_per_diameter), round(number(p.re), 3)
+
+        def loads():
+            flow = Flow(*(f[None] for f in self._start(p)))
+            with torch.no_grad():
+                return run(flow, 1, flow.omega.new_zeros(1, 3), self.box, 1.0 / re, DT)[1]
+
+        return self.remembered(("start loads", cells, re), loads)
+
     def initial_state(self, p, generator, mask=None) -> PinballState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
-        zeros = torch.zeros(self.num_envs, 3, dtype=self.dtype, device=self.device)
-        return PinballState(*flow, drag=zeros, lift=zeros.clone(), torque=zeros.clone())
+        drag, lift, torque = (f.expand(self.num_envs, 3).clone() for f in self._start_loads(p).unbind(1))
+        return PinballState(*flow, drag=drag, lift=lift, torque=torque)
 
     def advance(self, p, state: PinballState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         flow = Flow(*state[: len(Flow._fields)])
