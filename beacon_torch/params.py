@@ -69,6 +69,8 @@ def param(
         differentiable=(kind == "real" and per_member) if differentiable is None else differentiable,
         choices=tuple(choices),
         doc=doc,
+        # a word whose default is None takes None (the dataclass decides); no other
+        nullable=default is None,
     )
     return dataclasses.field(default=default, metadata=meta)
 
@@ -191,7 +193,7 @@ def _check_differentiable(name: str, value: torch.Tensor, m, n: int, device, dty
 
 
 def _check_choice(name: str, value: Any, m) -> str | None:
-    if value is None or (isinstance(value, str) and value in m["choices"]):
+    if (value is None and m.get("nullable", False)) or (isinstance(value, str) and value in m["choices"]):
         return value
     raise ValueError(f"parameter {name!r} must be {_range_text(m)}, got {value!r}")
 
