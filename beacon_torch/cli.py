@@ -138,6 +138,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     plot, scores_file = outputs(args.out, f"runs/{args.env}", "run.png", "scores.json")
     gif = outputs(args.gif, None, option="--gif")[0] if args.gif else None
     plot.parent.mkdir(parents=True, exist_ok=True)
+    from beacon_torch.files import Lock
+
+    lock = Lock(plot.parent)  # a second run writing into the same folder is refused now, not at its end
 
     results = {}
     rewards = {}
@@ -186,6 +189,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         frames.append(env.render())  # the end of the episode, whatever the stride
         gif = save_animation(frames, gif)
         print(f"animation ({len(frames)} frames of the uncontrolled episode): {gif}")
+    lock.release()
     return 0
 
 

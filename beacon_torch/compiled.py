@@ -24,6 +24,7 @@ The invariants of the compiled inputs live here, with why:
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -215,6 +216,25 @@ def _device(tree) -> torch.device:
     return next(t for t in torch.utils._pytree.tree_leaves(tree) if isinstance(t, torch.Tensor)).device
 
 
+_announced = False
+
+
+def announce_compilation() -> None:
+    """Say once per process, on a terminal, that the first steps compile: a first reset
+    or step then takes seconds to a minute (shkadov's reset runs uncontrolled actions,
+    so its first one compiles them), which would otherwise look like a hang."""
+    global _announced
+    if _announced or not sys.stderr.isatty():
+        return
+    _announced = True
+    print(
+        "beacon-torch: compiling the physics for this batch (once per process and shape; the first steps take "
+        "seconds to a minute; compile=False runs eagerly)",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
 class _Kernel:
     """A kernel as :meth:`Kernels.__call__` returns it (an object, not a closure, so
     that an env can be pickled)."""
@@ -230,6 +250,7 @@ class _Kernel:
             return fn(*args, **kwargs)
         compiled = kernels._cache.get(fn)
         if compiled is None:
+            announce_compilation()
             compiled = kernels._cache[fn] = torch.compile(fn, **kernels.options)
         with _SETTINGS:
             return compiled(*args, **kwargs)

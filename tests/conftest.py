@@ -1,3 +1,4 @@
+import contextlib
 import functools
 import importlib.util
 import os
@@ -171,3 +172,28 @@ def random_policy_file(path: Path, env_id: str, params: dict, hidden: int = 16) 
     record = {"env": env_id, "algo": "td3", "network": "deterministic_actor", "hidden": hidden}
     torch.save({**record, "params": params, "weights": policy.state_dict()}, path)
     return path
+
+
+@contextlib.contextmanager
+def lock_held_elsewhere(folder: Path):
+    """``folder``'s lock held by another process while the block runs (a run or a
+    planner writing there); the holder is killed after, which drops its lock."""
+    import subprocess
+    import sys
+
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"from beacon_torch.files import Lock; import time; lock = Lock({str(folder)!r}); "
+            f"print('held', flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        yield
+    finally:
+        holder.kill()
+        holder.wait()

@@ -7,7 +7,6 @@ kill -9 interrupts stays resumable: tests/test_kill.py.)"""
 
 import json
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -23,7 +22,7 @@ from beacon_torch.training import config, report
 from beacon_torch.training.config import GradConfig, MPCConfig, PPOConfig, SACConfig, TD3Config, configure
 from beacon_torch.training.run import LOG_BYTES, BadRun, load_checkpoint, read_log
 
-from conftest import PPO, copy_run, random_policy_file, recipe
+from conftest import PPO, copy_run, lock_held_elsewhere, random_policy_file, recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 mpc, ppo = recipe("mpc"), recipe("ppo")
@@ -169,24 +168,10 @@ def test_the_planner_on_a_full_disk_or_a_held_folder_says_so_in_one_line(tmp_pat
     assert not (out / "mpc.json").exists()
     held = tmp_path / "held"
     held.mkdir()
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            f"from beacon_torch.files import Lock; import time; l = Lock({str(held)!r}); "
-            "print('held', flush=True); time.sleep(60)",
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout.readline().strip() == "held"
+    with lock_held_elsewhere(held):
         second = run_planner(tmp_path, *PLANNER, "--out", str(held), "--no-progress")
         assert second.returncode == 2 and "another process is running in this directory" in second.stderr
         assert len(second.stderr.strip().splitlines()) == 1, second.stderr
-    finally:
-        holder.send_signal(signal.SIGKILL)
-        holder.wait()
 
 
 def test_a_planner_record_is_never_written_with_nan(tmp_path, monkeypatch):

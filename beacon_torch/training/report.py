@@ -336,11 +336,6 @@ def summaries(run_dirs, progress: bool = False) -> list[dict]:
     return out
 
 
-def _fixed(x: float) -> str:
-    """Two decimals, or three significant digits for a number too large for them."""
-    return f"{x:.2f}" if abs(x) < 1e6 else f"{x:.3g}"
-
-
 def _cell(text) -> str:
     """``text`` as a markdown table's cell shows it, whatever it holds: no markup, no
     HTML, no column break."""
@@ -358,7 +353,7 @@ def table(rows: list[dict]) -> str:
         per_seed = ", ".join(f"{s:.4g}" for s in r["scores"])
         lines.append(
             f"| {_cell(r['env'])} | {_cell(r['algo'])} | {EPISODES[r['episodes']]} | {r['seeds']} | "
-            f"**{_fixed(r['iqm'])}** [{_fixed(r['ci'][0])}, {_fixed(r['ci'][1])}] | {r['score_iqm']:.4g} ({per_seed}) "
+            f"**{r['iqm']:.2f}** [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}] | {r['score_iqm']:.4g} ({per_seed}) "
             f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
         )
     return "\n".join(lines)
