@@ -316,8 +316,13 @@ def check_out(out_dir: str | Path) -> None:
 
 def load(path: str | Path) -> list[Measurement]:
     """The measurements of a ``results.json`` written by :func:`write`."""
+    from beacon_torch import received
+
     fields = Measurement.__dataclass_fields__
-    rows = json.loads(Path(path).read_text())["results"]
+    record = received.json_file(path, "benchmark's results")
+    rows = record.get("results") if isinstance(record, dict) else None
+    if not isinstance(rows, list) or not all(isinstance(row, dict) for row in rows):
+        raise received.BadFile(f"{path}: not a benchmark's results (no list of measurements under 'results')")
     # records written before the warm-up and memory columns existed lack them
     return [Measurement(**{k: row.get(k) for k in fields}) for row in rows]
 

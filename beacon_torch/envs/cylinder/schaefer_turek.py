@@ -68,17 +68,17 @@ def table(rows: list[dict]) -> str:
 
 
 def plot(record: str, figure: str) -> None:
-    import json
 
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from beacon_torch import received
     from beacon_torch.envs.cylinder import SCHAEFER_TUREK
     from beacon_torch.files import create_file
 
-    rows = json.loads(open(record).read())["rows"]
+    rows = received.json_file(record, "a validation record")["rows"]
     fig, (drag, lift) = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
     for r in sorted(rows, key=lambda r: r["cells_per_diameter"]):
         t = [x - r["history"]["time"][0] for x in r["history"]["time"]]
