@@ -96,9 +96,10 @@ def test_members_are_solved_independently(members, native_path):
 
 
 @pytest.mark.parametrize("bc", BCS[:2])
-def test_poisson_paths_agree_in_float32_and_gradients_take_the_tensor_path(bc):
+def test_poisson_paths_agree_in_float32_with_gradients_or_without(bc):
     """The C line solves against the y eigenvector products at a cavity's size, in
-    float32; with autograd recording, the solve is the differentiable tensor path."""
+    float32; with autograd recording, the C path keeps the graph (its adjoint:
+    tests/test_adjoints.py)."""
     n, members = 64, 5
     fast = PoissonSolver(n, n, 1 / n, 1 / n, bc, dtype=torch.float32)
     rhs = random((n, n, members), 9)
@@ -112,7 +113,7 @@ def test_poisson_paths_agree_in_float32_and_gradients_take_the_tensor_path(bc):
     torch.testing.assert_close(fast.solve(rhs), expected, rtol=0, atol=2e-5 * scale)
     if fast.native:
         with pytest.raises(ValueError, match="do not fit"):
-            native.lines(rhs, *fast.lines[0], fast.upper)
+            native.lines(rhs, *fast.lines[0], fast.upper, fast.width)
     grad_in = rhs.clone().requires_grad_()
     with torch.enable_grad():
         out = fast.solve(grad_in)
@@ -278,7 +279,8 @@ def test_sweep_is_the_published_in_place_transport(shape, native_path):
     for m in range(B):
         expected = published_sweep(s[..., m], u[..., m], v[..., m], kappa[m].item(), 2e-3, cavity.dx, cavity.dy)
         torch.testing.assert_close(out[..., m], expected, rtol=1e-13, atol=1e-13)
-    # the out-of-place path (kept when gradients are wanted) is the same recurrence
+    # with gradients wanted (the C loop and its reverse, or the tensor recurrence kept
+    # out of place as a graph), the same recurrence
     with torch.enable_grad():
         graph = cavity.sweep(s.clone().requires_grad_(), u, v, kappa, 2e-3, cavity.dx, cavity.dy)
     torch.testing.assert_close(graph.detach(), out, rtol=1e-14, atol=1e-14)

@@ -18,8 +18,15 @@ process, into a fresh private directory (nothing is read from a shared cache, so
 file that someone else could have written is ever loaded), and called through
 ``ctypes`` on the tensors' memory. Where there is no compiler, the build fails, the
 tensors are not on the CPU, or ``BEACON_TORCH_NATIVE=0``, :func:`applies` says no and
-the caller keeps its tensor path. Gradients never go through here: the callers use it
-only when autograd has nothing to record.
+the caller keeps its tensor path.
+
+Both kernels are differentiable: each is a custom operator with its adjoint written
+beside it. The sweep's adjoint is the reverse sweep (a C kernel of the same loop run
+backwards), the tridiagonal solve's is the same solve (its matrix is symmetric, or
+similar to its transpose through the cells' widths), so that a gradient through a
+cavity step keeps the fast loops instead of a graph of thousands of small operations.
+Under ``torch.func.vmap`` the mapped dimension joins the members (the loops treat every
+member alike), and a compiled graph calls them as any other operator.
 """
 
 from __future__ import annotations
@@ -92,6 +99,55 @@ void NAME(T *out, const T *f, const T *lower, const T *inv, const T *upper,     
 }
 LINES(lines_f32, float)
 LINES(lines_f64, double)
+
+/* The adjoint of SWEEP: given the gradient g of its output x (both ghosted), the
+   gradient lam of x's own values, accumulated in the reverse of the sweep's order
+   (each cell's lam is final once the cells that read it, east and north, are done:
+   lam[i, j] = g[i, j] + a[i + 1, j] lam[i + 1, j] + b[i, j + 1] lam[i, j + 1]), is the
+   gradient of s; the west and south ghosts collect what the first column and row read
+   of them. The coefficients' gradients are lam times the neighbour each one weighed. */
+#define SWEEP_ADJOINT(NAME, T)                                                      \
+void NAME(T *lam, T *ga, T *gb, const T *g, const T *x, const T *a, const T *b,     \
+          long nx, long ny, long members) {                                         \
+    const long column = (ny + 2) * members;                                         \
+    for (long m = 0; m < (nx + 2) * column; ++m) lam[m] = g[m];                     \
+    for (long i = nx; i >= 1; --i) {                                                \
+        for (long j = ny; j >= 1; --j) {                                            \
+            T *l = lam + i * column + j * members;                                  \
+            if (i < nx) {                                                           \
+                const T *east = l + column, *ae = a + (i * ny + (j - 1)) * members; \
+                for (long m = 0; m < members; ++m) l[m] += ae[m] * east[m];         \
+            }                                                                       \
+            if (j < ny) {                                                           \
+                const T *north = l + members, *bn = b + ((i - 1) * ny + j) * members; \
+                for (long m = 0; m < members; ++m) l[m] += bn[m] * north[m];        \
+            }                                                                       \
+        }                                                                           \
+    }                                                                               \
+    for (long j = 1; j <= ny; ++j) {  /* the west ghosts, read by the first column */ \
+        T *l = lam + j * members;                                                   \
+        const T *first = l + column, *a1 = a + (j - 1) * members;                   \
+        for (long m = 0; m < members; ++m) l[m] += a1[m] * first[m];                \
+    }                                                                               \
+    for (long i = 1; i <= nx; ++i) {  /* the south ghosts, read by the first row */ \
+        T *l = lam + i * column;                                                    \
+        const T *first = l + members, *b1 = b + (i - 1) * ny * members;             \
+        for (long m = 0; m < members; ++m) l[m] += b1[m] * first[m];                \
+    }                                                                               \
+    for (long i = 1; i <= nx; ++i) {                                                \
+        for (long j = 1; j <= ny; ++j) {                                            \
+            const T *l = lam + i * column + j * members;                            \
+            const T *west = x + (i - 1) * column + j * members, *south = x + i * column + (j - 1) * members; \
+            T *gai = ga + ((i - 1) * ny + (j - 1)) * members, *gbi = gb + ((i - 1) * ny + (j - 1)) * members; \
+            for (long m = 0; m < members; ++m) {                                    \
+                gai[m] = l[m] * west[m];                                            \
+                gbi[m] = l[m] * south[m];                                           \
+            }                                                                       \
+        }                                                                           \
+    }                                                                               \
+}
+SWEEP_ADJOINT(sweep_adjoint_f32, float)
+SWEEP_ADJOINT(sweep_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
@@ -124,7 +180,7 @@ def _build() -> ctypes.CDLL | None:
         shutil.rmtree(folder, ignore_errors=True)
     for suffix, ctype in (("f32", ctypes.c_float), ("f64", ctypes.c_double)):
         pointer, size = ctypes.POINTER(ctype), ctypes.c_long
-        for name, arrays in (("sweep", 4), ("lines", 5)):
+        for name, arrays in (("sweep", 4), ("lines", 5), ("sweep_adjoint", 7)):
             fn = getattr(lib, f"{name}_{suffix}")
             fn.argtypes = (*(pointer,) * arrays, size, size, size)
             fn.restype = None
@@ -155,49 +211,73 @@ def applies(device, dtype) -> bool:
 
 
 def recording(*tensors: torch.Tensor) -> bool:
-    """Whether autograd records an operation on these tensors (the kernels must not
-    run then: they are not differentiable)."""
+    """Whether autograd records an operation on these tensors."""
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
 def takes(*tensors: torch.Tensor) -> bool:
     """Whether the kernels run on these tensors now: CPU tensors of one kernel dtype
-    that autograd does not record (the caller has asked :func:`applies` once)."""
+    (the caller has asked :func:`applies` once)."""
     first = tensors[0]
-    return (
-        first.device.type == "cpu"
-        and first.dtype in _KERNELS
-        and all(t.dtype == first.dtype for t in tensors)
-        and not recording(*tensors)
-    )
+    return first.device.type == "cpu" and first.dtype in _KERNELS and all(t.dtype == first.dtype for t in tensors)
 
 
-def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int, ...]) -> torch.Tensor:
+def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int, ...], outs=None) -> torch.Tensor:
     """The kernel ``name`` from ``first`` and the other arrays (made contiguous) into a
-    new tensor shaped like ``first``: the kernels write their result out of place, so
-    that no copy of the input is needed for the operator's functional form."""
+    new tensor shaped like ``first`` (or into new tensors shaped like each of ``outs``,
+    returned as a tuple): the kernels write their results out of place, so that no copy
+    of an input is needed for the operator's functional form."""
     # the switch BEACON_TORCH_NATIVE is read where the caller decides (applies), not here
     lib = _library if _tried else library()
     if first.device.type != "cpu" or first.dtype not in _KERNELS or lib is None:
         raise RuntimeError(f"{name}: the C kernel does not apply here (see native.applies)")
     suffix, ctype = _KERNELS[first.dtype]
     arrays = [t.contiguous() for t in (first, *rest)]
-    out = torch.empty_like(arrays[0])
+    results = [torch.empty(like.shape, dtype=first.dtype) for like in (outs or (arrays[0],))]
     pointer = ctypes.POINTER(ctype)
-    getattr(lib, f"{name}_{suffix}")(*(ctypes.cast(t.data_ptr(), pointer) for t in (out, *arrays)), *sizes)
-    return out
+    getattr(lib, f"{name}_{suffix}")(*(ctypes.cast(t.data_ptr(), pointer) for t in (*results, *arrays)), *sizes)
+    return tuple(results) if outs else results[0]
+
+
+def _members_vmap(op, member_args: tuple[int, ...], outputs: int = 1):
+    """A vmap rule for a kernel whose arrays ``member_args`` (their positions) end with
+    the members' axis and whose others are the same for every member: the mapped
+    dimension joins the members (``[..., B, V]`` as ``[..., B * V]``), the kernel runs
+    once, and its results are split again. A mapped array of the second kind (a
+    coefficient that would differ per mapped value) is not supported."""
+
+    def rule(info, in_dims, *args):
+        size = info.batch_size
+        given = []
+        for k, (t, dim) in enumerate(zip(args, in_dims, strict=True)):
+            if k not in member_args:
+                if dim is not None:
+                    raise NotImplementedError(f"{op.__name__}: vmap over an argument shared by the members")
+                given.append(t)
+                continue
+            t = t.unsqueeze(-1).expand(*t.shape, size) if dim is None else t.movedim(dim, -1)
+            given.append(t.reshape(*t.shape[:-2], -1))
+        out = op(*given)
+        split = lambda o: o.reshape(*o.shape[:-1], -1, size)
+        if outputs == 1:
+            out = split(out)
+            return out, out.dim() - 1
+        out = tuple(split(o) for o in out)
+        return out, tuple(o.dim() - 1 for o in out)
+
+    return rule
 
 
 # A custom operator, so that a compiled substep calls the loop inside its graph (no
 # graph break): out of place, as the graph's functional form wants.
 @torch.library.custom_op("beacon_torch::sweep", mutates_args=())
-def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def sweep_kernel(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The published in-place sweep of ``s`` (ghosted, ``[nx + 2, ny + 2, B]``, the
     interior holding each cell's part from old values), written to a new tensor with
     the same ghosts: cell ``(i, j)`` becomes
     ``s[i, j] + a * s[i - 1, j] + b * s[i, j - 1]`` with the new values of its west and
     south neighbours, for the interior coefficients ``a``, ``b`` (``[nx, ny, B]``).
-    Only where :func:`applies`; never differentiated."""
+    Only where :func:`applies`; :func:`sweep` is its differentiable form."""
     nx, ny, members = a.shape
     if s.shape != (nx + 2, ny + 2, members) or b.shape != a.shape or not (s.dtype == a.dtype == b.dtype):
         raise ValueError(
@@ -206,33 +286,118 @@ def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return _call("sweep", s, a, b, sizes=(nx, ny, members))
 
 
-@sweep.register_fake
+@sweep_kernel.register_fake
 def _(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.empty_like(s, memory_format=torch.contiguous_format)
 
 
+@torch.library.custom_op("beacon_torch::sweep_adjoint", mutates_args=())
+def sweep_adjoint(
+    grad: torch.Tensor, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The gradients of :func:`sweep`'s ``(s, a, b)`` from the gradient ``grad`` of its
+    output ``x``: the reverse sweep (see the C source)."""
+    nx, ny, members = a.shape
+    return _call("sweep_adjoint", grad, x, a, b, sizes=(nx, ny, members), outs=(grad, a, a))
+
+
+@sweep_adjoint.register_fake
+def _(grad: torch.Tensor, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor):
+    new = lambda t: torch.empty_like(t, memory_format=torch.contiguous_format)
+    return new(grad), new(a), new(a)
+
+
+sweep_kernel.register_vmap(_members_vmap(sweep_kernel, (0, 1, 2)))
+sweep_adjoint.register_vmap(_members_vmap(sweep_adjoint, (0, 1, 2, 3), outputs=3))
+
+
+class _Sweep(torch.autograd.Function):
+    """:func:`sweep_kernel` with the reverse sweep as its backward pass."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return sweep_kernel(s, a, b)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        _, a, b = inputs
+        ctx.save_for_backward(output, a, b)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        x, a, b = ctx.saved_tensors
+        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
+            return sweep_adjoint(grad, x, a, b)
+
+
+def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """:func:`sweep_kernel`, differentiable (its adjoint is :func:`sweep_adjoint`), under
+    ``torch.func`` and ``torch.compile`` too."""
+    return _Sweep.apply(s, a, b)
+
+
 @torch.library.custom_op("beacon_torch::lines", mutates_args=())
-def lines(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+def lines_kernel(
+    f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor, width: torch.Tensor
+) -> torch.Tensor:
     """Solves, into a new tensor shaped like ``f`` (``[modes, n, B]``), one tridiagonal system along the
     second axis per mode and member, from its elimination: ``lower`` and ``inv``
     (``[modes, n]``: the multipliers below the diagonal and the inverse pivots) and
     ``upper`` (``[n]``: the entries above the diagonal, the same for every mode). A zero
-    last pivot (a singular mode) gives the solution whose last value is 0. Only where
-    :func:`applies`; never differentiated."""
+    last pivot (a singular mode) gives the solution whose last value is 0. ``width``
+    (``[n]``) makes each matrix ``diag(1 / width) S + shift`` with ``S`` symmetric (ones:
+    a symmetric matrix), which its adjoint reads. Only where :func:`applies`;
+    :func:`lines` is its differentiable form."""
     modes, n, members = f.shape
     if (
         lower.shape != (modes, n)
         or inv.shape != (modes, n)
         or upper.shape != (n,)
-        or not (f.dtype == lower.dtype == inv.dtype == upper.dtype)
+        or width.shape != (n,)
+        or not (f.dtype == lower.dtype == inv.dtype == upper.dtype == width.dtype)
     ):
         raise ValueError(
             f"lines: the field {tuple(f.shape)} and elimination {tuple(lower.shape)}, "
-            f"{tuple(inv.shape)}, {tuple(upper.shape)} do not fit"
+            f"{tuple(inv.shape)}, {tuple(upper.shape)}, {tuple(width.shape)} do not fit"
         )
     return _call("lines", f, lower, inv, upper, sizes=(modes, n, members))
 
 
-@lines.register_fake
-def _(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+@lines_kernel.register_fake
+def _(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor, width: torch.Tensor):
     return torch.empty_like(f, memory_format=torch.contiguous_format)
+
+
+lines_kernel.register_vmap(_members_vmap(lines_kernel, (0,)))
+
+
+class _Lines(torch.autograd.Function):
+    """:func:`lines_kernel` with the same solve as its backward pass."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(f, lower, inv, upper, width) -> torch.Tensor:
+        return lines_kernel(f, lower, inv, upper, width)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(*inputs[1:])
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        # each solve is x = P f with P = T^-1 (or, singular, the leading block's inverse
+        # and a zero last row and column), T = diag(1 / w) S + shift: P^T = W P W^-1,
+        # the same solve between two scalings by the widths (ones: no scaling)
+        lower, inv, upper, width = ctx.saved_tensors
+        w = width[:, None]
+        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
+            return w * lines_kernel(grad / w, lower, inv, upper, width), None, None, None, None
+
+
+def lines(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor, width: torch.Tensor):
+    """:func:`lines_kernel`, differentiable in ``f`` (the elimination is a constant of
+    the grid), under ``torch.func`` and ``torch.compile`` too."""
+    return _Lines.apply(f, lower, inv, upper, width)

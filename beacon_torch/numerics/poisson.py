@@ -142,8 +142,8 @@ class PoissonSolver:
     solution has zero mean and the source must have zero sum (it does, for the
     divergence of a field with no flux through the walls).
 
-    On the CPU, where autograd has nothing to record, the two y products and the
-    division are replaced by what they compute: in the x eigenbasis each x mode k is the
+    On the CPU the two y products and the division are replaced by what they compute
+    (differentiable: the adjoint of a solve is the same solve): in the x eigenbasis each x mode k is the
     tridiagonal system (Ly + ex_k) phi_k = rhs_k along y, eliminated once here and solved
     in C (:func:`beacon_torch.numerics.native.lines`), a few operations a cell instead
     of ``2 ny`` multiply-adds (the y products were two thirds of a mixing substep's
@@ -221,6 +221,8 @@ class PoissonSolver:
         if self.native:
             cast = lambda t: t.to(dtype=dtype, device=device)
             self.upper = cast(torch.cat((ly.diagonal(1), ly.new_zeros(1))))
+            # what the solves' adjoint reads: ly = diag(1 / wy) S with S symmetric
+            self.width = cast(wy if wy is not None else torch.ones(ly.shape[0], dtype=torch.float64))
             self.lines, self.singular = [], []
             for shift in self.x.blocks(ex):
                 lower, inverse, singular = _eliminate(ly, shift, 1e-9 * scale)
@@ -233,7 +235,7 @@ class PoissonSolver:
         if self.native and native.takes(rhs, self.upper):
             hat = []
             for c, (lower, inv), singular in zip(self.x.forward(rhs), self.lines, self.singular, strict=True):
-                c = native.lines(c, lower, inv, self.upper)
+                c = native.lines(c, lower, inv, self.upper, self.width)
                 hat.append(c if singular is None else c - singular * c.mean(1, keepdim=True))
             return self.x.inverse(hat)
         blocks = zip(self.x.forward(rhs), self.inv, strict=True)

@@ -26,11 +26,11 @@ class Sweep:
     over cells or members. Ghost values are those the field carries in (the published
     code refreshes them before the sweep only).
 
-    On the CPU, where autograd has nothing to record, the loop itself runs in C
-    (:mod:`beacon_torch.numerics.native`): the anti-diagonal steps cost a few
-    microseconds each whatever their size, which at small batches is most of a cavity
-    step. The tensor recurrence is the path everywhere else (GPU, gradients, no C
-    compiler)."""
+    On the CPU the loop itself runs in C (:mod:`beacon_torch.numerics.native`), its
+    gradient the reverse loop: the anti-diagonal steps cost a few microseconds each
+    whatever their size, which at small batches is most of a cavity step, and a graph
+    of them most of a differentiated one. The tensor recurrence is the path everywhere
+    else (GPU, no C compiler)."""
 
     def __init__(self, nx: int, ny: int, device=None, dtype=torch.float32) -> None:
         self.nx, self.ny = nx, ny
@@ -62,9 +62,9 @@ class Sweep:
         sc = s[1:-1, 1:-1]
         c, a, b = _coefficients(s, u, v, kappa, dt, dx, dy)
         pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
-        recording = native.recording(s, u, v, c)
         if self.native and native.takes(s, u, v, c):
             return native.sweep(s + pad(c - sc), a, b)[1:-1, 1:-1]
+        recording = native.recording(s, u, v, c)
         # the ghosts keep their values (a = b = 0 there)
         c = self._skewed(s + pad(c - sc))
         a, b = self._skewed(pad(a)), self._skewed(pad(b))
