@@ -150,3 +150,21 @@ def test_the_adjoints_map_and_compile():
     s1, f1 = s.clone().requires_grad_(), rhs[0].clone().requires_grad_()
     for got, want in zip(torch.autograd.grad(compiled(s1, f1), (s1, f1)), expected, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.slow(seconds=40)
+def test_a_cavity_compiles_with_gradients_to_the_eager_gradient():
+    """rayleigh-v0 with ``compile=True, differentiable=True`` (its sweep's recurrence
+    once made dynamo refuse it): one action's reward differentiates to the eager
+    env's gradient, float64."""
+    from tensordict import TensorDict
+
+    grads = []
+    for compiled in (False, True):
+        env = beacon_torch.make("rayleigh-v0", 2, dtype="float64", compile=compiled, differentiable=True)
+        env.reset()
+        action = torch.full((2, *env.action_spec.shape[1:]), 0.3, dtype=torch.float64, requires_grad=True)
+        reward = env.step(TensorDict({env.action_key: action}, batch_size=env.batch_size))["next", "reward"]
+        grads.append(torch.autograd.grad(reward.sum(), action)[0])
+    assert grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-10, atol=1e-12)
