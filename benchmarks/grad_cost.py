@@ -129,7 +129,7 @@ def page_table(folder: Path) -> str:
     for env_id in [e for e in continuous_envs() if e in newest]:
         r = newest[env_id]
         # a way not measured (the wakes' eager path: minutes a round) is a dash
-        ratio = lambda kind: f"{r[f'{kind}_ratio']:.1f} x" if f"{kind}_ratio" in r else "-"
+        ratio = lambda kind, r=r: f"{r[f'{kind}_ratio']:.1f} x" if f"{kind}_ratio" in r else "-"
         lines.append(
             f"| {env_id} | {r['members']} | {r['grad_checkpoint']} | {1e3 * r['forward_s']:.3g} "
             f"| {ratio('eager')} | {ratio('compiled')} | {r['measured']} |"
