@@ -136,12 +136,18 @@ def test_the_planners_outputs_are_checked_before_it_plans(tmp_path, capsys):
     (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
     (tmp_path / "done").mkdir()
     (tmp_path / "done" / "mpc.json").write_text("{}")
+    # a record's name planted as a link to someone else's file: refused, the file untouched
+    (tmp_path / "planted").mkdir()
+    (tmp_path / "precious.txt").write_text("mine\n")
+    (tmp_path / "planted" / "mpc.json").symlink_to(tmp_path / "precious.txt")
     for out, words in (
         ("file", "is a file, not a directory"),
         ("dangling", "is a symbolic link to nothing"),
         ("done", "mpc.json exists and is not overwritten; give another --out"),
+        ("planted", "mpc.json exists and is not overwritten; give another --out"),
     ):
         assert words in refused(MPCConfig, [*PLAN, "--out", str(tmp_path / out)], capsys)
+    assert (tmp_path / "precious.txt").read_text() == "mine\n"
 
 
 PLANNER = ["--env", "lorenz-continuous-v0", "--actions", "1", "--horizon", "1", "--iterations", "1", "--num-envs", "1"]

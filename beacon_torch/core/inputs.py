@@ -57,7 +57,7 @@ def _noise_signature(physics, params) -> dict[str, tuple[tuple, torch.dtype]] | 
     drawn once from a generator of its own (None under a transform, where nothing is
     drawn: the noise is then checked for being a dict of tensors alone)."""
     if _transformed():
-        return physics.__dict__.get("_remembered", {}).get("noise signature")
+        return physics.recalled("noise signature")
 
     def draw():
         generator = torch.Generator(device=physics.device).manual_seed(0)
@@ -68,12 +68,10 @@ def _noise_signature(physics, params) -> dict[str, tuple[tuple, torch.dtype]] | 
     return physics.remembered("noise signature", draw)
 
 
-def check_step_inputs(
-    physics, params, state, action, noise, count, observation, stepping, *, values: bool = True
-) -> None:
+def check_step_inputs(physics, params, state, action, noise, count, observation, stepping) -> None:
     """Refuse, in one line naming it, an argument of :func:`beacon_torch.step` that is
-    not what ``physics`` steps (see the module's docstring); with ``values``, a state
-    that is not finite too (in eager calls)."""
+    not what ``physics`` steps (see the module's docstring), and, in eager calls, a
+    state that is not finite."""
     if not isinstance(physics, Physics):
         raise TypeError(
             f"physics must be a case's Physics (beacon_torch.functional(env_id) returns it), got {_shown(physics)}"
@@ -135,7 +133,7 @@ def check_step_inputs(
         shape = (members, *(None,) * (observation.ndim - 1)) if isinstance(observation, torch.Tensor) else (members,)
         _tensor(f"{name}: observation", observation, "that of the state", shape, None, physics)
 
-    if values and not _transformed():
+    if not _transformed():
         for key, value in state._asdict().items():
             if not bool(torch.isfinite(value.detach()).all()):
                 raise ValueError(f"{name}: state.{key} has values that are not finite in {physics.dtype}")

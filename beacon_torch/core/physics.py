@@ -162,6 +162,10 @@ class Physics(abc.ABC):
             kept[key] = compute()
         return kept[key]
 
+    def recalled(self, key: Any) -> Any:
+        """What :meth:`remembered` keeps for ``key``, or None (nothing is computed)."""
+        return self.__dict__.get("_remembered", {}).get(key)
+
     @property
     def action_shape(self) -> tuple[int, ...]:
         """Per-member shape of the action: ``()`` for discrete, ``(n_actions,)`` else."""
