@@ -82,8 +82,10 @@ class Kernels:
     """The compiled kernels of one env. ``inductor_options`` are the env class's
     defaults for inductor."""
 
-    def __init__(self, inductor_options: dict | None = None) -> None:
+    def __init__(self, inductor_options: dict | None = None, chunk: int = 8) -> None:
         self.inductor_options = dict(inductor_options or {})
+        # substeps per compiled call where autograd records (see :meth:`loop`)
+        self.chunk = int(chunk)
         # the ``torch.compile`` options, None while the kernels run eagerly
         self.options: dict | None = None
         self._cache: dict[Callable, Callable] = {}
@@ -112,13 +114,18 @@ class Kernels:
         """``fn(i, carried, *inputs) -> carried`` (a substep, ``i`` its index in the
         action: an int, or a 0-dim int64 tensor inside a graph) applied for
         ``i = 0, ..., n - 1``; the returned function takes ``(n, carried, *inputs)``.
-        Eagerly, and wherever autograd records, it is a Python loop over ``fn`` (each
-        call compiled after :meth:`compile`); inside a compiled step, or compiled and
-        without a graph to keep, it is one ``while_loop``: the whole loop in one
+        Eagerly it is a Python loop over ``fn``. Compiled and without a graph to keep,
+        or inside a compiled step, it is one ``while_loop``: the whole loop in one
         compiled call whose code does not grow with ``n`` (a carried value ``fn``
-        hands on unchanged is copied there: the loop may not alias). What ``fn`` reads
-        per substep it takes with :func:`at` (an eager int and a traced tensor pick
-        the same values)."""
+        hands on unchanged is copied there: the loop may not alias). Compiled where
+        autograd records (a ``while_loop`` cannot be differentiated), it is a Python
+        loop over chunks of :attr:`chunk` substeps, each chunk one compiled call that
+        torch.compile differentiates as one graph, and the remainder substep by
+        substep: each compiled call with a graph pays a fixed cost in its wrappers
+        (the guards, AOTAutograd's runtime, the autograd engine's node) that is most
+        of a small substep's differentiated time, while a chunk's code, and its
+        compilation, grows with its length. What ``fn`` reads per substep it takes
+        with :func:`at` (an eager int and a traced tensor pick the same values)."""
         return _Loop(self, fn)
 
     def __getstate__(self) -> dict:
@@ -134,20 +141,36 @@ class _Loop:
         self.kernels, self.fn = kernels, fn
         self._step = _Kernel(kernels, fn)
         self._whole = _Kernel(kernels, self._graph)
+        self._chunks: dict[int, _Kernel] = {}
 
     def __call__(self, n: int, carried, *inputs):
+        compiled = self.kernels.options is not None and not torch.compiler.is_compiling()
+        if _records(carried, inputs) and compiled:
+            return self._chunked(n, carried, *inputs)
         if self.kernels.options is None or _records(carried, inputs):
-            # substeps compiled one by one take their index as a tensor, as inside a
-            # loop's graph: an int would be a constant of the compiled code, and each
-            # index an entry of its own, past the recompile limit for long actions
-            separate = self.kernels.options is not None and not torch.compiler.is_compiling()
             for i in range(n):
-                index = torch.tensor(i, device=_device(carried)) if separate else i
-                carried = self._step(index, carried, *inputs)
+                carried = self._step(i, carried, *inputs)
             return carried
         if torch.compiler.is_compiling():
             return self._graph(n, carried, *inputs)
         return self._whole(n, carried, *inputs)
+
+    def _chunked(self, n: int, carried, *inputs):
+        # compiled calls take the substep index as a tensor, as inside a loop's graph:
+        # an int would be a constant of the compiled code, and each index an entry of
+        # its own, past the recompile limit for long actions
+        device = _device(carried)
+        length = max(1, min(self.kernels.chunk, n))
+        chunk = self._chunks.get(length)
+        if chunk is None:
+            chunk = self._chunks[length] = _Kernel(self.kernels, _Chunk(self.fn, length))
+        done = 0
+        while done + length <= n:
+            carried = chunk(torch.tensor(done, device=device), carried, *inputs)
+            done += length
+        for i in range(done, n):
+            carried = self._step(torch.tensor(i, device=device), carried, *inputs)
+        return carried
 
     def _graph(self, n: int, carried, *inputs):
         from torch._higher_order_ops import while_loop
@@ -165,6 +188,20 @@ class _Loop:
 
         start = torch.zeros((), dtype=torch.int64, device=_device(carried))
         return while_loop(lambda i, carried: i < n, body, (start, _unaliased(carried)))[1]
+
+
+class _Chunk:
+    """``length`` substeps of ``fn`` from the substep ``start`` (a 0-dim tensor): one
+    compiled call of a differentiated loop (an object, not a closure, so that an env
+    can be pickled)."""
+
+    def __init__(self, fn: Callable, length: int) -> None:
+        self.fn, self.length = fn, length
+
+    def __call__(self, start: torch.Tensor, carried, *inputs):
+        for j in range(self.length):
+            carried = self.fn(start + j, carried, *inputs)
+        return carried
 
 
 def at(t: torch.Tensor, i) -> torch.Tensor:

@@ -12,8 +12,10 @@ round, after a warm-up (compilation) that is not counted:
   collector runs);
 - ``eager``: the differentiable env eager, ``horizon`` actions with the graph kept, then
   the backward pass of their summed rewards to the actions;
-- ``compiled``: the same with the env compiled (each substep one compiled call,
-  differentiated by torch.compile).
+- ``compiled``: the same with the env compiled (chunks of substeps, each one compiled
+  call differentiated by torch.compile as one graph);
+- ``compiled-K`` (asked for with ``--kinds``): the same with ``K`` substeps a compiled
+  call (``compiled-1``: each substep its own call).
 
 Recorded per env and round: CPU seconds per transition of each; the ratios are the
 medians over the rounds of each round's ratio. Writes a new
@@ -55,6 +57,8 @@ class Way:
             grad_checkpoint=checkpoint and differentiable,
             params=PARAMS.get(env_id, {}),
         )
+        if kind.startswith("compiled-"):  # another chunk of substeps per compiled call
+            self.env.physics.kernels.chunk = int(kind.split("-", 1)[1])
         self.env.reset()
         self.generator = torch.Generator().manual_seed(0)
 

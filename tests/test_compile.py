@@ -227,3 +227,50 @@ def test_whole_step_compiled_handles_a_blow_up_as_the_eager_step(env_id):
     torch.testing.assert_close(obs_c, obs_e, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(rew_c, rew_e, rtol=1e-9, atol=1e-12)
     assert [fn.__name__ for fn in compiled.kernels._cache] == ["step"]  # nothing compiled apart
+
+
+def test_a_differentiated_loop_runs_in_chunks_to_the_eager_gradient():
+    """Compiled with a graph to keep, a loop of 5 substeps at 2 a chunk is two chunk
+    calls and one single substep (no while_loop: it cannot be differentiated), whose
+    values and gradients are the eager loop's."""
+    from beacon_torch.compiled import Kernels, _Chunk, at
+
+    def substep(i, x, w):
+        return x * at(w, i) + torch.sin(x)
+
+    x0 = torch.linspace(-1.0, 1.0, 7, dtype=torch.float64)
+    w0 = torch.linspace(0.5, 0.9, 5, dtype=torch.float64)
+    out = []
+    for compiled in (False, True):
+        kernels = Kernels(chunk=2)
+        if compiled:
+            kernels.compile()
+        loop = kernels.loop(substep)
+        x, w = x0.clone().requires_grad_(), w0.clone().requires_grad_()
+        y = loop(5, x, w)
+        out.append((y.detach(), *torch.autograd.grad((y * y).sum(), (x, w))))
+    for got, want in zip(out[1], out[0], strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+    lengths = sorted(getattr(fn, "length", 1) for fn in kernels._cache)
+    assert lengths == [1, 2] and any(isinstance(fn, _Chunk) for fn in kernels._cache)
+
+
+@pytest.mark.slow(seconds=60)
+def test_a_differentiated_compiled_env_has_the_eager_gradient():
+    """burgers-v0 compiled and differentiable: its 62 substeps an action run as chunks
+    (and a remainder), and two actions' rewards differentiate to the eager env's
+    gradient, float64."""
+    from tensordict import TensorDict
+
+    grads = []
+    for compiled in (False, True):
+        env = beacon_torch.make("burgers-v0", 2, dtype="float64", seed=0, compile=compiled, differentiable=True)
+        env.reset()
+        actions = torch.tensor([[[0.3], [-0.2]], [[0.1], [0.4]]], dtype=torch.float64, requires_grad=True)
+        total = sum(
+            env.step(TensorDict({env.action_key: a}, batch_size=env.batch_size))["next", "reward"].sum()
+            for a in actions
+        )
+        grads.append(torch.autograd.grad(total, actions)[0])
+    assert grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[1], grads[0], **ROUND_OFF)

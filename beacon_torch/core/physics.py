@@ -65,6 +65,10 @@ class Physics(abc.ABC):
     # a few microseconds instead of tens, and a while_loop's iteration runs in C++
     # rather than in the generated Python wrapper
     inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
+    # substeps a compiled call runs where autograd records (compile=True with
+    # differentiable=True; see Kernels.loop): fewer calls, each with its fixed cost,
+    # against a compilation that grows with the chunk
+    grad_chunk: ClassVar[int] = 8
 
     def __init__(
         self,
@@ -82,7 +86,7 @@ class Physics(abc.ABC):
         # of choices
         self.n_obs, self.n_actions = self.sizes(params)
         # the compiled path: which functions run through torch.compile, decided later
-        self.kernels = Kernels(self.inductor_options)
+        self.kernels = Kernels(self.inductor_options, chunk=self.grad_chunk)
         self.settle = self.kernels(settle)
         with torch.no_grad():
             self.setup(params)

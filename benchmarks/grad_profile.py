@@ -1,0 +1,312 @@
+"""Where a differentiated transition's time goes, per env, split by piece, at the
+short-horizon actor-critic's batch and settings (``SHACConfig``), float32, one thread.
+
+    .venv/bin/python benchmarks/grad_profile.py [--envs ...] [--horizon 2]
+    .venv/bin/python benchmarks/grad_profile.py --page docs/performance.md
+
+Two profiles of the same block of actions (forward with the graph kept, then the
+backward pass of the summed rewards to the actions), each after a warm-up block:
+
+- **eager, by piece.** Every function and method of ``beacon_torch.numerics`` and every
+  function of the env's own modules runs inside a profiler scope of its name; each
+  operator's own time goes to its innermost scope. A backward operator goes to the scope
+  of the forward operator it differentiates (autograd's sequence numbers link the two),
+  so each piece has a forward and a backward share; forward operators run again during
+  the backward pass (gradient checkpointing recomputing an action) are counted as the
+  piece's ``recomputed`` share. The autograd engine's own bookkeeping (its per-node
+  frames, gradient accumulation, the seed of the backward pass) is ``autograd``; the
+  process time outside every operator (Python: the env's code, the wrappers, the
+  profiler's own) is ``python``.
+- **compiled, by kind.** The env as ``compile=True`` runs it differentiated: the
+  compiled forward graphs, the compiled backward graphs, the C kernels
+  (``beacon_torch::*``), operators outside the graphs, the wrappers around each compiled
+  call (dynamo's guard check, AOTAutograd's runtime, the autograd engine's frames) and
+  Python.
+
+Shares are fractions of the profiled block's process time (the profiler slows every
+operator a little, so the absolute times are above ``grad_cost.py``'s). Writes
+``grad-profile-ENV-DATE-TIME.json`` per env to ``benchmarks/results/grad_profile``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import inspect
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from beacon_torch.registry import continuous_envs
+
+HERE = Path(__file__).resolve()
+PARAMS = {"lorenz-continuous-v0": {"reward_width": 1.0}}
+SCOPE = "piece:"
+# the wrappers around a compiled call, and the autograd engine's own frames
+WRAPPERS = (
+    "CompiledFunction",
+    "CompiledFunctionBackward",
+    "Torch-Compiled Region",
+    "TorchDynamo Cache Lookup",
+    "AOTDispatcher",
+    "Pregraph bytecode",
+    "autograd::engine::evaluate_function",
+    "torch::autograd::AccumulateGrad",
+)
+
+
+def _scoped(fn, name: str):
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with torch.profiler.record_function(SCOPE + name):
+            return fn(*args, **kwargs)
+
+    wrapper._profiled = True
+    return wrapper
+
+
+def _own_modules(env_id: str) -> list:
+    """The numerics modules and the env's own (its module, and its package's modules)."""
+    from beacon_torch.registry import env_class
+
+    package = env_class(env_id).__module__.rsplit(".", 1)[0]
+    if package == "beacon_torch.envs":  # a one-module env
+        package = env_class(env_id).__module__
+    return [
+        m
+        for name, m in sorted(sys.modules.items())
+        if m is not None and (name.startswith("beacon_torch.numerics") or name.startswith(package))
+    ]
+
+
+@contextlib.contextmanager
+def scopes(env_id: str):
+    """Every function of the numerics and of the env's modules, and every method of their
+    classes, inside a profiler scope of its qualified name (rebound wherever a module of
+    the package holds the same object), for the duration of the block."""
+    modules = _own_modules(env_id)
+    wrapped: dict[int, object] = {}
+    undo: list[tuple[object, str, object]] = []
+
+    def wrap(owner, attr: str, fn, label: str) -> None:
+        if getattr(fn, "_profiled", False):
+            return
+        if id(fn) not in wrapped:
+            wrapped[id(fn)] = _scoped(fn, label)
+        undo.append((owner, attr, fn))
+        setattr(owner, attr, wrapped[id(fn)])
+
+    for module in modules:
+        short = module.__name__.removeprefix("beacon_torch.")
+        for attr, value in list(vars(module).items()):
+            if inspect.isfunction(value) and value.__module__ == module.__name__:
+                wrap(module, attr, value, f"{short}.{attr}")
+            elif inspect.isclass(value) and value.__module__ == module.__name__:
+                for name, member in list(vars(value).items()):
+                    if inspect.isfunction(member) and not name.startswith("__"):
+                        wrap(value, name, member, f"{short}.{value.__name__}.{name}")
+    # a function imported by name into another module of the package is rebound there
+    for name, module in list(sys.modules.items()):
+        if module is None or not name.startswith("beacon_torch"):
+            continue
+        for attr, value in list(vars(module).items()):
+            if inspect.isfunction(value) and id(value) in wrapped and not getattr(value, "_profiled", False):
+                undo.append((module, attr, value))
+                setattr(module, attr, wrapped[id(value)])
+    try:
+        yield
+    finally:
+        for owner, attr, fn in reversed(undo):
+            setattr(owner, attr, fn)
+
+
+class Block:
+    """``horizon`` differentiated actions of ``env_id`` and their backward pass."""
+
+    def __init__(self, env_id: str, compiled: bool, horizon: int) -> None:
+        import beacon_torch
+        from beacon_torch.training.config import SHACConfig, configure
+
+        cfg = configure(SHACConfig, env_id)
+        self.members, self.grad_checkpoint, self.horizon = cfg.num_envs, cfg.grad_checkpoint, horizon
+        self.env = beacon_torch.make(
+            env_id,
+            self.members,
+            seed=0,
+            compile=compiled,
+            differentiable=True,
+            grad_checkpoint=cfg.grad_checkpoint,
+            params=PARAMS.get(env_id, {}),
+        )
+        self.env.reset()
+        self.generator = torch.Generator().manual_seed(0)
+
+    def __call__(self, marks: list | None = None) -> None:
+        env = self.env
+        shape = (self.horizon, *env.batch_size, *env.action_spec.shape[1:])
+        actions = (0.2 * (2 * torch.rand(shape, generator=self.generator) - 1)).requires_grad_()
+        total = 0.0
+        for a in actions:
+            total = total + env.step(TensorDict({env.action_key: a}, batch_size=env.batch_size))["next", "reward"].sum()
+        with torch.profiler.record_function("phase:backward"):
+            total.backward()
+        env.detach_state()
+        if bool(env.step_count.max() >= env.episode_length - self.horizon):
+            env.reset()
+
+
+def _ancestors(event):
+    parent = event.cpu_parent
+    while parent is not None:
+        yield parent
+        parent = parent.cpu_parent
+
+
+def _is_wrapper(name: str) -> bool:
+    return name.startswith(WRAPPERS)
+
+
+def split_eager(events) -> dict[str, float]:
+    """Seconds per ``piece/share`` from an eager profile's events."""
+    piece_of_seq: dict[int, str] = {}
+    out: dict[str, float] = defaultdict(float)
+    # the forward operators' pieces first (a backward node names its forward's sequence number)
+    for e in events:
+        if e.sequence_nr >= 0 and not e.name.startswith("autograd::") and e.name[:1] != "#":
+            scope = next((a.name[len(SCOPE) :] for a in _ancestors(e) if a.name.startswith(SCOPE)), "(env code)")
+            piece_of_seq.setdefault(e.sequence_nr, scope)
+    for e in events:
+        if e.name.startswith((SCOPE, "phase:")):
+            continue
+        seconds = e.self_cpu_time_total * 1e-6
+        chain = list(_ancestors(e))
+        backward = any(a.name == "phase:backward" for a in chain) or e.name.startswith("autograd::engine")
+        node = next((a for a in [e, *chain] if a.name.startswith("autograd::engine::evaluate_function")), None)
+        if e.name.startswith(("autograd::engine", "torch::autograd::AccumulateGrad")) or (
+            node is None and backward and not any(a.name.startswith(SCOPE) for a in chain)
+        ):
+            out["autograd"] += seconds
+            continue
+        if node is not None:
+            piece = piece_of_seq.get(node.sequence_nr, "(env code)")
+            out[f"{piece}/backward"] += seconds
+            continue
+        scope = next((a.name[len(SCOPE) :] for a in chain if a.name.startswith(SCOPE)), "(env code)")
+        out[f"{scope}/{'recomputed' if backward else 'forward'}"] += seconds
+    return dict(out)
+
+
+def split_compiled(events) -> dict[str, float]:
+    """Seconds per kind from a compiled profile's events."""
+    out: dict[str, float] = defaultdict(float)
+    for e in events:
+        if e.name.startswith((SCOPE, "phase:")):
+            continue
+        seconds = e.self_cpu_time_total * 1e-6
+        chain = list(_ancestors(e))
+        if e.name.startswith("beacon_torch::") or any(a.name.startswith("beacon_torch::") for a in chain):
+            out["C kernels"] += seconds
+        elif "CompiledFxGraph" in e.name or any("CompiledFxGraph" in a.name for a in chain):
+            backward = any(a.name.startswith("CompiledFunctionBackward") for a in chain)
+            out["backward graphs" if backward else "forward graphs"] += seconds
+        elif _is_wrapper(e.name):
+            out["wrappers"] += seconds
+        else:
+            out["operators outside the graphs"] += seconds
+    return dict(out)
+
+
+def profile(env_id: str, compiled: bool, horizon: int) -> dict:
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    block = Block(env_id, compiled, horizon)
+    with contextlib.nullcontext() if compiled else scopes(env_id):
+        block()  # compilation, and the first call's allocations
+        block()
+        start = time.process_time()
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            block()
+        total = time.process_time() - start
+    split = (split_compiled if compiled else split_eager)(prof.events())
+    split["python"] = max(total - sum(split.values()), 0.0)
+    per_action = {k: v / horizon for k, v in sorted(split.items(), key=lambda kv: -kv[1])}
+    return dict(
+        env=env_id,
+        way="compiled" if compiled else "eager",
+        members=block.members,
+        grad_checkpoint=block.grad_checkpoint,
+        horizon=horizon,
+        seconds_per_action=total / horizon,
+        split=per_action,
+    )
+
+
+BEGIN, END = (
+    "<!-- differentiated transitions by piece: benchmarks/grad_profile.py -->",
+    "<!-- end of differentiated transitions by piece -->",
+)
+
+
+def _shares(row: dict, top: int) -> str:
+    total = row["seconds_per_action"]
+    items = list(row["split"].items())[:top]
+    return "; ".join(f"{k} {100 * v / total:.0f} %" for k, v in items)
+
+
+def page_table(folder: Path, top: int = 6) -> str:
+    """The newest record of each env in ``folder`` as a markdown table: each way's
+    largest shares."""
+    from beacon_torch import received
+
+    ways: dict[str, dict[str, dict]] = defaultdict(dict)
+    measured: dict[str, str] = {}
+    for path in sorted(folder.glob("grad-profile-*.json"), key=lambda p: p.name[-20:]):
+        record = received.json_file(path, "a differentiated profile record")
+        day = "-".join((path.stem[-15:-11], path.stem[-11:-9], path.stem[-9:-7]))
+        cpu = str(record.get("machine", "")).split(",")[0].replace("(R)", "").replace(" Processor", "")
+        for row in record["rows"]:
+            ways[row["env"]][row["way"]] = row
+            measured[row["env"]] = f"{day}, {cpu}"
+    lines = [
+        "| env | members | eager: the largest shares of a differentiated action (piece/part) "
+        "| compiled: the same by kind | measured |",
+        "|---|---|---|---|---|",
+    ]
+    for env_id in [e for e in continuous_envs() if e in ways]:
+        cells = [_shares(ways[env_id][w], top) if w in ways[env_id] else "-" for w in ("eager", "compiled")]
+        members = next(iter(ways[env_id].values()))["members"]
+        lines.append(f"| {env_id} | {members} | {cells[0]} | {cells[1]} | {measured[env_id]} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", default=continuous_envs())
+    parser.add_argument("--horizon", type=int, default=2)
+    parser.add_argument("--ways", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_profile")
+    parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
+    args = parser.parse_args()
+    if args.page is not None:
+        from beacon_torch.training.report import write_block
+
+        print(write_block(args.page, BEGIN, END, page_table(args.out)))
+        return
+    torch.set_num_threads(1)
+    from beacon_torch.files import save_rows
+
+    for env_id in args.envs:
+        rows = [profile(env_id, way == "compiled", args.horizon) for way in args.ways]
+        for row in rows:
+            print(f"{env_id} {row['way']}: {1e3 * row['seconds_per_action']:.1f} ms an action; {_shares(row, 8)}")
+        print(f"written to {save_rows(rows, args.out, f'grad-profile-{env_id}')}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
