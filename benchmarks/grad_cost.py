@@ -18,7 +18,8 @@ round, after a warm-up (compilation) that is not counted:
   call (``compiled-1``: each substep its own call).
 
 Recorded per env and round: CPU seconds per transition of each; the ratios are the
-medians over the rounds of each round's ratio. Writes a new
+medians over the rounds of each round's ratio; per way, the wall seconds of its two
+warm-up blocks (``warmup_s``: the compilation, where the inductor cache is cold). Writes a new
 ``grad-cost-ENV-DATE-TIME.json`` per env in ``benchmarks/results/grad_cost`` and prints
 a table.
 """
@@ -90,16 +91,26 @@ def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
 
     cfg = configure(SHACConfig, env_id)
     ways = {k: Way(env_id, cfg.num_envs, k, cfg.grad_checkpoint, horizon) for k in kinds}
-    for way in ways.values():  # compilation, forward and backward
+    warmup = {}
+    for k, way in ways.items():  # compilation, forward and backward
+        start = time.perf_counter()
         way.actions()
         way.actions()
+        warmup[k] = time.perf_counter() - start
     per = {k: [] for k in kinds}
     for _ in range(rounds):
         for k, way in ways.items():
             start = time.process_time()
             n = way.actions()
             per[k].append((time.process_time() - start) / n)
-    row = dict(env=env_id, members=cfg.num_envs, grad_checkpoint=cfg.grad_checkpoint, horizon=horizon, rounds=per)
+    row = dict(
+        env=env_id,
+        members=cfg.num_envs,
+        grad_checkpoint=cfg.grad_checkpoint,
+        horizon=horizon,
+        rounds=per,
+        warmup_s=warmup,
+    )
     for k in kinds:
         row[f"{k}_s"] = statistics.median(per[k])
         if k != "forward":
