@@ -23,8 +23,9 @@ backward pass of the summed rewards to the actions), each after a warm-up block:
   call (dynamo's guard check, AOTAutograd's runtime, the autograd engine's frames) and
   Python.
 
-Shares are fractions of the profiled block's process time (the profiler slows every
-operator a little, so the absolute times are above ``grad_cost.py``'s). Writes
+Shares are fractions of the profiled block's wall time, one thread on an otherwise idle
+core (the profiler slows every operator a little, so the absolute times are above
+``grad_cost.py``'s). Writes
 ``grad-profile-ENV-DATE-TIME.json`` per env to ``benchmarks/results/grad_profile``.
 """
 
@@ -229,10 +230,11 @@ def profile(env_id: str, compiled: bool, horizon: int) -> dict:
     with contextlib.nullcontext() if compiled else scopes(env_id):
         block()  # compilation, and the first call's allocations
         block()
-        start = time.process_time()
+        # wall time, as the profiler's events are (one thread on an otherwise idle core)
+        start = time.perf_counter()
         with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
             block()
-        total = time.process_time() - start
+        total = time.perf_counter() - start
     split = (split_compiled if compiled else split_eager)(prof.events())
     split["python"] = max(total - sum(split.values()), 0.0)
     per_action = {k: v / horizon for k, v in sorted(split.items(), key=lambda kv: -kv[1])}

@@ -256,8 +256,33 @@ def test_the_performance_page_shows_the_recorded_cost_of_differentiated_transiti
     root = Path(__file__).resolve().parents[1]
     cost = script("benchmarks/grad_cost.py")
     table = cost.page_table(root / "benchmarks" / "results" / "grad_cost")
-    assert "| burgers-v0 | 64 |" in table and "| shkadov-v0 | 64 |" in table
+    assert "| burgers-v0 | 64 |" in table and "| shkadov-v0 | 16 |" in table
     assert table in (root / "docs" / "performance.md").read_text()
+    profiles = script("benchmarks/grad_profile.py").page_table(root / "benchmarks" / "results" / "grad_profile")
+    assert "| burgers-v0 | 64 |" in profiles and "backward graphs" in profiles
+    assert profiles in (root / "docs" / "performance.md").read_text()
+
+
+def test_a_differentiated_transition_is_split_by_piece(tmp_path):
+    """benchmarks/grad_profile.py on lorenz: eagerly, the integrator's forward and
+    backward shares are told apart (a backward operator goes to the piece of the forward
+    one it differentiates), the rest is autograd's and Python's; compiled, the graphs and
+    their wrappers; every split sums to the block's time."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "benchmarks" / "grad_profile.py"), "--envs", "lorenz-continuous-v0"]
+    out = subprocess.run(command + ["--out", str(tmp_path)], capture_output=True, text=True, check=False, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (record,) = tmp_path.glob("grad-profile-lorenz-continuous-v0-*.json")
+    eager, compiled = json.loads(record.read_text())["rows"]
+    assert (eager["way"], compiled["way"]) == ("eager", "compiled")
+    assert {"envs.lorenz.lorenz_rhs/forward", "envs.lorenz.lorenz_rhs/backward", "autograd"} <= set(eager["split"])
+    assert {"forward graphs", "backward graphs", "wrappers"} <= set(compiled["split"])
+    for row in (eager, compiled):
+        assert sum(row["split"].values()) == pytest.approx(row["seconds_per_action"], rel=1e-6)
 
 
 def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_one(tmp_path):

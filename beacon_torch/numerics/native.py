@@ -148,6 +148,47 @@ void NAME(T *lam, T *ga, T *gb, const T *g, const T *x, const T *a, const T *b, 
 }
 SWEEP_ADJOINT(sweep_adjoint_f32, float)
 SWEEP_ADJOINT(sweep_adjoint_f64, double)
+
+/* The adjoint of the TVD derivative D_i = (F_{i+1/2} - F_{i-1/2}) / dx of each row of f
+   [rows, n] (faces F_j = f_j + phi(r_j) d_j / 2, d_j = f_{j+1} - f_j,
+   r_j = d_{j-1} / (d_j + 1e-8), phi_0 = 0): from the gradient g [rows, n - 2] of D, the
+   gradient of f, in the forward's own stencil form. Per row: each face's gradient G_j;
+   then what each face hands the differences it read (A_j to d_j, W_j to d_{j-1}, the
+   limiter's slope included: van Leer's, or minmod's, 1 on [0, 1] as clamp's backward);
+   then each cell's share of the differences next to it. work holds 2 n values. */
+#define TVD_ADJOINT(NAME, T)                                                        \
+void NAME(T *out, T *work, const T *f, const T *g, long rows, long n, T dx, long minmod) { \
+    T *A = work, *W = work + n;                                                     \
+    for (long b = 0; b < rows; ++b) {                                               \
+        const T *fr = f + b * n, *gr = g + b * (n - 2);                             \
+        T *o = out + b * n;                                                         \
+        o[0] = -(gr[0] / dx);                                                       \
+        for (long j = 1; j <= n - 3; ++j) o[j] = gr[j - 1] / dx - gr[j] / dx;       \
+        o[n - 2] = gr[n - 3] / dx;                                                  \
+        A[0] = 0; W[0] = 0; A[n - 1] = 0; W[n - 1] = 0;                             \
+        for (long j = 1; j <= n - 2; ++j) {                                         \
+            T G = o[j], dj = fr[j + 1] - fr[j], dm = fr[j] - fr[j - 1];             \
+            T den = dj + (T)1e-8, r = dm / den, phi, slope;                         \
+            if (minmod) {                                                           \
+                phi = r < 0 ? (T)0 : (r > 1 ? (T)1 : r);                            \
+                slope = (r >= 0 && r <= 1) ? (T)1 : (T)0;                           \
+            } else {                                                                \
+                T a = r < 0 ? -r : r, s = (T)(r > 0) - (T)(r < 0), q = 1 + a;       \
+                phi = (r + a) / q;                                                  \
+                slope = (1 + s) / q - (r + a) * s / (q * q);                        \
+            }                                                                       \
+            T w = (T)0.5 * G * dj * slope / den;                                    \
+            A[j] = (T)0.5 * G * phi - w * r;                                        \
+            W[j] = w;                                                               \
+        }                                                                           \
+        for (long k = 0; k <= n - 2; ++k) A[k] = A[k] + W[k + 1];                   \
+        o[n - 1] = A[n - 2];                                                        \
+        for (long k = n - 2; k >= 1; --k) o[k] = (o[k] - A[k]) + A[k - 1];          \
+        o[0] = o[0] - A[0];                                                         \
+    }                                                                               \
+}
+TVD_ADJOINT(tvd_adjoint_f32, float)
+TVD_ADJOINT(tvd_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
@@ -184,6 +225,9 @@ def _build() -> ctypes.CDLL | None:
             fn = getattr(lib, f"{name}_{suffix}")
             fn.argtypes = (*(pointer,) * arrays, size, size, size)
             fn.restype = None
+        fn = getattr(lib, f"tvd_adjoint_{suffix}")
+        fn.argtypes = (*(pointer,) * 4, size, size, ctype, size)
+        fn.restype = None
     return lib
 
 
@@ -237,6 +281,26 @@ def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int,
     pointer = ctypes.POINTER(ctype)
     getattr(lib, f"{name}_{suffix}")(*(ctypes.cast(t.data_ptr(), pointer) for t in (*results, *arrays)), *sizes)
     return tuple(results) if outs else results[0]
+
+
+def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod: bool) -> torch.Tensor:
+    """The gradient of ``f`` (``[..., n]``) of the TVD derivative of each of its rows
+    (:func:`beacon_torch.numerics.fluxes.tvd_derivative` with van Leer's limiter, or
+    minmod's), from the gradient ``grad`` (``[..., n - 2]``) of that derivative: the C
+    kernel. Only where :func:`applies` and :func:`takes`."""
+    lib = _library if _tried else library()
+    if lib is None or not takes(f, grad):
+        raise RuntimeError("tvd_adjoint: the C kernel does not apply here (see native.applies)")
+    n = f.shape[-1]
+    if n < 4 or grad.shape != (*f.shape[:-1], n - 2):
+        raise ValueError(f"tvd_adjoint: rows {tuple(f.shape)} and their gradient {tuple(grad.shape)} do not fit")
+    suffix, ctype = _KERNELS[f.dtype]
+    f, grad = f.contiguous(), grad.contiguous()
+    out, work = torch.empty_like(f), torch.empty(2 * n, dtype=f.dtype)
+    pointer = ctypes.POINTER(ctype)
+    arrays = (ctypes.cast(t.data_ptr(), pointer) for t in (out, work, f, grad))
+    getattr(lib, f"tvd_adjoint_{suffix}")(*arrays, f.numel() // n, n, dx, int(minmod))
+    return out
 
 
 def _members_vmap(op, member_args: tuple[int, ...], outputs: int = 1):
