@@ -185,20 +185,21 @@ def split_eager(events) -> dict[str, float]:
         if e.name.startswith((SCOPE, "phase:")):
             continue
         seconds = e.self_cpu_time_total * 1e-6
-        chain = list(_ancestors(e))
-        backward = any(a.name == "phase:backward" for a in chain) or e.name.startswith("autograd::engine")
-        node = next((a for a in [e, *chain] if a.name.startswith("autograd::engine::evaluate_function")), None)
-        if e.name.startswith(("autograd::engine", "torch::autograd::AccumulateGrad")) or (
-            node is None and backward and not any(a.name.startswith(SCOPE) for a in chain)
-        ):
+        if e.name.startswith(("autograd::engine", "torch::autograd::AccumulateGrad")):
             out["autograd"] += seconds
             continue
-        if node is not None:
-            piece = piece_of_seq.get(node.sequence_nr, "(env code)")
-            out[f"{piece}/backward"] += seconds
-            continue
-        scope = next((a.name[len(SCOPE) :] for a in chain if a.name.startswith(SCOPE)), "(env code)")
-        out[f"{scope}/{'recomputed' if backward else 'forward'}"] += seconds
+        chain = list(_ancestors(e))
+        backward = any(a.name == "phase:backward" for a in chain)
+        # the nearest of a piece's scope and a backward node: a checkpointed action's
+        # recomputation runs inside the backward node that first needs it, its
+        # operators inside their pieces' scopes
+        near = next((a for a in chain if a.name.startswith((SCOPE, "autograd::engine::evaluate_function"))), None)
+        if near is None:
+            out["autograd" if backward else "(env code)/forward"] += seconds
+        elif near.name.startswith(SCOPE):
+            out[f"{near.name[len(SCOPE) :]}/{'recomputed' if backward else 'forward'}"] += seconds
+        else:
+            out[f"{piece_of_seq.get(near.sequence_nr, '(env code)')}/backward"] += seconds
     return dict(out)
 
 
