@@ -254,23 +254,3 @@ def test_a_differentiated_loop_runs_in_chunks_to_the_eager_gradient():
     lengths = sorted(getattr(fn, "length", 1) for fn in kernels._cache)
     assert lengths == [1, 2] and any(isinstance(fn, _Chunk) for fn in kernels._cache)
 
-
-@pytest.mark.slow(seconds=60)
-def test_a_differentiated_compiled_env_has_the_eager_gradient():
-    """burgers-v0 compiled and differentiable: its 62 substeps an action run as chunks
-    (and a remainder), and two actions' rewards differentiate to the eager env's
-    gradient, float64."""
-    from tensordict import TensorDict
-
-    grads = []
-    for compiled in (False, True):
-        env = beacon_torch.make("burgers-v0", 2, dtype="float64", seed=0, compile=compiled, differentiable=True)
-        env.reset()
-        actions = torch.tensor([[[0.3], [-0.2]], [[0.1], [0.4]]], dtype=torch.float64, requires_grad=True)
-        total = sum(
-            env.step(TensorDict({env.action_key: a}, batch_size=env.batch_size))["next", "reward"].sum()
-            for a in actions
-        )
-        grads.append(torch.autograd.grad(total, actions)[0])
-    assert grads[0].abs().sum() > 0
-    torch.testing.assert_close(grads[1], grads[0], **ROUND_OFF)
