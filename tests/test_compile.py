@@ -253,4 +253,3 @@ def test_a_differentiated_loop_runs_in_chunks_to_the_eager_gradient():
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
     lengths = sorted(getattr(fn, "length", 1) for fn in kernels._cache)
     assert lengths == [1, 2] and any(isinstance(fn, _Chunk) for fn in kernels._cache)
-
