@@ -144,14 +144,14 @@ class _Loop:
         self._chunks: dict[int, _Kernel] = {}
 
     def __call__(self, n: int, carried, *inputs):
-        compiled = self.kernels.options is not None and not torch.compiler.is_compiling()
-        if _records(carried, inputs) and compiled:
-            return self._chunked(n, carried, *inputs)
-        if self.kernels.options is None or _records(carried, inputs):
+        records, inside = _records(carried, inputs), torch.compiler.is_compiling()
+        if self.kernels.options is None or (records and inside):
             for i in range(n):
                 carried = self._step(i, carried, *inputs)
             return carried
-        if torch.compiler.is_compiling():
+        if records:
+            return self._chunked(n, carried, *inputs)
+        if inside:
             return self._graph(n, carried, *inputs)
         return self._whole(n, carried, *inputs)
 
