@@ -156,31 +156,36 @@ SWEEP_ADJOINT(sweep_adjoint_f64, double)
    then what each face hands the differences it read (A_j to d_j, W_j to d_{j-1}, the
    limiter's slope included: van Leer's, or minmod's, 1 on [0, 1] as clamp's backward);
    then each cell's share of the differences next to it. work holds 2 n values. */
+#define TVD_FACES(T, SLOPE)                                                         \
+        for (long j = 1; j <= n - 2; ++j) {                                         \
+            T G = o[j], dj = fr[j + 1] - fr[j], dm = fr[j] - fr[j - 1];             \
+            T den = dj + (T)1e-8, r = dm / den, phi, slope;                         \
+            SLOPE(T)                                                                \
+            T w = (T)0.5 * G * dj * slope / den;                                    \
+            A[j] = (T)0.5 * G * phi - w * r;                                        \
+            W[j] = w;                                                               \
+        }
+#define MINMOD_SLOPE(T)                                                             \
+            phi = r < 0 ? (T)0 : (r > 1 ? (T)1 : r);                                \
+            slope = (r >= 0 && r <= 1) ? (T)1 : (T)0;
+#define VAN_LEER_SLOPE(T)                                                           \
+            T a = r < 0 ? -r : r, s = (T)(r > 0) - (T)(r < 0), q = 1 + a;           \
+            phi = (r + a) / q;                                                      \
+            slope = (1 + s) / q - (r + a) * s / (q * q);
+/* (the limiter is chosen outside the loop over faces, and no array aliases another,
+   so that the compiler vectorises that loop: a third of the time of the scalar one) */
 #define TVD_ADJOINT(NAME, T)                                                        \
-void NAME(T *out, T *work, const T *f, const T *g, long rows, long n, T dx, long minmod) { \
-    T *A = work, *W = work + n;                                                     \
+void NAME(T *restrict out, T *restrict work, const T *restrict f, const T *restrict g, \
+          long rows, long n, T dx, long minmod) {                                   \
+    T *restrict A = work, *restrict W = work + n;                                   \
     for (long b = 0; b < rows; ++b) {                                               \
-        const T *fr = f + b * n, *gr = g + b * (n - 2);                             \
-        T *o = out + b * n;                                                         \
+        const T *restrict fr = f + b * n, *restrict gr = g + b * (n - 2);           \
+        T *restrict o = out + b * n;                                                \
         o[0] = -(gr[0] / dx);                                                       \
         for (long j = 1; j <= n - 3; ++j) o[j] = gr[j - 1] / dx - gr[j] / dx;       \
         o[n - 2] = gr[n - 3] / dx;                                                  \
         A[0] = 0; W[0] = 0; A[n - 1] = 0; W[n - 1] = 0;                             \
-        for (long j = 1; j <= n - 2; ++j) {                                         \
-            T G = o[j], dj = fr[j + 1] - fr[j], dm = fr[j] - fr[j - 1];             \
-            T den = dj + (T)1e-8, r = dm / den, phi, slope;                         \
-            if (minmod) {                                                           \
-                phi = r < 0 ? (T)0 : (r > 1 ? (T)1 : r);                            \
-                slope = (r >= 0 && r <= 1) ? (T)1 : (T)0;                           \
-            } else {                                                                \
-                T a = r < 0 ? -r : r, s = (T)(r > 0) - (T)(r < 0), q = 1 + a;       \
-                phi = (r + a) / q;                                                  \
-                slope = (1 + s) / q - (r + a) * s / (q * q);                        \
-            }                                                                       \
-            T w = (T)0.5 * G * dj * slope / den;                                    \
-            A[j] = (T)0.5 * G * phi - w * r;                                        \
-            W[j] = w;                                                               \
-        }                                                                           \
+        if (minmod) { TVD_FACES(T, MINMOD_SLOPE) } else { TVD_FACES(T, VAN_LEER_SLOPE) } \
         for (long k = 0; k <= n - 2; ++k) A[k] = A[k] + W[k + 1];                   \
         o[n - 1] = A[n - 2];                                                        \
         for (long k = n - 2; k >= 1; --k) o[k] = (o[k] - A[k]) + A[k - 1];          \
@@ -192,10 +197,18 @@ TVD_ADJOINT(tvd_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
+# the vector instructions of the machine that builds (and so runs) the library, where
+# the compiler knows them: without contraction or reassociation (the flags above) a
+# vector lane computes what the scalar code does, bit for bit
+_HOST = ("-march=native",)
 
 _lock = threading.Lock()
 _library: ctypes.CDLL | None = None
 _tried = False
+
+
+def _compile(compiler: str, flags: tuple[str, ...], source: str, library: str) -> None:
+    subprocess.run([compiler, *flags, source, "-o", library], check=True, capture_output=True, timeout=120)
 
 
 def _build() -> ctypes.CDLL | None:
@@ -207,7 +220,10 @@ def _build() -> ctypes.CDLL | None:
     with open(source, "w") as f:
         f.write(_SOURCE)
     try:
-        subprocess.run([compiler, *_FLAGS, source, "-o", library], check=True, capture_output=True, timeout=120)
+        try:
+            _compile(compiler, (*_FLAGS, *_HOST), source, library)
+        except subprocess.CalledProcessError:
+            _compile(compiler, _FLAGS, source, library)
         lib = ctypes.CDLL(library)
     except (OSError, subprocess.SubprocessError) as err:
         warnings.warn(
