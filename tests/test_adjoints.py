@@ -210,8 +210,8 @@ def test_the_tvd_adjoint_is_autograds_gradient_of_the_reconstruction(limiter, ke
 
 def test_the_tvd_adjoint_maps_and_compiles():
     """``vmap`` of ``grad`` through the TVD derivative is the eager gradient; so is a
-    compiled gradient (inductor differentiating the slices) and the adjoint operator
-    called inside a compiled graph."""
+    compiled gradient (the adjoint operator inside the compiled backward graph) and the
+    adjoint operator called inside a compiled graph."""
     from beacon_torch.numerics import fluxes
 
     f, weight = tvd_inputs(3)
