@@ -103,6 +103,11 @@ class Kernels:
             self.options["options"] = options
         self._cache = {}
 
+    @property
+    def compiled(self) -> bool:
+        """Whether the kernels run compiled (after :meth:`compile`)."""
+        return self.options is not None
+
     def __call__(self, fn: Callable) -> Callable:
         """``fn`` (a function of tensors: a whole step, a substep) as the env runs it:
         itself in eager mode, compiled after :meth:`compile`. Inside a larger compiled

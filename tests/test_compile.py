@@ -253,3 +253,35 @@ def test_a_differentiated_loop_runs_in_chunks_to_the_eager_gradient():
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
     lengths = sorted(getattr(fn, "length", 1) for fn in kernels._cache)
     assert lengths == [1, 2] and any(isinstance(fn, _Chunk) for fn in kernels._cache)
+
+
+@pytest.mark.slow(seconds=60)
+@pytest.mark.parametrize("env_id", ["vortex-v0", "lorenz-continuous-v0", "ks-v0"])
+def test_a_small_action_is_one_differentiated_compiled_call_with_the_eager_gradient(env_id):
+    """Where a physics asks for it (``grad_whole_action``), a differentiated action on
+    the compiled path is one compiled call (substeps, bounds, observation and the
+    containment of blow-ups in one graph) whose rewards and gradients are the eager
+    env's, a member that blows up included (lorenz at rho = 1e6, with its smooth reward)."""
+    from beacon_torch.core.step import advance_settled
+
+    params = {"rho": [28.0, 1e6], "reward_width": 1.0} if env_id.startswith("lorenz") else {}
+    out, envs = [], []
+    for compiled in (False, True):
+        env = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=3, compile=compiled, differentiable=True, **params)
+        assert env.physics.grad_whole_action
+        env.reset()
+        g = torch.Generator().manual_seed(1)
+        actions = torch.stack([env.random_action(g) for _ in range(40)]).requires_grad_()
+        steps = [env.step_members(a) for a in actions]
+        rewards, terminated = torch.stack([s[1] for s in steps]), torch.stack([s[2] for s in steps])
+        (grad,) = torch.autograd.grad(rewards.sum(), actions)
+        out.append((rewards.detach(), terminated, grad))
+        envs.append(env)
+    (r_e, t_e, g_e), (r_c, t_c, g_c) = out
+    if env_id.startswith("lorenz"):
+        assert t_e[:, 1].any(), "the extreme member never blew up"
+    assert torch.equal(t_c, t_e)
+    assert torch.isfinite(g_c).all() and g_e.abs().max() > 0
+    torch.testing.assert_close(r_c, r_e, **ROUND_OFF)
+    torch.testing.assert_close(g_c, g_e, rtol=1e-8, atol=1e-10 * g_e.abs().max().item())
+    assert advance_settled in envs[1].kernels._cache  # the action compiled whole

@@ -39,7 +39,7 @@ import torch
 
 from beacon_torch.compiled import Kernels
 from beacon_torch.core.state import Noise, State
-from beacon_torch.core.step import settle
+from beacon_torch.core.step import advance_settled, settle
 
 
 class Physics(abc.ABC):
@@ -69,6 +69,13 @@ class Physics(abc.ABC):
     # differentiable=True; see Kernels.loop): fewer calls, each with its fixed cost,
     # against a compilation that grows with the chunk
     grad_chunk: ClassVar[int] = 8
+    # where autograd records on the compiled path, the whole action (the substeps
+    # unrolled, the bounds, the observation, the containment of blow-ups) as one compiled
+    # call differentiated as one graph: for an action of a few small substeps, whose
+    # calls and eager glue around the graphs cost more than the graphs (its compilation
+    # grows with the substeps; the graph's partitioner, not ``grad_checkpoint``, decides
+    # what the backward pass keeps)
+    grad_whole_action: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -88,6 +95,7 @@ class Physics(abc.ABC):
         # the compiled path: which functions run through torch.compile, decided later
         self.kernels = Kernels(self.inductor_options, chunk=self.grad_chunk)
         self.settle = self.kernels(settle)
+        self.settled_action = self.kernels(advance_settled)
         with torch.no_grad():
             self.setup(params)
 

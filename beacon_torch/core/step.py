@@ -55,10 +55,12 @@ def settle(
     return new, obs, reward, ok
 
 
-def _settled(physics, params, state, observation, action, count, noise, start, checkpoint, inside=None):
+def advance_settled(physics, params, state, observation, action, count, noise, start, checkpoint, inside=None):
     """The physics from ``start`` and :func:`settle` against ``state``: a member whose
     result is not finite, leaves its bounds or is not ``inside`` keeps ``state`` and
-    ``observation``. Returns ``(state, observation, reward, ok)``."""
+    ``observation``. Returns ``(state, observation, reward, ok)``. A kernel of its own
+    too (``physics.settled_action``), which a physics whose action is small runs as one
+    compiled call where autograd records it (``Physics.grad_whole_action``)."""
     if checkpoint and torch.is_grad_enabled():
         new, reward = checkpointed(physics.advance, params, start, action, count, noise)
     else:
@@ -119,7 +121,15 @@ def step(
     action, valid = physics.action_values(action)
 
     # the physics, and the blow-ups contained: the members that blew up keep their state
-    new, obs, reward, ok = _settled(physics, params, state, observation, action, count, noise, state, checkpoint)
+    if keep_graph and physics.grad_whole_action and physics.kernels.compiled:
+        # one differentiated graph: its partitioner, not a checkpoint, decides what is kept
+        new, obs, reward, ok = physics.settled_action(
+            physics, params, state, observation, action, count, noise, state, False
+        )
+    else:
+        new, obs, reward, ok = advance_settled(
+            physics, params, state, observation, action, count, noise, state, checkpoint
+        )
 
     # A member that blew up keeps its last state, but its own backward pass would still
     # multiply a zero gradient by an infinite derivative (0 * inf = NaN), which would
@@ -142,7 +152,7 @@ def step(
             }
             sound = dataclasses.replace(params, **per_member)
             start, taken = map_state(stand_in, state), stand_in(action)
-            new, obs, reward, ok = _settled(
+            new, obs, reward, ok = advance_settled(
                 physics, sound, state, observation, taken, count, noise, start, checkpoint, inside=ok
             )
         else:

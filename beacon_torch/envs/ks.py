@@ -214,6 +214,8 @@ class KSPhysics(Physics):
     Params = KSParams
     state_type = KSState
     episode_length = EPISODE_LENGTH
+    # an action is three matrix products: differentiated, the calls around them cost most
+    grad_whole_action = True
     deterministic = False  # each episode starts from a state of the bank, drawn
     # an episode's reward is above -3000 x 200 (|u| stays below 10 on the attractor and
     # under the bounded forcing): a blow-up scores below any completed episode
