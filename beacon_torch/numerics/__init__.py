@@ -8,6 +8,7 @@ compilable and differentiable.
 from beacon_torch.numerics.fluxes import (
     minmod,
     rusanov,
+    rusanov_divergence,
     third_derivative,
     tvd_derivative,
     tvd_faces,
@@ -37,6 +38,7 @@ __all__ = [
     "lsrk4_step",
     "minmod",
     "rusanov",
+    "rusanov_divergence",
     "third_derivative",
     "tvd_derivative",
     "tvd_faces",
