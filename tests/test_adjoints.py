@@ -218,18 +218,13 @@ def rusanov_inputs(seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
     return u, f, speed, rand((3, 2, 28), seed + 3)
 
 
-@pytest.mark.parametrize("kernel", ["C", "tensors"])
-def test_the_rusanov_adjoint_is_autograds_gradient_of_the_fluxes(kernel, monkeypatch):
-    """The Rusanov divergence's backward pass (a C loop a row, or its tensor form
-    elsewhere) gives autograd's gradients of the fluxes written as slices, for the state,
-    its flux and the wave speeds, on random rows with tied speeds and on a real
-    sloshing-v0 state, to round-off in float64; the forward values are the slices' own,
-    bit for bit."""
+def test_the_rusanov_adjoint_is_autograds_gradient_of_the_fluxes():
+    """The Rusanov divergence's backward pass (a C loop a row) gives autograd's gradients
+    of the fluxes written as slices, for the state, its flux and the wave speeds, on
+    random rows with tied speeds and on a real sloshing-v0 state, to round-off in
+    float64; the forward values are the slices' own, bit for bit."""
     from beacon_torch.envs.sloshing import with_walls
     from beacon_torch.numerics import fluxes
-
-    if kernel == "tensors":
-        monkeypatch.setenv("BEACON_TORCH_NATIVE", "0")
 
     env = beacon_torch.make("sloshing-v0", 3, dtype="float64", seed=0)
     env.reset()
@@ -251,22 +246,18 @@ def test_the_rusanov_adjoint_is_autograds_gradient_of_the_fluxes(kernel, monkeyp
         )
 
 
-def test_the_rusanov_adjoint_maps_and_compiles(monkeypatch):
+def test_the_rusanov_adjoint_maps_and_compiles():
     """``vmap`` of ``grad`` through the Rusanov divergence is the eager gradient; so is a
-    compiled gradient (the adjoint operator inside the compiled backward graph), traced
-    in a process whose C kernels are not built yet (a graph must not build them)."""
-    from beacon_torch.numerics import fluxes, native
-
-    monkeypatch.setattr(native, "_tried", False)
-    monkeypatch.setattr(native, "_library", None)
+    compiled gradient (the adjoint operator inside the compiled backward graph)."""
+    from beacon_torch.numerics import fluxes
 
     u, f, speed, weight = (t.reshape(6, -1) for t in rusanov_inputs(4))
     want = gradients(lambda *t: fluxes._rusanov_divergence(*t, 0.1), [u, f, speed], weight)
     loss = lambda u, f, s, w: (fluxes.rusanov_divergence(u, f, s, 0.1) * w).sum()
+    mapped = vmap(grad(loss, argnums=(0, 1, 2)))(u, f, speed, weight)
     compiled = torch.compile(loss, fullgraph=True)
     inputs = [t.clone().requires_grad_() for t in (u, f, speed)]
     traced = torch.autograd.grad(compiled(*inputs, weight), inputs)
-    mapped = vmap(grad(loss, argnums=(0, 1, 2)))(u, f, speed, weight)
     for got in (mapped, traced):
         for a, b in zip(got, want, strict=True):
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

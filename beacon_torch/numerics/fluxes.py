@@ -173,11 +173,11 @@ def rusanov_divergence(u: torch.Tensor, f: torch.Tensor, speed: torch.Tensor, dx
     physical flux ``f`` and the local wave speed ``speed`` (each face takes the larger
     of its two cells').
 
-    Where autograd records it, its backward pass is :func:`rusanov_adjoint`, written in
-    the forward's stencil form, instead of autograd's graph of shifted slices; the
-    forward's values are the same either way.
+    Where autograd records it on the CPU, its backward pass is :func:`rusanov_adjoint`,
+    written in the forward's stencil form (one C loop a row), instead of autograd's
+    graph of shifted slices; the forward's values are the same either way.
     """
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (u, f, speed)):
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (u, f, speed)) and native.applies(u.device, u.dtype):
         return _RusanovDivergence.apply(u, f, speed, dx)
     return _rusanov_divergence(u, f, speed, dx)
 
@@ -188,41 +188,14 @@ def _rusanov_divergence(u: torch.Tensor, f: torch.Tensor, speed: torch.Tensor, d
     return -(faces[..., 1:] - faces[..., :-1]) / dx
 
 
-def rusanov_adjoint_tensors(
-    u: torch.Tensor, speed: torch.Tensor, grad: torch.Tensor, dx: float
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`rusanov_adjoint` as tensor operations (any device and dtype): per face k its
-    gradient G_k, then what it hands its two cells (of u, of f, and of the larger of the
-    two speeds, halved between them where they tie, as torch.maximum's backward does),
-    then each cell's sum of its two faces' shares."""
-    pad = torch.nn.functional.pad
-    t = -(grad / dx)
-    faces = pad(t, (1, 0)) + -pad(t, (0, 1))  # G_k, k = 0..n-2
-    left, right = speed[..., :-1], speed[..., 1:]
-    dc = (-faces * (u[..., 1:] - u[..., :-1])) * 0.5
-    share = faces * (0.5 * torch.maximum(left, right))
-    half = 0.5 * faces
-    tie, zero = dc / 2, torch.zeros_like(dc)
-    to_left = torch.where(left > right, dc, torch.where(left == right, tie, zero))
-    to_right = torch.where(right > left, dc, torch.where(left == right, tie, zero))
-    return (
-        pad(share, (0, 1)) + -pad(share, (1, 0)),
-        pad(half, (0, 1)) + pad(half, (1, 0)),
-        pad(to_left, (0, 1)) + pad(to_right, (1, 0)),
-    )
-
-
 @torch.library.custom_op("beacon_torch::rusanov_adjoint", mutates_args=())
 def rusanov_adjoint(
     u: torch.Tensor, speed: torch.Tensor, grad: torch.Tensor, dx: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The gradients of ``u``, ``f`` and ``speed`` (``[..., n]``) of
     :func:`rusanov_divergence` from the gradient ``grad`` (``[..., n - 2]``) of its
-    result: the C loop on the CPU (one pass a row), :func:`rusanov_adjoint_tensors`
-    elsewhere. An operator, so that a compiled backward pass calls it as it is."""
-    if native.applies(u.device, u.dtype) and native.takes(u, speed, grad):
-        return native.rusanov_adjoint(u, speed, grad, dx)
-    return rusanov_adjoint_tensors(u, speed, grad, dx)
+    result (the C loop; an operator, so that a compiled backward pass calls it as it is)."""
+    return native.rusanov_adjoint(u, speed, grad, dx)
 
 
 @rusanov_adjoint.register_fake
