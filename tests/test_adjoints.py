@@ -208,61 +208,6 @@ def test_the_tvd_adjoint_is_autograds_gradient_of_the_reconstruction(limiter, ke
         assert torch.equal(fluxes.tvd_derivative(x, dx, lim).detach(), fluxes._tvd_derivative(f, dx, lim))
 
 
-def rusanov_inputs(seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rows ``(u, f, speed)`` and a weight, with stretches where neighbouring speeds tie
-    (a fluid at rest), where torch.maximum's backward splits the gradient."""
-    u, f = rand((3, 2, 30), seed), rand((3, 2, 30), seed + 1)
-    speed = rand((3, 2, 30), seed + 2).abs() + 0.5
-    speed[..., 4:9] = 1.25
-    speed[..., 17:19] = 0.75
-    return u, f, speed, rand((3, 2, 28), seed + 3)
-
-
-def test_the_rusanov_adjoint_is_autograds_gradient_of_the_fluxes():
-    """The Rusanov divergence's backward pass (a C loop a row) gives autograd's gradients
-    of the fluxes written as slices, for the state, its flux and the wave speeds, on
-    random rows with tied speeds and on a real sloshing-v0 state, to round-off in
-    float64; the forward values are the slices' own, bit for bit."""
-    from beacon_torch.envs.sloshing import with_walls
-    from beacon_torch.numerics import fluxes
-
-    env = beacon_torch.make("sloshing-v0", 3, dtype="float64", seed=0)
-    env.reset()
-    for _ in range(20):
-        env.step_members(torch.full((3, 1), 0.5, dtype=torch.float64))
-    h, q = with_walls(env.state.h, env.state.q)
-    g = 9.81
-    real = (q, q * q / h + 0.5 * g * h * h, (q / h).abs() + torch.sqrt(g * h), rand((3, h.shape[-1] - 2), 9))
-    dx = 0.0125
-    for u, f, speed, weight in (rusanov_inputs(0), real):
-        want = gradients(lambda *t: fluxes._rusanov_divergence(*t, dx), [u, f, speed], weight)
-        got = gradients(lambda *t: fluxes.rusanov_divergence(*t, dx), [u, f, speed], weight)
-        for a, b in zip(got, want, strict=True):
-            assert b.abs().max() > 0
-            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12 * b.abs().max().item())
-        x = u.clone().requires_grad_()
-        assert torch.equal(
-            fluxes.rusanov_divergence(x, f, speed, dx).detach(), fluxes._rusanov_divergence(u, f, speed, dx)
-        )
-
-
-def test_the_rusanov_adjoint_maps_and_compiles():
-    """``vmap`` of ``grad`` through the Rusanov divergence is the eager gradient; so is a
-    compiled gradient (the adjoint operator inside the compiled backward graph)."""
-    from beacon_torch.numerics import fluxes
-
-    u, f, speed, weight = (t.reshape(6, -1) for t in rusanov_inputs(4))
-    want = gradients(lambda *t: fluxes._rusanov_divergence(*t, 0.1), [u, f, speed], weight)
-    loss = lambda u, f, s, w: (fluxes.rusanov_divergence(u, f, s, 0.1) * w).sum()
-    mapped = vmap(grad(loss, argnums=(0, 1, 2)))(u, f, speed, weight)
-    compiled = torch.compile(loss, fullgraph=True)
-    inputs = [t.clone().requires_grad_() for t in (u, f, speed)]
-    traced = torch.autograd.grad(compiled(*inputs, weight), inputs)
-    for got in (mapped, traced):
-        for a, b in zip(got, want, strict=True):
-            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
-
-
 def test_the_tvd_adjoint_maps_and_compiles():
     """``vmap`` of ``grad`` through the TVD derivative is the eager gradient; so is a
     compiled gradient (the adjoint operator inside the compiled backward graph) and the

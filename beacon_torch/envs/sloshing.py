@@ -26,7 +26,7 @@ import torch
 from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
-from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov_divergence
+from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
 from beacon_torch.params import param
 from beacon_torch.starts import PUBLISHED, choose_start, published_members, published_table, start_param
 
@@ -83,8 +83,11 @@ def shallow_water_rhs(h: torch.Tensor, q: torch.Tensor, accel: torch.Tensor, g, 
     """(dh/dt, dq/dt) at the interior cells of ghosted fields ``[B, n+2]``."""
     flux_q = q * q / h + 0.5 * g * h * h
     speed = (q / h).abs() + torch.sqrt(g * h)
-    fh = rusanov_divergence(h, q, speed, dx)
-    fq = rusanov_divergence(q, flux_q, speed, dx) - accel[:, None]
+    c = torch.maximum(speed[:, :-1], speed[:, 1:])
+    face_h = rusanov(h[:, :-1], h[:, 1:], q[:, :-1], q[:, 1:], c)
+    face_q = rusanov(q[:, :-1], q[:, 1:], flux_q[:, :-1], flux_q[:, 1:], c)
+    fh = -(face_h[:, 1:] - face_h[:, :-1]) / dx
+    fq = -(face_q[:, 1:] - face_q[:, :-1]) / dx - accel[:, None]
     return fh, fq
 
 

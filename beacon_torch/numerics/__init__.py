@@ -8,7 +8,6 @@ compilable and differentiable.
 from beacon_torch.numerics.fluxes import (
     minmod,
     rusanov,
-    rusanov_divergence,
     third_derivative,
     tvd_derivative,
     tvd_faces,
@@ -38,7 +37,6 @@ __all__ = [
     "lsrk4_step",
     "minmod",
     "rusanov",
-    "rusanov_divergence",
     "third_derivative",
     "tvd_derivative",
     "tvd_faces",

@@ -114,20 +114,13 @@ def _(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod_limiter: bool) -> t
     return torch.empty_like(f, memory_format=torch.contiguous_format)
 
 
-def _rows_vmap(op, tensors: int, outputs: int = 1):
-    """A vmap rule for an operator on rows whose first ``tensors`` arguments are arrays
-    ``[..., n]`` (or ``[..., m]``) and whose others are numbers: every leading dimension
-    is a row, so the mapped one joins them at the front."""
-
-    def rule(info, in_dims, *args):
-        front = lambda t, dim: t.unsqueeze(0).expand(info.batch_size, *t.shape) if dim is None else t.movedim(dim, 0)
-        mapped = [front(t, dim) for t, dim in zip(args[:tensors], in_dims[:tensors], strict=True)]
-        return op(*mapped, *args[tensors:]), (0,) * outputs if outputs > 1 else 0
-
-    return rule
+def _rows_vmap(info, in_dims, f, grad, dx, minmod_limiter):
+    # every leading dimension is a row: the mapped one joins them at the front
+    front = lambda t, dim: t.unsqueeze(0).expand(info.batch_size, *t.shape) if dim is None else t.movedim(dim, 0)
+    return tvd_adjoint(front(f, in_dims[0]), front(grad, in_dims[1]), dx, minmod_limiter), 0
 
 
-tvd_adjoint.register_vmap(_rows_vmap(tvd_adjoint, 2))
+tvd_adjoint.register_vmap(_rows_vmap)
 
 
 class _TVDDerivative(torch.autograd.Function):
@@ -165,66 +158,6 @@ def rusanov(
     """Rusanov (local Lax-Friedrichs) numerical flux between a left and a right state:
     (f_L + f_R) / 2 - c (u_R - u_L) / 2, with ``speed`` c the largest local wave speed."""
     return 0.5 * (f_left + f_right) - 0.5 * speed * (u_right - u_left)
-
-
-def rusanov_divergence(u: torch.Tensor, f: torch.Tensor, speed: torch.Tensor, dx: float) -> torch.Tensor:
-    """-dF/dx at the interior cells ``1..n-2`` of rows ``[..., n]`` from the Rusanov
-    fluxes between neighbours, -(F_{i+1/2} - F_{i-1/2}) / dx, with the state ``u``, its
-    physical flux ``f`` and the local wave speed ``speed`` (each face takes the larger
-    of its two cells').
-
-    Where autograd records it on the CPU, its backward pass is :func:`rusanov_adjoint`,
-    written in the forward's stencil form (one C loop a row), instead of autograd's
-    graph of shifted slices; the forward's values are the same either way.
-    """
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (u, f, speed)) and native.applies(u.device, u.dtype):
-        return _RusanovDivergence.apply(u, f, speed, dx)
-    return _rusanov_divergence(u, f, speed, dx)
-
-
-def _rusanov_divergence(u: torch.Tensor, f: torch.Tensor, speed: torch.Tensor, dx: float) -> torch.Tensor:
-    c = torch.maximum(speed[..., :-1], speed[..., 1:])
-    faces = rusanov(u[..., :-1], u[..., 1:], f[..., :-1], f[..., 1:], c)
-    return -(faces[..., 1:] - faces[..., :-1]) / dx
-
-
-@torch.library.custom_op("beacon_torch::rusanov_adjoint", mutates_args=())
-def rusanov_adjoint(
-    u: torch.Tensor, speed: torch.Tensor, grad: torch.Tensor, dx: float
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The gradients of ``u``, ``f`` and ``speed`` (``[..., n]``) of
-    :func:`rusanov_divergence` from the gradient ``grad`` (``[..., n - 2]``) of its
-    result (the C loop; an operator, so that a compiled backward pass calls it as it is)."""
-    return native.rusanov_adjoint(u, speed, grad, dx)
-
-
-@rusanov_adjoint.register_fake
-def _(u: torch.Tensor, speed: torch.Tensor, grad: torch.Tensor, dx: float):
-    return tuple(torch.empty_like(u, memory_format=torch.contiguous_format) for _ in range(3))
-
-
-rusanov_adjoint.register_vmap(_rows_vmap(rusanov_adjoint, 3, outputs=3))
-
-
-class _RusanovDivergence(torch.autograd.Function):
-    """:func:`_rusanov_divergence` with :func:`rusanov_adjoint` as its backward pass."""
-
-    generate_vmap_rule = True
-
-    @staticmethod
-    def forward(u: torch.Tensor, f: torch.Tensor, speed: torch.Tensor, dx: float) -> torch.Tensor:
-        return _rusanov_divergence(u, f, speed, dx)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        u, _, speed, ctx.dx = inputs
-        ctx.save_for_backward(u, speed)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        u, speed = ctx.saved_tensors
-        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
-            return (*rusanov_adjoint(u, speed, grad, ctx.dx), None)
 
 
 def third_derivative(h: torch.Tensor, dx: float) -> torch.Tensor:

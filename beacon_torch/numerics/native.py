@@ -194,44 +194,6 @@ void NAME(T *restrict out, T *restrict work, const T *restrict f, const T *restr
 }
 TVD_ADJOINT(tvd_adjoint_f32, float)
 TVD_ADJOINT(tvd_adjoint_f64, double)
-
-/* The adjoint of the Rusanov divergence D_i = -(F_i - F_{i-1}) / dx of each row (cells
-   i = 1..n-2; face k between cells k and k + 1: F_k = (f_k + f_{k+1}) / 2
-   - c_k (u_{k+1} - u_k) / 2, c_k = max(s_k, s_{k+1})): from the gradient g
-   [rows, n - 2] of D, the gradients of u, f and s [rows, n], each operation's backward
-   as autograd takes it (a tie of the two speeds splits c_k's gradient in halves, as
-   torch.maximum's backward does). Per row: each face's gradient G_k and what it hands
-   its two cells, then each cell's sum of its two faces' shares. work holds 4 (n + 1)
-   values (each face array with a zero before the first face and after the last). */
-#define RUSANOV_ADJOINT(NAME, T)                                                    \
-void NAME(T *restrict gu, T *restrict gf, T *restrict gs, T *restrict work,         \
-          const T *restrict u, const T *restrict s, const T *restrict g,            \
-          long rows, long n, T dx) {                                                \
-    T *restrict P = work, *restrict H = work + (n + 1);                             \
-    T *restrict L = work + 2 * (n + 1), *restrict R = work + 3 * (n + 1);           \
-    P[0] = H[0] = L[0] = R[0] = 0; P[n] = H[n] = L[n] = R[n] = 0;                   \
-    for (long b = 0; b < rows; ++b) {                                               \
-        const T *restrict ur = u + b * n, *restrict sr = s + b * n, *restrict gr = g + b * (n - 2); \
-        T *restrict gur = gu + b * n, *restrict gfr = gf + b * n, *restrict gsr = gs + b * n; \
-        for (long k = 0; k <= n - 2; ++k) {                                         \
-            T left = k >= 1 ? -(gr[k - 1] / dx) : (T)0;                             \
-            T right = k <= n - 3 ? -(gr[k] / dx) : (T)0;                            \
-            T G = left + -right, sl = sr[k], sn = sr[k + 1];                        \
-            T c = sl > sn ? sl : sn, dc = (-G * (ur[k + 1] - ur[k])) * (T)0.5;      \
-            P[k + 1] = G * ((T)0.5 * c);                                            \
-            H[k + 1] = (T)0.5 * G;                                                  \
-            L[k + 1] = sl > sn ? dc : (sl == sn ? dc / 2 : (T)0);                   \
-            R[k + 1] = sn > sl ? dc : (sl == sn ? dc / 2 : (T)0);                   \
-        }                                                                           \
-        for (long j = 0; j < n; ++j) {                                              \
-            gur[j] = P[j + 1] + -P[j];                                              \
-            gfr[j] = H[j + 1] + H[j];                                               \
-            gsr[j] = L[j + 1] + R[j];                                               \
-        }                                                                           \
-    }                                                                               \
-}
-RUSANOV_ADJOINT(rusanov_adjoint_f32, float)
-RUSANOV_ADJOINT(rusanov_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
@@ -281,9 +243,6 @@ def _build() -> ctypes.CDLL | None:
             fn.restype = None
         fn = getattr(lib, f"tvd_adjoint_{suffix}")
         fn.argtypes = (*(pointer,) * 4, size, size, ctype, size)
-        fn.restype = None
-        fn = getattr(lib, f"rusanov_adjoint_{suffix}")
-        fn.argtypes = (*(pointer,) * 7, size, size, ctype)
         fn.restype = None
     return lib
 
@@ -358,32 +317,6 @@ def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod: bool) ->
     arrays = (ctypes.cast(t.data_ptr(), pointer) for t in (out, work, f, grad))
     getattr(lib, f"tvd_adjoint_{suffix}")(*arrays, f.numel() // n, n, dx, int(minmod))
     return out
-
-
-def rusanov_adjoint(
-    u: torch.Tensor, speed: torch.Tensor, grad: torch.Tensor, dx: float
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The gradients of ``u``, ``f`` and ``speed`` (``[..., n]``) of the Rusanov
-    divergence of each row (:func:`beacon_torch.numerics.fluxes.rusanov_divergence`)
-    from the gradient ``grad`` (``[..., n - 2]``) of that divergence: the C kernel.
-    Only where :func:`applies` and :func:`takes`."""
-    lib = _library if _tried else library()
-    if lib is None or not takes(u, speed, grad):
-        raise RuntimeError("rusanov_adjoint: the C kernel does not apply here (see native.applies)")
-    n = u.shape[-1]
-    if n < 3 or speed.shape != u.shape or grad.shape != (*u.shape[:-1], n - 2):
-        raise ValueError(
-            f"rusanov_adjoint: rows {tuple(u.shape)}, speeds {tuple(speed.shape)} and their gradient "
-            f"{tuple(grad.shape)} do not fit"
-        )
-    suffix, ctype = _KERNELS[u.dtype]
-    u, speed, grad = u.contiguous(), speed.contiguous(), grad.contiguous()
-    outs = tuple(torch.empty_like(u) for _ in range(3))
-    work = torch.empty(4 * (n + 1), dtype=u.dtype)
-    pointer = ctypes.POINTER(ctype)
-    arrays = (ctypes.cast(t.data_ptr(), pointer) for t in (*outs, work, u, speed, grad))
-    getattr(lib, f"rusanov_adjoint_{suffix}")(*arrays, u.numel() // n, n, dx)
-    return outs
 
 
 def _members_vmap(op, member_args: tuple[int, ...], outputs: int = 1):
