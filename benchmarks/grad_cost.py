@@ -12,8 +12,9 @@ round, after a warm-up (compilation) that is not counted:
   collector runs);
 - ``eager``: the differentiable env eager, ``horizon`` actions with the graph kept, then
   the backward pass of their summed rewards to the actions;
-- ``compiled``: the same with the env compiled (chunks of substeps, each one compiled
-  call differentiated by torch.compile as one graph);
+- ``compiled``: the same with the env compiled, as it runs (chunks of substeps, each
+  one compiled call differentiated by torch.compile as one graph; the whole action as
+  one such call where the physics asks for it, ``grad_whole_action``);
 - ``compiled-K`` (asked for with ``--kinds``): the same with ``K`` substeps a compiled
   call (``compiled-1``: each substep its own call).
 
@@ -34,7 +35,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from beacon_torch.registry import continuous_envs
+from beacon_torch.registry import continuous_envs, env_class
 
 HERE = Path(__file__).resolve()
 # a smooth reward where the default has no gradient
@@ -144,16 +145,19 @@ def page_table(folder: Path) -> str:
             newest[row["env"]] = {**newest.get(row["env"], {}), **row, "measured": f"{day}, {cpu}"}
     lines = [
         "| env | members | grad_checkpoint | forward, compiled (ms per transition) | differentiated, eager "
-        "| compiled, a call a substep | compiled, chunks of 8 | measured (each row's ways side by side) |",
+        "| compiled, a call a substep | compiled, as the env runs it | measured (each row's ways side by side) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for env_id in [e for e in continuous_envs() if e in newest]:
         r = newest[env_id]
         # a way not measured (the wakes' eager path: minutes a round) is a dash
         ratio = lambda kind, r=r: f"{r[f'{kind}_ratio']:.1f} x" if f"{kind}_ratio" in r else "-"
+        physics = env_class(env_id).physics_type
+        way = "one graph an action" if physics.grad_whole_action else f"chunks of {physics.grad_chunk}"
+        compiled = f"{ratio('compiled')} ({way})" if "compiled_ratio" in r else "-"
         lines.append(
             f"| {env_id} | {r['members']} | {r['grad_checkpoint']} | {1e3 * r['forward_s']:.3g} "
-            f"| {ratio('eager')} | {ratio('compiled-1')} | {ratio('compiled')} | {r['measured']} |"
+            f"| {ratio('eager')} | {ratio('compiled-1')} | {compiled} | {r['measured']} |"
         )
     return "\n".join(lines)
 
