@@ -344,3 +344,24 @@ def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_cu
     assert comparison.table() in (root / "docs" / "gradients.md").read_text()
     # on the paper's scale only: an env beyond it, without the paper's score, is left to its page
     assert "cylinder-v0" in comparison.scored_envs() and "pinball-v0" not in comparison.scored_envs()
+
+
+def test_the_memory_of_a_differentiated_horizon_is_recorded_per_env(tmp_path):
+    """benchmarks/grad_memory.py --peak on lorenz: a record with the process's resident
+    memory before a horizon, its peak during it (at least what it was before) and what
+    the horizon held, with the recipe's settings and a finite gradient."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "benchmarks" / "grad_memory.py"), "--peak", "--envs", "lorenz-continuous-v0"]
+    command += ["--members", "2", "--horizon", "3", "--out", str(tmp_path)]
+    out = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (record,) = tmp_path.glob("peak-*.json")
+    (row,) = json.loads(record.read_text())["rows"]
+    assert (row["env"], row["members"], row["horizon"]) == ("lorenz-continuous-v0", 2, 3)
+    assert row["rss_before"] > 0 and row["peak"] >= row["rss_before"] and row["held"] == row["peak"] - row["rss_before"]
+    assert row["finite"] is True and row["grad_checkpoint"] is False
