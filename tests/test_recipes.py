@@ -117,6 +117,9 @@ def test_recipes_compile_by_default(monkeypatch):
     assert configure(SHACConfig, "pinball-v0").compile is True
     assert configure(GradConfig, "cylinder-v0").compile is True
     assert configure(SHACConfig, "cylinder-v0").compile is True
+    assert configure(SHACConfig, "rayleigh-v0").compile is True
+    assert configure(SHACConfig, "mixing-continuous-v0").compile is True
+    assert configure(SHACConfig, "vortex-v0").compile is False
     assert configure(GradConfig, "pinball-v0", compile=False).compile is False
     monkeypatch.setenv("BEACON_TORCH_COMPILE", "0")
     assert configure(PPOConfig, "rayleigh-v0").compile is False
