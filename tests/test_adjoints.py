@@ -208,6 +208,25 @@ def test_the_tvd_adjoint_is_autograds_gradient_of_the_reconstruction(limiter, ke
         assert torch.equal(fluxes.tvd_derivative(x, dx, lim).detach(), fluxes._tvd_derivative(f, dx, lim))
 
 
+def test_the_adjoint_loops_take_subnormal_gradients_as_zero_and_leave_the_process_as_it_was():
+    """Gradients below the smallest normal float32 (they decay there upstream of an
+    actuator, where each operation on them is tens of times dearer) count as zero inside
+    the C adjoints; normal ones are unchanged, and the caller's arithmetic still keeps
+    subnormal numbers after the call."""
+    from beacon_torch.numerics import native
+
+    if not native.applies("cpu", torch.float32):
+        pytest.skip("no C kernels here")
+    f = torch.rand((4, 50), generator=torch.Generator().manual_seed(0))
+    tiny = torch.full((4, 48), 1e-39)
+    assert torch.equal(native.tvd_adjoint(f, tiny, 0.1, False), torch.zeros_like(f))
+    normal = torch.rand((4, 48), generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(
+        native.tvd_adjoint(f, normal, 0.1, False), native.tvd_adjoint(f.double(), normal.double(), 0.1, False).float()
+    )
+    assert float(torch.tensor(1e-39) * torch.tensor(1.0)) > 0.0
+
+
 def test_the_tvd_adjoint_maps_and_compiles():
     """``vmap`` of ``grad`` through the TVD derivative is the eager gradient; so is a
     compiled gradient (the adjoint operator inside the compiled backward graph) and the
