@@ -128,7 +128,8 @@ BEGIN, END = (
 def page_table(folder: Path) -> str:
     """The newest measurement of each env and way in ``folder`` as a markdown table (a
     way missing from an env's newest record, such as the cavities' eager path, keeps
-    its newest earlier ratio; each ratio is against the forward way of its own record)."""
+    its newest earlier ratio measured at the same members and ``grad_checkpoint``; each
+    ratio is against the forward way of its own record)."""
     from beacon_torch import received
 
     newest: dict[str, dict] = {}
@@ -142,7 +143,10 @@ def page_table(folder: Path) -> str:
                 # recorded before the chunks: its compiled way was a call a substep
                 row = {**row, "compiled-1_ratio": row["compiled_ratio"]}
                 del row["compiled_ratio"]
-            newest[row["env"]] = {**newest.get(row["env"], {}), **row, "measured": f"{day}, {cpu}"}
+            before = newest.get(row["env"], {})
+            if (before.get("members"), before.get("grad_checkpoint")) != (row["members"], row["grad_checkpoint"]):
+                before = {}  # ways measured with other settings are not this row's
+            newest[row["env"]] = {**before, **row, "measured": f"{day}, {cpu}"}
     lines = [
         "| env | members | grad_checkpoint | forward, compiled (ms per transition) | differentiated, eager "
         "| compiled, a call a substep | compiled, as the env runs it | measured (each row's ways side by side) |",
