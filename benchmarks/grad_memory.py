@@ -14,7 +14,7 @@ docs/gradients.md come from this script.
 
 With ``--peak``, the resident memory of a differentiated horizon as the actor-critic runs
 it (``--members``, ``--horizon`` actions, ``grad_checkpoint`` and the compiled path as its
-settings say, or as ``--compile`` says): one process per env, a first horizon to compile,
+settings say, or as ``--compile`` and ``--grad-checkpoint`` say): one process per env, a first horizon to compile,
 then the process's peak resident memory reset (Linux's ``clear_refs``) and a second
 horizon with its backward pass. Recorded per env: the resident memory before it, the
 peak during it (the process's whole, what a user's machine must hold) and the
@@ -91,7 +91,9 @@ def _status(field: str) -> int:
     raise RuntimeError(f"/proc/self/status has no {field}")
 
 
-def horizon_peak(env_id: str, members: int, horizon: int, compile: bool | None = None) -> dict:
+def horizon_peak(
+    env_id: str, members: int, horizon: int, compile: bool | None = None, checkpoint: bool | None = None
+) -> dict:
     """The resident memory of one differentiated horizon of ``env_id`` with the
     actor-critic's settings (its ``grad_checkpoint``; its compiled path unless
     ``compile`` says): before, at its peak (the process's) and the difference, in
@@ -101,9 +103,8 @@ def horizon_peak(env_id: str, members: int, horizon: int, compile: bool | None =
 
     cfg = configure(SHACConfig, env_id)
     compile = cfg.compile if compile is None else compile
-    env = beacon_torch.make(
-        env_id, members, seed=0, compile=compile, differentiable=True, grad_checkpoint=cfg.grad_checkpoint
-    )
+    checkpoint = cfg.grad_checkpoint if checkpoint is None else checkpoint
+    env = beacon_torch.make(env_id, members, seed=0, compile=compile, differentiable=True, grad_checkpoint=checkpoint)
     env.reset()
     g = torch.Generator().manual_seed(0)
 
@@ -131,7 +132,7 @@ def horizon_peak(env_id: str, members: int, horizon: int, compile: bool | None =
         members=members,
         horizon=horizon,
         compile=compile,
-        grad_checkpoint=cfg.grad_checkpoint,
+        grad_checkpoint=checkpoint,
         rss_before=before,
         peak=peak,
         held=peak - before,
@@ -140,7 +141,9 @@ def horizon_peak(env_id: str, members: int, horizon: int, compile: bool | None =
     )
 
 
-def peaks(envs: list[str], members: int, horizon: int, compile: bool | None, out: Path) -> Path:
+def peaks(
+    envs: list[str], members: int, horizon: int, compile: bool | None, checkpoint: bool | None, out: Path
+) -> Path:
     """:func:`horizon_peak` of each env in a process of its own; writes the record."""
     rows = []
     for env_id in envs:
@@ -154,8 +157,9 @@ def peaks(envs: list[str], members: int, horizon: int, compile: bool | None, out
             "--horizon",
             str(horizon),
         ]
-        if compile is not None:
-            command += ["--compile", str(compile).lower()]
+        for flag, value in (("--compile", compile), ("--grad-checkpoint", checkpoint)):
+            if value is not None:
+                command += [flag, str(value).lower()]
         done = subprocess.run(command, capture_output=True, text=True, check=True)
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
         r = rows[-1]
@@ -164,15 +168,9 @@ def peaks(envs: list[str], members: int, horizon: int, compile: bool | None, out
             f"| {_bytes(r['peak'])} | {_bytes(r['held'])} | {r['seconds']:.1f} s | {r['finite']} |",
             flush=True,
         )
-    import platform
+    from beacon_torch.files import save_rows
 
-    machine = (
-        f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
-    )
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"peak-{time.strftime('%Y%m%d-%H%M%S')}.json"
-    path.write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
-    return path
+    return save_rows(rows, out, "peak")
 
 
 def main(argv=None) -> None:
@@ -187,18 +185,20 @@ def main(argv=None) -> None:
     parser.add_argument("--members", type=int, default=8)
     parser.add_argument("--horizon", type=int, default=16)
     parser.add_argument("--compile", choices=["true", "false"], default=None, help="default: the recipe's setting")
+    parser.add_argument("--grad-checkpoint", choices=["true", "false"], default=None, help="default: the recipe's")
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_memory")
     args = parser.parse_args(argv)
     compile = None if args.compile is None else args.compile == "true"
+    checkpoint = None if args.grad_checkpoint is None else args.grad_checkpoint == "true"
     if args.peak_one is not None:
-        print(json.dumps(horizon_peak(args.peak_one, args.members, args.horizon, compile)))
+        print(json.dumps(horizon_peak(args.peak_one, args.members, args.horizon, compile, checkpoint)))
         return
     if args.peak:
         envs = args.envs or PEAK_ENVS
         print(f"one horizon, {torch.get_num_threads()} threads, resident memory of the process")
         print("| env | members x actions | compiled | grad_checkpoint | before | peak | held | time | finite |")
         print("|---|---|---|---|---|---|---|---|---|")
-        print(f"written to {peaks(envs, args.members, args.horizon, compile, args.out)}")
+        print(f"written to {peaks(envs, args.members, args.horizon, compile, checkpoint, args.out)}")
         return
     dtype = getattr(torch, args.dtype)
     args.envs = args.envs or list(ENVS)

@@ -358,9 +358,13 @@ def test_the_memory_of_a_differentiated_horizon_is_recorded_per_env(tmp_path):
     root = Path(__file__).resolve().parents[1]
     command = [sys.executable, str(root / "benchmarks" / "grad_memory.py"), "--peak", "--envs", "lorenz-continuous-v0"]
     command += ["--members", "2", "--horizon", "3", "--out", str(tmp_path)]
+    # a file of another's where a record could be named: left as it was
+    planted = tmp_path / "peak-planted.json"
+    planted.write_text("theirs")
     out = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
-    (record,) = tmp_path.glob("peak-*.json")
+    assert planted.read_text() == "theirs"
+    (record,) = set(tmp_path.glob("peak-*.json")) - {planted}
     (row,) = json.loads(record.read_text())["rows"]
     assert (row["env"], row["members"], row["horizon"]) == ("lorenz-continuous-v0", 2, 3)
     assert row["rss_before"] > 0 and row["peak"] >= row["rss_before"] and row["held"] == row["peak"] - row["rss_before"]
