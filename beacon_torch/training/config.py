@@ -118,14 +118,14 @@ SHAC = {
     "vortex-v0": dict(grad_checkpoint=True, stagger=True),
     # compiled: a differentiated action measured 5.4 to 6.3 (rayleigh) and 8.4 (mixing)
     # times the compiled forward one, eagerly 28 and 25 times. Compiled, a horizon of
-    # rayleigh kept whole peaks at 2.5 GiB (0.7 recomputed) for a quarter less time;
-    # mixing's at 9.4 GiB (1.2 recomputed), so it recomputes each action
+    # rayleigh kept whole peaks at 2.5 GiB (0.8 recomputed) at 3.9 times the forward;
+    # mixing's at 9.5 GiB (1.2 recomputed), so it recomputes each action
     "rayleigh-v0": dict(num_envs=8, horizon=16, compile=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, compile=True),
     # the wakes compiled as in the gradient recipe, for the same measured reasons; the
     # cylinder's compiled horizon kept whole (16 actions at 8 members: 2.6 GiB at the
-    # process's peak against 0.9 recomputed, 0.30 less time), the pinball's actions
-    # (0.55 GB a member) recomputed
+    # process's peak against 0.95 recomputed; 3.8 times the forward against 5.0), the
+    # pinball's actions (0.55 GB a member) recomputed
     "cylinder-v0": dict(num_envs=8, horizon=20, compile=True),
     "pinball-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True, compile=True),
 }
