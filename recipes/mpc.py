@@ -20,7 +20,9 @@ planner's model a smooth stand-in, the episodes still judged by the env's reward
 plan's gradient is not finite keeps its plan for that iteration (counted). Writes a
 new OUT/mpc.json: the scores, the normalised score, the CPU time per action and the
 settings. ``--actions N`` plans N actions only and records their cost, for envs whose
-episode takes too long to plan.
+episode takes too long to plan. Every ``--checkpoint-every`` actions the episodes under
+way are saved in OUT (the env's state, the plans, the scores so far); a stopped run goes
+on with the same command and ``--resume``, to the same record as without the stop.
 """
 
 from __future__ import annotations
@@ -32,17 +34,22 @@ import time
 from pathlib import Path
 
 import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import beacon_torch
-from beacon_torch import files, threads
+from beacon_torch import episodes, files, received, threads
 from beacon_torch.core.state import map_state
+from beacon_torch.episodes import progress_bar
 from beacon_torch.registry import env_class
 from beacon_torch.training import config
 from beacon_torch.training.config import MPCConfig
 from beacon_torch.training.env import horizon_bytes, make_env
-from beacon_torch.training.evaluation import EVAL_SEED, evaluate_policy
+from beacon_torch.training.evaluation import EVAL_SEED, uncontrolled_episodes
 from beacon_torch.training.report import normalised
 from beacon_torch.training.run import fits
+
+# where planned episodes under way are kept
+CHECKPOINT = "mpc-checkpoint.pt"
 
 
 def predicted_return(base, model, plan: torch.Tensor, args, generator: torch.Generator) -> torch.Tensor:
@@ -88,42 +95,149 @@ def improve(base, model, plan: torch.Tensor, args, generator: torch.Generator, s
     return plan.detach()
 
 
-def planner(args, stats: dict):
-    """The controller: a function of the evaluation env returning its policy."""
+class Planner:
+    """The controller of the evaluation env ``base``: before each action, the plan of
+    every member is improved (:func:`improve`), its first action taken, and the rest,
+    shifted, with the last one repeated, start the next plan. ``stats`` counts the
+    planned actions, their CPU seconds and the iterations dropped."""
 
-    def on(env):
-        base = env.base_env
-        model = base
+    def __init__(self, base, args: MPCConfig) -> None:
+        self.base, self.args = base, args
+        self.model = base
         if args.plan_params:
             params = {**args.params, **args.plan_params}
-            model = beacon_torch.make(
+            self.model = beacon_torch.make(
                 args.env, base.num_envs, params=params, dtype=base.dtype, device=base.device, compile=args.compile
             )
-        plan = torch.zeros(
+        self.plan = torch.zeros(
             (args.horizon, base.num_envs, *base.physics.action_shape), dtype=base.dtype, device=base.device
         )
-        generator = torch.Generator(device=base.device).manual_seed(args.seed)
+        self.generator = torch.Generator(device=base.device).manual_seed(args.seed)
+        self.stats = {"actions": 0, "cpu_s": 0.0, "dropped": 0}
 
-        def act(td):
-            nonlocal plan
-            start = time.process_time()
-            plan = improve(base, model, plan, args, generator, stats)
-            # the first action is taken; the rest, shifted, start the next plan
-            action = plan[0].clone()
-            plan = torch.cat([plan[1:], plan[-1:]])
-            stats["actions"] += 1
-            stats["cpu_s"] += time.process_time() - start
-            return td.set(base.action_key, action)
+    def __call__(self, td):
+        start = time.process_time()
+        plan = improve(self.base, self.model, self.plan, self.args, self.generator, self.stats)
+        action = plan[0].clone()
+        self.plan = torch.cat([plan[1:], plan[-1:]])
+        self.stats["actions"] += 1
+        self.stats["cpu_s"] += time.process_time() - start
+        return td.set(self.base.action_key, action)
 
-        return act
 
-    on.acts_on_env = True
-    return on
+def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> torch.Tensor:
+    """The score of each member's planned episode of ``env`` (float64; of its first
+    ``args.actions`` actions where given), as the recipes' evaluation scores an episode:
+    the rewards up to its end. Every ``args.checkpoint_every`` actions, where the
+    episodes are (the env's state and generators, the plans, the scores so far) is
+    saved to ``path``; with ``args.resume`` they go on from there, the same episodes as
+    without the stop."""
+    base = env.base_env
+    length = args.actions or base.episode_length
+    scores = torch.zeros(base.num_envs, dtype=torch.float64, device=base.device)
+    going = torch.ones(base.num_envs, dtype=torch.bool, device=base.device)
+    done = 0
+    env.reset()
+    if args.resume and path.is_file():
+        saved = read_checkpoint(path, base, planner, args, length)
+        base.load_state_dict(saved["env"])
+        planner.plan, planner.stats = saved["plan"], saved["stats"]
+        planner.generator.set_state(saved["generator"])
+        scores, going, done = saved["scores"], saved["going"], saved["actions_done"]
+        print(f"resuming {path}: {done} of {length} actions planned")
+    td = base.current()
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        with progress_bar(f"{args.env} planned" if args.progress else None, length) as bar:
+            bar.update(done)
+            while done < length and bool(going.any()):
+                td = planner(td)
+                if not bool(going.all()):
+                    # a member whose episode ended (a blow-up) is not stepped again
+                    td.set("_step", going.unsqueeze(-1))
+                step = env.step(td)["next"]
+                scores += torch.where(going, step["reward"][..., 0].to(torch.float64), 0.0)
+                going &= ~step["done"][..., 0]
+                td, done = step, done + 1
+                bar.update()
+                if done % args.checkpoint_every == 0 and done < length and bool(going.any()):
+                    saved = {
+                        "env_id": args.env,
+                        "settings": dataclasses.asdict(args),
+                        "actions_done": done,
+                        "scores": scores,
+                        "going": going,
+                        "env": base.state_dict(),
+                        "plan": planner.plan,
+                        "generator": planner.generator.get_state(),
+                        "stats": planner.stats,
+                    }
+                    files.save_tensors(saved, path)
+    return scores
+
+
+# how a planning run is carried out, free to change when it is resumed
+RUN_OPTIONS = ("out", "resume", "progress", "threads", "checkpoint_every")
+
+
+def read_checkpoint(path: Path, base, planner: Planner, args: MPCConfig, length: int) -> dict:
+    """The checkpoint of planned episodes at ``path``, read as data within bounds: every
+    tensor laid out as this run's own (the env's state dict, the plans, the generator's
+    state, the scores), its settings this run's (the run options apart), checked before
+    anything is copied from the file."""
+
+    def bad(what: str):
+        return received.BadFile(f"{path}: not a checkpoint of these planned episodes ({what})")
+
+    def same_layout(saved, own, where: str) -> None:
+        if isinstance(own, torch.Tensor):
+            if not isinstance(saved, torch.Tensor) or saved.shape != own.shape or saved.dtype != own.dtype:
+                raise bad(f"{where} must be a {own.dtype} tensor of shape {tuple(own.shape)}")
+        elif isinstance(own, dict):
+            if not isinstance(saved, dict) or set(saved) != set(own):
+                raise bad(f"{where} must hold {sorted(own)}")
+            for key, value in own.items():
+                same_layout(saved[key], value, f"{where}.{key}")
+        elif type(saved) is not type(own) or (isinstance(own, float) and not received.finite_number(saved)):
+            raise bad(f"{where} must be a finite {type(own).__name__}")
+
+    def check(saved) -> None:
+        members = base.num_envs
+        own = {
+            "env_id": args.env,
+            "settings": dataclasses.asdict(args),
+            "actions_done": 0,
+            "scores": torch.zeros(members, dtype=torch.float64),
+            "going": torch.zeros(members, dtype=torch.bool),
+            "env": base.state_dict(),
+            "plan": planner.plan,
+            "generator": planner.generator.get_state(),
+            "stats": planner.stats,
+        }
+        if not isinstance(saved, dict) or set(saved) != set(own):
+            raise bad(f"it must hold {sorted(own)}")
+        if saved["env_id"] != args.env:
+            raise bad(f"its env is {str(saved['env_id'])[:100]!r}, not {args.env}")
+        if not isinstance(saved["settings"], dict):
+            raise bad("'settings' must be a dict")
+        for name, value in own["settings"].items():
+            if name not in RUN_OPTIONS and saved["settings"].get(name) != value:
+                raise ValueError(
+                    f"{path}: setting '{name}' = {value!r} differs from the planned episodes' "
+                    f"{saved['settings'].get(name)!r}; resumed episodes keep the settings they were started with"
+                )
+        for key in ("actions_done", "scores", "going", "env", "plan", "generator", "stats"):
+            same_layout(saved[key], own[key], key)
+        if not 0 < saved["actions_done"] < length or min(saved["stats"].values()) < 0:
+            raise bad(f"'actions_done' must lie in [1, {length - 1}] and the counts be non-negative")
+
+    return received.torch_file(path, "checkpoint of planned episodes", check)
 
 
 def main(args: MPCConfig) -> dict:
     """Plan the evaluation episodes (or ``args.actions`` actions only) and write their
-    record, a new ``OUT/mpc.json``; returns the record."""
+    record, a new ``OUT/mpc.json``; returns the record. A stopped run goes on with
+    ``--resume`` from its last checkpoint (``OUT/mpc-checkpoint.pt``, removed once the
+    record is written)."""
     # the graph of a plan of every member, estimated from one action, must fit
     model_params = {**args.params, **args.plan_params}
     need = horizon_bytes(
@@ -135,11 +249,18 @@ def main(args: MPCConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     lock = files.Lock(out)  # a second planner writing here is refused
     try:
-        record_file = out / "mpc.json"
+        record_file, checkpoint = out / "mpc.json", out / CHECKPOINT
         files.refuse_existing([record_file], "give another --out")  # before the episodes, not after
+        if not args.resume:
+            files.refuse_existing([checkpoint], "it holds planned episodes under way: give --resume, or another --out")
         starts = None if args.starts == "own" else args.starts
-        stats = {"actions": 0, "cpu_s": 0.0, "dropped": 0}
-        control = planner(args, stats)
+        sets = {} if starts is None else {"starts": starts}
+        env = make_env(
+            args.env, args.num_envs, seed=EVAL_SEED, norm_steps=0, params=args.params, compile=args.compile,
+            device=args.device, **sets,
+        )  # fmt: skip
+        planner = Planner(env.base_env, args)
+        scores = planned_episodes(env, planner, args, checkpoint)
         record = {
             "env": args.env,
             "params": args.params,
@@ -147,37 +268,18 @@ def main(args: MPCConfig) -> dict:
             "starts": args.starts,
             "settings": dataclasses.asdict(args),
         }
-        if args.actions:
-            # the cost only: a few planned actions of the evaluation episodes
-            sets = {} if starts is None else {"starts": starts}
-            env = make_env(
-                args.env,
-                args.num_envs,
-                seed=EVAL_SEED,
-                norm_steps=0,
-                params=args.params,
-                compile=args.compile,
-                device=args.device,
-                **sets,
+        if not args.actions:
+            free, _ = uncontrolled_episodes(
+                args.env, args.num_envs, device=args.device, seed=EVAL_SEED, params=args.params, starts=starts
             )
-            act, td = control(env), env.reset()
-            for _ in range(args.actions):
-                td = env.step(act(td))["next"]
-        else:
-            result = evaluate_policy(
-                args.env,
-                control,
-                num_envs=args.num_envs,
-                seed=EVAL_SEED,
-                params=args.params,
-                starts=starts,
-                progress=args.progress,
-                compile=args.compile,
-                device=args.device,
+            record.update(
+                score_mean=scores.mean().item(),
+                score_std=scores.std(unbiased=False).item(),
+                uncontrolled=episodes.scores(free).mean().item(),
             )
-            record.update({k: result[k] for k in ("score_mean", "score_std", "uncontrolled")})
             if env_class(args.env).paper_ppo is not None:  # else no reference score to scale by
-                record["normalised"] = float(normalised(result["score_mean"], result["uncontrolled"], args.env))
+                record["normalised"] = float(normalised(record["score_mean"], record["uncontrolled"], args.env))
+        stats = planner.stats
         record.update(
             planned_actions=stats["actions"],
             cpu_s_per_action=stats["cpu_s"] / max(stats["actions"], 1),
@@ -189,6 +291,7 @@ def main(args: MPCConfig) -> dict:
                 raise ValueError(f"{args.env}: the planned episodes' {key} is {value}; nothing is recorded")
         text = json.dumps(record, indent=1, allow_nan=False)
         files.create_file(record_file, lambda tmp: tmp.write_text(text), "give another --out")
+        checkpoint.unlink(missing_ok=True)
     finally:
         lock.release()
     if "score_mean" in record:

@@ -68,6 +68,50 @@ def test_planned_episodes_beat_no_control_and_are_recorded_once(tmp_path, capsys
     assert "mpc.json exists and is not overwritten" in capsys.readouterr().err
 
 
+def test_planned_episodes_stopped_and_resumed_are_those_of_one_run(tmp_path, monkeypatch, capsys):
+    """Two lorenz episodes planned 3 actions ahead, stopped at the 100th action and
+    resumed from the checkpoint of the 80th: the record is the one of a run without the
+    stop, and the checkpoint is gone with it. A checkpoint under way is not started
+    over without --resume, nor resumed with other settings or once altered."""
+    argv = ["--env", "lorenz-continuous-v0", *SMOOTH, "--horizon", "3", "--iterations", "2", "--num-envs", "2"]
+    argv += ["--threads", "1", "--no-progress", "--checkpoint-every", "40"]
+    whole = mpc.main(mpc.parse([*argv, "--out", str(tmp_path / "whole")]))
+
+    out = tmp_path / "stopped"
+    improve, calls = mpc.improve, []
+
+    def stopping(*args):
+        calls.append(1)
+        if len(calls) == 100:
+            raise KeyboardInterrupt
+        return improve(*args)
+
+    monkeypatch.setattr(mpc, "improve", stopping)
+    with pytest.raises(KeyboardInterrupt):
+        mpc.main(mpc.parse([*argv, "--out", str(out)]))
+    monkeypatch.setattr(mpc, "improve", improve)
+    checkpoint = out / mpc.CHECKPOINT
+    assert checkpoint.is_file() and not (out / "mpc.json").exists()
+
+    with pytest.raises(FileExistsError, match="holds planned episodes under way: give --resume"):
+        mpc.main(mpc.parse([*argv, "--out", str(out)]))
+    with pytest.raises(ValueError, match="setting 'iterations' = 3 differs from the planned episodes' 2"):
+        mpc.main(mpc.parse([*argv, "--iterations", "3", "--out", str(out), "--resume"]))
+    kept = checkpoint.read_bytes()
+    saved = torch.load(checkpoint, weights_only=True)
+    saved["plan"] = saved["plan"][:2]
+    torch.save(saved, checkpoint)
+    with pytest.raises(ValueError, match=r"not a checkpoint of these planned episodes \(plan must be"):
+        mpc.main(mpc.parse([*argv, "--out", str(out), "--resume"]))
+    checkpoint.write_bytes(kept)
+
+    resumed = mpc.main(mpc.parse([*argv, "--out", str(out), "--resume"]))
+    assert "resuming" in capsys.readouterr().out and not checkpoint.exists()
+    for key in ("score_mean", "score_std", "uncontrolled", "normalised", "planned_actions", "dropped_iterations"):
+        assert resumed[key] == whole[key], key
+    assert resumed["planned_actions"] == 500
+
+
 def test_the_cost_of_planned_actions_is_recorded_without_an_episode(tmp_path):
     argv = ["--env", "burgers-v0", "--actions", "2", "--horizon", "2", "--iterations", "1", "--out", str(tmp_path)]
     record = mpc.main(mpc.parse(argv))

@@ -417,7 +417,7 @@ class MPCConfig(Settings):
 
     algo: ClassVar[str] = "mpc"
     action_kind: ClassVar[str] = "continuous"
-    positive: ClassVar[tuple[str, ...]] = ("horizon", "iterations")
+    positive: ClassVar[tuple[str, ...]] = ("horizon", "iterations", "checkpoint_every")
     trains: ClassVar[bool] = False
     default_out: ClassVar[str] = "runs/mpc/{env}"
     creates: ClassVar[tuple[str, ...]] = ("mpc.json",)
@@ -439,6 +439,10 @@ class MPCConfig(Settings):
     compile: bool = setting(False, "the env's compiled physics")
     seed: int = setting(0, "of the planner's noise", domain=SEEDS)
     out: str = setting("", "the folder of mpc.json")
+    checkpoint_every: int = setting(
+        10, "planned actions between two saves of the episodes under way (OUT/mpc-checkpoint.pt)"
+    )
+    resume: bool = setting(False, "go on with the planned episodes saved in OUT")
 
 
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, SACConfig, DQNConfig, GradConfig, SHACConfig)}

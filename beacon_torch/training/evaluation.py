@@ -75,11 +75,7 @@ def evaluate_policy(
     these episodes where it is already known (the same env, parameters, seed, members
     and starts: they are the same episodes), which are then not run again (with no
     side-by-side animation nor figure, which draw them); ``compile``: the controlled
-    env's compiled physics (None: the env's default).
-
-    ``policy`` may also be a function of the evaluation env returning the policy that
-    acts on it (a planner reads the env's state), marked by a true ``acts_on_env``
-    attribute."""
+    env's compiled physics (None: the env's default)."""
     if uncontrolled is not None and (side_by_side is not None or figure is not None):
         raise ValueError(
             "a known uncontrolled score draws no side-by-side animation nor figure: they need its episodes"
@@ -99,18 +95,14 @@ def evaluate_policy(
         **sets,
         **({} if compile is None else {"compile": compile}),
     )
-    if getattr(policy, "acts_on_env", False):
-        policy = policy(env)
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
     controlled = episodes.scores(rollout)
     if uncontrolled is None:
-        # the same episodes without control: the same seed gives the same starts and noise
-        ref = beacon_torch.make(
-            env_id, num_envs, device=device, seed=seed, params=params, record_history=animate, **sets
-        )
-        title = f"{env_id} uncontrolled" if progress else None
-        free, free_frames = _episode(ref, episodes.null_policy(ref), frames=side_by_side is not None, title=title)
+        free, free_frames = uncontrolled_episodes(
+            env_id, num_envs, device=device, seed=seed, params=params, starts=starts,
+            frames=side_by_side is not None, progress=progress,
+        )  # fmt: skip
         uncontrolled = episodes.scores(free).mean().item()
     out = {
         "env": env_id,
@@ -128,6 +120,28 @@ def evaluate_policy(
     if figure is not None:
         out["figure"] = str(diagnostics_figure(env_id, rollout, free, figure))
     return out
+
+
+def uncontrolled_episodes(
+    env_id: str,
+    num_envs: int,
+    *,
+    device="cpu",
+    seed: int = EVAL_SEED,
+    params: dict | None = None,
+    starts: str | None = None,
+    frames: bool = False,
+    progress: bool = False,
+):
+    """The evaluation episodes of :func:`evaluate_policy` without control (the same
+    seed gives the same starts and noise as the controlled ones): their rollout and,
+    with ``frames``, member 0's frames."""
+    sets = {} if starts is None else {"starts": starts}
+    ref = beacon_torch.make(
+        env_id, num_envs, device=device, seed=seed, params=params or {}, record_history=frames, **sets
+    )
+    title = f"{env_id} uncontrolled" if progress else None
+    return _episode(ref, episodes.null_policy(ref), frames=frames, title=title)
 
 
 def diagnostics_figure(env_id: str, controlled, uncontrolled, path: str | Path) -> Path:
