@@ -1,7 +1,7 @@
 """Where a differentiated transition's time goes, per env, split by piece, at the
 short-horizon actor-critic's batch and settings (``SHACConfig``), float32, one thread.
 
-    .venv/bin/python benchmarks/grad_profile.py [--envs ...] [--horizon 2]
+    .venv/bin/python benchmarks/grad_profile.py [--envs ...] [--horizon 2] [--ways eager compiled kernels]
     .venv/bin/python benchmarks/grad_profile.py --page docs/performance.md
 
 Two profiles of the same block of actions (forward with the graph kept, then the
@@ -22,6 +22,11 @@ backward pass of the summed rewards to the actions), each after a warm-up block:
   (``beacon_torch::*``), operators outside the graphs, the wrappers around each compiled
   call (dynamo's guard check, AOTAutograd's runtime, the autograd engine's frames) and
   Python.
+- **compiled, by generated kernel** (``--ways kernels``, not by default: the graphs are
+  compiled again with inductor's per-kernel profiler scopes). Each kernel's time and
+  calls, forward or backward, under the name inductor gives it from the operators it
+  fuses; the page says how much of the backward is in kernels that hold a slice's
+  backward (a padding, whose every element is read under index masks).
 
 Shares are fractions of the profiled block's wall time, one thread on an otherwise idle
 core (the profiler slows every operator a little, so the absolute times are above
@@ -223,12 +228,32 @@ def split_compiled(events) -> dict[str, float]:
     return dict(out)
 
 
-def profile(env_id: str, compiled: bool, horizon: int) -> dict:
+def split_kernels(events) -> dict[str, dict]:
+    """Seconds and calls per generated kernel of the compiled graphs (inductor names
+    each after the operators it fuses), forward or backward."""
+    out: dict[str, dict] = {}
+    for e in events:
+        if not (e.name.startswith("graph_") and "_cpp_fused_" in e.name):
+            continue
+        backward = any(a.name.startswith("CompiledFunctionBackward") for a in _ancestors(e))
+        key = f"{'backward' if backward else 'forward'}: {e.name.split('_cpp_fused_', 1)[1]}"
+        entry = out.setdefault(key, {"seconds": 0.0, "calls": 0})
+        entry["seconds"] += e.self_cpu_time_total * 1e-6
+        entry["calls"] += 1
+    return out
+
+
+def profile(env_id: str, way: str, horizon: int) -> dict:
+    from torch._inductor import config as inductor_config
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as torch_profile
 
-    block = Block(env_id, compiled, horizon)
-    with contextlib.nullcontext() if compiled else scopes(env_id):
+    compiled = way != "eager"
+    # the kernels' own profiler scopes (compiled again for it, apart from the cached graphs)
+    kernels = inductor_config.patch({"cpp.enable_kernel_profile": way == "kernels"})
+    with kernels:
+        block = Block(env_id, compiled, horizon)
+    with kernels, contextlib.nullcontext() if compiled else scopes(env_id):
         block()  # compilation, and the first call's allocations
         block()
         # wall time, as the profiler's events are (one thread on an otherwise idle core)
@@ -236,12 +261,19 @@ def profile(env_id: str, compiled: bool, horizon: int) -> dict:
         with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
             block()
         total = time.perf_counter() - start
-    split = (split_compiled if compiled else split_eager)(prof.events())
-    split["python"] = max(total - sum(split.values()), 0.0)
-    per_action = {k: v / horizon for k, v in sorted(split.items(), key=lambda kv: -kv[1])}
+    if way == "kernels":
+        split = split_kernels(prof.events())
+        per_action = {
+            k: {"seconds": v["seconds"] / horizon, "calls": v["calls"] / horizon}
+            for k, v in sorted(split.items(), key=lambda kv: -kv[1]["seconds"])
+        }
+    else:
+        split = (split_compiled if compiled else split_eager)(prof.events())
+        split["python"] = max(total - sum(split.values()), 0.0)
+        per_action = {k: v / horizon for k, v in sorted(split.items(), key=lambda kv: -kv[1])}
     return dict(
         env=env_id,
-        way="compiled" if compiled else "eager",
+        way=way,
         members=block.members,
         grad_checkpoint=block.grad_checkpoint,
         horizon=horizon,
@@ -258,8 +290,31 @@ BEGIN, END = (
 
 def _shares(row: dict, top: int) -> str:
     total = row["seconds_per_action"]
+    if row["way"] == "kernels":
+        return _kernels(row)
     items = list(row["split"].items())[:top]
     return "; ".join(f"{k} {100 * v / total:.0f} %" for k, v in items)
+
+
+def _kernels(row: dict) -> str:
+    """The generated kernels of an action: forward against backward, the backward's
+    share in kernels that hold a slice's backward (a padding, read under index masks),
+    and the largest backward kernel."""
+    side = {"forward": 0.0, "backward": 0.0}
+    padded = 0.0
+    for name, entry in row["split"].items():
+        kind = name.split(":", 1)[0]
+        side[kind] += entry["seconds"]
+        if kind == "backward" and "slice_backward" in name:
+            padded += entry["seconds"]
+    backward = [(n, e) for n, e in row["split"].items() if n.startswith("backward")]
+    text = f"forward {1e3 * side['forward']:.2f} ms, backward {1e3 * side['backward']:.2f} ms"
+    if side["backward"]:
+        text += f"; {100 * padded / side['backward']:.0f} % of the backward in kernels holding a slice's backward"
+    if backward:
+        name, entry = backward[0]
+        text += f"; the largest: {name.split(': ', 1)[1]}, {1e3 * entry['seconds']:.2f} ms in {entry['calls']:g} calls"
+    return text
 
 
 def page_table(folder: Path, top: int = 6) -> str:
@@ -278,13 +333,13 @@ def page_table(folder: Path, top: int = 6) -> str:
             measured[row["env"]] = f"{day}, {cpu}"
     lines = [
         "| env | members | eager: the largest shares of a differentiated action (piece/part) "
-        "| compiled: the same by kind | measured |",
-        "|---|---|---|---|---|",
+        "| compiled: the same by kind | compiled: its generated kernels, an action | measured |",
+        "|---|---|---|---|---|---|",
     ]
     for env_id in [e for e in continuous_envs() if e in ways]:
-        cells = [_shares(ways[env_id][w], top) if w in ways[env_id] else "-" for w in ("eager", "compiled")]
+        cells = [_shares(ways[env_id][w], top) if w in ways[env_id] else "-" for w in ("eager", "compiled", "kernels")]
         members = next(iter(ways[env_id].values()))["members"]
-        lines.append(f"| {env_id} | {members} | {cells[0]} | {cells[1]} | {measured[env_id]} |")
+        lines.append(f"| {env_id} | {members} | {' | '.join(cells)} | {measured[env_id]} |")
     return "\n".join(lines)
 
 
@@ -292,7 +347,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", default=continuous_envs())
     parser.add_argument("--horizon", type=int, default=2)
-    parser.add_argument("--ways", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    parser.add_argument("--ways", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled", "kernels"])
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_profile")
     parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
     args = parser.parse_args()
@@ -305,7 +360,7 @@ def main() -> None:
     from beacon_torch.files import save_rows
 
     for env_id in args.envs:
-        rows = [profile(env_id, way == "compiled", args.horizon) for way in args.ways]
+        rows = [profile(env_id, way, args.horizon) for way in args.ways]
         for row in rows:
             print(f"{env_id} {row['way']}: {1e3 * row['seconds_per_action']:.1f} ms an action; {_shares(row, 8)}")
         print(f"written to {save_rows(rows, args.out, f'grad-profile-{env_id}')}", flush=True)

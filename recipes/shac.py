@@ -16,6 +16,12 @@ episodes go on, ending and restarting as in any collector.
     python recipes/shac.py --env burgers-v0
     python recipes/shac.py --env cylinder-v0 --num-envs 8 --horizon 20 --grad-checkpoint
 
+Parts of SAPO (Xing et al., "Stabilizing Reinforcement Learning in Differentiable
+Multiphysics Simulation", ICLR 2025) are settings: ``--critics 2`` fits two critics side
+by side, the horizons closed by their mean value and their targets taken from the
+lowest; ``--no-target-critic`` uses the critics themselves where the slowly following
+copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95).
+
 Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
 the policy sees: short-horizon analytic policy gradients. The policy is TD3's
 deterministic actor, so ``beacon-torch eval`` and ``plot`` read these runs like any
@@ -52,15 +58,19 @@ def main(cfg: GradConfig) -> dict:
     # the policy, the critic and its target; the count of updates dropped for a
     # non-finite gradient
     actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
-    optim = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
+    optim = optimiser(cfg, actor.parameters(), cfg.lr)
     modules = {"optim": optim}
     critic = target = None
     if cfg.critic:
-        critic = networks.state_value(env, cfg.hidden).to(cfg.device)
-        target = copy.deepcopy(critic).requires_grad_(False)
-        critic_optim = torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)
-        modules.update(critic=critic, target=target, critic_optim=critic_optim)
-        targets = TDLambdaEstimator(gamma=cfg.gamma, lmbda=cfg.lmbda, value_network=target)
+        # the critics' mean value closes the horizons, the lowest one their targets
+        critic = networks.state_values(env, cfg.hidden, cfg.critics).to(cfg.device)
+        critic_optim = optimiser(cfg, critic.parameters(), cfg.critic_lr)
+        modules.update(critic=critic, critic_optim=critic_optim)
+        target = critic
+        if cfg.target_critic:
+            target = copy.deepcopy(critic).requires_grad_(False)
+            modules["target"] = target
+        targets = TDLambdaEstimator(gamma=cfg.gamma, lmbda=cfg.lmbda, value_network=networks.lowest_value(target))
         targets.set_keys(value=keys.value)
     run.restore(actor=actor, **modules)
     run.counters.setdefault("skipped", 0)
@@ -180,16 +190,25 @@ def fit_critic(cfg: SHACConfig, critic, target, optim, targets: TDLambdaEstimato
         order = torch.randperm(size, device=goal.device)
         total = 0.0
         for chunk in order.chunk(cfg.critic_minibatches):
-            predicted = critic.module(observations[chunk])[..., 0]
-            loss = (predicted - goal[chunk]).pow(2).mean()
+            # each critic its own squared error
+            predicted = networks.each_value(critic, observations[chunk])[..., 0]
+            loss = (predicted - goal[chunk]).pow(2).mean(-1).sum()
             optim.zero_grad()
             loss.backward()
             optim.step()
-            total += loss.item() * chunk.numel()
-    with torch.no_grad():
-        for kept, new in zip(target.parameters(), critic.parameters(), strict=True):
-            kept.lerp_(new, 1.0 - cfg.target_alpha)
+            total += loss.item() / cfg.critics * chunk.numel()
+    if target is not critic:
+        with torch.no_grad():
+            for kept, new in zip(target.parameters(), critic.parameters(), strict=True):
+                kept.lerp_(new, 1.0 - cfg.target_alpha)
     return total / size
+
+
+def optimiser(cfg: GradConfig, parameters, lr: float) -> torch.optim.Optimizer:
+    """Adam, or AdamW with SAPO's moments (betas 0.7 and 0.95) and torch's weight decay."""
+    if cfg.optimizer == "adamw":
+        return torch.optim.AdamW(parameters, lr=lr, betas=(0.7, 0.95))
+    return torch.optim.Adam(parameters, lr=lr)
 
 
 if __name__ == "__main__":

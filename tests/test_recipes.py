@@ -756,6 +756,42 @@ def test_shac_closes_its_horizons_with_a_fitted_critic_and_resumes(tmp_path):
         assert any(not torch.equal(before[k], after[k]) for k in before), f"the resumed run left the {name} as it was"
 
 
+def test_shac_with_sapos_twin_critics_without_a_target_and_adamw_trains_and_resumes(tmp_path):
+    """SAPO's critics: two side by side, the horizons closed by their mean value and
+    their TD(lambda) targets taken from the lowest, no slowly following copy; AdamW
+    with betas 0.7 and 0.95 for the policy and the critics. Four burgers members, 4
+    updates, then a resume that goes on updating both critics."""
+    env = make_env("burgers-v0", 3, norm_steps=0)
+    critics = networks.state_values(env, 16, 2)
+    with torch.no_grad():  # new critics all say 0 (zero output layers)
+        for weight in critics.parameters():
+            weight.normal_()
+    td = env.reset()
+    each = networks.each_value(critics, td["observation"])
+    assert each.shape == (2, 3, 1) and not torch.equal(each[0], each[1])
+    torch.testing.assert_close(critics(td)["state_value"], each.mean(0))
+    torch.testing.assert_close(networks.lowest_value(critics)(td)["state_value"], each.amin(0))
+
+    settings = dict(num_envs=4, horizon=10, critic_iterations=2, out=str(tmp_path), progress=False)
+    sapo = dict(critics=2, target_critic=False, optimizer="adamw")
+    last = shac.main(configure(SHACConfig, "burgers-v0", frames=160, **settings, **sapo))
+    assert torch.isfinite(torch.tensor([last["critic_loss"], last["grad_norm"]])).all(), last
+    modules = checkpoint(tmp_path)["modules"]
+    assert "target" not in modules and {"actor", "optim", "critic", "critic_optim"} <= set(modules)
+    assert {k.split(".")[2] for k in modules["critic"]} == {"0", "1"}, sorted(modules["critic"])
+    assert modules["optim"]["param_groups"][0]["betas"] == (0.7, 0.95)
+    assert modules["critic_optim"]["param_groups"][0]["weight_decay"] == 0.01
+    shac.main(configure(SHACConfig, "burgers-v0", frames=200, resume=True, **settings, **sapo))
+    resumed = checkpoint(tmp_path)["modules"]
+    for net in ("0", "1"):
+        changed = [
+            k
+            for k in modules["critic"]
+            if k.split(".")[2] == net and not torch.equal(modules["critic"][k], resumed["critic"][k])
+        ]
+        assert changed, f"the resumed run left critic {net} as it was"
+
+
 def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_gradients_unchanged():
     """Two lorenz members, the second's state scaled out of any range so that it blows
     up on the horizon's first action (float64): the horizon's objective has a finite gradient,

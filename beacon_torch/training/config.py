@@ -368,6 +368,9 @@ class GradConfig(Config):
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
     lr: float = setting(1e-3, "learning rate", domain=POSITIVE)
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
+    optimizer: str = setting(
+        "adam", "the policy's (and critics') optimiser; adamw: SAPO's, betas 0.7 and 0.95", ("adam", "adamw")
+    )
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
     stagger: bool = setting(
         False,
@@ -393,7 +396,7 @@ class SHACConfig(GradConfig):
     table: ClassVar[dict[str, dict]] = SHAC
     # what it is to show: PPO's score in a tenth of PPO's transitions
     budget_share: ClassVar[float] = 0.1
-    positive: ClassVar[tuple[str, ...]] = ("horizon", "critic_iterations", "critic_minibatches")
+    positive: ClassVar[tuple[str, ...]] = ("horizon", "critic_iterations", "critic_minibatches", "critics")
     critic: ClassVar[bool] = True
 
     num_envs: int = setting(64, "members of the batched env")
@@ -406,6 +409,12 @@ class SHACConfig(GradConfig):
         0.2,
         "the target critic keeps this share of itself at each update (the rest: the critic)",
         domain=(0.0, 1.0, False),
+    )
+    critics: int = setting(
+        1, "critics fitted side by side; their mean value closes the horizons, the lowest their targets (SAPO: 2)"
+    )
+    target_critic: bool = setting(
+        True, "close the horizons and the targets with a slowly following copy of the critics (SAPO: without)"
     )
 
 

@@ -136,6 +136,48 @@ def state_value(env: TransformedEnv, hidden: int) -> ValueOperator:
     return ValueOperator(initialised(net, last_linear(net)), in_keys=[keys.obs], out_keys=[keys.value])
 
 
+class Ensemble(nn.Module):
+    """Networks of the same input side by side (SAPO's twin critics): their mean output,
+    or with ``lowest`` their lowest; :meth:`each` stacks every one's output first."""
+
+    def __init__(self, nets: list[nn.Module], lowest: bool = False) -> None:
+        super().__init__()
+        self.nets = nn.ModuleList(nets)
+        self.lowest = lowest
+
+    def each(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([net(x) for net in self.nets])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        values = self.each(x)
+        return values.amin(0) if self.lowest else values.mean(0)
+
+
+def state_values(env: TransformedEnv, hidden: int, count: int) -> ValueOperator:
+    """``count`` critics of :func:`state_value`'s kind giving their mean value (one:
+    that critic itself)."""
+    if count == 1:
+        return state_value(env, hidden)
+    nets = [state_value(env, hidden).module for _ in range(count)]
+    return ValueOperator(Ensemble(nets), in_keys=[Keys.of(env).obs], out_keys=[Keys.of(env).value])
+
+
+def lowest_value(critics: ValueOperator) -> ValueOperator:
+    """The same critics (shared, not copied) giving the lowest of their values."""
+    if not isinstance(critics.module, Ensemble):
+        return critics
+    return ValueOperator(
+        Ensemble(list(critics.module.nets), lowest=True), in_keys=critics.in_keys, out_keys=critics.out_keys
+    )
+
+
+def each_value(critics: ValueOperator, obs: torch.Tensor) -> torch.Tensor:
+    """Every critic's value of ``obs``, stacked first (``[critics, ..., 1]``)."""
+    if isinstance(critics.module, Ensemble):
+        return critics.module.each(obs)
+    return critics.module(obs).unsqueeze(0)
+
+
 def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
     """The action box of one member (the env's spec carries the batch dimension)."""
     space, n_act = env.action_spec.space, env.action_spec.shape[-1]
