@@ -267,22 +267,33 @@ def test_a_differentiated_transition_is_split_by_piece(tmp_path):
     """benchmarks/grad_profile.py on lorenz: eagerly, the integrator's forward and
     backward shares are told apart (a backward operator goes to the piece of the forward
     one it differentiates), the rest is autograd's and Python's; compiled, the graphs and
-    their wrappers; every split sums to the block's time."""
+    their wrappers, every split summing to the block's time; and the generated kernels of
+    both passes."""
     import subprocess
     import sys
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
     command = [sys.executable, str(root / "benchmarks" / "grad_profile.py"), "--envs", "lorenz-continuous-v0"]
-    out = subprocess.run(command + ["--out", str(tmp_path)], capture_output=True, text=True, check=False, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    (record,) = tmp_path.glob("grad-profile-lorenz-continuous-v0-*.json")
+    for ways, out in ((["eager", "compiled"], tmp_path / "pieces"), (["kernels"], tmp_path / "kernels")):
+        done = subprocess.run(
+            command + ["--ways", *ways, "--out", str(out)], capture_output=True, text=True, timeout=600
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+    (record,) = (tmp_path / "pieces").glob("grad-profile-lorenz-continuous-v0-*.json")
     eager, compiled = json.loads(record.read_text())["rows"]
-    assert (eager["way"], compiled["way"]) == ("eager", "compiled")
+    (record,) = (tmp_path / "kernels").glob("grad-profile-lorenz-continuous-v0-*.json")
+    (kernels,) = json.loads(record.read_text())["rows"]
+    assert (eager["way"], compiled["way"], kernels["way"]) == ("eager", "compiled", "kernels")
     assert {"envs.lorenz.lorenz_rhs/forward", "envs.lorenz.lorenz_rhs/backward", "autograd"} <= set(eager["split"])
     assert {"forward graphs", "backward graphs", "wrappers"} <= set(compiled["split"])
     for row in (eager, compiled):
         assert sum(row["split"].values()) == pytest.approx(row["seconds_per_action"], rel=1e-6)
+    # the generated kernels of both passes, each with its time and calls an action
+    sides = {name.split(":")[0] for name in kernels["split"]}
+    assert sides == {"forward", "backward"}, kernels["split"]
+    assert all(v["seconds"] > 0 and v["calls"] > 0 for v in kernels["split"].values())
+    assert sum(v["seconds"] for v in kernels["split"].values()) < kernels["seconds_per_action"]
 
 
 def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_one(tmp_path):
