@@ -17,10 +17,15 @@ episodes go on, ending and restarting as in any collector.
     python recipes/shac.py --env cylinder-v0 --num-envs 8 --horizon 20 --grad-checkpoint
 
 Parts of SAPO (Xing et al., "Stabilizing Reinforcement Learning in Differentiable
-Multiphysics Simulation", ICLR 2025) are settings: ``--critics 2`` fits two critics side
+Multiphysics Simulation", ICLR 2025) are settings: ``--actor stochastic`` draws the
+actions from a normal squashed into the action box (SAC's network, reparametrised so that
+the gradient goes through the draw) and adds the entropy bonus ``-alpha log pi(a|s)`` to
+each reward, in the returns and in the critic's targets, alpha tuned as SAC tunes it
+towards ``--target-entropy`` per action dimension; ``--critics 2`` fits two critics side
 by side, the horizons closed by their mean value and their targets taken from the
 lowest; ``--no-target-critic`` uses the critics themselves where the slowly following
-copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95).
+copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95); its gradient
+clipping is ``--grad-clip 0.5``.
 
 Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
 the policy sees: short-horizon analytic policy gradients. The policy is TD3's
@@ -32,6 +37,7 @@ other. ``--grad-checkpoint`` recomputes each action in the backward pass (the en
 from __future__ import annotations
 
 import copy
+import math
 
 import torch
 from torchrl.objectives.value import TDLambdaEstimator
@@ -57,9 +63,21 @@ def main(cfg: GradConfig) -> dict:
 
     # the policy, the critic and its target; the count of updates dropped for a
     # non-finite gradient
-    actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
+    if cfg.actor == "stochastic":
+        network = "squashed_gaussian_actor"
+        actor = networks.squashed_gaussian_actor(env, cfg.hidden).to(cfg.device)
+    else:
+        network = "deterministic_actor"
+        actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
     optim = optimiser(cfg, actor.parameters(), cfg.lr)
     modules = {"optim": optim}
+    temperature = None
+    if cfg.actor == "stochastic":
+        # the entropy bonus's weight, tuned so that the policy's entropy stays near the target
+        temperature = Temperature(cfg.init_alpha).to(cfg.device)
+        modules.update(
+            temperature=temperature, temperature_optim=optimiser(cfg, temperature.parameters(), cfg.alpha_lr)
+        )
     critic = target = None
     if cfg.critic:
         # the critics' mean value closes the horizons, the lowest one their targets
@@ -76,7 +94,7 @@ def main(cfg: GradConfig) -> dict:
     run.counters.setdefault("skipped", 0)
 
     def save() -> None:
-        run.save(env, policy=("deterministic_actor", cfg.hidden, actor), **modules)
+        run.save(env, policy=(network, cfg.hidden, actor), **modules)
 
     members = cfg.num_envs
     td = env.reset()
@@ -85,7 +103,7 @@ def main(cfg: GradConfig) -> dict:
     # update would follow one phase of the episode at a time
     cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device) if cfg.stagger else None
     while run.frames < cfg.frames:
-        objective, td, visited, scores, rewards = horizon(cfg, env, actor, target, td, cuts)
+        objective, td, visited, scores, rewards, log_probs = horizon(cfg, env, actor, target, td, cuts, temperature)
         loss = -objective / (cfg.horizon * members)
         optim.zero_grad()
         loss.backward()
@@ -108,35 +126,48 @@ def main(cfg: GradConfig) -> dict:
             values["grad_norm"] = norm.item()
         if scores:
             values["episode_score"] = torch.cat(scores).mean().item()
+        if temperature is not None:
+            values.update(alpha=temperature.alpha.item(), entropy=-log_probs.mean().item())
+            temperature.fit(log_probs, cfg.target_entropy * env.action_spec.shape[-1], modules["temperature_optim"])
         if cfg.critic:
             values["critic_loss"] = fit_critic(cfg, critic, target, critic_optim, targets, visited, keys)
         run.log(cfg.horizon * members, values, save)
     return run.close(save)
 
 
-def horizon(cfg: GradConfig, env, actor, target, td, cuts=None):
+def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None):
     """One horizon of ``cfg.horizon`` differentiated actions of every member from ``td``,
-    each return closed by the ``target`` critic's value (None: no critic). A member whose
+    each return closed by the ``target`` critic's value (None: no critic). With a
+    ``temperature``, the actions are drawn from the stochastic policy (reparametrised, so
+    that the gradient goes through the draw) and each reward has the entropy bonus
+    ``-alpha log pi(a|s)`` added, in the returns and in the critic's targets. A member whose
     count in ``cuts`` (None: no staggering) reaches 0 has its episode cut there, as by its length (the count
     is decremented in place; an episode cut short is not scored). Returns the
     objective (the closed returns, summed over the members: a graph back to the
     policy's weights), the tensordict to go on from, the horizon's transitions
-    (detached, for the critic), the scores of the episodes that ended and the mean
-    reward per action."""
+    (detached, for the critic), the scores of the episodes that ended, the mean
+    reward per action and the draws' log-probabilities (``[horizon, members]``, detached;
+    empty for a deterministic policy)."""
     keys = networks.Keys.of(env)
-    objective, rewards, scores, visited = 0.0, 0.0, [], []
+    objective, rewards, scores, visited, log_probs = 0.0, 0.0, [], [], []
     # per member: the discounted rewards since the horizon or its episode began
     returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     discount = torch.ones_like(returns)
     for h in range(cfg.horizon):
-        td, td_next = env.step_and_maybe_reset(actor(td))
+        td = actor(td)
+        if temperature is not None:
+            log_prob = actor.get_dist(td).log_prob(td[keys.action])
+            log_probs.append(log_prob.detach())
+        td, td_next = env.step_and_maybe_reset(td)
         # the default path takes no host sync for it
         cut = staggered(td, cuts) if cuts is not None else None
         if cut is not None and cut.any():
             td_next = env.reset(td_next.set("_reset", cut.unsqueeze(-1))).exclude("_reset")
         reward = td["next", "reward"][..., 0]
-        returns = returns + discount * reward
         rewards = rewards + reward.detach().mean()
+        if temperature is not None:
+            reward = reward - temperature.alpha * log_prob
+        returns = returns + discount * reward
         discount = discount * cfg.gamma
         done = td["next", "done"][..., 0]
         last = h == cfg.horizon - 1
@@ -156,9 +187,13 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None):
         scored = done if cut is None else done & ~cut
         if scored.any():
             scores.append(td["next", "episode_reward"][scored].detach())
-        visited.append(td.detach())
+        seen = td.detach()
+        if temperature is not None:
+            seen["next", "reward"] = reward.detach().unsqueeze(-1)
+        visited.append(seen)
         td = td_next
-    return objective, td, visited, scores, float(rewards) / cfg.horizon
+    log_probs = torch.stack(log_probs) if log_probs else torch.zeros(0)
+    return objective, td, visited, scores, float(rewards) / cfg.horizon, log_probs
 
 
 def staggered(td, cuts: torch.Tensor) -> torch.Tensor:
@@ -202,6 +237,25 @@ def fit_critic(cfg: SHACConfig, critic, target, optim, targets: TDLambdaEstimato
             for kept, new in zip(target.parameters(), critic.parameters(), strict=True):
                 kept.lerp_(new, 1.0 - cfg.target_alpha)
     return total / size
+
+
+class Temperature(torch.nn.Module):
+    """The weight alpha of the entropy bonus, as its logarithm, fitted as SAC's is: down
+    while the policy's entropy is above the target, up while below."""
+
+    def __init__(self, alpha: float) -> None:
+        super().__init__()
+        self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(alpha)))
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.exp().detach()
+
+    def fit(self, log_probs: torch.Tensor, target: float, optim: torch.optim.Optimizer) -> None:
+        loss = -(self.log_alpha * (log_probs + target)).mean()
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
 
 
 def optimiser(cfg: GradConfig, parameters, lr: float) -> torch.optim.Optimizer:

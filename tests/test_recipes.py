@@ -792,6 +792,46 @@ def test_shac_with_sapos_twin_critics_without_a_target_and_adamw_trains_and_resu
         assert changed, f"the resumed run left critic {net} as it was"
 
 
+def test_shac_with_a_stochastic_policy_follows_its_draws_and_tunes_the_entropy_bonus(tmp_path):
+    """SAPO's actor: actions drawn from a normal squashed into the box, reparametrised,
+    so the objective's gradient reaches the location and the spread through the draw;
+    each reward gets the bonus -alpha log pi, in the returns and in the critic's
+    targets; alpha falls while the entropy is above its target. Four burgers members,
+    4 updates; eval reads the policy (its squashed location) and a resume goes on."""
+    settings = dict(num_envs=4, horizon=10, critic_iterations=2, out=str(tmp_path), progress=False)
+    cfg = configure(SHACConfig, "burgers-v0", frames=160, actor="stochastic", **settings)
+    env = make_env("burgers-v0", 4, norm_steps=0, differentiable=True)
+    actor = networks.squashed_gaussian_actor(env, 16)
+    # with a vanishing bonus, the gradient comes through the draws and the physics alone
+    objective, *_ = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(1e-12))
+    grads = torch.autograd.grad(objective, list(actor.parameters()))
+    assert all(torch.isfinite(g).all() for g in grads) and all(g.abs().sum() > 0 for g in grads)
+    env.base_env.detach_state()
+    objective, _, visited, _, _, log_probs = shac.horizon(
+        cfg, env, actor, None, env.reset(), None, shac.Temperature(0.5)
+    )
+    assert log_probs.shape == (10, 4) and torch.isfinite(log_probs).all()
+    # the critic's targets see the rewards with the bonus: burgers' own are never positive
+    seen = torch.stack([v["next", "reward"][..., 0] for v in visited])
+    assert (seen + 0.5 * log_probs <= 0).all() and not (seen <= 0).all()
+    temperature = shac.Temperature(0.5)
+    high = torch.full((3,), 5.0)  # an entropy of -log pi = -5 per draw... above a target of -10
+    optim = torch.optim.Adam(temperature.parameters(), lr=0.1)
+    before = temperature.alpha.item()
+    temperature.fit(-high, -10.0, optim)
+    assert temperature.alpha.item() < before
+
+    last = shac.main(cfg)
+    assert {"alpha", "entropy"} <= set(last) and torch.isfinite(torch.tensor(last["grad_norm"])), last
+    state = checkpoint(tmp_path)
+    assert state["policy"]["network"] == "squashed_gaussian_actor" and "temperature" in state["modules"]
+    result = evaluate_run(tmp_path, num_envs=2)
+    assert torch.isfinite(torch.tensor(result["score_mean"]))
+    shac.main(configure(SHACConfig, "burgers-v0", frames=200, resume=True, actor="stochastic", **settings))
+    resumed = checkpoint(tmp_path)["modules"]
+    assert not torch.equal(resumed["temperature"]["log_alpha"], state["modules"]["temperature"]["log_alpha"])
+
+
 def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_gradients_unchanged():
     """Two lorenz members, the second's state scaled out of any range so that it blows
     up on the horizon's first action (float64): the horizon's objective has a finite gradient,
@@ -812,7 +852,7 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         if members == 2:
             state = env.base_env.state
             env.base_env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in state._asdict().items()})
-        objective, _, _, scores, _ = shac.horizon(cfg, env, actor, critic, td)
+        objective, _, _, scores, _, _ = shac.horizon(cfg, env, actor, critic, td)
         loss = -objective / (cfg.horizon * members)
         grads.append(torch.autograd.grad(loss, list(actor.parameters())))
         ended.append(len(scores))
@@ -834,7 +874,7 @@ def test_staggered_members_end_their_first_episode_apart_and_go_on():
     actor = networks.deterministic_actor(env, 16, paper_init=False).double()
     critic = networks.state_value(env, 16).double()
     cuts = torch.tensor([2, 0, 5])
-    objective, td, visited, scores, _ = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
+    objective, td, visited, scores, _, _ = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
     truncated = torch.stack([v["next", "truncated"][..., 0] for v in visited])  # [time, members]
     assert truncated[:, 0].tolist() == [False, True, False, False, False, False]
     assert truncated[:, 2].tolist() == [False, False, False, False, True, False]

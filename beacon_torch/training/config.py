@@ -371,6 +371,19 @@ class GradConfig(Config):
     optimizer: str = setting(
         "adam", "the policy's (and critics') optimiser; adamw: SAPO's, betas 0.7 and 0.95", ("adam", "adamw")
     )
+    actor: str = setting(
+        "deterministic",
+        "the policy: deterministic, or stochastic (SAPO's: a normal draw squashed into the action box, "
+        "reparametrised, with a tuned entropy bonus)",
+        ("deterministic", "stochastic"),
+    )
+    target_entropy: float = setting(
+        -0.5,
+        "a stochastic policy's target entropy per action dimension, towards which alpha is tuned",
+        domain=(-math.inf, math.inf, True),
+    )
+    init_alpha: float = setting(1.0, "the entropy bonus's first weight alpha", domain=POSITIVE)
+    alpha_lr: float = setting(5e-3, "the learning rate of log alpha", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
     stagger: bool = setting(
         False,
