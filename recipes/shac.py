@@ -24,7 +24,8 @@ each reward, in the returns and in the critic's targets, alpha tuned as SAC tune
 towards ``--target-entropy`` per action dimension; ``--critics 2`` fits two critics side
 by side, the horizons closed by their mean value and their targets taken from the
 lowest; ``--no-target-critic`` uses the critics themselves where the slowly following
-copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95); its gradient
+copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95); ``--layer-norm``
+its hidden layers (linear, LayerNorm, SiLU) in the policy and the critics; its gradient
 clipping is ``--grad-clip 0.5``.
 
 Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
@@ -65,10 +66,12 @@ def main(cfg: GradConfig) -> dict:
     # non-finite gradient
     if cfg.actor == "stochastic":
         network = "squashed_gaussian_actor"
-        actor = networks.squashed_gaussian_actor(env, cfg.hidden).to(cfg.device)
+        actor = networks.squashed_gaussian_actor(env, cfg.hidden, normed=cfg.layer_norm)
     else:
         network = "deterministic_actor"
-        actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False).to(cfg.device)
+        actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False, normed=cfg.layer_norm)
+    network = f"normed_{network}" if cfg.layer_norm else network
+    actor = actor.to(cfg.device)
     optim = optimiser(cfg, actor.parameters(), cfg.lr)
     modules = {"optim": optim}
     temperature = None
@@ -81,7 +84,7 @@ def main(cfg: GradConfig) -> dict:
     critic = target = None
     if cfg.critic:
         # the critics' mean value closes the horizons, the lowest one their targets
-        critic = networks.state_values(env, cfg.hidden, cfg.critics).to(cfg.device)
+        critic = networks.state_values(env, cfg.hidden, cfg.critics, normed=cfg.layer_norm).to(cfg.device)
         critic_optim = optimiser(cfg, critic.parameters(), cfg.critic_lr)
         modules.update(critic=critic, critic_optim=critic_optim)
         target = critic

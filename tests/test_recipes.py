@@ -756,11 +756,12 @@ def test_shac_closes_its_horizons_with_a_fitted_critic_and_resumes(tmp_path):
         assert any(not torch.equal(before[k], after[k]) for k in before), f"the resumed run left the {name} as it was"
 
 
-def test_shac_with_sapos_twin_critics_without_a_target_and_adamw_trains_and_resumes(tmp_path):
+def test_shac_with_sapos_twin_critics_without_a_target_adamw_and_layer_norm_trains_and_resumes(tmp_path):
     """SAPO's critics: two side by side, the horizons closed by their mean value and
     their TD(lambda) targets taken from the lowest, no slowly following copy; AdamW
-    with betas 0.7 and 0.95 for the policy and the critics. Four burgers members, 4
-    updates, then a resume that goes on updating both critics."""
+    with betas 0.7 and 0.95 and LayerNorm-SiLU hidden layers for the policy and the
+    critics. Four burgers members, 4 updates, then a resume that goes on updating both
+    critics."""
     env = make_env("burgers-v0", 3, norm_steps=0)
     critics = networks.state_values(env, 16, 2)
     with torch.no_grad():  # new critics all say 0 (zero output layers)
@@ -773,10 +774,15 @@ def test_shac_with_sapos_twin_critics_without_a_target_and_adamw_trains_and_resu
     torch.testing.assert_close(networks.lowest_value(critics)(td)["state_value"], each.amin(0))
 
     settings = dict(num_envs=4, horizon=10, critic_iterations=2, out=str(tmp_path), progress=False)
-    sapo = dict(critics=2, target_critic=False, optimizer="adamw")
+    sapo = dict(critics=2, target_critic=False, optimizer="adamw", layer_norm=True)
     last = shac.main(configure(SHACConfig, "burgers-v0", frames=160, **settings, **sapo))
     assert torch.isfinite(torch.tensor([last["critic_loss"], last["grad_norm"]])).all(), last
-    modules = checkpoint(tmp_path)["modules"]
+    state = checkpoint(tmp_path)
+    modules = state["modules"]
+    # SAPO's hidden layers (linear, LayerNorm, SiLU), which eval rebuilds by their name
+    assert state["policy"]["network"] == "normed_deterministic_actor"
+    assert any("weight" in k and v.ndim == 1 for k, v in modules["actor"].items()), "no LayerNorm in the policy"
+    assert torch.isfinite(torch.tensor(evaluate_run(tmp_path, num_envs=2)["score_mean"]))
     assert "target" not in modules and {"actor", "optim", "critic", "critic_optim"} <= set(modules)
     assert {k.split(".")[2] for k in modules["critic"]} == {"0", "1"}, sorted(modules["critic"])
     assert modules["optim"]["param_groups"][0]["betas"] == (0.7, 0.95)

@@ -382,6 +382,9 @@ class GradConfig(Config):
         "a stochastic policy's target entropy per action dimension, towards which alpha is tuned",
         domain=(-math.inf, math.inf, True),
     )
+    layer_norm: bool = setting(
+        False, "hidden layers of linear, LayerNorm and SiLU (SAPO's) in the policy and the critics, not ReLU"
+    )
     init_alpha: float = setting(1.0, "the entropy bonus's first weight alpha", domain=POSITIVE)
     alpha_lr: float = setting(5e-3, "the learning rate of log alpha", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")

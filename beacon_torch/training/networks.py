@@ -127,12 +127,31 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
     )
 
 
-def state_value(env: TransformedEnv, hidden: int) -> ValueOperator:
-    """The paper's PPO critic: two ReLU layers."""
-    keys = Keys.of(env)
-    net = nn.Sequential(
-        nn.Linear(n_observations(env), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1)
+def normed_mlp(n_in: int, n_out: int, hidden: int) -> MLP:
+    """Two hidden layers of SAPO's kind: linear, LayerNorm, SiLU."""
+    return MLP(
+        in_features=n_in,
+        out_features=n_out,
+        num_cells=[hidden, hidden],
+        activation_class=nn.SiLU,
+        norm_class=nn.LayerNorm,
+        norm_kwargs={"normalized_shape": hidden},
     )
+
+
+def state_value(env: TransformedEnv, hidden: int, normed: bool = False) -> ValueOperator:
+    """The paper's PPO critic: two ReLU layers (``normed``: :func:`normed_mlp`'s)."""
+    keys = Keys.of(env)
+    if normed:
+        net = normed_mlp(n_observations(env), 1, hidden)
+    else:
+        net = nn.Sequential(
+            nn.Linear(n_observations(env), hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, 1),
+        )
     return ValueOperator(initialised(net, last_linear(net)), in_keys=[keys.obs], out_keys=[keys.value])
 
 
@@ -153,12 +172,12 @@ class Ensemble(nn.Module):
         return values.amin(0) if self.lowest else values.mean(0)
 
 
-def state_values(env: TransformedEnv, hidden: int, count: int) -> ValueOperator:
+def state_values(env: TransformedEnv, hidden: int, count: int, normed: bool = False) -> ValueOperator:
     """``count`` critics of :func:`state_value`'s kind giving their mean value (one:
     that critic itself)."""
     if count == 1:
-        return state_value(env, hidden)
-    nets = [state_value(env, hidden).module for _ in range(count)]
+        return state_value(env, hidden, normed)
+    nets = [state_value(env, hidden, normed).module for _ in range(count)]
     return ValueOperator(Ensemble(nets), in_keys=[Keys.of(env).obs], out_keys=[Keys.of(env).value])
 
 
@@ -184,17 +203,23 @@ def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
     return space.low.reshape(-1, n_act)[0], space.high.reshape(-1, n_act)[0]
 
 
-def deterministic_actor(env: TransformedEnv, hidden: int, paper_init: bool = True) -> TensorDictSequential:
+def deterministic_actor(
+    env: TransformedEnv, hidden: int, paper_init: bool = True, normed: bool = False
+) -> TensorDictSequential:
     """A deterministic policy (TD3, gradient-based control): an MLP squashed into the
     action box. ``paper_init`` False keeps torch's default initialisation (gradient-based
-    control, whose first updates need a gradient through every layer)."""
+    control, whose first updates need a gradient through every layer); ``normed``: the
+    hidden layers of :func:`normed_mlp`."""
     low, high = action_bounds(env)
-    net = MLP(
-        in_features=n_observations(env),
-        out_features=env.action_spec.shape[-1],
-        num_cells=[hidden, hidden],
-        activation_class=nn.ReLU,
-    )
+    if normed:
+        net = normed_mlp(n_observations(env), env.action_spec.shape[-1], hidden)
+    else:
+        net = MLP(
+            in_features=n_observations(env),
+            out_features=env.action_spec.shape[-1],
+            num_cells=[hidden, hidden],
+            activation_class=nn.ReLU,
+        )
     if paper_init:
         initialised(net, last_linear(net))
     return TensorDictSequential(
@@ -203,19 +228,23 @@ def deterministic_actor(env: TransformedEnv, hidden: int, paper_init: bool = Tru
     )
 
 
-def squashed_gaussian_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
+def squashed_gaussian_actor(env: TransformedEnv, hidden: int, normed: bool = False) -> ProbabilisticActor:
     """SAC's actor: an MLP giving the location and scale of a normal distribution
-    squashed by tanh into the action box (deterministic: the squashed location)."""
+    squashed by tanh into the action box (deterministic: the squashed location);
+    ``normed``: the hidden layers of :func:`normed_mlp`."""
     from tensordict.nn.distributions import NormalParamExtractor
     from torchrl.modules import TanhNormal
 
     low, high = action_bounds(env)
-    net = MLP(
-        in_features=n_observations(env),
-        out_features=2 * env.action_spec.shape[-1],
-        num_cells=[hidden, hidden],
-        activation_class=nn.ReLU,
-    )
+    if normed:
+        net = normed_mlp(n_observations(env), 2 * env.action_spec.shape[-1], hidden)
+    else:
+        net = MLP(
+            in_features=n_observations(env),
+            out_features=2 * env.action_spec.shape[-1],
+            num_cells=[hidden, hidden],
+            activation_class=nn.ReLU,
+        )
     module = TensorDictModule(
         nn.Sequential(net, NormalParamExtractor()), in_keys=["observation"], out_keys=["loc", "scale"]
     )
@@ -254,6 +283,9 @@ NETWORKS = {
     "deterministic_actor": deterministic_actor,
     "squashed_gaussian_actor": squashed_gaussian_actor,
     "qvalue_actor": qvalue_actor,
+    # the same with SAPO's hidden layers (the actor-critic's --layer-norm)
+    "normed_deterministic_actor": partial(deterministic_actor, paper_init=False, normed=True),
+    "normed_squashed_gaussian_actor": partial(squashed_gaussian_actor, normed=True),
 }
 
 
