@@ -380,3 +380,31 @@ def test_the_memory_of_a_differentiated_horizon_is_recorded_per_env(tmp_path):
     assert (row["env"], row["members"], row["horizon"]) == ("lorenz-continuous-v0", 2, 3)
     assert row["rss_before"] > 0 and row["peak"] >= row["rss_before"] and row["held"] == row["peak"] - row["rss_before"]
     assert row["finite"] is True and row["grad_checkpoint"] is False
+
+
+@pytest.mark.slow(seconds=70)
+def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
+    """benchmarks/shac_ablation.py on burgers, a trial of one update (2,048 transitions): the defaults
+    and SAPO's settings together each train a seed, are scored normalised from the own
+    start and the test set, recorded with the run's wall time and tabled; a second call
+    finds the finished run and only scores it again."""
+    import numpy as np
+    import torch
+
+    from beacon_torch.files import save_rows
+
+    from conftest import script
+
+    ablation = script("benchmarks/shac_ablation.py")
+    runs, out = tmp_path / "runs", tmp_path / "records"
+    rows = [ablation.run("burgers-v0", v, 0, runs, frames=2048) for v in ("defaults", "sapo")]
+    for row in rows:
+        assert row["frames"] == 2048 and row["wall_s"] > 0
+        assert all(np.isfinite(row[k]) for k in ("own_normalised", "test_normalised"))
+        save_rows([row], out, f"ablation-burgers-v0-{row['variant']}")
+    state = torch.load(runs / "burgers-v0" / "sapo" / "seed0" / "checkpoint.pt", weights_only=True)
+    assert state["config"]["actor"] == "stochastic" and state["config"]["critics"] == 2
+    again = ablation.run("burgers-v0", "sapo", 0, runs, frames=2048)
+    assert again["wall_s"] == rows[1]["wall_s"] and again["own_score"] == rows[1]["own_score"]
+    table = ablation.page_table(out)
+    assert "| burgers-v0 | defaults: the defaults |" in table and "actor=stochastic" in table

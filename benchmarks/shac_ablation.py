@@ -1,0 +1,166 @@
+"""Each of SAPO's settings of the actor-critic alone against its defaults: one seed per
+(env, variant), a tenth of PPO's transitions (the recipe's budget), the deterministic
+policy scored on the env's own start and on the test set's 8 developed starts,
+normalised as on the results page (0: no control, 1: the paper's PPO).
+
+    .venv/bin/python benchmarks/shac_ablation.py [--envs ...] [--variants ...] [--seed 0]
+    .venv/bin/python benchmarks/shac_ablation.py --page docs/gradients.md
+
+A variant is a set of settings on top of the env's defaults (``VARIANTS``). Each run
+trains into ``--runs`` (``runs/shac_ablation/ENV/VARIANT``, a run folder ``beacon-torch
+eval`` reads; an existing one is resumed, so that a stopped campaign goes on) and
+writes a new ``ablation-ENV-VARIANT-DATE-TIME.json`` to ``--out``: the settings, the
+scores, the transitions and the run's wall seconds (its own clock; compare only runs
+that shared the machine alike). ``--page`` writes the newest record of each pair as
+the page's table.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HERE = Path(__file__).resolve()
+ROOT = HERE.parents[1]
+ENVS = ("burgers-v0", "vortex-v0", "sloshing-v0")
+# SAPO's pieces (Xing et al., ICLR 2025), each alone, then all of them together
+VARIANTS = {
+    "defaults": {},
+    "stochastic": {"actor": "stochastic"},
+    "twin-critics": {"critics": 2},
+    "no-target": {"target_critic": False},
+    "adamw": {"optimizer": "adamw"},
+    "layer-norm": {"layer_norm": True},
+    "clip-0.5": {"grad_clip": 0.5},
+    "sapo": {
+        "actor": "stochastic",
+        "critics": 2,
+        "target_critic": False,
+        "optimizer": "adamw",
+        "layer_norm": True,
+        "grad_clip": 0.5,
+    },
+}
+BEGIN, END = "<!-- actor-critic settings: benchmarks/shac_ablation.py -->", "<!-- end of actor-critic settings -->"
+
+
+def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = None) -> dict:
+    """Train one seed of ``variant`` on ``env_id`` (or finish it) and score its policy;
+    ``frames``: fewer transitions than the recipe's budget (a trial)."""
+    from beacon_torch.registry import env_class
+    from beacon_torch.training import report
+    from beacon_torch.training.config import SHACConfig, configure
+    from beacon_torch.training.evaluation import HELD_OUT, evaluate_run
+    from beacon_torch.training.run import CHECKPOINT, load_checkpoint
+
+    out = runs / env_id / variant / f"seed{seed}"
+    settings = dict(VARIANTS[variant], seed=seed, out=str(out), progress=False, threads=1, logger="csv")
+    if frames is not None:
+        settings["frames"] = frames
+    resume = (out / CHECKPOINT).is_file()
+    cfg = configure(SHACConfig, env_id, resume=resume, **settings)
+    if not resume or load_checkpoint(out)["frames"] < cfg.frames:
+        recipe().main(cfg)
+    state = load_checkpoint(out)
+    row = {
+        "env": env_id,
+        "variant": variant,
+        "settings": VARIANTS[variant],
+        "seed": seed,
+        "frames": state["frames"],
+        "wall_s": state["elapsed"],
+    }
+    for name, starts in (("own", None), ("test", HELD_OUT)):
+        result = evaluate_run(out, num_envs=8, starts=starts)
+        row[f"{name}_score"] = result["score_mean"]
+        row[f"{name}_uncontrolled"] = result["uncontrolled"]
+        if env_class(env_id).paper_ppo is not None:
+            row[f"{name}_normalised"] = float(report.normalised(result["score_mean"], result["uncontrolled"], env_id))
+    return row
+
+
+def recipe():
+    """``recipes/shac.py`` as a module."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("shac_recipe", ROOT / "recipes" / "shac.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def page_table(folder: Path) -> str:
+    """The newest record of each (env, variant) in ``folder`` as a markdown table."""
+    from beacon_torch import received
+
+    newest: dict[tuple[str, str], dict] = {}
+    measured: dict[tuple[str, str], str] = {}
+    for path in sorted(folder.glob("ablation-*.json"), key=lambda p: p.name[-20:]):
+        record = received.json_file(path, "an actor-critic settings record")
+        day = "-".join((path.stem[-15:-11], path.stem[-11:-9], path.stem[-9:-7]))
+        cpu = str(record.get("machine", "")).split(",")[0].replace("(R)", "").replace(" Processor", "")
+        for row in record["rows"]:
+            newest[row["env"], row["variant"]] = row
+            measured[row["env"], row["variant"]] = f"{day}, {cpu}"
+    lines = [
+        "| env | settings | normalised, own start | normalised, test set | transitions | minutes | measured |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def score(row: dict, name: str) -> str:
+        if f"{name}_normalised" not in row:
+            return "-"
+        # no control from the test starts above the paper's PPO: the scale runs backwards
+        if row[f"{name}_uncontrolled"] >= _reference(row["env"]):
+            return "- (a)"
+        return f"{row[f'{name}_normalised']:.2f}"
+
+    for env_id in ENVS:
+        for variant in VARIANTS:
+            row = newest.get((env_id, variant))
+            if row is None:
+                continue
+            shown = ", ".join(f"{k}={v}" for k, v in row["settings"].items()) or "the defaults"
+            lines.append(
+                f"| {env_id} | {variant}: {shown} | {score(row, 'own')} | {score(row, 'test')} | "
+                f"{row['frames']:,} | {row['wall_s'] / 60:.1f} | {measured[env_id, variant]} |"
+            )
+    return "\n".join(lines)
+
+
+def _reference(env_id: str) -> float:
+    from beacon_torch.training import report
+
+    return report.reference(env_id)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--frames", type=int, default=None, help="fewer transitions than the budget (a trial)")
+    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "shac_ablation")
+    parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "shac_ablation")
+    parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
+    args = parser.parse_args()
+    if args.page is not None:
+        from beacon_torch.training.report import write_block
+
+        print(write_block(args.page, BEGIN, END, page_table(args.out)))
+        return
+    from beacon_torch.files import save_rows
+
+    for env_id in args.envs:
+        for variant in args.variants:
+            row = run(env_id, variant, args.seed, args.runs, args.frames)
+            print(
+                f"{env_id} {variant}: own {row.get('own_normalised', float('nan')):.2f}, "
+                f"test {row.get('test_normalised', float('nan')):.2f}, {row['wall_s'] / 60:.1f} min",
+                flush=True,
+            )
+            print(f"written to {save_rows([row], args.out, f'ablation-{env_id}-{variant}')}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
