@@ -230,13 +230,22 @@ def split_compiled(events) -> dict[str, float]:
 
 def split_kernels(events) -> dict[str, dict]:
     """Seconds and calls per generated kernel of the compiled graphs (inductor names
-    each after the operators it fuses), forward or backward."""
+    each after the operators it fuses), forward or backward, and of every other
+    operator the graphs call (``op NAME``: the C kernels, allocations); the graphs'
+    own time between them is ``graph code``."""
     out: dict[str, dict] = {}
     for e in events:
-        if not (e.name.startswith("graph_") and "_cpp_fused_" in e.name):
+        chain = list(_ancestors(e))
+        if "CompiledFxGraph" in e.name:
+            name = "graph code"
+        elif not any("CompiledFxGraph" in a.name for a in chain):
             continue
-        backward = any(a.name.startswith("CompiledFunctionBackward") for a in _ancestors(e))
-        key = f"{'backward' if backward else 'forward'}: {e.name.split('_cpp_fused_', 1)[1]}"
+        elif e.name.startswith("graph_") and "_cpp_fused_" in e.name:
+            name = e.name.split("_cpp_fused_", 1)[1]
+        else:
+            name = f"op {e.name}"
+        backward = any(a.name.startswith("CompiledFunctionBackward") for a in chain)
+        key = f"{'backward' if backward else 'forward'}: {name}"
         entry = out.setdefault(key, {"seconds": 0.0, "calls": 0})
         entry["seconds"] += e.self_cpu_time_total * 1e-6
         entry["calls"] += 1
@@ -300,19 +309,26 @@ def _kernels(row: dict) -> str:
     share in kernels that hold a slice's backward (a padding, read under index masks),
     and the largest backward kernel."""
     side = {"forward": 0.0, "backward": 0.0}
-    padded = 0.0
+    kernels, padded = {"forward": 0.0, "backward": 0.0}, 0.0
     for name, entry in row["split"].items():
-        kind = name.split(":", 1)[0]
+        kind, what = name.split(": ", 1)
         side[kind] += entry["seconds"]
-        if kind == "backward" and "slice_backward" in name:
-            padded += entry["seconds"]
-    backward = [(n, e) for n, e in row["split"].items() if n.startswith("backward")]
-    text = f"forward {1e3 * side['forward']:.2f} ms, backward {1e3 * side['backward']:.2f} ms"
-    if side["backward"]:
-        text += f"; {100 * padded / side['backward']:.0f} % of the backward in kernels holding a slice's backward"
-    if backward:
-        name, entry = backward[0]
-        text += f"; the largest: {name.split(': ', 1)[1]}, {1e3 * entry['seconds']:.2f} ms in {entry['calls']:g} calls"
+        if not what.startswith(("op ", "graph code")):
+            kernels[kind] += entry["seconds"]
+            if kind == "backward" and "slice_backward" in what:
+                padded += entry["seconds"]
+    ms = lambda seconds: f"{1e3 * seconds:.2f} ms"
+    text = (
+        f"forward graphs {ms(side['forward'])} (generated kernels {ms(kernels['forward'])}), backward graphs "
+        f"{ms(side['backward'])} (kernels {ms(kernels['backward'])}"
+    )
+    if kernels["backward"]:
+        text += f", {100 * padded / kernels['backward']:.0f} % of it in kernels holding a slice's backward"
+    text += ")"
+    largest = [(n, e) for n, e in row["split"].items() if n.startswith("backward")][:3]
+    text += "; the backward's largest: " + ", ".join(
+        f"{n.split(': ', 1)[1]} {ms(e['seconds'])} ({e['calls']:g} calls)" for n, e in largest
+    )
     return text
 
 
