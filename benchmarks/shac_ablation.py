@@ -32,6 +32,7 @@ VARIANTS = {
     "adamw": {"optimizer": "adamw"},
     "layer-norm": {"layer_norm": True},
     "clip-0.5": {"grad_clip": 0.5},
+    "adaptive-horizon": {"adaptive_horizon": True},
     "sapo": {
         "actor": "stochastic",
         "critics": 2,

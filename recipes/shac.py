@@ -28,6 +28,12 @@ copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95); ``--layer
 its hidden layers (linear, LayerNorm, SiLU) in the policy and the critics; its gradient
 clipping is ``--grad-clip 0.5``.
 
+``--adaptive-horizon`` adapts the horizon after each update, as AHAC (Georgiev et al.,
+ICML 2024) does against a measure of the dynamics' stiffness; the measure here is how much
+larger the objective's gradient is with respect to the horizon's first action than to
+its last: a quarter of an octave shorter while that exceeds ``--horizon-growth``, a
+quarter longer otherwise, within [``--horizon-min``, ``--horizon-max``].
+
 Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
 the policy sees: short-horizon analytic policy gradients. The policy is TD3's
 deterministic actor, so ``beacon-torch eval`` and ``plot`` read these runs like any
@@ -52,8 +58,9 @@ from beacon_torch.training.run import Run, fits
 def main(cfg: GradConfig) -> dict:
     """Train the policy on ``cfg.frames`` transitions; returns the last logged values."""
     # the graph of a horizon of every member, estimated from one action, must fit
-    need = horizon_bytes(cfg.env, cfg.horizon, cfg.num_envs, params=cfg.params, grad_checkpoint=cfg.grad_checkpoint)
-    fits(f"the graph of {cfg.horizon} differentiated actions of {cfg.num_envs} members", need, cfg.device)
+    longest = cfg.horizon_max if cfg.adaptive_horizon else cfg.horizon
+    need = horizon_bytes(cfg.env, longest, cfg.num_envs, params=cfg.params, grad_checkpoint=cfg.grad_checkpoint)
+    fits(f"the graph of {longest} differentiated actions of {cfg.num_envs} members", need, cfg.device)
     run = Run.of(cfg)
     torch.manual_seed(cfg.seed)
 
@@ -95,6 +102,8 @@ def main(cfg: GradConfig) -> dict:
         targets.set_keys(value=keys.value)
     run.restore(actor=actor, **modules)
     run.counters.setdefault("skipped", 0)
+    # the actions of an update (the adaptive horizon's, kept with the checkpoint)
+    steps = run.counters.setdefault("horizon", cfg.horizon)
 
     def save() -> None:
         run.save(env, policy=(network, cfg.hidden, actor), **modules)
@@ -106,10 +115,16 @@ def main(cfg: GradConfig) -> dict:
     # update would follow one phase of the episode at a time
     cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device) if cfg.stagger else None
     while run.frames < cfg.frames:
-        objective, td, visited, scores, rewards, log_probs = horizon(cfg, env, actor, target, td, cuts, temperature)
-        loss = -objective / (cfg.horizon * members)
+        objective, td, visited, scores, rewards, log_probs = horizon(
+            cfg, env, actor, target, td, cuts, temperature, steps
+        )
+        loss = -objective / (steps * members)
         optim.zero_grad()
         loss.backward()
+        spent = steps
+        if cfg.adaptive_horizon:
+            growth = gradient_growth(visited)
+            steps = run.counters["horizon"] = adapted(cfg, steps, growth)
         norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip)
         if torch.isfinite(norm):
             optim.step()
@@ -127,6 +142,8 @@ def main(cfg: GradConfig) -> dict:
         }
         if torch.isfinite(norm):
             values["grad_norm"] = norm.item()
+        if cfg.adaptive_horizon:
+            values.update(horizon=float(spent), gradient_growth=growth)
         if scores:
             values["episode_score"] = torch.cat(scores).mean().item()
         if temperature is not None:
@@ -134,12 +151,12 @@ def main(cfg: GradConfig) -> dict:
             temperature.fit(log_probs, cfg.target_entropy * env.action_spec.shape[-1], modules["temperature_optim"])
         if cfg.critic:
             values["critic_loss"] = fit_critic(cfg, critic, target, critic_optim, targets, visited, keys)
-        run.log(cfg.horizon * members, values, save)
+        run.log(spent * members, values, save)
     return run.close(save)
 
 
-def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None):
-    """One horizon of ``cfg.horizon`` differentiated actions of every member from ``td``,
+def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None, steps=None):
+    """One horizon of ``steps`` (None: ``cfg.horizon``) differentiated actions of every member from ``td``,
     each return closed by the ``target`` critic's value (None: no critic). With a
     ``temperature``, the actions are drawn from the stochastic policy (reparametrised, so
     that the gradient goes through the draw) and each reward has the entropy bonus
@@ -152,12 +169,16 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
     reward per action and the draws' log-probabilities (``[horizon, members]``, detached;
     empty for a deterministic policy)."""
     keys = networks.Keys.of(env)
+    steps = steps or cfg.horizon
     objective, rewards, scores, visited, log_probs = 0.0, 0.0, [], [], []
     # per member: the discounted rewards since the horizon or its episode began
     returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     discount = torch.ones_like(returns)
-    for h in range(cfg.horizon):
+    for h in range(steps):
         td = actor(td)
+        if cfg.adaptive_horizon:
+            # the objective's gradient with respect to each action, read after the backward pass
+            td[keys.action].retain_grad()
         if temperature is not None:
             log_prob = actor.get_dist(td).log_prob(td[keys.action])
             log_probs.append(log_prob.detach())
@@ -173,7 +194,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         returns = returns + discount * reward
         discount = discount * cfg.gamma
         done = td["next", "done"][..., 0]
-        last = h == cfg.horizon - 1
+        last = h == steps - 1
         if target is not None and (last or done.any()):
             # the value of where a return is closed: the horizon's end, or an episode
             # cut short by its length (none after a blow-up)
@@ -193,10 +214,35 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         seen = td.detach()
         if temperature is not None:
             seen["next", "reward"] = reward.detach().unsqueeze(-1)
+        if cfg.adaptive_horizon:
+            seen.set("_action_graph", td[keys.action])
         visited.append(seen)
         td = td_next
     log_probs = torch.stack(log_probs) if log_probs else torch.zeros(0)
-    return objective, td, visited, scores, float(rewards) / cfg.horizon, log_probs
+    return objective, td, visited, scores, float(rewards) / steps, log_probs
+
+
+def gradient_growth(visited: list) -> float:
+    """How much larger the objective's gradient is with respect to a horizon's first
+    action than to its last (the mean over the members of each one's norm): how far the
+    dynamics amplify what an early action does, the adaptive horizon's measure of
+    stiffness (AHAC measures contact forces for it). Takes the actions' gradients out of
+    the horizon's transitions."""
+    norms = []
+    for seen in (visited[0], visited[-1]):
+        grad = seen.pop("_action_graph").grad
+        norms.append(0.0 if grad is None else grad.flatten(1).norm(dim=1).mean().item())
+    for seen in visited[1:-1]:
+        seen.pop("_action_graph", None)
+    return norms[0] / max(norms[1], 1e-30)
+
+
+def adapted(cfg: SHACConfig, steps: int, growth: float) -> int:
+    """The next horizon: a quarter of an octave shorter while the gradient grows over
+    it by more than ``horizon_growth``, a quarter longer otherwise, within
+    [``horizon_min``, ``horizon_max``]."""
+    factor = 2.0**-0.25 if not growth <= cfg.horizon_growth else 2.0**0.25
+    return int(min(max(round(steps * factor), cfg.horizon_min), cfg.horizon_max))
 
 
 def staggered(td, cuts: torch.Tensor) -> torch.Tensor:

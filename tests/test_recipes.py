@@ -29,7 +29,7 @@ from beacon_torch.training.config import (
     parse,
 )
 from beacon_torch.training.env import make_collector, make_env
-from beacon_torch.training.evaluation import evaluate_run
+from beacon_torch.training.evaluation import evaluate_run, read_scalar
 from beacon_torch.training.run import BadRun, buffer_folder
 
 from conftest import TD3, recipe
@@ -836,6 +836,31 @@ def test_shac_with_a_stochastic_policy_follows_its_draws_and_tunes_the_entropy_b
     shac.main(configure(SHACConfig, "burgers-v0", frames=200, resume=True, actor="stochastic", **settings))
     resumed = checkpoint(tmp_path)["modules"]
     assert not torch.equal(resumed["temperature"]["log_alpha"], state["modules"]["temperature"]["log_alpha"])
+
+
+def test_the_adaptive_horizon_shortens_where_the_gradient_grows_and_lengthens_where_it_does_not(tmp_path):
+    """A quarter of an octave an update, within its bounds, by how much larger the
+    objective's gradient is with respect to a horizon's first action than to its last;
+    on burgers (an advected flow: what an action does reaches the reward downstream
+    later) it is measured, logged and kept with the checkpoint, and the transitions
+    counted are the horizons' own."""
+    cfg = configure(SHACConfig, "burgers-v0", adaptive_horizon=True, horizon=16, horizon_min=8, horizon_max=32)
+    assert shac.adapted(cfg, 16, 1e3) == 13 and shac.adapted(cfg, 16, 2.0) == 19
+    assert shac.adapted(cfg, 8, float("inf")) == 8 and shac.adapted(cfg, 32, 0.0) == 32
+    assert shac.adapted(cfg, 16, float("nan")) == 13, "a growth that is not a number shortens"
+    with pytest.raises(ValueError, match=r"horizon_min \(8\) <= horizon \(4\)"):
+        configure(SHACConfig, "burgers-v0", adaptive_horizon=True, horizon=4)
+
+    settings = dict(num_envs=4, horizon=8, horizon_min=4, horizon_max=16, critic_iterations=2, progress=False)
+    shac.main(configure(SHACConfig, "burgers-v0", adaptive_horizon=True, frames=96, out=str(tmp_path), **settings))
+    steps, horizons = read_scalar(tmp_path, "horizon")
+    _, growth = read_scalar(tmp_path, "gradient_growth")
+    assert len(horizons) >= 3 and horizons[0] == 8 and len(set(horizons)) > 1, horizons
+    assert (growth > 0).all() and torch.isfinite(torch.as_tensor(growth)).all()
+    # each update counts its own horizon's transitions
+    assert list(steps[1:] - steps[:-1]) == [4 * h for h in horizons[1:]]
+    state = checkpoint(tmp_path)
+    assert state["counters"]["horizon"] in (4, 5, 6, 7, 8, 10, 11, 13, 16) and state["frames"] == steps[-1]
 
 
 def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_gradients_unchanged():

@@ -359,7 +359,7 @@ class GradConfig(Config):
     action_kind: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = GRAD
     in_process: ClassVar[bool] = True
-    positive: ClassVar[tuple[str, ...]] = ("horizon",)
+    positive: ClassVar[tuple[str, ...]] = ("horizon", "horizon_min", "horizon_max")
     # whether a critic's value closes each horizon
     critic: ClassVar[bool] = False
 
@@ -385,6 +385,14 @@ class GradConfig(Config):
     layer_norm: bool = setting(
         False, "hidden layers of linear, LayerNorm and SiLU (SAPO's) in the policy and the critics, not ReLU"
     )
+    adaptive_horizon: bool = setting(
+        False,
+        "adapt the horizon after each update: shorter while the objective's gradient with respect to its first "
+        "action is more than HORIZON_GROWTH times that with respect to its last, longer otherwise",
+    )
+    horizon_growth: float = setting(10.0, "the adaptive horizon's bound on the gradient's growth", domain=POSITIVE)
+    horizon_min: int = setting(8, "the adaptive horizon's shortest")
+    horizon_max: int = setting(64, "the adaptive horizon's longest")
     init_alpha: float = setting(1.0, "the entropy bonus's first weight alpha", domain=POSITIVE)
     alpha_lr: float = setting(5e-3, "the learning rate of log alpha", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
@@ -412,7 +420,7 @@ class SHACConfig(GradConfig):
     table: ClassVar[dict[str, dict]] = SHAC
     # what it is to show: PPO's score in a tenth of PPO's transitions
     budget_share: ClassVar[float] = 0.1
-    positive: ClassVar[tuple[str, ...]] = ("horizon", "critic_iterations", "critic_minibatches", "critics")
+    positive: ClassVar[tuple[str, ...]] = (*GradConfig.positive, "critic_iterations", "critic_minibatches", "critics")
     critic: ClassVar[bool] = True
 
     num_envs: int = setting(64, "members of the batched env")
@@ -612,6 +620,11 @@ def _check(cfg: Settings) -> Settings:
     for name in ("frames", "collectors", "checkpoint_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
+    if isinstance(cfg, GradConfig) and cfg.adaptive_horizon and not cfg.horizon_min <= cfg.horizon <= cfg.horizon_max:
+        raise ValueError(
+            f"the adaptive horizon starts within its bounds: horizon_min ({cfg.horizon_min}) <= horizon "
+            f"({cfg.horizon}) <= horizon_max ({cfg.horizon_max})"
+        )
     members = cfg.num_envs * cfg.collectors
     if cfg.frames < getattr(cfg, cfg.batch):
         raise ValueError(
