@@ -176,9 +176,9 @@ SWEEP_ADJOINT(sweep_adjoint_f64, double)
 #define TVD_FACES(T, SLOPE)                                                         \
         for (long j = 1; j <= n - 2; ++j) {                                         \
             T G = o[j], dj = fr[j + 1] - fr[j], dm = fr[j] - fr[j - 1];             \
-            T den = dj + (T)1e-8, r = dm / den, phi, slope;                         \
+            T inv = (T)1 / (dj + (T)1e-8), r = dm * inv, phi, slope;                \
             SLOPE(T)                                                                \
-            T w = (T)0.5 * G * dj * slope / den;                                    \
+            T w = (T)0.5 * G * dj * slope * inv;                                    \
             A[j] = (T)0.5 * G * phi - w * r;                                        \
             W[j] = w;                                                               \
         }
@@ -186,22 +186,24 @@ SWEEP_ADJOINT(sweep_adjoint_f64, double)
             phi = r < 0 ? (T)0 : (r > 1 ? (T)1 : r);                                \
             slope = (r >= 0 && r <= 1) ? (T)1 : (T)0;
 #define VAN_LEER_SLOPE(T)                                                           \
-            T a = r < 0 ? -r : r, s = (T)(r > 0) - (T)(r < 0), q = 1 + a;           \
-            phi = (r + a) / q;                                                      \
-            slope = (1 + s) / q - (r + a) * s / (q * q);
+            T a = r < 0 ? -r : r, s = (T)(r > 0) - (T)(r < 0), iq = (T)1 / (1 + a); \
+            phi = (r + a) * iq;                                                     \
+            slope = ((1 + s) - phi * s) * iq;
 /* (the limiter is chosen outside the loop over faces, and no array aliases another,
-   so that the compiler vectorises that loop: a third of the time of the scalar one) */
+   so that the compiler vectorises that loop: a third of the time of the scalar one; each
+   face divides twice, by its difference and by van Leer's 1 + |r|, and multiplies by
+   the reciprocals, which changes the gradient by round-off only) */
 #define TVD_ADJOINT(NAME, T)                                                        \
 void NAME(T *restrict out, T *restrict work, const T *restrict f, const T *restrict g, \
           long rows, long n, T dx, long minmod) {                                   \
     FLUSH_BEGIN                                                                     \
-    T *restrict A = work, *restrict W = work + n;                                   \
+    T *restrict A = work, *restrict W = work + n, idx = (T)1 / dx;                 \
     for (long b = 0; b < rows; ++b) {                                               \
         const T *restrict fr = f + b * n, *restrict gr = g + b * (n - 2);           \
         T *restrict o = out + b * n;                                                \
-        o[0] = -(gr[0] / dx);                                                       \
-        for (long j = 1; j <= n - 3; ++j) o[j] = gr[j - 1] / dx - gr[j] / dx;       \
-        o[n - 2] = gr[n - 3] / dx;                                                  \
+        o[0] = -(gr[0] * idx);                                                      \
+        for (long j = 1; j <= n - 3; ++j) o[j] = gr[j - 1] * idx - gr[j] * idx;     \
+        o[n - 2] = gr[n - 3] * idx;                                                 \
         A[0] = 0; W[0] = 0; A[n - 1] = 0; W[n - 1] = 0;                             \
         if (minmod) { TVD_FACES(T, MINMOD_SLOPE) } else { TVD_FACES(T, VAN_LEER_SLOPE) } \
         for (long k = 0; k <= n - 2; ++k) A[k] = A[k] + W[k + 1];                   \
