@@ -20,8 +20,9 @@ Parts of SAPO (Xing et al., "Stabilizing Reinforcement Learning in Differentiabl
 Multiphysics Simulation", ICLR 2025) are settings: ``--actor stochastic`` draws the
 actions from a normal squashed into the action box (SAC's network, reparametrised so that
 the gradient goes through the draw) and adds the entropy bonus ``-alpha log pi(a|s)`` to
-each reward, in the returns and in the critic's targets, alpha tuned as SAC tunes it
-towards ``--target-entropy`` per action dimension; ``--critics 2`` fits two critics side
+each reward (in units of the mean size of the env's rewards so far), in the returns and
+in the critic's targets, alpha tuned as SAC tunes it towards ``--target-entropy`` per
+action dimension; ``--critics 2`` fits two critics side
 by side, the horizons closed by their mean value and their targets taken from the
 lowest; ``--no-target-critic`` uses the critics themselves where the slowly following
 copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95); ``--layer-norm``
@@ -47,6 +48,7 @@ import copy
 import math
 
 import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.value import TDLambdaEstimator
 
 from beacon_torch.training import networks
@@ -160,7 +162,8 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
     each return closed by the ``target`` critic's value (None: no critic). With a
     ``temperature``, the actions are drawn from the stochastic policy (reparametrised, so
     that the gradient goes through the draw) and each reward has the entropy bonus
-    ``-alpha log pi(a|s)`` added, in the returns and in the critic's targets. A member whose
+    ``-alpha s log pi(a|s)`` added (``s``: the mean size of the rewards so far), in the
+    returns and in the critic's targets. A member whose
     count in ``cuts`` (None: no staggering) reaches 0 has its episode cut there, as by its length (the count
     is decremented in place; an episode cut short is not scored). Returns the
     objective (the closed returns, summed over the members: a graph back to the
@@ -175,7 +178,9 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
     returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     discount = torch.ones_like(returns)
     for h in range(steps):
-        td = actor(td)
+        # a stochastic policy draws (reparametrised), where TorchRL's default plays its mode
+        with set_exploration_type(ExplorationType.RANDOM):
+            td = actor(td)
         if cfg.adaptive_horizon:
             # the objective's gradient with respect to each action, read after the backward pass
             td[keys.action].retain_grad()
@@ -190,7 +195,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         reward = td["next", "reward"][..., 0]
         rewards = rewards + reward.detach().mean()
         if temperature is not None:
-            reward = reward - temperature.alpha * log_prob
+            reward = reward - temperature.alpha * temperature.scale(reward) * log_prob
         returns = returns + discount * reward
         discount = discount * cfg.gamma
         done = td["next", "done"][..., 0]
@@ -290,15 +295,24 @@ def fit_critic(cfg: SHACConfig, critic, target, optim, targets: TDLambdaEstimato
 
 class Temperature(torch.nn.Module):
     """The weight alpha of the entropy bonus, as its logarithm, fitted as SAC's is: down
-    while the policy's entropy is above the target, up while below."""
+    while the policy's entropy is above the target, up while below. The bonus is counted
+    in the env's own units of reward (:meth:`scale`): the rewards of these envs range
+    from thousandths (burgers) to hundreds (the cavities) per action."""
 
     def __init__(self, alpha: float) -> None:
         super().__init__()
         self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(alpha)))
+        self.register_buffer("seen", torch.zeros(2, dtype=torch.float64))  # sum of |reward|, count
 
     @property
     def alpha(self) -> torch.Tensor:
         return self.log_alpha.exp().detach()
+
+    def scale(self, reward: torch.Tensor) -> torch.Tensor:
+        """The mean size of every reward seen so far, ``reward`` (one action's) included."""
+        self.seen[0] += reward.detach().abs().sum().double()
+        self.seen[1] += reward.numel()
+        return (self.seen[0] / self.seen[1]).to(reward.dtype).clamp_min(torch.finfo(reward.dtype).tiny)
 
     def fit(self, log_probs: torch.Tensor, target: float, optim: torch.optim.Optimizer) -> None:
         loss = -(self.log_alpha * (log_probs + target)).mean()

@@ -801,8 +801,8 @@ def test_shac_with_sapos_twin_critics_without_a_target_adamw_and_layer_norm_trai
 def test_shac_with_a_stochastic_policy_follows_its_draws_and_tunes_the_entropy_bonus(tmp_path):
     """SAPO's actor: actions drawn from a normal squashed into the box, reparametrised,
     so the objective's gradient reaches the location and the spread through the draw;
-    each reward gets the bonus -alpha log pi, in the returns and in the critic's
-    targets; alpha falls while the entropy is above its target. Four burgers members,
+    each reward gets the bonus -alpha log pi in the env's units of reward, in the returns
+    and in the critic's targets; alpha falls while the entropy is above its target. Four burgers members,
     4 updates; eval reads the policy (its squashed location) and a resume goes on."""
     settings = dict(num_envs=4, horizon=10, critic_iterations=2, out=str(tmp_path), progress=False)
     cfg = configure(SHACConfig, "burgers-v0", frames=160, actor="stochastic", **settings)
@@ -812,14 +812,22 @@ def test_shac_with_a_stochastic_policy_follows_its_draws_and_tunes_the_entropy_b
     objective, *_ = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(1e-12))
     grads = torch.autograd.grad(objective, list(actor.parameters()))
     assert all(torch.isfinite(g).all() for g in grads) and all(g.abs().sum() > 0 for g in grads)
-    env.base_env.detach_state()
-    objective, _, visited, _, _, log_probs = shac.horizon(
-        cfg, env, actor, None, env.reset(), None, shac.Temperature(0.5)
-    )
-    assert log_probs.shape == (10, 4) and torch.isfinite(log_probs).all()
-    # the critic's targets see the rewards with the bonus: burgers' own are never positive
-    seen = torch.stack([v["next", "reward"][..., 0] for v in visited])
-    assert (seen + 0.5 * log_probs <= 0).all() and not (seen <= 0).all()
+
+    def targets_with(alpha: float):
+        """The rewards the critic's targets see, the same draws and inlets each time."""
+        torch.manual_seed(1)
+        env = make_env("burgers-v0", 4, norm_steps=0, differentiable=True, seed=3)
+        _, _, visited, _, _, log_probs = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(alpha))
+        return torch.stack([v["next", "reward"][..., 0] for v in visited]), log_probs
+
+    # the critic's targets see the rewards with the bonus, counted in the mean size of
+    # the env's rewards up to each action
+    own, same = targets_with(1e-30)
+    seen, log_probs = targets_with(0.5)
+    assert log_probs.shape == (10, 4) and len(set(log_probs.flatten().tolist())) > 30, "the actions were not drawn"
+    torch.testing.assert_close(log_probs, same)
+    size = own.abs().sum(1).cumsum(0) / (4 * torch.arange(1, 11))
+    torch.testing.assert_close(seen, own - 0.5 * size[:, None] * log_probs)
     temperature = shac.Temperature(0.5)
     high = torch.full((3,), 5.0)  # an entropy of -log pi = -5 per draw... above a target of -10
     optim = torch.optim.Adam(temperature.parameters(), lr=0.1)
