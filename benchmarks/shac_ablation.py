@@ -33,6 +33,7 @@ VARIANTS = {
     "layer-norm": {"layer_norm": True},
     "clip-0.5": {"grad_clip": 0.5},
     "adaptive-horizon": {"adaptive_horizon": True},
+    "mixed-estimator": {"actor": "stochastic", "estimator": "mixed"},
     "sapo": {
         "actor": "stochastic",
         "critics": 2,

@@ -35,6 +35,12 @@ larger the objective's gradient is with respect to the horizon's first action th
 its last: a quarter of an octave shorter while that exceeds ``--horizon-growth``, a
 quarter longer otherwise, within [``--horizon-min``, ``--horizon-max``].
 
+``--estimator mixed`` (a stochastic policy) follows Suh et al. ("Do Differentiable
+Simulators Give Better Policy Gradients?", ICML 2022): the first-order gradient and the
+likelihood ratio's, each taken per group of members (``--estimator-groups``, a backward
+pass through the physics each), mixed by their empirical variances, so that where the
+dynamics make the first-order gradient erratic the other carries the update.
+
 Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
 the policy sees: short-horizon analytic policy gradients. The policy is TD3's
 deterministic actor, so ``beacon-torch eval`` and ``plot`` read these runs like any
@@ -46,6 +52,7 @@ from __future__ import annotations
 
 import copy
 import math
+from typing import NamedTuple
 
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -117,12 +124,14 @@ def main(cfg: GradConfig) -> dict:
     # update would follow one phase of the episode at a time
     cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device) if cfg.stagger else None
     while run.frames < cfg.frames:
-        objective, td, visited, scores, rewards, log_probs = horizon(
-            cfg, env, actor, target, td, cuts, temperature, steps
-        )
-        loss = -objective / (steps * members)
+        rollout = horizon(cfg, env, actor, target, td, cuts, temperature, steps)
+        td, visited, log_probs = rollout.td, rollout.visited, rollout.log_probs
+        loss = -rollout.objective.sum() / (steps * members)
         optim.zero_grad()
-        loss.backward()
+        if cfg.estimator == "mixed":
+            share = mix_gradients(cfg, actor, rollout, steps)
+        else:
+            loss.backward()
         spent = steps
         if cfg.adaptive_horizon:
             growth = gradient_growth(visited)
@@ -138,7 +147,7 @@ def main(cfg: GradConfig) -> dict:
         base.detach_state()
         td = td.detach()
         values = {
-            "reward": rewards,
+            "reward": rollout.reward,
             "objective": -loss.item(),
             "skipped_updates": float(run.counters["skipped"]),
         }
@@ -146,8 +155,10 @@ def main(cfg: GradConfig) -> dict:
             values["grad_norm"] = norm.item()
         if cfg.adaptive_horizon:
             values.update(horizon=float(spent), gradient_growth=growth)
-        if scores:
-            values["episode_score"] = torch.cat(scores).mean().item()
+        if cfg.estimator == "mixed":
+            values["first_order_share"] = share
+        if rollout.scores:
+            values["episode_score"] = torch.cat(rollout.scores).mean().item()
         if temperature is not None:
             values.update(alpha=temperature.alpha.item(), entropy=-log_probs.mean().item())
             temperature.fit(log_probs, cfg.target_entropy * env.action_spec.shape[-1], modules["temperature_optim"])
@@ -157,7 +168,24 @@ def main(cfg: GradConfig) -> dict:
     return run.close(save)
 
 
-def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None, steps=None):
+class Rollout(NamedTuple):
+    """What a horizon leaves: the closed returns of each member (``[members]``, a graph
+    back to the policy's weights), the tensordict to go on from, the transitions
+    (detached, for the critic), the scores of the episodes that ended, the mean reward
+    per action, the draws' log-probabilities (``[horizon, members]``, detached; empty
+    for a deterministic policy) and, for the mixed estimator, the same with a graph to
+    the weights only (the score function's)."""
+
+    objective: torch.Tensor
+    td: object
+    visited: list
+    scores: list
+    reward: float
+    log_probs: torch.Tensor
+    score_log_probs: torch.Tensor
+
+
+def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None, steps=None) -> Rollout:
     """One horizon of ``steps`` (None: ``cfg.horizon``) differentiated actions of every member from ``td``,
     each return closed by the ``target`` critic's value (None: no critic). With a
     ``temperature``, the actions are drawn from the stochastic policy (reparametrised, so
@@ -165,15 +193,10 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
     ``-alpha s log pi(a|s)`` added (``s``: the mean size of the rewards so far), in the
     returns and in the critic's targets. A member whose
     count in ``cuts`` (None: no staggering) reaches 0 has its episode cut there, as by its length (the count
-    is decremented in place; an episode cut short is not scored). Returns the
-    objective (the closed returns, summed over the members: a graph back to the
-    policy's weights), the tensordict to go on from, the horizon's transitions
-    (detached, for the critic), the scores of the episodes that ended, the mean
-    reward per action and the draws' log-probabilities (``[horizon, members]``, detached;
-    empty for a deterministic policy)."""
+    is decremented in place; an episode cut short is not scored)."""
     keys = networks.Keys.of(env)
     steps = steps or cfg.horizon
-    objective, rewards, scores, visited, log_probs = 0.0, 0.0, [], [], []
+    objective, rewards, scores, visited, log_probs, score_log_probs = 0.0, 0.0, [], [], [], []
     # per member: the discounted rewards since the horizon or its episode began
     returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     discount = torch.ones_like(returns)
@@ -187,6 +210,9 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         if temperature is not None:
             log_prob = actor.get_dist(td).log_prob(td[keys.action])
             log_probs.append(log_prob.detach())
+        if cfg.estimator == "mixed":
+            # the likelihood of the same draw as a function of the weights alone
+            score_log_probs.append(actor.get_dist(td.detach()).log_prob(td[keys.action].detach()))
         td, td_next = env.step_and_maybe_reset(td)
         # the default path takes no host sync for it
         cut = staggered(td, cuts) if cuts is not None else None
@@ -209,7 +235,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         else:
             closed = returns
         ends = torch.ones_like(done) if last else done
-        objective = objective + torch.where(ends, closed, 0.0).sum()
+        objective = objective + torch.where(ends, closed, 0.0)
         # a member whose episode ended starts a new return
         returns = torch.where(done, 0.0, returns)
         discount = torch.where(done, 1.0, discount)
@@ -223,8 +249,46 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
             seen.set("_action_graph", td[keys.action])
         visited.append(seen)
         td = td_next
-    log_probs = torch.stack(log_probs) if log_probs else torch.zeros(0)
-    return objective, td, visited, scores, float(rewards) / steps, log_probs
+    stacked = [torch.stack(x) if x else torch.zeros(0) for x in (log_probs, score_log_probs)]
+    return Rollout(objective, td, visited, scores, float(rewards) / steps, *stacked)
+
+
+def mix_gradients(cfg: GradConfig, actor, rollout: Rollout, steps: int) -> float:
+    """Set the policy's gradient of the objective to a mix of the first-order gradient
+    (through the physics) and the zeroth-order one (the likelihood ratio: each draw's
+    log-probability times its member's return less the members' mean), weighted by
+    their empirical variances as Suh et al. (2022) weight them: the members are split
+    into ``estimator_groups`` groups, each group's two gradients are taken (a backward
+    pass through the physics per group), and the first-order one gets the share
+    var_0 / (var_0 + var_1) of their means. Returns that share."""
+    params = [p for p in actor.parameters() if p.requires_grad]
+    members = rollout.objective.shape[0]
+    group = torch.arange(members, device=rollout.objective.device) % cfg.estimator_groups
+    advantage = rollout.objective.detach() - rollout.objective.detach().mean()
+    likelihood = rollout.score_log_probs.sum(0)  # [members]
+
+    def flat(loss: torch.Tensor) -> torch.Tensor:
+        grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
+        return torch.cat(
+            [(torch.zeros_like(p) if g is None else g).flatten() for p, g in zip(params, grads, strict=True)]
+        )
+
+    first, zeroth = [], []
+    for k in range(cfg.estimator_groups):
+        chosen = group == k
+        scale = steps * int(chosen.sum())
+        first.append(flat(-rollout.objective[chosen].sum() / scale))
+        zeroth.append(flat(-(likelihood * advantage)[chosen].sum() / scale))
+    first, zeroth = torch.stack(first), torch.stack(zeroth)
+    spread = [x.var(0).sum() for x in (first, zeroth)]
+    total = spread[0] + spread[1]
+    share = float(spread[1] / total) if torch.isfinite(total) and total > 0 else 1.0
+    mixed = share * first.mean(0) + (1.0 - share) * zeroth.mean(0)
+    offset = 0
+    for p in params:
+        p.grad = mixed[offset : offset + p.numel()].view_as(p).clone()
+        offset += p.numel()
+    return share
 
 
 def gradient_growth(visited: list) -> float:

@@ -809,16 +809,16 @@ def test_shac_with_a_stochastic_policy_follows_its_draws_and_tunes_the_entropy_b
     env = make_env("burgers-v0", 4, norm_steps=0, differentiable=True)
     actor = networks.squashed_gaussian_actor(env, 16)
     # with a vanishing bonus, the gradient comes through the draws and the physics alone
-    objective, *_ = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(1e-12))
-    grads = torch.autograd.grad(objective, list(actor.parameters()))
+    objective = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(1e-12)).objective
+    grads = torch.autograd.grad(objective.sum(), list(actor.parameters()))
     assert all(torch.isfinite(g).all() for g in grads) and all(g.abs().sum() > 0 for g in grads)
 
     def targets_with(alpha: float):
         """The rewards the critic's targets see, the same draws and inlets each time."""
         torch.manual_seed(1)
         env = make_env("burgers-v0", 4, norm_steps=0, differentiable=True, seed=3)
-        _, _, visited, _, _, log_probs = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(alpha))
-        return torch.stack([v["next", "reward"][..., 0] for v in visited]), log_probs
+        rollout = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(alpha))
+        return torch.stack([v["next", "reward"][..., 0] for v in rollout.visited]), rollout.log_probs
 
     # the critic's targets see the rewards with the bonus, counted in the mean size of
     # the env's rewards up to each action
@@ -871,6 +871,38 @@ def test_the_adaptive_horizon_shortens_where_the_gradient_grows_and_lengthens_wh
     assert state["counters"]["horizon"] in (4, 5, 6, 7, 8, 10, 11, 13, 16) and state["frames"] == steps[-1]
 
 
+def test_the_mixed_estimator_weighs_the_first_order_gradient_against_the_likelihood_ratios(tmp_path):
+    """Suh et al.'s mix: the members in groups, each group's first-order gradient
+    (through the physics) and likelihood-ratio gradient (its draws' log-probabilities
+    times their members' returns less the mean), the first-order one weighted by
+    var_0 / (var_0 + var_1); with groups of equal size, the mix of the two gradients of
+    all the members. Burgers, 4 members in 2 groups; a run logs the share and resumes."""
+    cfg = configure(
+        SHACConfig, "burgers-v0", num_envs=4, horizon=6, actor="stochastic", estimator="mixed", estimator_groups=2
+    )
+    with pytest.raises(ValueError, match="needs a stochastic policy"):
+        configure(SHACConfig, "burgers-v0", estimator="mixed")
+    with pytest.raises(ValueError, match="must number 2 to the members"):
+        configure(SHACConfig, "burgers-v0", num_envs=4, actor="stochastic", estimator="mixed", estimator_groups=5)
+    torch.manual_seed(0)
+    env = make_env("burgers-v0", 4, norm_steps=0, differentiable=True)
+    actor = networks.squashed_gaussian_actor(env, 16)
+    rollout = shac.horizon(cfg, env, actor, None, env.reset(), None, shac.Temperature(0.1), 6)
+    assert rollout.score_log_probs.shape == (6, 4) and rollout.score_log_probs.requires_grad
+    params = list(actor.parameters())
+    first = torch.autograd.grad(-rollout.objective.sum() / 24, params, retain_graph=True)
+    advantage = rollout.objective.detach() - rollout.objective.detach().mean()
+    zeroth = torch.autograd.grad(-(rollout.score_log_probs.sum(0) * advantage).sum() / 24, params, retain_graph=True)
+    share = shac.mix_gradients(cfg, actor, rollout, 6)
+    assert 0.0 <= share <= 1.0
+    for p, f, z in zip(params, first, zeroth, strict=True):
+        torch.testing.assert_close(p.grad, share * f + (1.0 - share) * z)
+
+    settings = dict(num_envs=4, horizon=6, critic_iterations=2, actor="stochastic", estimator="mixed", progress=False)
+    last = shac.main(configure(SHACConfig, "burgers-v0", frames=48, out=str(tmp_path), estimator_groups=2, **settings))
+    assert 0.0 <= last["first_order_share"] <= 1.0, last
+
+
 def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_gradients_unchanged():
     """Two lorenz members, the second's state scaled out of any range so that it blows
     up on the horizon's first action (float64): the horizon's objective has a finite gradient,
@@ -891,7 +923,8 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         if members == 2:
             state = env.base_env.state
             env.base_env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in state._asdict().items()})
-        objective, _, _, scores, _, _ = shac.horizon(cfg, env, actor, critic, td)
+        objective, _, _, scores, *_ = shac.horizon(cfg, env, actor, critic, td)
+        objective = objective.sum()
         loss = -objective / (cfg.horizon * members)
         grads.append(torch.autograd.grad(loss, list(actor.parameters())))
         ended.append(len(scores))
@@ -913,7 +946,8 @@ def test_staggered_members_end_their_first_episode_apart_and_go_on():
     actor = networks.deterministic_actor(env, 16, paper_init=False).double()
     critic = networks.state_value(env, 16).double()
     cuts = torch.tensor([2, 0, 5])
-    objective, td, visited, scores, _, _ = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
+    objective, td, visited, scores, *_ = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
+    objective = objective.sum()
     truncated = torch.stack([v["next", "truncated"][..., 0] for v in visited])  # [time, members]
     assert truncated[:, 0].tolist() == [False, True, False, False, False, False]
     assert truncated[:, 2].tolist() == [False, False, False, False, True, False]

@@ -359,7 +359,7 @@ class GradConfig(Config):
     action_kind: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = GRAD
     in_process: ClassVar[bool] = True
-    positive: ClassVar[tuple[str, ...]] = ("horizon", "horizon_min", "horizon_max")
+    positive: ClassVar[tuple[str, ...]] = ("horizon", "horizon_min", "horizon_max", "estimator_groups")
     # whether a critic's value closes each horizon
     critic: ClassVar[bool] = False
 
@@ -390,6 +390,13 @@ class GradConfig(Config):
         "adapt the horizon after each update: shorter while the objective's gradient with respect to its first "
         "action is more than HORIZON_GROWTH times that with respect to its last, longer otherwise",
     )
+    estimator: str = setting(
+        "first-order",
+        "the policy's gradient: first-order (through the physics), or mixed with the likelihood ratio's by their "
+        "variances (a stochastic policy; a backward pass per group of members)",
+        ("first-order", "mixed"),
+    )
+    estimator_groups: int = setting(4, "the mixed estimator's groups of members, whose spread gives the variances")
     horizon_growth: float = setting(10.0, "the adaptive horizon's bound on the gradient's growth", domain=POSITIVE)
     horizon_min: int = setting(8, "the adaptive horizon's shortest")
     horizon_max: int = setting(64, "the adaptive horizon's longest")
@@ -620,6 +627,17 @@ def _check(cfg: Settings) -> Settings:
     for name in ("frames", "collectors", "checkpoint_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"setting '{name}' must be a positive integer, got {getattr(cfg, name)}")
+    if isinstance(cfg, GradConfig) and cfg.estimator == "mixed":
+        if cfg.actor != "stochastic":
+            raise ValueError("the mixed estimator needs a stochastic policy's likelihood: give actor=stochastic")
+        if cfg.adaptive_horizon:
+            raise ValueError(
+                "the adaptive horizon reads the first-order gradient's own pass: not with the mixed estimator"
+            )
+        if not 2 <= cfg.estimator_groups <= cfg.num_envs:
+            raise ValueError(
+                f"the mixed estimator's groups ({cfg.estimator_groups}) must number 2 to the members ({cfg.num_envs})"
+            )
     if isinstance(cfg, GradConfig) and cfg.adaptive_horizon and not cfg.horizon_min <= cfg.horizon <= cfg.horizon_max:
         raise ValueError(
             f"the adaptive horizon starts within its bounds: horizon_min ({cfg.horizon_min}) <= horizon "
