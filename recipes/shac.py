@@ -124,6 +124,9 @@ def main(cfg: GradConfig) -> dict:
     # update would follow one phase of the episode at a time
     cuts = torch.randint(1, base.episode_length + 1, (members,), device=cfg.device) if cfg.stagger else None
     while run.frames < cfg.frames:
+        if cfg.adaptive_horizon:
+            # the last update stops at the total, not a long horizon past it
+            steps = min(steps, -(-(cfg.frames - run.frames) // members))
         rollout = horizon(cfg, env, actor, target, td, cuts, temperature, steps)
         td, visited, log_probs = rollout.td, rollout.visited, rollout.log_probs
         loss = -rollout.objective.sum() / (steps * members)

@@ -408,3 +408,19 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     assert again["wall_s"] == rows[1]["wall_s"] and again["own_score"] == rows[1]["own_score"]
     table = ablation.page_table(out)
     assert "| burgers-v0 | defaults: the defaults |" in table and "actor=stochastic" in table
+
+
+def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_settings():
+    """Every variant of the settings' trials has a record on burgers at the recipe's
+    budget, and the page's table is the one its script writes from the records."""
+    from pathlib import Path
+
+    from conftest import script
+
+    root = Path(__file__).resolve().parents[1]
+    ablation = script("benchmarks/shac_ablation.py")
+    folder = root / "benchmarks" / "results" / "shac_ablation"
+    table = ablation.page_table(folder)
+    assert table in (root / "docs" / "gradients.md").read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| burgers-v0 |")]
+    assert len(rows) >= 9 and all("| 51,200 |" in row for row in rows), rows

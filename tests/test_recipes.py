@@ -869,6 +869,14 @@ def test_the_adaptive_horizon_shortens_where_the_gradient_grows_and_lengthens_wh
     assert list(steps[1:] - steps[:-1]) == [4 * h for h in horizons[1:]]
     state = checkpoint(tmp_path)
     assert state["counters"]["horizon"] in (4, 5, 6, 7, 8, 10, 11, 13, 16) and state["frames"] == steps[-1]
+    # the last update stops at the total: a long horizon would have passed it
+    assert 96 <= state["frames"] < 96 + 4
+    shac.main(
+        configure(
+            SHACConfig, "burgers-v0", adaptive_horizon=True, frames=150, out=str(tmp_path), resume=True, **settings
+        )
+    )
+    assert 150 <= checkpoint(tmp_path)["frames"] < 150 + 4
 
 
 def test_the_mixed_estimator_weighs_the_first_order_gradient_against_the_likelihood_ratios(tmp_path):
