@@ -52,7 +52,6 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import NamedTuple
 
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -171,7 +170,7 @@ def main(cfg: GradConfig) -> dict:
     return run.close(save)
 
 
-class Rollout(NamedTuple):
+class Rollout:
     """What a horizon leaves: the closed returns of each member (``[members]``, a graph
     back to the policy's weights), the tensordict to go on from, the transitions
     (detached, for the critic), the scores of the episodes that ended, the mean reward
@@ -179,13 +178,9 @@ class Rollout(NamedTuple):
     for a deterministic policy) and, for the mixed estimator, the same with a graph to
     the weights only (the score function's)."""
 
-    objective: torch.Tensor
-    td: object
-    visited: list
-    scores: list
-    reward: float
-    log_probs: torch.Tensor
-    score_log_probs: torch.Tensor
+    def __init__(self, objective, td, visited, scores, reward, log_probs, score_log_probs) -> None:
+        self.objective, self.td, self.visited, self.scores = objective, td, visited, scores
+        self.reward, self.log_probs, self.score_log_probs = reward, log_probs, score_log_probs
 
 
 def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None, steps=None) -> Rollout:

@@ -931,8 +931,8 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         if members == 2:
             state = env.base_env.state
             env.base_env.set_state({k: torch.cat([v[:1], v[1:] * 1e30]) for k, v in state._asdict().items()})
-        objective, _, _, scores, *_ = shac.horizon(cfg, env, actor, critic, td)
-        objective = objective.sum()
+        rollout = shac.horizon(cfg, env, actor, critic, td)
+        objective, scores = rollout.objective.sum(), rollout.scores
         loss = -objective / (cfg.horizon * members)
         grads.append(torch.autograd.grad(loss, list(actor.parameters())))
         ended.append(len(scores))
@@ -954,8 +954,8 @@ def test_staggered_members_end_their_first_episode_apart_and_go_on():
     actor = networks.deterministic_actor(env, 16, paper_init=False).double()
     critic = networks.state_value(env, 16).double()
     cuts = torch.tensor([2, 0, 5])
-    objective, td, visited, scores, *_ = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
-    objective = objective.sum()
+    rollout = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
+    objective, visited, scores = rollout.objective.sum(), rollout.visited, rollout.scores
     truncated = torch.stack([v["next", "truncated"][..., 0] for v in visited])  # [time, members]
     assert truncated[:, 0].tolist() == [False, True, False, False, False, False]
     assert truncated[:, 2].tolist() == [False, False, False, False, True, False]
