@@ -36,7 +36,7 @@ BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of
 
 
 def scale(score: float, uncontrolled: float, env_id: str) -> float | None:
-    """The normalised score; None where the env's card has no paper score to
+    """The normalised score; None where the env's card has no reference to
     normalise by."""
     return float(normalised(score, uncontrolled, env_id)) if normalisable(env_id) else None
 
@@ -121,9 +121,9 @@ def table(rows: list[dict], num_envs: int, seed: int) -> str:
         "The test starts are the 8 developed, uncontrolled states of the test set "
         "(`beacon_torch.starts`, [quick start](quickstart.md#start-sets-train-validation-and-test-episodes)); "
         "each policy was trained from the env's own start only. (a): no control from these starts already "
-        "scores above the paper's PPO, so the scale from one to the other runs backwards and is not used "
+        "scores above the reference, so the scale from one to the other runs backwards and is not used "
         "(sloshing's and mixing's developed states are calmer than their own start). (b): the env's card has "
-        "no paper score, the scale's 1; its page sets the scores beside its own reference.",
+        "no reference, the scale's 1; its page sets the scores beside what its case offers.",
     ]
     return "\n".join(lines)
 

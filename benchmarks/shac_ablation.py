@@ -49,7 +49,6 @@ BEGIN, END = "<!-- actor-critic settings: benchmarks/shac_ablation.py -->", "<!-
 def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = None) -> dict:
     """Train one seed of ``variant`` on ``env_id`` (or finish it) and score its policy;
     ``frames``: fewer transitions than the recipe's budget (a trial)."""
-    from beacon_torch.registry import env_class
     from beacon_torch.training import report
     from beacon_torch.training.config import SHACConfig, configure
     from beacon_torch.training.evaluation import HELD_OUT, evaluate_run
@@ -76,7 +75,7 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
         result = evaluate_run(out, num_envs=8, starts=starts)
         row[f"{name}_score"] = result["score_mean"]
         row[f"{name}_uncontrolled"] = result["uncontrolled"]
-        if env_class(env_id).paper_ppo is not None:
+        if report.normalisable(env_id):
             row[f"{name}_normalised"] = float(report.normalised(result["score_mean"], result["uncontrolled"], env_id))
     return row
 
@@ -112,8 +111,8 @@ def page_table(folder: Path) -> str:
     def score(row: dict, name: str) -> str:
         if f"{name}_normalised" not in row:
             return "-"
-        # no control from the test starts above the paper's PPO: the scale runs backwards
-        if row[f"{name}_uncontrolled"] >= _reference(row["env"]):
+        # no control from the test starts above the reference: the scale runs backwards
+        if not _scaled(row[f"{name}_uncontrolled"], row["env"]):
             return "- (a)"
         return f"{row[f'{name}_normalised']:.2f}"
 
@@ -130,10 +129,10 @@ def page_table(folder: Path) -> str:
     return "\n".join(lines)
 
 
-def _reference(env_id: str) -> float:
+def _scaled(uncontrolled: float, env_id: str) -> bool:
     from beacon_torch.training import report
 
-    return report.reference(env_id)
+    return report.scaled(uncontrolled, env_id)
 
 
 def main() -> None:

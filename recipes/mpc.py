@@ -40,12 +40,11 @@ import beacon_torch
 from beacon_torch import episodes, files, received, threads
 from beacon_torch.core.state import map_state
 from beacon_torch.episodes import progress_bar
-from beacon_torch.registry import env_class
 from beacon_torch.training import config
 from beacon_torch.training.config import MPCConfig
 from beacon_torch.training.env import horizon_bytes, make_env
 from beacon_torch.training.evaluation import EVAL_SEED, uncontrolled_episodes
-from beacon_torch.training.report import normalised
+from beacon_torch.training.report import normalisable, normalised
 from beacon_torch.training.run import fits
 
 # where planned episodes under way are kept
@@ -277,7 +276,7 @@ def main(args: MPCConfig) -> dict:
                 score_std=scores.std(unbiased=False).item(),
                 uncontrolled=episodes.scores(free).mean().item(),
             )
-            if env_class(args.env).paper_ppo is not None:  # else no reference score to scale by
+            if normalisable(args.env):  # else no reference score to scale by
                 record["normalised"] = float(normalised(record["score_mean"], record["uncontrolled"], args.env))
         stats = planner.stats
         record.update(

@@ -74,7 +74,7 @@ def test_the_worked_example_passes_every_check(example):
 def test_an_env_without_published_facts_registers_benches_and_is_refused_by_the_protocol(example, tmp_path):
     """The example has no published code and no paper: its card says so (None), the
     benchmark gives its rate without a factor over published code, and the protocol,
-    which normalises by a paper score, refuses it in one line instead of inventing one."""
+    which normalises by a declared reference, refuses it in one line instead of inventing one."""
     import json
 
     from beacon_torch import bench
@@ -82,13 +82,16 @@ def test_an_env_without_published_facts_registers_benches_and_is_refused_by_the_
 
     cls = example.HeatEnv
     assert (cls.published_speed, cls.speed_target, cls.paper_ppo, cls.costly) == (None, None, None, False)
+    assert cls.scale_reference() is None
     measured = bench.measure("heat-v0", 4, steps=2, repeats=1)
     assert measured.transitions_per_s > 0 and measured.published_per_s is None and measured.speedup is None
     assert "| heat-v0 |" in bench.markdown([measured]) and "| - | - |  |" in bench.markdown([measured])
     summary = {"env": "heat-v0", "algo": "ppo", "uncontrolled": -1.0, "frames": 10, "wall_s_per_seed": 1.0}
     file = tmp_path / "summary.json"
     file.write_text(json.dumps({**summary, "seeds": [{"eval": -0.5}]}))
-    with pytest.raises(ValueError, match="heat-v0 has no paper score on its card \\(paper_ppo\\) to normalise by"):
+    with pytest.raises(
+        ValueError, match="heat-v0 has no reference on its card \\(paper_ppo or reference\\) to normalise by"
+    ):
         report.read(file)
 
 

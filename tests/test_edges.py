@@ -278,6 +278,44 @@ def test_report_counts_a_pair_once_and_writes_its_cells_as_text(tmp_path):
     assert "| burgers-v0 | ppo | test set | 3 |" in out["table"]
 
 
+def test_each_reference_says_where_its_one_comes_from_and_a_share_scales_with_no_control(tmp_path):
+    """The results table names each "= 1" with its source; a published reduction
+    (Vignon et al.'s Nusselt number, 2.0496 against 2.675 uncontrolled) is a share of no
+    control's score from the same starts, so that the same reduction scores 1 whatever
+    this grid's level of no control."""
+    from beacon_torch.card import PAPER_PPO, Reference
+
+    def pair(**changes) -> Path:
+        path = tmp_path / f"{changes['env']}-{changes['algo']}.json"
+        path.write_text(json.dumps(summary(**changes)))
+        return path
+
+    share = 2.0496 / 2.675
+    assert report.reference("rayleigh-separable-v0", -500.0) == pytest.approx(-500.0 * share)
+    assert report.normalised(-500.0 * share, -500.0, "rayleigh-separable-v0") == pytest.approx(1.0)
+    assert report.normalised(-1000.0 * share, -1000.0, "rayleigh-separable-v0") == pytest.approx(1.0)
+    assert report.normalised(-1.5, -3.0, "ks-v0") == pytest.approx(0.5)  # half the distance removed
+    paths = [
+        pair(env="burgers-v0", algo="ppo"),
+        pair(
+            env="ks-v0",
+            algo="shac",
+            uncontrolled=-6000.0,
+            seeds=[{"seed": "seed0", "eval": -3000.0, "test": -3000.0}],
+            test_uncontrolled=-6000.0,
+        ),
+    ]
+    out = report.report(paths, tmp_path / "r.md", tmp_path / "r.json", tmp_path / "r.png")
+    assert "| reference (= 1), its source |" in out["table"]
+    assert "| -1.75 (the paper's PPO) |" in out["table"] and "| 0 (the physical limit) |" in out["table"]
+    (ks,) = [r for r in out["rows"] if r["env"] == "ks-v0"]
+    assert ks["normalised"] == [0.5]
+    with pytest.raises(ValueError, match="source must be one of the paper's PPO, a published result"):
+        Reference("a guess", "nowhere", score=1.0)
+    with pytest.raises(ValueError, match="a score or a ratio to no control's score, one of the two"):
+        Reference(PAPER_PPO, "the paper", score=1.0, ratio=0.5)
+
+
 # ---------------------------------------------------------------- functional API, agents
 
 

@@ -136,7 +136,7 @@ def test_a_pair_of_an_env_without_a_paper_score_is_published_and_listed_by_its_o
     (row,) = [line for line in text.splitlines() if line.startswith("| short-lorenz-v0 | ppo | own start | 2 |")]
     assert f"{report.iqm(scores):.4g} ({', '.join(f'{x:.4g}' for x in scores)})" in row
     assert f"| {published['uncontrolled']:.4g} | 400 |" in row and "normalised scores" not in text
-    with pytest.raises(ValueError, match="no paper score on its card"):
+    with pytest.raises(ValueError, match="no reference on its card"):
         report.read(file)
 
 

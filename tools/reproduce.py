@@ -221,7 +221,8 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     held = [report.row(s, "test") for s in summaries if report.test_scaled(s)]
     test_table = (
         "On the held-out test set's 8 developed starts (one episode each; 0 = no control from "
-        "the same states, 1 = the paper's PPO on its own start), the pairs recorded with them:\n\n" + report.table(held)
+        "the same states, 1 = the env's reference, the same score as on its own start or, for a share of no "
+        "control, the same share), the pairs recorded with them:\n\n" + report.table(held)
         if held
         else "No recorded pair has test-set scores yet."
     )
@@ -229,10 +230,11 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     if unscaled:
         test_table += (
             "\n\nNot normalised on the test set, where no control from the developed starts already scores "
-            "above the paper's PPO (the scale would run backwards): "
+            "above the reference (the scale would run backwards): "
             + "; ".join(
                 f"{s['algo']}/{s['env']} {report.iqm([seed['test'] for seed in s['seeds']]):.4g} "
-                f"against {s['test_uncontrolled']:.4g} uncontrolled (paper's PPO {report.reference(s['env']):g})"
+                f"against {s['test_uncontrolled']:.4g} uncontrolled (reference "
+                f"{report.reference(s['env'], s['test_uncontrolled']):g})"
                 for s in unscaled
             )
             + "."
@@ -267,12 +269,12 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
 
 
 def unnormalised(summaries: list[dict]) -> list[str]:
-    """The recorded pairs of envs without the paper's score on their card: their own
+    """The recorded pairs of envs without a reference on their card: their own
     scores beside no control, for the env's page to set against its reference."""
     if not summaries:
         return []
     lines = [
-        "Recorded, not normalised: their envs have no paper score on the card (each env's page sets the "
+        "Recorded, not normalised: their envs have no reference on the card (each env's page sets the "
         "scores beside its own reference):",
         "",
         "| env | algorithm | episodes | seeds | score, IQM (per seed) | uncontrolled | transitions "

@@ -29,6 +29,7 @@ import torch
 
 from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
 from beacon_torch.cache import cached
+from beacon_torch.card import PHYSICAL_LIMIT, Reference
 from beacon_torch.params import param
 
 DT = 0.05
@@ -283,6 +284,10 @@ class KSEnv(FlowEnv):
     env_id = "ks-v0"
     physics_type = KSPhysics
     family = "1-D"
+    # no published controller's distance can be read; the distance cannot go below 0
+    reference = Reference(
+        PHYSICAL_LIMIT, "the target equilibrium held exactly from the first action: distance 0", score=0.0
+    )
     gradcheck = GradCheck("amp", 0.5, warmup=20, steps=5)
 
     def render_frame(self, history: list[KSState], step: int) -> np.ndarray:

@@ -23,6 +23,7 @@ import numpy as np
 from scipy import stats
 
 from beacon_torch import received
+from beacon_torch.card import Reference
 from beacon_torch.files import create_file, refuse_existing, save_figure, write_text
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training.evaluation import CURVE_POINTS, summarise
@@ -34,23 +35,26 @@ CONFIDENCE = 0.95
 
 def normalisable(env_id: str) -> bool:
     """Whether the protocol can normalise ``env_id``'s scores: its card gives the
-    paper's PPO score, the scale's "= 1"."""
-    return env_class(env_id).paper_ppo is not None
+    scale's "= 1" (the paper's PPO score or another declared reference)."""
+    return env_class(env_id).scale_reference() is not None
 
 
-def reference(env_id: str) -> float:
-    """The paper's PPO score of ``env_id`` (its base env's for a variant)."""
-    score = env_class(env_id).paper_ppo
-    if score is None:
-        raise ValueError(
-            f"{env_id} has no paper score on its card (paper_ppo): the protocol has nothing to normalise by"
-        )
-    return score
+def scale_reference(env_id: str) -> Reference:
+    """The "= 1" of ``env_id``'s scores (its base env's for a variant), with its source."""
+    found = env_class(env_id).scale_reference()
+    if found is None:
+        raise ValueError(f"{env_id} has no reference on its card (paper_ppo or reference): nothing to normalise by")
+    return found
+
+
+def reference(env_id: str, uncontrolled: float) -> float:
+    """The reference score of ``env_id`` beside no control scoring ``uncontrolled``."""
+    return scale_reference(env_id).value(uncontrolled)
 
 
 def normalised(score, uncontrolled, env_id: str):
-    """0 at the uncontrolled score, 1 at the paper's PPO score."""
-    return (np.asarray(score, dtype=float) - uncontrolled) / (reference(env_id) - uncontrolled)
+    """0 at the uncontrolled score, 1 at the reference score (:func:`reference`)."""
+    return (np.asarray(score, dtype=float) - uncontrolled) / (reference(env_id, uncontrolled) - uncontrolled)
 
 
 def iqm(values, axis=None) -> float:
@@ -91,11 +95,11 @@ def held_out(summary: dict) -> bool:
 
 def scaled(uncontrolled: float, env_id: str) -> bool:
     """Whether scores beside no control scoring ``uncontrolled`` can be normalised: no
-    control below the paper's PPO. Where it scores above (sloshing's and mixing's calmer
+    control below the reference. Where it scores above (sloshing's and mixing's calmer
     developed states), the scale from no control to the paper's score runs backwards and
     a normalised number would rank a policy worse than no control above one that beats
     it."""
-    return uncontrolled < reference(env_id)
+    return uncontrolled < reference(env_id, uncontrolled)
 
 
 def test_scaled(summary: dict) -> bool:
@@ -130,7 +134,8 @@ def row(summary: dict, starts: str = "test") -> dict:
         "seeds": len(scores),
         "scores": scores,
         "uncontrolled": uncontrolled,
-        "reference": reference(env_id),
+        "reference": reference(env_id, uncontrolled),
+        "reference_source": scale_reference(env_id).label(),
         "normalised": norm.tolist(),
         "iqm": iqm(norm),
         "ci": (low, high),
@@ -158,7 +163,7 @@ def check_summary(summary, file: str | Path, scored: bool = True) -> dict:
     if not isinstance(summary.get("env"), str) or summary["env"] not in ENVS:
         raise bad(f"unknown env {_short(summary.get('env'))}")
     if scored and not normalisable(summary["env"]):
-        raise bad(f"{summary['env']} has no paper score on its card (paper_ppo) to normalise by")
+        raise bad(f"{summary['env']} has no reference on its card (paper_ppo or reference) to normalise by")
     if not isinstance(summary.get("algo"), str) or summary["algo"] not in ALGORITHMS:
         raise bad(f"unknown algorithm {_short(summary.get('algo'))}; known: {', '.join(ALGORITHMS)}")
     seeds = summary.get("seeds")
@@ -204,11 +209,11 @@ def check_summary(summary, file: str | Path, scored: bool = True) -> dict:
         raise bad(f"'train_mean' must be finite, got {_short(summary['train_mean'])}")
     if not normalisable(summary["env"]):
         return summary
-    ref = reference(summary["env"])
     pairs = [("own-start", [s["eval"] for s in seeds], summary["uncontrolled"])] if own else []
     if held_out(summary):
         pairs.append(("test-set", [s["test"] for s in seeds], summary["test_uncontrolled"]))
     for name, scores, uncontrolled in pairs:
+        ref = reference(summary["env"], uncontrolled)
         # a scale within round-off of zero would turn round-off into the score
         if abs(ref - uncontrolled) <= SCALE_TOLERANCE * max(abs(ref), abs(uncontrolled), 1.0):
             raise bad(
@@ -343,10 +348,19 @@ def _cell(text) -> str:
     return re.sub(r"([\\`*_{}\[\]|~])", r"\\\1", escaped).replace("\n", " ")
 
 
+def _reference_cell(row: dict) -> str:
+    """The reference score of a row and its source (a row written before the sources
+    were recorded shows its number alone)."""
+    source = row.get("reference_source", "")
+    if " x no control" in source:
+        return f"{row['reference']:.4g} = {source}"
+    return source or f"{row['reference']:g}"
+
+
 def table(rows: list[dict]) -> str:
     lines = [
         "| env | algorithm | episodes | seeds | normalised score, IQM [95 % CI] | score, IQM (per seed) | "
-        "uncontrolled | paper's PPO (= 1) | transitions | wall time per seed |",
+        "uncontrolled | reference (= 1), its source | transitions | wall time per seed |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: (r["algo"], r["env"])):
@@ -354,7 +368,8 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {_cell(r['env'])} | {_cell(r['algo'])} | {EPISODES[r['episodes']]} | {r['seeds']} | "
             f"**{r['iqm']:.2f}** [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}] | {r['score_iqm']:.4g} ({per_seed}) "
-            f"| {r['uncontrolled']:.4g} | {r['reference']:g} | {r['frames']:,} | {r['wall_s_per_seed'] / 60:.1f} min |"
+            f"| {r['uncontrolled']:.4g} | {_cell(_reference_cell(r))} | {r['frames']:,} "
+            f"| {r['wall_s_per_seed'] / 60:.1f} min |"
         )
     return "\n".join(lines)
 
@@ -376,7 +391,7 @@ def figure(rows: list[dict], path: str | Path) -> Path:
         )
         ax.scatter(r["normalised"], [k] * len(r["normalised"]), s=8, color=color, alpha=0.4)
     ax.axvline(0.0, color="k", ls="--", lw=1, label="uncontrolled")
-    ax.axvline(1.0, color="k", ls=":", lw=1, label="the paper's PPO")
+    ax.axvline(1.0, color="k", ls=":", lw=1, label="the reference (the paper's PPO where there is one)")
     labels = [f"{r['algo']} {r['env']}" + (" (own start)" if r["episodes"] == "own" else "") for r in rows]
     ax.set_yticks(range(len(rows)), labels, fontsize=8)
     ax.set_xlabel("normalised score (IQM over seeds, 95 % bootstrap interval; dots: seeds)")
