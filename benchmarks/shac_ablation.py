@@ -1,18 +1,19 @@
-"""Each of SAPO's settings of the actor-critic alone against its defaults: one seed per
-(env, variant), a tenth of PPO's transitions (the recipe's budget), the deterministic
-policy scored on the env's own start and on the test set's 8 developed starts,
-normalised as on the results page (0: no control, 1: the paper's PPO).
+"""Each of SAPO's settings of the actor-critic alone against its defaults, and more
+updates for the same transitions (fewer members, shorter horizons): a seed per run, a
+tenth of PPO's transitions (the recipe's budget), the deterministic policy scored on the
+env's own start and on the test set's 8 developed starts, normalised as on the results
+page (0: no control, 1: the env's reference).
 
     .venv/bin/python benchmarks/shac_ablation.py [--envs ...] [--variants ...] [--seed 0]
     .venv/bin/python benchmarks/shac_ablation.py --page docs/gradients.md
 
 A variant is a set of settings on top of the env's defaults (``VARIANTS``). Each run
-trains into ``--runs`` (``runs/shac_ablation/ENV/VARIANT``, a run folder ``beacon-torch
+trains into ``--runs`` (``runs/shac_ablation/ENV/VARIANT/seedK``, a run folder ``beacon-torch
 eval`` reads; an existing one is resumed, so that a stopped campaign goes on) and
 writes a new ``ablation-ENV-VARIANT-DATE-TIME.json`` to ``--out``: the settings, the
 scores, the transitions and the run's wall seconds (its own clock; compare only runs
-that shared the machine alike). ``--page`` writes the newest record of each pair as
-the page's table.
+that shared the machine alike). ``--page`` writes the newest record of each (env,
+variant, seed) as the page's table, a row per (env, variant) with the mean over seeds.
 """
 
 from __future__ import annotations
@@ -42,6 +43,11 @@ VARIANTS = {
         "layer_norm": True,
         "grad_clip": 0.5,
     },
+    # more updates for the same transitions: fewer members, or shorter horizons
+    "members-16": {"num_envs": 16},
+    "members-4": {"num_envs": 4},
+    "horizon-16": {"horizon": 16},
+    "horizon-8": {"horizon": 8},
 }
 BEGIN, END = "<!-- actor-critic settings: benchmarks/shac_ablation.py -->", "<!-- end of actor-critic settings -->"
 
@@ -91,40 +97,49 @@ def recipe():
 
 
 def page_table(folder: Path) -> str:
-    """The newest record of each (env, variant) in ``folder`` as a markdown table."""
+    """The newest record of each (env, variant, seed) in ``folder`` as a markdown table,
+    a row per (env, variant): the mean over its seeds and each seed's score."""
     from beacon_torch import received
 
-    newest: dict[tuple[str, str], dict] = {}
-    measured: dict[tuple[str, str], str] = {}
+    newest: dict[tuple[str, str], dict[int, dict]] = {}
+    measured: dict[tuple[str, str], set[str]] = {}
     for path in sorted(folder.glob("ablation-*.json"), key=lambda p: p.name[-20:]):
         record = received.json_file(path, "an actor-critic settings record")
         day = "-".join((path.stem[-15:-11], path.stem[-11:-9], path.stem[-9:-7]))
         cpu = str(record.get("machine", "")).split(",")[0].replace("(R)", "").replace(" Processor", "")
         for row in record["rows"]:
-            newest[row["env"], row["variant"]] = row
-            measured[row["env"], row["variant"]] = f"{day}, {cpu}"
+            newest.setdefault((row["env"], row["variant"]), {})[row["seed"]] = row
+            measured.setdefault((row["env"], row["variant"]), set()).add(f"{day}, {cpu}")
     lines = [
-        "| env | settings | normalised, own start | normalised, test set | transitions | minutes | measured |",
-        "|---|---|---|---|---|---|---|",
+        "| env | settings | seeds | normalised, own start: mean (seeds) | normalised, test set: mean (seeds) "
+        "| transitions | minutes a seed | measured |",
+        "|---|---|---|---|---|---|---|---|",
     ]
 
-    def score(row: dict, name: str) -> str:
-        if f"{name}_normalised" not in row:
+    def scores(rows: list[dict], name: str) -> str:
+        if any(f"{name}_normalised" not in row for row in rows):
             return "-"
         # no control from the test starts above the reference: the scale runs backwards
-        if not _scaled(row[f"{name}_uncontrolled"], row["env"]):
+        if not all(_scaled(row[f"{name}_uncontrolled"], row["env"]) for row in rows):
             return "- (a)"
-        return f"{row[f'{name}_normalised']:.2f}"
+        values = [row[f"{name}_normalised"] for row in rows]
+        each = f" ({', '.join(f'{v:.2f}' for v in values)})" if len(values) > 1 else ""
+        return f"{sum(values) / len(values):.2f}{each}"
 
-    for env_id in ENVS:
+    others = sorted({env_id for env_id, _ in newest} - set(ENVS))
+    for env_id in (*ENVS, *others):
         for variant in VARIANTS:
-            row = newest.get((env_id, variant))
-            if row is None:
+            seeds = newest.get((env_id, variant))
+            if seeds is None:
                 continue
-            shown = ", ".join(f"{k}={v}" for k, v in row["settings"].items()) or "the defaults"
+            rows = [seeds[k] for k in sorted(seeds)]
+            shown = ", ".join(f"{k}={v}" for k, v in rows[0]["settings"].items()) or "the defaults"
+            frames = sorted({row["frames"] for row in rows})
+            minutes = sum(row["wall_s"] for row in rows) / len(rows) / 60
+            when = "; ".join(sorted(measured[env_id, variant]))
             lines.append(
-                f"| {env_id} | {variant}: {shown} | {score(row, 'own')} | {score(row, 'test')} | "
-                f"{row['frames']:,} | {row['wall_s'] / 60:.1f} | {measured[env_id, variant]} |"
+                f"| {env_id} | {variant}: {shown} | {len(rows)} | {scores(rows, 'own')} | {scores(rows, 'test')} | "
+                f"{' or '.join(f'{f:,}' for f in frames)} | {minutes:.1f} | {when} |"
             )
     return "\n".join(lines)
 
@@ -136,8 +151,10 @@ def _scaled(uncontrolled: float, env_id: str) -> bool:
 
 
 def main() -> None:
+    from beacon_torch.registry import continuous_envs
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS)
+    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=continuous_envs())
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--frames", type=int, default=None, help="fewer transitions than the budget (a trial)")
