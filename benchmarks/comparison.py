@@ -2,12 +2,13 @@
 recorded pairs' normalised training scores against transitions and against minutes
 (PPO, TD3, SAC and the short-horizon actor-critic, from ``docs/results/``), gradient
 MPC's level (``benchmarks/results/mpc/``), and the transitions and minutes each pair
-needed to reach the paper's PPO score (normalised 1.0).
+needed to reach the env's reference (normalised 1.0: the paper's PPO score where there
+is one).
 
     .venv/bin/python benchmarks/comparison.py [--page docs/gradients.md]
 
 A pair's curve is the mean over its seeds of the training episodes' scores, normalised
-between no control and the paper's PPO like its results row; "reached" is the first
+between no control and the env's reference like its results row; "reached" is the first
 point where the mean of the last ``WINDOW`` curve points is at least 1. A summary
 published before summaries kept their seeds' curves has its final point only: it
 reached 1.0 within its budget if its final score is 1 or more, and the table says
@@ -35,8 +36,9 @@ GRID = 100
 
 
 def scored_envs() -> list[str]:
-    """The continuous envs whose cards give the paper's score to normalise by: the
-    comparison's scale (an env beyond the paper is compared on its own page)."""
+    """The continuous envs whose cards give a reference to normalise by (the paper's
+    PPO score or another declared "= 1"): the comparison's scale (an env without one is
+    compared on its own page)."""
     from beacon_torch.training import report
 
     return [env_id for env_id in continuous_envs() if report.normalisable(env_id)]
@@ -158,7 +160,7 @@ def table(recorded: Path = RECORDED) -> str:
             )
     lines += [
         "",
-        "(a): no control from the test set's developed starts already scores above the paper's PPO, so the scale "
+        "(a): no control from the test set's developed starts already scores above the reference, so the scale "
         "from one to the other runs backwards and is not used. (b): published before its seeds were scored on "
         "the test set.",
     ]
