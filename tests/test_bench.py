@@ -424,4 +424,5 @@ def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_setti
     assert table in (root / "docs" / "gradients.md").read_text()
     rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| burgers-v0 |")]
     # each at the recipe's budget of burgers-v0, a tenth of PPO's 500,000 transitions
-    assert len(rows) >= 9 and all(int(row[5].replace(",", "")) >= 50_000 for row in rows), rows
+    counts = [[int(n.replace(",", "")) for n in row[5].split(" or ")] for row in rows]
+    assert len(rows) >= 9 and all(min(c) >= 50_000 for c in counts), rows
