@@ -372,3 +372,23 @@ class StretchedBox:
         u = torch.cat((u[:1], u[1:] - dt * self.x_gradient(phi)), 0)
         v = torch.cat((v[:, :1], v[:, 1:-1] - dt * self.y_gradient(phi), v[:, -1:]), 1)
         return u, v, p * self.live + phi
+
+
+def advance(step: Callable, flow, n: int, loads: torch.Tensor, target: torch.Tensor, box, nu, dt, loop=None):
+    """``n`` time steps of a flow past bodies. ``flow`` is batch-first (an env's state)
+    and is turned once each way into the batch-last layout the steps work in; ``loads``
+    (``[..., B]``, zeros) is the running sum of the bodies' forces that each step adds
+    to, ``target`` (``[C, B]``) the controls the actuation relaxes to. ``step(i,
+    (flow, loads), target, box, nu, dt)`` is one time step; ``loop`` runs the steps
+    (an env's substep loop, compiled or not), a Python loop of ``step`` when None.
+    Returns the batch-first flow and the loads summed over the steps."""
+    last = lambda f: f.movedim(0, -1).contiguous()
+    carried = type(flow)(*(last(f) for f in flow)), loads
+    if loop is None:
+        for i in range(n):
+            carried = step(i, carried, target, box, nu, dt)
+    else:
+        carried = loop(n, carried, target, box, nu, dt)
+    flow, loads = carried
+    first = lambda f: f.movedim(-1, 0).contiguous()
+    return type(flow)(*(first(f) for f in flow)), loads

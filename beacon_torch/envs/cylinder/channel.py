@@ -12,7 +12,7 @@ import torch
 
 from beacon_torch.base import map_state
 from beacon_torch.numerics import bodies
-from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, stable
+from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, advance, stable
 from beacon_torch.numerics.grid import VALUE
 
 LENGTH, HEIGHT = 2.2, 0.41
@@ -165,11 +165,11 @@ def jet_wall(body: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return (wall_velocity(theta) * normal).T[:, :, None]
 
 
-def step(i, carried: tuple[Flow, torch.Tensor, torch.Tensor], target: torch.Tensor, channel: Channel, nu, dt: float):
-    """One time step of ``(flow, drag, lift)``: the batch-last flow and the running
-    sums of the forces on the cylinder (``[B]``), with the top jet's rate relaxing to
-    ``target`` (``[B]``)."""
-    flow, drag_sum, lift_sum = carried
+def step(i, carried: tuple[Flow, torch.Tensor], target: torch.Tensor, channel: Channel, nu, dt: float):
+    """One time step of ``(flow, loads)``: the batch-last flow and the running sums of
+    the drag and lift forces on the cylinder (``[2, B]``), with the top jet's rate
+    relaxing to ``target`` (``[B]``)."""
+    flow, loads = carried
     c, h = channel, channel.h
     q = flow.q + SMOOTHING * (target - flow.q)
     u_star, v_star, hu, hv = c.predict(flow.u, flow.v, flow.p, flow.hu, flow.hv, nu, dt)
@@ -180,7 +180,7 @@ def step(i, carried: tuple[Flow, torch.Tensor, torch.Tensor], target: torch.Tens
     drag = (u_star - u_new).sum((0, 1)) * cell
     lift = (v_star - v_new).sum((0, 1)) * cell + c.jet_momentum * (q - flow.q) / dt
     u_new, v_new, p = c.project(u_new, v_new, flow.p, dt)
-    return Flow(u=u_new, v=v_new, p=p, hu=hu, hv=hv, q=q), drag_sum + drag, lift_sum + lift
+    return Flow(u=u_new, v=v_new, p=p, hu=hu, hv=hv, q=q), loads + torch.stack((drag, lift))
 
 
 def rest(num_envs: int, channel: Channel, dtype, device) -> Flow:
@@ -197,17 +197,10 @@ def run(
 ) -> tuple[Flow, torch.Tensor, torch.Tensor]:
     """``n`` steps from a batch-first flow; returns the new flow and the mean drag and
     lift forces over the steps (``[B]``). ``loop`` runs the steps (an env's substep
-    loop; a Python loop when None). The flow's layout is converted once each way."""
-    last = lambda f: f.movedim(0, -1).contiguous()
-    carried = Flow(*(last(f) for f in flow)), torch.zeros_like(flow.q), torch.zeros_like(flow.q)
-    if loop is None:
-        for i in range(n):
-            carried = step(i, carried, target, channel, nu, dt)
-    else:
-        carried = loop(n, carried, target, channel, nu, dt)
-    first = lambda f: f.movedim(-1, 0).contiguous()
-    flow, drag, lift = carried
-    return Flow(*(first(f) for f in flow)), drag / n, lift / n
+    loop; a Python loop when None)."""
+    loads = flow.q.new_zeros(2, *flow.q.shape)
+    flow, loads = advance(step, flow, n, loads, target, channel, nu, dt, loop)
+    return flow, loads[0] / n, loads[1] / n
 
 
 def coefficient(force: torch.Tensor) -> torch.Tensor:

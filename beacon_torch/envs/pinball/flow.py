@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from beacon_torch.base import map_state
-from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, stable
+from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, advance, stable
 from beacon_torch.numerics.grid import GRADIENT
 
 DIAMETER = 1.0
@@ -204,20 +204,11 @@ def rest(num_envs: int, box: Box, dtype, device) -> Flow:
 def run(flow: Flow, n: int, target: torch.Tensor, box: Box, nu, dt: float = DT, loop=None) -> tuple[Flow, torch.Tensor]:
     """``n`` steps from a batch-first flow towards the rotation rates ``target``
     (``[B, 3]``); returns the new flow and the cylinders' loads averaged over the steps
-    (``[B, 3, 3]``: drag, lift and torque, each of the front, top and bottom cylinder). ``loop`` runs the steps
-    (an env's substep loop; a Python loop when None)."""
-    last = lambda f: f.movedim(0, -1).contiguous()
-    batch = flow.u.shape[0]
-    loads = flow.u.new_zeros(3, 3, batch)
-    carried = Flow(*(last(f) for f in flow)), loads
-    if loop is None:
-        for i in range(n):
-            carried = step(i, carried, last(target), box, nu, dt)
-    else:
-        carried = loop(n, carried, last(target), box, nu, dt)
-    flow, loads = carried
-    first = lambda f: f.movedim(-1, 0).contiguous()
-    return Flow(*(first(f) for f in flow)), loads.permute(2, 0, 1) / n
+    (``[B, 3, 3]``: drag, lift and torque, each of the front, top and bottom cylinder).
+    ``loop`` runs the steps (an env's substep loop; a Python loop when None)."""
+    loads = flow.u.new_zeros(3, 3, flow.u.shape[0])
+    flow, loads = advance(step, flow, n, loads, target.movedim(0, -1).contiguous(), box, nu, dt, loop)
+    return flow, loads.permute(2, 0, 1) / n
 
 
 def coefficient(force: torch.Tensor) -> torch.Tensor:
