@@ -1,13 +1,16 @@
 """What the command lines share (``beacon-torch``, the recipes, the maintainer's
-driver): the user's modules on the import path, argument types, help text from
-docstrings. Standard library only, so that ``--help`` answers without torch."""
+driver): the user's modules on the import path, a script loaded as a module, argument
+types, help text from docstrings. Standard library only, so that ``--help`` answers
+without torch."""
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import re
 import sys
+from pathlib import Path
 
 
 def find_user_modules() -> None:
@@ -17,6 +20,27 @@ def find_user_modules() -> None:
     here = os.getcwd()
     if here not in sys.path and "" not in sys.path:
         sys.path.insert(0, here)
+
+
+def load_script(path: str | Path, name: str | None = None):
+    """The script at ``path`` (a recipe, a page writer, a worked example) loaded from its
+    file as a module of its own and registered in ``sys.modules`` as an import would
+    register it (dataclasses look their module up there). Scripts are run and edited, not
+    imported: their folders stay off the import path, where a name such as
+    ``benchmarks`` is already taken (TorchRL's wheel installs a package of that name)."""
+    path = Path(path)
+    name = name or f"script_{path.parent.name}_{path.stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ValueError(f"{path}: not a Python script")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    return module
 
 
 def positive(text: str) -> int:

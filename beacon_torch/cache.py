@@ -42,8 +42,11 @@ def cache_dir() -> Path:
     return Path(os.environ.get("BEACON_TORCH_CACHE") or Path.home() / ".cache" / "beacon-torch")
 
 
-def file_name(name: str, key: dict) -> str:
-    digest = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
+def file_name(name: str, version: int, key: dict) -> str:
+    """The file of the state ``name`` of generation ``version`` (a case's declared
+    ``START_VERSION``) for the parameters ``key``."""
+    keyed = {**key, "version": version}
+    digest = hashlib.sha1(json.dumps(keyed, sort_keys=True, default=str).encode()).hexdigest()[:16]
     return f"{name}-{digest}.pt"
 
 
@@ -102,12 +105,16 @@ def save(state: State, path: Path) -> None:
     save_tensors({k: v.detach().cpu() for k, v in state._asdict().items()}, path)
 
 
-def cached(name: str, key: dict, compute: Callable[[], State], like: State, bounds: Bounds | None = None) -> State:
+def cached(
+    name: str, version: int, key: dict, compute: Callable[[], State], like: State, bounds: Bounds | None = None
+) -> State:
     """The state ``compute()`` returns, computed at most once per key and machine.
-    ``like`` is a cheap state of the same type and shapes (at rest, say): a stored file
-    must have its fields and shapes, and its fields named in ``bounds`` their values
-    within them."""
-    fname = file_name(name, key)
+    ``version`` is the case's declared generation of its starts (its module's
+    ``START_VERSION``, raised whenever a change of the scheme changes them, so that no
+    stale file is read). ``like`` is a cheap state of the same type and shapes (at
+    rest, say): a stored file must have its fields and shapes, and its fields named in
+    ``bounds`` their values within them."""
+    fname = file_name(name, version, key)
     if fname in _memory:
         return _memory[fname]
     state = None
@@ -121,7 +128,7 @@ def cached(name: str, key: dict, compute: Callable[[], State], like: State, boun
         import sys
         import time
 
-        where = ", ".join(f"{k}={v}" for k, v in key.items() if k != "version")
+        where = ", ".join(f"{k}={v}" for k, v in key.items())
         print(
             f"beacon-torch: generating the {name} start ({where}) once; it is cached in {cache_dir()}",
             file=sys.stderr,

@@ -6,7 +6,7 @@ derivatives are compared with central differences of the same sum. Run in float6
 generic point: a state reached by random actions and actions away from the box's edges,
 so that no limiter, max or abs of the scheme sits on its kink (see docs/gradients.md).
 ``tests/test_gradients.py`` checks every continuous env this way on small settings;
-``benchmarks/gradcheck.py`` on the published ones.
+``validation/gradcheck.py`` on the published ones.
 """
 
 from __future__ import annotations

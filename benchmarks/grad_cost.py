@@ -3,7 +3,7 @@ short-horizon actor-critic's batch and settings (``SHACConfig``: its members and
 ``grad_checkpoint``), in CPU time of this process, float32.
 
     .venv/bin/python benchmarks/grad_cost.py [--envs ...] [--rounds 5] [--horizon 4]
-    .venv/bin/python benchmarks/grad_cost.py --page docs/performance.md
+    .venv/bin/python benchmarks/grad_cost.py --page docs/measurements.md
 
 Three ways of taking an action, measured side by side, one block of each in turn per
 round, after a warm-up (compilation) that is not counted:

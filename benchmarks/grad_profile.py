@@ -2,7 +2,7 @@
 short-horizon actor-critic's batch and settings (``SHACConfig``), float32, one thread.
 
     .venv/bin/python benchmarks/grad_profile.py [--envs ...] [--horizon 2] [--ways eager compiled kernels]
-    .venv/bin/python benchmarks/grad_profile.py --page docs/performance.md
+    .venv/bin/python benchmarks/grad_profile.py --page docs/measurements.md
 
 Two profiles of the same block of actions (forward with the graph kept, then the
 backward pass of the summed rewards to the actions), each after a warm-up block:

@@ -1,11 +1,11 @@
 """Model-free and gradient-based control side by side on every continuous env: the
 recorded pairs' normalised training scores against transitions and against minutes
 (PPO, TD3, SAC and the short-horizon actor-critic, from ``docs/results/``), gradient
-MPC's level (``benchmarks/results/mpc/``), and the transitions and minutes each pair
+MPC's level (``experiments/results/mpc/``), and the transitions and minutes each pair
 needed to reach the env's reference (normalised 1.0: the paper's PPO score where there
 is one).
 
-    .venv/bin/python benchmarks/comparison.py [--page docs/gradients.md]
+    .venv/bin/python experiments/comparison.py [--page docs/gradients.md]
 
 A pair's curve is the mean over its seeds of the training episodes' scores, normalised
 between no control and the env's reference like its results row; "reached" is the first
@@ -26,7 +26,7 @@ from beacon_torch.registry import continuous_envs
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED = ROOT / "docs" / "results"
-BEGIN, END = "<!-- comparison: benchmarks/comparison.py -->", "<!-- end of comparison -->"
+BEGIN, END = "<!-- comparison: experiments/comparison.py -->", "<!-- end of comparison -->"
 ALGOS = ("ppo", "td3", "sac", "shac")
 # PPO trains on the discrete twins of these: their rows are the targets' reference
 PPO_OF = {"lorenz-continuous-v0": "lorenz-v0", "mixing-continuous-v0": "mixing-v0"}
@@ -101,13 +101,10 @@ def mpc_levels() -> dict[str, dict]:
     """Gradient MPC's evaluated record per env (the best normalised one). A record from
     starts where no control already scores above the paper's PPO (sloshing's developed
     test starts) has no meaningful normalised score and is no level."""
-    import importlib.util
-
+    from beacon_torch.arguments import load_script
     from beacon_torch.training.report import scaled
 
-    spec = importlib.util.spec_from_file_location("mpc_table", ROOT / "benchmarks" / "mpc_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script(ROOT / "experiments" / "mpc_table.py")
     best: dict[str, dict] = {}
     for record in module.records():
         if "normalised" not in record or not scaled(record["uncontrolled"], record["env"]):

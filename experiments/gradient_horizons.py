@@ -2,9 +2,9 @@
 of the gradient of the horizon's discounted return (the gradient recipes' objective)
 with respect to a fresh policy's weights, for horizons from one action to an episode.
 
-    .venv/bin/python benchmarks/gradient_horizons.py --envs lorenz-continuous-v0 burgers-v0
+    .venv/bin/python experiments/gradient_horizons.py --envs lorenz-continuous-v0 burgers-v0
         [--members 8] [--horizons 1 2 4 8 ...] [--param NAME=VALUE] [--seed 0] [--grad-checkpoint] [--out DIR]
-    .venv/bin/python benchmarks/gradient_horizons.py --page docs/gradients.md
+    .venv/bin/python experiments/gradient_horizons.py --page docs/gradients.md
 
 Each horizon starts from the same states (the env's own starts, after the recipes'
 64 random steps that set the observation normalisation), the policy TD3's
@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 HERE = Path(__file__).resolve()
-BEGIN, END = "<!-- gradient horizons: benchmarks/gradient_horizons.py -->", "<!-- end of gradient horizons -->"
+BEGIN, END = "<!-- gradient horizons: experiments/gradient_horizons.py -->", "<!-- end of gradient horizons -->"
 
 
 class Start:

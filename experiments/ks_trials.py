@@ -1,9 +1,9 @@
 """ks-v0's first training trials as a table of its page: one row per recorded run in
-``benchmarks/results/ks/trials/RUN/`` (a recipe's ``episode_score.csv`` and
+``experiments/results/ks/trials/RUN/`` (a recipe's ``episode_score.csv`` and
 ``wall_time.csv`` copied from its run directory, with ``settings.json``: the recipe and
 what it was given).
 
-    .venv/bin/python benchmarks/ks_trials.py [--page docs/envs/ks.md]
+    .venv/bin/python experiments/ks_trials.py [--page docs/envs/ks.md]
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import json
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-TRIALS = ROOT / "benchmarks" / "results" / "ks" / "trials"
-BEGIN, END = "<!-- trials: benchmarks/ks_trials.py -->", "<!-- end of the trials -->"
+TRIALS = ROOT / "experiments" / "results" / "ks" / "trials"
+BEGIN, END = "<!-- trials: experiments/ks_trials.py -->", "<!-- end of the trials -->"
 
 
 def series(path: Path) -> list[tuple[float, float]]:

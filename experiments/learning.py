@@ -1,7 +1,7 @@
 """PPO against gradient-based control on one env (cylinder-v0, pinball-periodic-v0):
 how many transitions and minutes each takes to learn.
 
-    .venv/bin/python benchmarks/learning.py RUN_DIR [RUN_DIR ...] --figure FIGURE.png [--out DIR]
+    .venv/bin/python experiments/learning.py RUN_DIR [RUN_DIR ...] --figure FIGURE.png [--out DIR]
 
 RUN_DIR: a folder of seeds of one algorithm (``runs/results/ppo/cylinder-v0``,
 ``runs/results/grad/cylinder-v0``), or one seed's folder, all trained on the same env
@@ -78,7 +78,7 @@ def carried(path: str) -> list[dict]:
     record = received.json_file(path, "learning record")
     rows = record.get("rows") if isinstance(record, dict) else None
     if not isinstance(rows, list) or len(rows) < 2:
-        raise ValueError(f"{path}: not a record of benchmarks/learning.py (no curves)")
+        raise ValueError(f"{path}: not a record of experiments/learning.py (no curves)")
     for k, c in enumerate(rows[1:]):
         where = f"{path}: curve {k}"
         if not isinstance(c, dict) or not all(isinstance(c.get(key), str) for key in ("algo", "env")):

@@ -1,9 +1,9 @@
 """The gradient model-predictive control's recorded results as the table of
 docs/gradients.md: one row per record of ``recipes/mpc.py`` in
-``benchmarks/results/mpc/ENV/mpc.json`` (an evaluation, or the cost of a few planned
+``experiments/results/mpc/ENV/mpc.json`` (an evaluation, or the cost of a few planned
 actions where an episode does not fit in an hour).
 
-    .venv/bin/python benchmarks/mpc_table.py [--page docs/gradients.md]
+    .venv/bin/python experiments/mpc_table.py [--page docs/gradients.md]
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import argparse
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT / "benchmarks" / "results" / "mpc"
-BEGIN, END = "<!-- gradient mpc: benchmarks/mpc_table.py -->", "<!-- end of gradient mpc -->"
+RECORDS = ROOT / "experiments" / "results" / "mpc"
+BEGIN, END = "<!-- gradient mpc: experiments/mpc_table.py -->", "<!-- end of gradient mpc -->"
 
 
 def records(folder: Path = RECORDS) -> list[dict]:

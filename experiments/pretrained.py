@@ -1,13 +1,13 @@
 """Every shipped policy evaluated again, as a user gets it.
 
-    .venv/bin/python benchmarks/pretrained.py [--num-envs 8] [--page docs/results.md] [--changed]
+    .venv/bin/python experiments/pretrained.py [--num-envs 8] [--page docs/results.md] [--changed]
 
 Loads each policy of ``beacon_torch.pretrained.available()`` through
 ``pretrained.load`` (raw observations, the training's normalisation folded into the
 network), runs it deterministically on the fixed evaluation episodes
 (``evaluation.EVAL_SEED``, float32) beside no control on the same episodes, and writes
 the table into the page between its markers, and the numbers to
-``benchmarks/results/pretrained.json``. Each policy is also run from the test set of
+``experiments/results/pretrained.json``. Each policy is also run from the test set of
 developed starts (``beacon_torch.starts``, its 8 states) beside no control from the
 same states: how it does away from the start it was trained from. The score recorded in the file at shipping
 came from the training's checkpoint (normalisation as a transform); the two agree to
@@ -32,7 +32,7 @@ from beacon_torch.training.evaluation import EVAL_SEED, evaluate_policy
 from beacon_torch.training.report import normalisable, normalised, scaled, write_block
 
 ROOT = Path(__file__).resolve().parents[1]
-BEGIN, END = "<!-- shipped policies: benchmarks/pretrained.py -->", "<!-- end of shipped policies -->"
+BEGIN, END = "<!-- shipped policies: experiments/pretrained.py -->", "<!-- end of shipped policies -->"
 
 
 def scale(score: float, uncontrolled: float, env_id: str) -> float | None:
@@ -97,7 +97,7 @@ def table(rows: list[dict], num_envs: int, seed: int) -> str:
     lines = [
         f"Every shipped policy, loaded with `beacon_torch.pretrained.load` and run "
         f"deterministically on {num_envs} episodes"
-        f" of evaluation seed {seed} (float32), against no control on the same episodes (`benchmarks/pretrained.py`):",
+        f" of evaluation seed {seed} (float32), against no control on the same episodes (`experiments/pretrained.py`):",
         "",
         "| policy | trained on (seed) | own start: score (std over episodes) | uncontrolled | normalised "
         "| recorded at shipping | test starts: score | uncontrolled | normalised |",
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--page", default=str(ROOT / "docs" / "results.md"), help="the page whose marked part is rewritten"
     )
-    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "pretrained.json"))
+    parser.add_argument("--json", default=str(ROOT / "experiments" / "results" / "pretrained.json"))
     parser.add_argument(
         "--changed",
         action="store_true",

@@ -1,9 +1,9 @@
 """The first PPO trials on Vignon et al.'s channel as a table of rayleigh-separable-v0's
-page: one row per recorded run in ``benchmarks/results/rayleigh-separable/trials/RUN/``
+page: one row per recorded run in ``experiments/results/rayleigh-separable/trials/RUN/``
 (a recipe's ``episode_score.csv`` and ``wall_time.csv`` copied from its run directory,
 with ``settings.json``: the recipe, the env and what it was given).
 
-    .venv/bin/python benchmarks/rayleigh_separable_trials.py [--page docs/envs/rayleigh-separable.md]
+    .venv/bin/python experiments/rayleigh_separable_trials.py [--page docs/envs/rayleigh-separable.md]
 
 Both layouts' scores are turned into a Nusselt number per action: the multi-agent
 env's reward is minus the (mixed) Nusselt number; rayleigh-v0's is minus the bottom
@@ -22,8 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from ks_trials import series
 
 ROOT = Path(__file__).resolve().parents[1]
-TRIALS = ROOT / "benchmarks" / "results" / "rayleigh-separable" / "trials"
-BEGIN, END = "<!-- trials: benchmarks/rayleigh_separable_trials.py -->", "<!-- end of the trials -->"
+TRIALS = ROOT / "experiments" / "results" / "rayleigh-separable" / "trials"
+BEGIN, END = "<!-- trials: experiments/rayleigh_separable_trials.py -->", "<!-- end of the trials -->"
 # per env: actions an episode, and the factor from a reward to a Nusselt number
 SCALE = {"rayleigh-separable-v0": (200, -1.0), "rayleigh-v0": (100, -2.0)}
 

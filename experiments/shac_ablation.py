@@ -4,8 +4,8 @@ tenth of PPO's transitions (the recipe's budget), the deterministic policy score
 env's own start and on the test set's 8 developed starts, normalised as on the results
 page (0: no control, 1: the env's reference).
 
-    .venv/bin/python benchmarks/shac_ablation.py [--envs ...] [--variants ...] [--seed 0]
-    .venv/bin/python benchmarks/shac_ablation.py --page docs/gradients.md
+    .venv/bin/python experiments/shac_ablation.py [--envs ...] [--variants ...] [--seed 0]
+    .venv/bin/python experiments/shac_ablation.py --page docs/gradients.md
 
 A variant is a set of settings on top of the env's defaults (``VARIANTS``). Each run
 trains into ``--runs`` (``runs/shac_ablation/ENV/VARIANT/seedK``, a run folder ``beacon-torch
@@ -49,7 +49,7 @@ VARIANTS = {
     "horizon-16": {"horizon": 16},
     "horizon-8": {"horizon": 8},
 }
-BEGIN, END = "<!-- actor-critic settings: benchmarks/shac_ablation.py -->", "<!-- end of actor-critic settings -->"
+BEGIN, END = "<!-- actor-critic settings: experiments/shac_ablation.py -->", "<!-- end of actor-critic settings -->"
 
 
 def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = None) -> dict:
@@ -88,12 +88,9 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
 
 def recipe():
     """``recipes/shac.py`` as a module."""
-    import importlib.util
+    from beacon_torch.arguments import load_script
 
-    spec = importlib.util.spec_from_file_location("shac_recipe", ROOT / "recipes" / "shac.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "recipes" / "shac.py", "recipe_shac")
 
 
 def page_table(folder: Path) -> str:

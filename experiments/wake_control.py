@@ -1,8 +1,8 @@
 """The drag of a wake-control env (cylinder-v0, the pinball levels) under trained
 policies against no control, per action.
 
-    .venv/bin/python benchmarks/wake_control.py POLICY [POLICY ...] [--episodes 3] [--out DIR]
-    .venv/bin/python benchmarks/wake_control.py --plot RECORD.json FIGURE.png [--base-flow CD]
+    .venv/bin/python experiments/wake_control.py POLICY [POLICY ...] [--episodes 3] [--out DIR]
+    .venv/bin/python experiments/wake_control.py --plot RECORD.json FIGURE.png [--base-flow CD]
 
 POLICY: a run directory (``runs/ppo/cylinder-v0/seed0``), a policy file
 (``pretrained.export``'s) or a shipped pair (``ppo/cylinder-v0``), run on the env and
@@ -114,7 +114,7 @@ def control(name: str, episodes: int, compile: bool = True, loaded=None) -> dict
     }
 
 
-# what a row of a record holds that the tables and benchmarks/wake_reference.py read
+# what a row of a record holds that the tables and validation/wake_reference.py read
 ROW_NUMBERS = (
     "cd_episode",
     "cd_episode_uncontrolled",
@@ -136,7 +136,7 @@ def carried(path: str, episodes: int) -> list[dict]:
     record = received.json_file(path, "control record")
     rows = record.get("rows") if isinstance(record, dict) else None
     if not isinstance(rows, list) or not rows:
-        raise ValueError(f"{path}: not a record of benchmarks/wake_control.py (no rows)")
+        raise ValueError(f"{path}: not a record of experiments/wake_control.py (no rows)")
     for k, row in enumerate(rows):
         where = f"{path}: row {k}"
         if not isinstance(row, dict) or not isinstance(row.get("policy"), str) or not isinstance(row.get("env"), str):

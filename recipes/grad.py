@@ -15,17 +15,14 @@ critic, no sampling noise: what a simulator that is torch buys.
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
+from beacon_torch.arguments import load_script
 from beacon_torch.training.config import GradConfig, script
 
 # the loop is the short-horizon actor-critic's, read from its script beside this one
 # (the recipes are scripts, not a package)
-_spec = importlib.util.spec_from_file_location("recipe_shac", Path(__file__).with_name("shac.py"))
-_shac = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_shac)
-main = _shac.main
+main = load_script(Path(__file__).with_name("shac.py"), "recipe_shac").main
 
 if __name__ == "__main__":
     script(main, GradConfig)

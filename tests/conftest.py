@@ -1,6 +1,5 @@
 import contextlib
 import functools
-import importlib.util
 import os
 from pathlib import Path
 
@@ -8,6 +7,7 @@ import pytest
 import torch
 
 import beacon_torch
+from beacon_torch.arguments import load_script
 
 # the adapters compile by default; the behaviour tests run them eagerly (compiled and
 # eager steps are compared per env in test_compile.py, and the default is tested there)
@@ -41,10 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def script(path: str):
     """A script of the repository (a recipe, the campaign driver) loaded from its file
     as a module of its own: scripts are run and edited, not imported from the path."""
-    spec = importlib.util.spec_from_file_location("script_" + Path(path).stem, ROOT / path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / path)
 
 
 def recipe(algo: str):

@@ -154,7 +154,7 @@ def test_two_trees_timed_block_by_block_give_a_ratio_per_case(tmp_path):
 
 
 def test_the_gradient_norm_is_recorded_per_horizon(tmp_path):
-    """benchmarks/gradient_horizons.py: a row per horizon (its norm, finite, blow-ups,
+    """experiments/gradient_horizons.py: a row per horizon (its norm, finite, blow-ups,
     CPU time) and the figure beside the record; lorenz's default reward counts sign
     changes and gives no gradient, its smooth one does."""
     import subprocess
@@ -162,7 +162,7 @@ def test_the_gradient_norm_is_recorded_per_horizon(tmp_path):
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    command = [sys.executable, str(root / "benchmarks" / "gradient_horizons.py"), "--envs", "lorenz-continuous-v0"]
+    command = [sys.executable, str(root / "experiments" / "gradient_horizons.py"), "--envs", "lorenz-continuous-v0"]
     command += ["--members", "2", "--horizons", "1", "8", "--out", str(tmp_path)]
     for params in ([], ["--param", "reward_width=1.0"]):
         out = subprocess.run(command + params, capture_output=True, text=True, check=False, timeout=600)
@@ -182,7 +182,7 @@ def test_every_horizon_of_a_record_starts_from_the_same_states_as_a_fresh_env():
     built anew, on a stochastic env (burgers' inflow noise) with its generator."""
     from conftest import script
 
-    horizons = script("benchmarks/gradient_horizons.py")
+    horizons = script("experiments/gradient_horizons.py")
     shared = horizons.Start("burgers-v0", 2, seed=3)
     after = [shared.norm(h)["norm"] for h in (2, 5, 5)]
     fresh = horizons.Start("burgers-v0", 2, seed=3).norm(5)["norm"]
@@ -195,7 +195,7 @@ def test_a_time_budget_leaves_out_the_longer_horizons_and_says_which(capsys):
     overrun it is not started, nor any longer one, and the record keeps what was measured."""
     from conftest import script
 
-    horizons = script("benchmarks/gradient_horizons.py")
+    horizons = script("experiments/gradient_horizons.py")
     started = []
 
     def measure(h):
@@ -219,7 +219,7 @@ def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentia
 
     from conftest import script
 
-    horizons = script("benchmarks/gradient_horizons.py")
+    horizons = script("experiments/gradient_horizons.py")
     rows = lambda norms: [
         dict(env="x", horizon=h, norm=n, finite=n == n and n != float("inf"), members=8) for h, n in norms.items()
     ]
@@ -230,7 +230,7 @@ def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentia
     assert horizons.default_horizon(rows({1: 1.0, 8: 1.0, 16: 1.0, 24: 100.0})) == 16
 
     root = Path(__file__).resolve().parents[1]
-    records = horizons.newest(root / "benchmarks" / "results" / "gradient_horizons")
+    records = horizons.newest(root / "experiments" / "results" / "gradient_horizons")
     assert {"lorenz-continuous-v0", "burgers-v0", "shkadov-v0"} <= set(records)
     page = (root / "docs" / "gradients.md").read_text()
     assert horizons.page_table(records) in page
@@ -257,10 +257,10 @@ def test_the_performance_page_shows_the_recorded_cost_of_differentiated_transiti
     cost = script("benchmarks/grad_cost.py")
     table = cost.page_table(root / "benchmarks" / "results" / "grad_cost")
     assert "| burgers-v0 | 64 |" in table and "| shkadov-v0 | 16 |" in table
-    assert table in (root / "docs" / "performance.md").read_text()
+    assert table in (root / "docs" / "measurements.md").read_text()
     profiles = script("benchmarks/grad_profile.py").page_table(root / "benchmarks" / "results" / "grad_profile")
     assert "| burgers-v0 | 64 |" in profiles and "backward graphs" in profiles
-    assert profiles in (root / "docs" / "performance.md").read_text()
+    assert profiles in (root / "docs" / "measurements.md").read_text()
 
 
 def test_a_differentiated_transition_is_split_by_piece(tmp_path):
@@ -319,7 +319,7 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
 
 
 def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_curves():
-    """benchmarks/comparison.py: with its seeds' curves, a pair reached normalised 1.0
+    """experiments/comparison.py: with its seeds' curves, a pair reached normalised 1.0
     where the mean of its last points first does (transitions and minutes there); without
     them (published before curves were kept), within its budget if its final score is 1
     or more; the gradients page shows the table of the recorded pairs."""
@@ -327,7 +327,7 @@ def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_cu
 
     from conftest import script
 
-    comparison = script("benchmarks/comparison.py")
+    comparison = script("experiments/comparison.py")
     # burgers: 0 at -3.378 (no control), 1 at the paper's -1.75
     frames = list(range(0, 10_000, 100))
     rising = [-3.378 + 1.628 * min(1.0, f / 5000) * 1.05 for f in frames]
@@ -384,7 +384,7 @@ def test_the_memory_of_a_differentiated_horizon_is_recorded_per_env(tmp_path):
 
 @pytest.mark.slow(seconds=70)
 def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
-    """benchmarks/shac_ablation.py on burgers, a trial of one update (2,048 transitions): the defaults
+    """experiments/shac_ablation.py on burgers, a trial of one update (2,048 transitions): the defaults
     and SAPO's settings together each train a seed, are scored normalised from the own
     start and the test set, recorded with the run's wall time and tabled; a second call
     finds the finished run and only scores it again."""
@@ -395,7 +395,7 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
 
     from conftest import script
 
-    ablation = script("benchmarks/shac_ablation.py")
+    ablation = script("experiments/shac_ablation.py")
     runs, out = tmp_path / "runs", tmp_path / "records"
     rows = [ablation.run("burgers-v0", v, 0, runs, frames=2048) for v in ("defaults", "sapo")]
     for row in rows:
@@ -418,8 +418,8 @@ def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_setti
     from conftest import script
 
     root = Path(__file__).resolve().parents[1]
-    ablation = script("benchmarks/shac_ablation.py")
-    folder = root / "benchmarks" / "results" / "shac_ablation"
+    ablation = script("experiments/shac_ablation.py")
+    folder = root / "experiments" / "results" / "shac_ablation"
     table = ablation.page_table(folder)
     assert table in (root / "docs" / "gradients.md").read_text()
     rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| burgers-v0 |")]

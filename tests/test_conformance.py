@@ -2,7 +2,6 @@
 check, a new env registered from outside the package gets the library's entry points,
 and the worked example of docs/adding-an-env.md passes the kit."""
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -12,6 +11,7 @@ import pytest
 import torch
 
 import beacon_torch
+from beacon_torch.arguments import load_script
 from beacon_torch.envs.burgers import BurgersEnv, BurgersPhysics
 from beacon_torch.registry import DEFAULTS, ENVS
 from beacon_torch.testing import CHECKS, ConformanceError, check_flow_env
@@ -46,15 +46,11 @@ def unregister(env_id):
 
 @pytest.fixture
 def example():
-    spec = importlib.util.spec_from_file_location("heat_example", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # as an import would (dataclasses look the module up)
     try:
-        spec.loader.exec_module(module)
-        yield module
+        yield load_script(EXAMPLE, "heat_example")
     finally:
         unregister("heat-v0")
-        sys.modules.pop(spec.name, None)
+        sys.modules.pop("heat_example", None)
 
 
 @pytest.mark.slow(seconds=30)

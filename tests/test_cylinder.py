@@ -173,7 +173,7 @@ def test_probes_are_the_published_layout(channel):
 def recorded(cells: int, dt: float) -> dict:
     """The latest recorded validation row of a resolution and time step."""
     rows = []
-    for path in sorted((ROOT / "benchmarks" / "results" / "cylinder").glob("cylinder_validation-*.json")):
+    for path in sorted((ROOT / "validation" / "results" / "cylinder").glob("cylinder_validation-*.json")):
         rows += [r for r in json.loads(path.read_text())["rows"] if r["cells_per_diameter"] == cells and r["dt"] == dt]
     assert rows, f"no recorded validation of {cells} cells per diameter"
     return rows[-1]
@@ -183,7 +183,7 @@ def test_page_shows_the_recorded_validation_and_the_parameters():
     from beacon_torch.envs.cylinder import schaefer_turek as validation
     from beacon_torch.params import markdown
 
-    paths = sorted((ROOT / "benchmarks" / "results" / "cylinder").glob("cylinder_validation-*.json"))
+    paths = sorted((ROOT / "validation" / "results" / "cylinder").glob("cylinder_validation-*.json"))
     page = (ROOT / "docs" / "envs" / "cylinder.md").read_text()
     assert validation.table(json.loads(paths[-1].read_text())["rows"]) in page
     assert markdown(CylinderEnv.Params) in page
@@ -191,16 +191,20 @@ def test_page_shows_the_recorded_validation_and_the_parameters():
 
 
 def test_the_normalised_scores_one_is_the_recorded_base_flow_after_the_recorded_transient():
-    """The card's reference is the newest record of benchmarks/wake_reference.py,
+    """The card's reference is the newest record of validation/wake_reference.py,
     which the script computes again from the two records it names: the best policy's
     first actions (the transient, while the drag excess is above a tenth of the
     shedding's) and then the steady base flow's reward, which is below the 8 % at
     every action of Rabault et al. and above every recorded policy's score."""
-    folder = ROOT / "benchmarks" / "results" / "cylinder"
+    folder = ROOT / "validation" / "results" / "cylinder"
     record = json.loads(sorted(folder.glob("cylinder_reference-*.json"))[-1].read_text())["rows"][0]
     assert CylinderEnv.reference.score == record["reference"] and CylinderEnv.paper_ppo is None
-    inputs = [json.loads((folder / name).read_text()) for name in record["records"]]
-    again = script("benchmarks/wake_reference.py").reference(*inputs)
+    # the base flow is a validation's record, the policies' drags an experiment's
+    rooms = [folder, ROOT / "experiments" / "results" / "cylinder"]
+    inputs = [
+        json.loads(next(r / name for r in rooms if (r / name).is_file()).read_text()) for name in record["records"]
+    ]
+    again = script("validation/wake_reference.py").reference(*inputs)
     assert again.pop("env") == "cylinder-v0" and again == {k: v for k, v in record.items() if k != "records"}
     assert 0 < record["transient_actions"] < cylinder.EPISODE_LENGTH
     held = cylinder.DRAG_OFFSET - cylinder.coefficient(torch.tensor(1.0)).item() ** -1 * record["cd_base"]
@@ -232,10 +236,10 @@ def test_validation_figures_of_the_default_grid_are_the_recorded_ones():
 
 @pytest.mark.slow(seconds=40)
 def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_path):
-    """benchmarks/wake_control.py: a policy file acts for two episodes' worth of
+    """experiments/wake_control.py: a policy file acts for two episodes' worth of
     actions on the grid it was trained on; the flow goes on across the episode's end,
     and the member without control is the uncontrolled flow itself."""
-    control = script("benchmarks/wake_control.py")
+    control = script("experiments/wake_control.py")
     params = {"cells_per_diameter": 10}
     policy = random_policy_file(tmp_path / "policy.pt", "cylinder-v0", params)
     row = control.control(str(policy), 2, compile=False)
@@ -274,11 +278,11 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
 
 @pytest.mark.parametrize("planted", ["file", "link"])
 def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted, monkeypatch):
-    """benchmarks/wake_control.py --plot and benchmarks/learning.py
+    """experiments/wake_control.py --plot and experiments/learning.py
     --figure refuse a figure's name that is taken, by a file or a link (dangling
     included), before any work, and leave it as it was."""
-    control = script("benchmarks/wake_control.py")
-    learning = script("benchmarks/learning.py")
+    control = script("experiments/wake_control.py")
+    learning = script("experiments/learning.py")
     figure, target = tmp_path / "figure.png", tmp_path / "elsewhere.png"
     if planted == "file":
         figure.write_bytes(b"mine")
@@ -299,9 +303,9 @@ def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted
 
 
 def test_the_learning_comparison_refuses_runs_of_different_envs(tmp_path, monkeypatch):
-    """benchmarks/learning.py compares runs on one env: runs trained on different envs
+    """experiments/learning.py compares runs on one env: runs trained on different envs
     or parameters get one line naming both, before any episode is stepped."""
-    learning = script("benchmarks/learning.py")
+    learning = script("experiments/learning.py")
     trained = {"a": ("cylinder-v0", {}), "b": ("pinball-v0", {"re": 100.0})}
     monkeypatch.setattr(learning, "curve", lambda run: {"env": trained[run.name][0], "params": trained[run.name][1]})
     monkeypatch.setattr("sys.argv", ["learning.py", "a", "b", "--figure", str(tmp_path / "f.png")])
@@ -311,13 +315,13 @@ def test_the_learning_comparison_refuses_runs_of_different_envs(tmp_path, monkey
 
 
 def test_the_learning_comparison_carries_an_earlier_records_curves(tmp_path, monkeypatch, capsys):
-    """benchmarks/learning.py --carry: an earlier record's curves go ahead of the new
+    """experiments/learning.py --carry: an earlier record's curves go ahead of the new
     run's, set the levels, and are kept in the new record naming where they came from;
     a record whose curves are not series of finite numbers is one line, before any
     episode is stepped."""
     import beacon_torch.episodes
 
-    learning = script("benchmarks/learning.py")
+    learning = script("experiments/learning.py")
 
     def curve(algo, scores):
         n = len(scores)
@@ -344,7 +348,7 @@ def test_the_learning_comparison_carries_an_earlier_records_curves(tmp_path, mon
     for rows, message in (
         ([{"levels": []}, bad], "curve 0: its transitions, minutes, score, spread are not series of finite numbers"),
         ([{"levels": []}, {**bad, "env": 3}], "curve 0 names no algorithm and env"),
-        ([], "not a record of benchmarks/learning.py"),
+        ([], "not a record of experiments/learning.py"),
     ):
         earlier.write_text(json.dumps({"rows": rows}))
         argv = ["learning.py", "new", "--carry", str(earlier), "--figure", str(tmp_path / "g.png")]

@@ -5,13 +5,14 @@ into one session), in a fresh working folder. A block that shows part of a modul
 text, word for word, and the module runs. Training budgets are cut to a few
 transitions: what is checked is that each call works, not what it learns."""
 
-import importlib.util
 import re
 import sys
 import textwrap
 from pathlib import Path
 
 import pytest
+
+from beacon_torch.arguments import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md"))]
@@ -61,11 +62,9 @@ def test_the_docs_code_runs_as_written(page, tmp_path, monkeypatch, registry_kep
     module = EXCERPTS.get(page)
     if module is not None:
         source = module.read_text()
-        spec = importlib.util.spec_from_file_location(f"docs_example_{module.stem}", module)
-        loaded = importlib.util.module_from_spec(spec)
-        monkeypatch.setitem(sys.modules, spec.name, loaded)  # its dataclasses look their module up
-        spec.loader.exec_module(loaded)
-        namespace = vars(loaded)
+        name = f"docs_example_{module.stem}"
+        monkeypatch.setitem(sys.modules, name, None)  # gone again after the test
+        namespace = vars(load_script(module, name))
     for k, block in enumerate(blocks(page)):
         if module is not None and excerpt(block, source):
             continue  # an excerpt of the module, run with it

@@ -88,8 +88,8 @@ def test_developed_film_generator_is_reproducible():
 
 
 def test_shkadov_ships_its_developed_film():
-    key = dict(version=1, delta=0.1)
-    assert (cache.PACKAGE_DATA / cache.file_name("shkadov-film", key)).is_file()
+    key = dict(delta=0.1)
+    assert (cache.PACKAGE_DATA / cache.file_name("shkadov-film", shkadov.START_VERSION, key)).is_file()
     env = beacon_torch.make("shkadov-v0", 1, random_start=0, dtype=torch.float64)
     env.reset()
     h = env.state.h[0]

@@ -22,16 +22,14 @@ ROOT = Path(__file__).resolve().parents[1]
 # the subprocess: a short training that kills itself at the n-th time it passes `point`
 DRIVER = textwrap.dedent(
     """
-    import importlib.util, json, os, signal, sys
+    import json, os, signal, sys
     import torch
     from torchrl.data import ReplayBuffer
+    from beacon_torch.arguments import load_script
     from beacon_torch.training import config
 
     def load(algo):
-        spec = importlib.util.spec_from_file_location("recipe_" + algo, {recipes!r} + "/" + algo + ".py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
+        return load_script({recipes!r} + "/" + algo + ".py", "recipe_" + algo)
 
     ppo, td3 = load("ppo"), load("td3")
     algo, point, nth, out = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]

@@ -25,7 +25,7 @@ from beacon_torch.envs.ks import (
 
 from conftest import script
 
-validation = script("benchmarks/ks_validation.py")
+validation = script("validation/ks.py")
 
 
 def test_the_equilibria_have_the_published_energies_and_leading_eigenvalues():
@@ -139,4 +139,4 @@ def test_the_page_shows_the_recorded_validation_and_trials():
     # the recorded exponent is within a tenth of the published one, the energies within 1 %
     (lyapunov,) = [r for r in rows if r["kind"] == "lyapunov"]
     assert lyapunov["members"] == 256 and abs(lyapunov["exponent"] / PUBLISHED_LYAPUNOV - 1) < 0.1
-    assert script("benchmarks/ks_trials.py").table() in page
+    assert script("experiments/ks_trials.py").table() in page

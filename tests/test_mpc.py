@@ -153,7 +153,7 @@ def test_the_gradients_page_shows_a_recorded_plan_of_every_continuous_env():
     """Every single-agent env with continuous actions has a record of the planner (an
     evaluation, or the cost of planned actions where an episode takes more than an
     hour), and the page's table is the one its script writes from them."""
-    table = script("benchmarks/mpc_table.py")
+    table = script("experiments/mpc_table.py")
     from beacon_torch.registry import continuous_envs, env_class
 
     rows = table.records()

@@ -49,11 +49,9 @@ def test_env_pages_list_the_parameters_and_diagnostics_as_declared():
     """Each env page's parameter and diagnostics tables are written from
     ``param(doc=...)`` and ``diagnostics`` (docs/make_env_tables.py): a parameter or a
     diagnostic added, renamed or re-ranged in the code shows on the page, or this fails."""
-    import importlib.util
+    from conftest import script
 
-    spec = importlib.util.spec_from_file_location("make_env_tables", ROOT / "docs" / "make_env_tables.py")
-    tables = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tables)
+    tables = script("docs/make_env_tables.py")
     for env_id in tables.paged_envs():
         text = tables.page(env_id).read_text()
         block = f"{tables.BEGIN}\n{tables.block(env_id)}\n{tables.END}"
@@ -79,7 +77,7 @@ def test_recipes_and_tools_are_scripts_on_the_library_alone():
                 names = [node.module or ""]
             for name in names:
                 assert name.split(".")[0] in allowed, f"{script.name} imports {name}"
-    readers = {p.name for p in (ROOT / "recipes").glob("*.py") if "spec_from_file_location" in p.read_text()}
+    readers = {p.name for p in (ROOT / "recipes").glob("*.py") if "load_script" in p.read_text()}
     assert readers == {"grad.py"} and 'with_name("shac.py")' in (ROOT / "recipes" / "grad.py").read_text()
     assert "pythonpath" not in (ROOT / "pyproject.toml").read_text()
     assert not (ROOT / "recipes" / "config.py").exists()

@@ -17,12 +17,21 @@ from beacon_torch.registry import env_class
 from conftest import random_policy_file, script
 
 ROOT = Path(__file__).resolve().parents[1]
-steady = script("benchmarks/pinball_validation.py")
+steady = script("validation/pinball.py")
 F64 = dict(dtype=torch.float64, device="cpu")
 
 
+# the validations' records and the trained policies' evaluations, each in its own room
+FOLDERS = [ROOT / room / "results" / "pinball" for room in ("validation", "experiments")]
+
+
+def recorded(name: str) -> Path:
+    (path,) = [folder / name for folder in FOLDERS if (folder / name).is_file()]
+    return path
+
+
 def latest(pattern: str) -> dict:
-    (path,) = sorted((ROOT / "benchmarks" / "results" / "pinball").glob(pattern))[-1:]
+    (path,) = sorted((p for folder in FOLDERS for p in folder.glob(pattern)), key=lambda p: p.name)[-1:]
     return json.loads(path.read_text())
 
 
@@ -195,7 +204,7 @@ def test_each_levels_reference_is_a_steady_symmetric_flow_below_the_uncontrolled
 
 @pytest.mark.slow(seconds=20)
 def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_path, monkeypatch):
-    """benchmarks/wake_control.py on a pinball policy: the env and grid come from the
+    """experiments/wake_control.py on a pinball policy: the env and grid come from the
     policy file, the turning member spends power and pays it in its reward, the member
     beside it spends none, and a non-wake env is refused in one line."""
     import numpy as np
@@ -203,7 +212,7 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     for cls in (pinball.PinballPhysics, pinball.PinballEnv):  # short episodes: the test's time
         monkeypatch.setattr(cls, "episode_length", 6)
 
-    control = script("benchmarks/wake_control.py")
+    control = script("experiments/wake_control.py")
     params = {"cells_per_diameter": 10}
     policy = random_policy_file(tmp_path / "policy.pt", "pinball-v0", params, hidden=8)
     row = control.control(str(policy), 2, compile=False)
@@ -232,12 +241,12 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
 
 
 def test_a_control_record_carries_an_earlier_records_rows_ahead_of_the_new_ones(tmp_path, monkeypatch, capsys):
-    """benchmarks/wake_control.py --carry: an earlier record's rows (policies whose run
+    """experiments/wake_control.py --carry: an earlier record's rows (policies whose run
     folders are on another machine) go ahead of the new policies' in the new record,
     naming the record and machine they were measured on; a record of another env or run
     length, a policy carried already or rows that are not a record's are one line,
     before any policy runs."""
-    control = script("benchmarks/wake_control.py")
+    control = script("experiments/wake_control.py")
     n = 4
     keys = ("drag", "power", "lift", "reward", "omega_front", "omega_top", "omega_bottom")
 
@@ -269,7 +278,7 @@ def test_a_control_record_carries_an_earlier_records_rows_ahead_of_the_new_ones(
         ([row("ppo/a", actions=2 * n)], "row 0: 8 actions, not 3 episodes' worth"),
         ([row("shac/c")], "shac/c: in the carried record already"),
         ([row("ppo/a", value=float("nan"))], "row 0: its per-action values are not 12 finite numbers each"),
-        ([], "not a record of benchmarks/wake_control.py"),
+        ([], "not a record of experiments/wake_control.py"),
     ):
         earlier.write_text(json.dumps({"rows": rows}))
         with pytest.raises(SystemExit):
@@ -279,13 +288,13 @@ def test_a_control_record_carries_an_earlier_records_rows_ahead_of_the_new_ones(
 
 
 def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measured_transient():
-    """benchmarks/wake_reference.py on the pinball: the held reward is minus the level's
+    """validation/wake_reference.py on the pinball: the held reward is minus the level's
     recorded base-flow drag (summed, on the policies' grid, no power), the transient
     ends where the best policy's drag stays within a tenth of the excess; a level the
     record lacks is one line."""
     import numpy as np
 
-    reference = script("benchmarks/wake_reference.py")
+    reference = script("validation/wake_reference.py")
     base = latest("pinball_base-*.json")
     (level,) = [lv for row in base["rows"] if row["cells_per_diameter"] == 20 for lv in row["levels"] if lv["re"] == 30]
     cd_base, n = sum(level["drag_base"]), pinball.EPISODE_LENGTH
@@ -315,20 +324,19 @@ def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measu
 )
 def test_the_recorded_policies_boat_tail_past_the_base_flows_reference_as_the_page_says(record, block):
     """The page's control tables of a level are the newest wake_control record's, and
-    its reference record is what benchmarks/wake_reference.py computes again from the
+    its reference record is what validation/wake_reference.py computes again from the
     records it names: the policies' net drag power is below no control's and their
     scores above the base flow's reference, which is no "= 1" at Re 30, 100 or 130."""
     import numpy as np
 
-    control, reference = script("benchmarks/wake_control.py"), script("benchmarks/wake_reference.py")
+    control, reference = script("experiments/wake_control.py"), script("validation/wake_reference.py")
     rows = latest(f"{record}_control-*.json")["rows"]
     page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
     for name, make in (("control", control.table), ("rotations", control.rotation_table)):
         found = re.search(rf"<!-- {block}{name}: .*?-->\n(.*?)<!-- end of the {block}{name} -->", page, re.S)
         assert found and found.group(1).strip() == make(rows).strip(), name
-    folder = ROOT / "benchmarks" / "results" / "pinball"
     record = latest(f"{record}_reference-*.json")["rows"][0]
-    again = reference.reference(*(json.loads((folder / name).read_text()) for name in record["records"]))
+    again = reference.reference(*(json.loads(recorded(name).read_text()) for name in record["records"]))
     assert again == {k: v for k, v in record.items() if k != "records"}
     assert f"{record['reference']:.1f}" in page
     for row, policy in zip(rows, record["policies"], strict=True):

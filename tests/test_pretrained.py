@@ -11,7 +11,7 @@ from beacon_torch.training import config
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import load_checkpoint
 
-from conftest import FAST, recipe
+from conftest import FAST, recipe, script
 
 ppo = recipe("ppo")
 
@@ -114,19 +114,14 @@ def test_eval_runs_a_shipped_policy_and_writes_its_animation(shipped, tmp_path, 
 
 
 def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp_path, monkeypatch):
-    """benchmarks/pretrained.py runs each shipped policy as a user loads it and writes
+    """experiments/pretrained.py runs each shipped policy as a user loads it and writes
     its table between the page's markers; the folded normalisation scores what the
     training's checkpoint scores on the same episodes."""
-    import importlib.util
     import json
-    from pathlib import Path
 
     from beacon_torch.training.evaluation import evaluate_run
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pretrained.py"
-    spec = importlib.util.spec_from_file_location("bench_pretrained", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = script("experiments/pretrained.py")
     page = tmp_path / "results.md"
     page.write_text(f"# Results\n\nby hand\n\n{bench.BEGIN}\nold\n{bench.END}\n\nnotes\n")
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json")])

@@ -230,7 +230,7 @@ def test_the_kept_campaigns_are_unpublished_run_folders_a_resume_reads_as_their_
     a published one (a published campaign's folders go)."""
     from beacon_torch.training.run import load_checkpoint, read_log
 
-    root = reproduce.ROOT / "benchmarks" / "results" / "campaigns"
+    root = reproduce.ROOT / "experiments" / "campaigns"
     readme = (root / "README.md").read_text()
     listed = {
         tuple(cell.strip(" `") for cell in line.strip("|").split("|"))

@@ -104,7 +104,7 @@ def test_the_page_shows_the_recorded_validation_within_two_percent():
 
     from conftest import script
 
-    validation = script("benchmarks/rayleigh_channel_validation.py")
+    validation = script("validation/rayleigh_channel.py")
     page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "rayleigh-separable.md").read_text()
     newest = sorted(validation.RECORDS.glob("channel_validation-*.json"))[-1]
     rows = received.json_file(newest, "a channel validation record")["rows"]
@@ -122,4 +122,4 @@ def test_the_page_shows_the_recorded_trials():
     from conftest import script
 
     page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "rayleigh-separable.md").read_text()
-    assert script("benchmarks/rayleigh_separable_trials.py").table() in page
+    assert script("experiments/rayleigh_separable_trials.py").table() in page

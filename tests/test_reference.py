@@ -6,7 +6,7 @@ import pytest
 from beacon_torch import reference
 
 # the cavities' whole episodes take minutes: a prefix here, the whole episodes in
-# benchmarks/reference_rollouts.py (recorded in benchmarks/results/reference_rollouts.md)
+# validation/reference_rollouts.py (recorded in validation/results/reference_rollouts.md)
 PREFIX = 30
 
 

@@ -23,14 +23,13 @@ evaluated again; a summary that says otherwise is refused.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 import os
 from pathlib import Path
 
 from beacon_torch import files, pretrained, received, threads
-from beacon_torch.arguments import find_user_modules, positive
+from beacon_torch.arguments import find_user_modules, load_script, positive
 from beacon_torch.registry import ENVS, env_class
 from beacon_torch.training import report
 from beacon_torch.training.config import CONFIGS, configure, paper_frames, quiet_torchrl
@@ -48,11 +47,7 @@ BEGIN, END = "<!-- results table: tools/reproduce.py page -->", "<!-- end of res
 def load_recipe(algo: str):
     """The recipe script ``recipes/ALGO.py`` as a module of its own (not through
     ``sys.path``: the recipes are scripts, not a package)."""
-    path = RECIPES / f"{algo}.py"
-    spec = importlib.util.spec_from_file_location(f"recipe_{algo}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(RECIPES / f"{algo}.py", f"recipe_{algo}")
 
 
 def setting(item: str) -> tuple[str, str]:

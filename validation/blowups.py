@@ -1,6 +1,6 @@
 """How bad can a completed episode get, and what does a blow-up score?
 
-    .venv/bin/python benchmarks/blowups.py [ENV_ID ...] [--batch 256] [--seed 0]
+    .venv/bin/python validation/blowups.py [ENV_ID ...] [--batch 256] [--seed 0]
 
 Runs whole episodes (float32, the env's defaults) of a batch split evenly among
 policies that push hardest on the physics: uniformly random actions, bang-bang (a random

@@ -1,7 +1,7 @@
 """Gradients of every continuous env on its published settings against central
 differences, in float64 at a generic point.
 
-    .venv/bin/python benchmarks/gradcheck.py [--envs ENV ...]
+    .venv/bin/python validation/gradcheck.py [--envs ENV ...]
 
 Prints, per env, the derivative of the reward summed over a few actions with respect to
 the actions (along a random direction) and to one physical parameter, by automatic

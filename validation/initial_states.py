@@ -1,6 +1,6 @@
 """Regenerate the initial states that ship with the package and check them.
 
-    .venv/bin/python benchmarks/initial_states.py [--write] [shkadov] [rayleigh]
+    .venv/bin/python validation/initial_states.py [--write] [shkadov] [rayleigh]
 
 shkadov: the film developed for 200 time units (default delta), about 50 s here;
 rayleigh: the convection roll developed for 200 time units, about 20 s; cylinder and
@@ -20,16 +20,18 @@ from beacon_torch import cache
 from beacon_torch.envs import cylinder, rayleigh, shkadov
 
 STATES = {
-    "shkadov": ("shkadov-film", dict(version=1, delta=0.1), lambda: shkadov.developed_film(0.1)),
+    "shkadov": ("shkadov-film", shkadov.START_VERSION, dict(delta=0.1), lambda: shkadov.developed_film(0.1)),
     "rayleigh": (
         "rayleigh-convection",
-        dict(version=3, L=1.0, H=1.0, ra=1e4),
+        rayleigh.START_VERSION,
+        dict(L=1.0, H=1.0, ra=1e4),
         lambda: rayleigh.developed_convection(rayleigh.RayleighParams()),
     ),
     **{
         name: (
             "cylinder-shedding",
-            dict(version=cylinder.START_VERSION, cells=cells, nu=cylinder.NU, time=cylinder.DEVELOP_TIME),
+            cylinder.START_VERSION,
+            dict(cells=cells, nu=cylinder.NU, time=cylinder.DEVELOP_TIME),
             lambda cells=cells: cylinder.developed_shedding(cells)[0],
         )
         for name, cells in (("cylinder", 40), ("cylinder-coarse", 10))
@@ -43,11 +45,11 @@ def main() -> None:
     parser.add_argument("names", nargs="*", default=sorted(STATES), choices=sorted(STATES))
     args = parser.parse_args()
     for name in args.names:
-        file, key, generate = STATES[name]
+        file, version, key, generate = STATES[name]
         start = time.perf_counter()
         state = generate()
         print(f"{name}: generated in {time.perf_counter() - start:.1f} s")
-        path = cache.PACKAGE_DATA / cache.file_name(file, key)
+        path = cache.PACKAGE_DATA / cache.file_name(file, version, key)
         if args.write:
             cache.save(state, path)
             print(f"  wrote {path}")

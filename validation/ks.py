@@ -1,9 +1,9 @@
 """ks-v0's solver against the published facts of the L = 22 Kuramoto-Sivashinsky flow
 (Cvitanovic, Davidchack & Siminos 2010), in float64, and the scheme's convergence.
 
-    .venv/bin/python benchmarks/ks_validation.py [--out DIR] [--page docs/envs/ks.md] [--quick]
+    .venv/bin/python validation/ks.py [--out DIR] [--page docs/envs/ks.md] [--quick]
 
-Records, as a new dated ``ks_validation-DATE.json`` in ``benchmarks/results/ks/``:
+Records, as a new dated ``ks_validation-DATE.json`` in ``validation/results/ks/``:
 
 - the equilibria E1, E2, E3 that the env finds by Newton's method: their energy and
   leading stability eigenvalues (of the discrete equations' Jacobian) beside the
@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT / "benchmarks" / "results" / "ks"
-BEGIN, END = "<!-- validation: benchmarks/ks_validation.py -->", "<!-- end of the validation -->"
+RECORDS = ROOT / "validation" / "results" / "ks"
+BEGIN, END = "<!-- validation: validation/ks.py -->", "<!-- end of the validation -->"
 L = 22.0
 N = 64
 

@@ -2,12 +2,12 @@
 forces, the Reynolds numbers of the first two bifurcations against Deng et al.'s, the
 levels' flows and their references.
 
-    .venv/bin/python benchmarks/pinball_validation.py steady [--cells 10 20 30] [--setups ...]
-    .venv/bin/python benchmarks/pinball_validation.py thresholds [--cells 10 20] [--hopf RE ...] [--pitchfork RE ...]
-    .venv/bin/python benchmarks/pinball_validation.py pitchfork [--cells 10 20] [--developed RE ...] [--time 400]
-    .venv/bin/python benchmarks/pinball_validation.py base [--cells 10 20] [--re 30 100 130] [--time 300] [--chi 0]
-    .venv/bin/python benchmarks/pinball_validation.py regimes [--cells 10 20] [--re 100 130]
-    .venv/bin/python benchmarks/pinball_validation.py page
+    .venv/bin/python validation/pinball.py steady [--cells 10 20 30] [--setups ...]
+    .venv/bin/python validation/pinball.py thresholds [--cells 10 20] [--hopf RE ...] [--pitchfork RE ...]
+    .venv/bin/python validation/pinball.py pitchfork [--cells 10 20] [--developed RE ...] [--time 400]
+    .venv/bin/python validation/pinball.py base [--cells 10 20] [--re 30 100 130] [--time 300] [--chi 0]
+    .venv/bin/python validation/pinball.py regimes [--cells 10 20] [--re 100 130]
+    .venv/bin/python validation/pinball.py page
 
 HydroGym's pinball test solves the steady flow at Re 30 on its fine mesh by Newton's
 method and records each cylinder's drag and lift coefficients (front, top, bottom):
@@ -24,7 +24,7 @@ than 1e-6 over a time unit (or ``--time`` units):
 - ``pinball-v0``: the env's own box and triangle (Deng et al.'s).
 
 Prints each set-up's coefficients beside the reference and writes them to a new dated
-``pinball_steady-DATE-TIME.json`` in ``--out`` (benchmarks/results/pinball/).
+``pinball_steady-DATE-TIME.json`` in ``--out`` (validation/results/pinball/).
 
 ``thresholds``: the bifurcations of the steady symmetric flow (Deng et al.: a Hopf
 bifurcation near Re 18, a pitchfork near Re 68, both breaking the mirror symmetry; the
@@ -73,14 +73,14 @@ import os
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT / "benchmarks" / "results" / "pinball"
-BEGIN, END = "<!-- steady: benchmarks/pinball_validation.py -->", "<!-- end of the steady -->"
-THRESHOLDS_BEGIN = "<!-- thresholds: benchmarks/pinball_validation.py -->"
+RECORDS = ROOT / "validation" / "results" / "pinball"
+BEGIN, END = "<!-- steady: validation/pinball.py -->", "<!-- end of the steady -->"
+THRESHOLDS_BEGIN = "<!-- thresholds: validation/pinball.py -->"
 THRESHOLDS_END = "<!-- end of the thresholds -->"
-PITCHFORK_BEGIN = "<!-- pitchfork: benchmarks/pinball_validation.py -->"
+PITCHFORK_BEGIN = "<!-- pitchfork: validation/pinball.py -->"
 PITCHFORK_END = "<!-- end of the pitchfork -->"
-BASE_BEGIN, BASE_END = "<!-- base flows: benchmarks/pinball_validation.py -->", "<!-- end of the base flows -->"
-REGIMES_BEGIN, REGIMES_END = "<!-- regimes: benchmarks/pinball_validation.py -->", "<!-- end of the regimes -->"
+BASE_BEGIN, BASE_END = "<!-- base flows: validation/pinball.py -->", "<!-- end of the base flows -->"
+REGIMES_BEGIN, REGIMES_END = "<!-- regimes: validation/pinball.py -->", "<!-- end of the regimes -->"
 
 RE = 30.0
 # HydroGym's test_steady (fine mesh): front, top, bottom

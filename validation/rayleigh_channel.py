@@ -1,7 +1,7 @@
 """rayleigh-separable-v0's channel (Vignon et al. 2023's case) uncontrolled, in float64:
 its Nusselt number against the authors', and the grid's convergence.
 
-    .venv/bin/python benchmarks/rayleigh_channel_validation.py [--out DIR] [--page FILE]
+    .venv/bin/python validation/rayleigh_channel.py [--out DIR] [--page FILE]
 
 For each resolution (24, 32 and 40 cells per unit length; the env's is 32) the flow is
 developed from rest as the env's start is (400 time units, no control) and measured:
@@ -16,7 +16,7 @@ developed from rest as the env's start is (400 time units, no control) and measu
   vertical gradient taken per row index (numpy's ``gradient``), as their code does;
 - the number of convection cells (sign changes of the vertical velocity at mid-height).
 
-Records a dated ``channel_validation-DATE.json`` in ``benchmarks/results/rayleigh-separable/``
+Records a dated ``channel_validation-DATE.json`` in ``validation/results/rayleigh-separable/``
 and writes the table of the newest record on the env's page.
 """
 
@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT / "benchmarks" / "results" / "rayleigh-separable"
-BEGIN, END = "<!-- validation: benchmarks/rayleigh_channel_validation.py -->", "<!-- end of the validation -->"
+RECORDS = ROOT / "validation" / "results" / "rayleigh-separable"
+BEGIN, END = "<!-- validation: validation/rayleigh_channel.py -->", "<!-- end of the validation -->"
 VIGNON_NUSSELT = 2.6726  # the uncontrolled value the authors' reward subtracts
 RESOLUTIONS = (24, 32, 40)
 

@@ -1,6 +1,6 @@
 """Replay the published code's recorded rollouts through our envs, whole episodes.
 
-    .venv/bin/python benchmarks/reference_rollouts.py [ENV_ID ...] [--out FILE]
+    .venv/bin/python validation/reference_rollouts.py [ENV_ID ...] [--out FILE]
 
 For each env with a recorded rollout (beacon_torch/data/reference-rollouts.json: seeded
 open-loop actions, float64, the published start states), steps our env through the same

@@ -2,12 +2,12 @@
 the reward of an episode that passes through the measured transient and then holds the
 steady base flow's drag, with no lift and no actuation.
 
-    .venv/bin/python benchmarks/wake_reference.py CONTROL.json BASE_FLOW.json [--out DIR]
+    .venv/bin/python validation/wake_reference.py CONTROL.json BASE_FLOW.json [--out DIR]
 
-CONTROL.json is a record of ``benchmarks/wake_control.py`` (the drag per action of
+CONTROL.json is a record of ``experiments/wake_control.py`` (the drag per action of
 trained policies of one env from the developed start, beside no control), BASE_FLOW.json
 the record of the env's steady base flow: ``python -m beacon_torch.envs.cylinder.base_flow``'s
-for the cylinder, ``benchmarks/pinball_validation.py base``'s for the pinball (the level's
+for the cylinder, ``validation/pinball.py base``'s for the pinball (the level's
 Re on the policies' grid). A controller that only stabilises the wake cannot bring the
 drag below the base flow's, and cannot reach it at once: the shedding takes a transient
 to die out. Its end is measured on the recorded policies as a settling time: the first
@@ -125,7 +125,7 @@ def reference(control: dict, base_flow: dict) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("control", type=Path, help="a record of benchmarks/wake_control.py")
+    parser.add_argument("control", type=Path, help="a record of experiments/wake_control.py")
     parser.add_argument("base_flow", type=Path, help="the record of the env's steady base flow")
     parser.add_argument("--out", type=Path, help="where the record goes (default: benchmarks/results/ENV_FAMILY)")
     args = parser.parse_args()

@@ -33,6 +33,8 @@ from beacon_torch.card import PHYSICAL_LIMIT, Reference
 from beacon_torch.params import param
 
 DT = 0.05
+# the start bank's generation: a new one whenever the scheme changes the attractor's states
+START_VERSION = 1
 EPISODE_LENGTH = 3000
 N_SENSORS = 8
 ACTUATORS = (0.0, 0.25, 0.5, 0.75)  # positions, as fractions of L
@@ -246,11 +248,11 @@ class KSPhysics(Physics):
         """``[1024, n]``: the start fields, in the physics' dtype and on its device (the
         bank is computed once per L, n and sigma in float64, and cached)."""
         if self._starts is None:
-            key = dict(version=1, L=self.L, n=self.n, sigma=self.sigma)
+            key = dict(L=self.L, n=self.n, sigma=self.sigma)
             size = BANK_TRAJECTORIES * BANK_STATES
             zeros = torch.zeros(size, self.n + len(ACTUATORS), dtype=torch.float64)
             like = KSState(u=zeros[:, : self.n], a=zeros[:, self.n :])
-            bank = cached("ks-attractor", key, lambda: attractor_bank(self.L, self.n, self.sigma), like)
+            bank = cached("ks-attractor", START_VERSION, key, lambda: attractor_bank(self.L, self.n, self.sigma), like)
             self._starts = bank.u.to(device=self.device, dtype=self.dtype)
         return self._starts
 

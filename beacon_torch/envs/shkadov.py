@@ -57,6 +57,8 @@ REWARD_LENGTH = 10.0  # downstream of each jet
 GUARD = 1e-8  # in q^2/h and q/h^2, as in the published code
 H_MAX = 25.0  # the published code's blow-up bound on |h|
 # the developed film: 200 time units on a 580-unit domain (L0 = 550, one jet)
+# the developed starts' generation: a new one whenever the scheme changes the film
+START_VERSION = 1
 DEVELOP_TIME = 200.0
 DEVELOP_LENGTH = 580.0
 DEVELOP_SEED = 0
@@ -304,7 +306,7 @@ class ShkadovPhysics(Physics):
             n = int(round(DEVELOP_LENGTH / DX))
             like = Film(h=torch.ones(n, dtype=torch.float64), q=torch.ones(n, dtype=torch.float64))
             develop = lambda: developed_film(delta)
-            film = cached("shkadov-film", dict(version=1, delta=delta), develop, like, {"h": (-H_MAX, H_MAX)})
+            film = cached("shkadov-film", START_VERSION, dict(delta=delta), develop, like, {"h": (-H_MAX, H_MAX)})
         return map_state(lambda v: v[: self.n_cells].to(device=self.device, dtype=self.dtype), film)
 
     def noise(self, p, generator) -> Noise:

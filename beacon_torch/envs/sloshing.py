@@ -37,6 +37,8 @@ N_INTERP = 10
 DT_ACT = DT * SUBSTEPS
 EPISODE_LENGTH = 200
 EXCITATION_ACTIONS = 40  # 2 time units
+# the excited starts' generation: a new one whenever the scheme changes the tank
+START_VERSION = 2
 EXCITATION_AMP = 5.0  # the published amp: the excitation does not follow the amp parameter
 H_MIN, H_MAX = -5.0, 2.0  # the published code's blow-up bounds
 
@@ -191,10 +193,11 @@ class SloshingPhysics(Physics):
                 start = where_members(chosen.to(self.device), stored, start)
         else:  # one start for all, cached
             g = float(p.g[0])
-            key = dict(version=2, L=p.L, g=g)
+            key = dict(L=p.L, g=g)
             like = at_rest(1, self.n_cells, torch.float64, "cpu")
             excite = lambda: excited_state(p.L, g, 1, torch.float64, "cpu")
-            start = cached("sloshing-excited", key, excite, like, {"h": (H_MIN, H_MAX)})  # out_of_bounds's
+            bounds = {"h": (H_MIN, H_MAX)}  # out_of_bounds's
+            start = cached("sloshing-excited", START_VERSION, key, excite, like, bounds)
             start = map_state(lambda v: v.expand(self.num_envs, *v.shape[1:]), start)
         # generated in float64 like the published code, then cast
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype).clone(), start)

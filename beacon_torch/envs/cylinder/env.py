@@ -124,11 +124,12 @@ class CylinderPhysics(Physics):
         return self.remembered(("shedding", cells, nu), lambda: self._developed(cells, nu))
 
     def _developed(self, cells: int, nu: float) -> Flow:
-        key = dict(version=START_VERSION, cells=cells, nu=nu, time=DEVELOP_TIME)
+        key = dict(cells=cells, nu=nu, time=DEVELOP_TIME)
         at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
         like = map_state(lambda v: v[0], at_rest)
         bounds = {"u": (-10.0 * U_MAX, 10.0 * U_MAX)}  # what out_of_bounds ends an episode beyond
-        start = cached("cylinder-shedding", key, lambda: developed_shedding(cells, nu=nu)[0], like, bounds)
+        develop = lambda: developed_shedding(cells, nu=nu)[0]
+        start = cached("cylinder-shedding", START_VERSION, key, develop, like, bounds)
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
 
     def _start_loads(self, p) -> tuple[torch.Tensor, torch.Tensor]:
@@ -183,12 +184,12 @@ class CylinderEnv(FlowEnv):
     # best trained policy's first 34 actions) and then the steady base flow's drag
     # (C_D 2.952) with no lift, 6.3 % below no control over the episode. Rabault et
     # al.'s 8 % at every action would need a drag below the steady flow's from the
-    # first action. Computed by benchmarks/wake_reference.py from the recorded
-    # base flow and policies (its record in benchmarks/results/cylinder/; the tests
+    # first action. Computed by validation/wake_reference.py from the recorded
+    # base flow and policies (its record in validation/results/cylinder/; the tests
     # check this value against it). No paper gives a PPO score for this set-up.
     reference = Reference(
         COMPUTED,
-        "benchmarks/wake_reference.py: the best policy's transient, then the steady base flow's drag",
+        "validation/wake_reference.py: the best policy's transient, then the steady base flow's drag",
         score=0.6021481412219859,
     )
     gradcheck = GradCheck("nu", NU, warmup=1, steps=1)

@@ -13,7 +13,7 @@ benchmark's intervals with the relative distance to the nearer end. Writes a new
 window) to ``--out``. Each resolution runs in its own process (one core each).
 ``--plot`` draws a record's drag and lift histories, one line per resolution, into a
 new figure (the page's, docs/img/cylinder-validation.png). The records on the page are
-in ``benchmarks/results/cylinder/``.
+in ``validation/results/cylinder/``.
 """
 
 from __future__ import annotations

@@ -47,11 +47,11 @@ def developed_start(cells: int, re: float) -> Flow:
     """The levels' start at ``re`` on a grid of ``cells`` per diameter: the developed
     uncontrolled flow (float64, CPU, without batch dimension), shipped, cached or
     computed once."""
-    key = dict(version=START_VERSION, cells=cells, re=re, time=DEVELOP_TIME, kick=KICK)
+    key = dict(cells=cells, re=re, time=DEVELOP_TIME, kick=KICK)
     like = map_state(lambda v: v[0], rest(1, Box(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu"))
     compute = lambda: developed(cells, 1.0 / re, time=DEVELOP_TIME, kick=KICK)[0]
     # what out_of_bounds ends an episode beyond
-    return cached("pinball-developed", key, compute, like, {"u": (-10.0 * U_INF, 10.0 * U_INF)})
+    return cached("pinball-developed", START_VERSION, key, compute, like, {"u": (-10.0 * U_INF, 10.0 * U_INF)})
 
 
 class PinballState(NamedTuple):
