@@ -22,15 +22,12 @@ import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
 from beacon_torch import received
+from beacon_torch.core.state import State
 from beacon_torch.files import save_tensors
-
-if TYPE_CHECKING:
-    from beacon_torch.base import State
 
 PACKAGE_DATA = Path(__file__).parent / "data"
 _memory: dict[str, State] = {}

@@ -6,16 +6,13 @@ the autograd graph) and what :func:`beacon_torch.step` hands to users of ``torch
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 
 from beacon_torch.autograd import checkpointed
 from beacon_torch.compiled import standard
 from beacon_torch.core.state import Noise, State, finite_members, map_state, select, where_members
-
-if TYPE_CHECKING:
-    from beacon_torch.core.physics import Physics
 
 
 class Step(NamedTuple):
@@ -78,7 +75,7 @@ def advance_settled(physics, params, state, observation, action, count, noise, s
 
 
 def step(
-    physics: Physics,
+    physics,
     params: Any,
     state: State,
     action: torch.Tensor,
@@ -90,7 +87,8 @@ def step(
     keep_graph: bool = False,
     checkpoint: bool = False,
 ) -> Step:
-    """One action of every member of ``state`` under the physics ``physics`` with the
+    """One action of every member of ``state`` under the physics ``physics`` (a
+    :class:`~beacon_torch.core.physics.Physics`, which imports this module) with the
     parameters ``params`` (an instance of ``physics.Params``, per-member values
     ``[batch]``): returns a :class:`Step`.
 
