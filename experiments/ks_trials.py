@@ -9,7 +9,6 @@ what it was given).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from pathlib import Path
 
@@ -18,12 +17,9 @@ TRIALS = ROOT / "experiments" / "results" / "ks" / "trials"
 BEGIN, END = "<!-- trials: experiments/ks_trials.py -->", "<!-- end of the trials -->"
 
 
-def series(path: Path) -> list[tuple[float, float]]:
-    with path.open() as f:
-        return [(float(step), float(value)) for step, value in csv.reader(f)]
-
-
 def table(folder: Path = TRIALS) -> str:
+    from beacon_torch.training.run import read_log
+
     lines = [
         "| run | recipe and settings | transitions | minutes | first episodes' score | last episodes' score | "
         "last mean distance per action |",
@@ -31,8 +27,8 @@ def table(folder: Path = TRIALS) -> str:
     ]
     for run in sorted(p for p in folder.iterdir() if p.is_dir()):
         settings = json.loads((run / "settings.json").read_text())
-        scores = series(run / "episode_score.csv")
-        frames, seconds = series(run / "wall_time.csv")[-1]
+        scores = read_log(run / "episode_score.csv")
+        frames, seconds = read_log(run / "wall_time.csv")[-1]
         given = ", ".join(f"{k}={v}" for k, v in settings["given"].items()) or "defaults"
         last = scores[-1][1]
         lines.append(

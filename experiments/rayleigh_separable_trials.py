@@ -15,11 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ks_trials import series
 
 ROOT = Path(__file__).resolve().parents[1]
 TRIALS = ROOT / "experiments" / "results" / "rayleigh-separable" / "trials"
@@ -29,6 +25,8 @@ SCALE = {"rayleigh-separable-v0": (200, -1.0), "rayleigh-v0": (100, -2.0)}
 
 
 def table(folder: Path = TRIALS) -> str:
+    from beacon_torch.training.run import read_log
+
     lines = [
         "| run | recipe and settings | transitions | minutes | episodes' Nusselt: first | last | best |",
         "|---|---|---|---|---|---|---|",
@@ -36,8 +34,8 @@ def table(folder: Path = TRIALS) -> str:
     for run in sorted(p for p in folder.iterdir() if p.is_dir()):
         settings = json.loads((run / "settings.json").read_text())
         length, factor = SCALE[settings["env"]]
-        nusselt = [factor * score / length for _, score in series(run / "episode_score.csv")]
-        frames, seconds = series(run / "wall_time.csv")[-1]
+        nusselt = [factor * score / length for _, score in read_log(run / "episode_score.csv")]
+        frames, seconds = read_log(run / "wall_time.csv")[-1]
         given = ", ".join(f"{k}={v}" for k, v in settings["given"].items()) or "defaults"
         lines.append(
             f"| {run.name} | {settings['recipe']} on {settings['env']} ({given}) | {int(frames):,} "

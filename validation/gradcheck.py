@@ -14,10 +14,6 @@ script.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from beacon_torch.gradcheck import check_env
 from beacon_torch.registry import ENVS
