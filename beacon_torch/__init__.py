@@ -21,7 +21,7 @@ _TOP = {
     "functional": "beacon_torch.registry",
     "step": "beacon_torch.core.inputs:checked_step",
     "list_envs": "beacon_torch.registry",
-    "make": "beacon_torch.registry",
+    "make": "beacon_torch.base",
     "register": "beacon_torch.registry",
 }
 

@@ -1,21 +1,17 @@
-"""``FlowEnv``: the batched TorchRL environment every BEACON env is.
+"""``FlowEnv``, the batched TorchRL environment every BEACON env is, and :func:`make`.
 
-The env is a shell around a case's physics (:class:`~beacon_torch.core.physics.Physics`,
-declared as the env class's ``physics_type``): it holds the batch size, device and
-dtype, the parameters, the seeded generators, the specs, the current state and its
-counters, and steps them with the one step function
+There is one env class: a shell around a registered id
+(:class:`~beacon_torch.registry.EnvSpec`: a case's physics, its card, its layout). It
+holds the batch size, device and dtype, the parameters, the seeded generators, the
+specs, the current state and its counters, and steps them with the one step function
 (:func:`~beacon_torch.core.step.step`), eagerly, compiled as one call, or keeping the
 autograd graph. What a case knows of its equations (the hooks ``initial_state``,
-``advance``, ``observe``, ...) lives on its physics and takes the parameters as an
-argument; the env's class mirrors the physics' facts (``Params``, ``state_type``,
-``episode_length``, ``discrete``, ...) and adds its card, rendering and, for layouts of
-several agents, its specs. What the physics set up (a grid, the kernels) reads through
-the env as well (``env.n_cells`` is ``env.physics.n_cells``).
-
-Besides its physics an env class declares its card, class attributes that say what the
-library knows of it (family, cost, the published code's speed, the paper's PPO score,
-its gradient check, cheap settings for tests; see ``FlowEnv``), which benchmarks,
-reports and tests read instead of keeping lists of envs.
+``advance``, ``observe``, ...) lives on its physics (``env.physics``, with what it set
+up: ``env.physics.n_cells``) and takes the parameters as an argument; what the library
+knows of it beyond them (family, cost, the published code's speed, the paper's PPO
+score, its gradient check, cheap settings for tests, its frame) is its card
+(``env.card``), which benchmarks, reports and tests read instead of keeping lists of
+envs.
 
 With ``differentiable=True`` the steps keep the autograd graph through the state, so the
 rewards can be differentiated with respect to the actions, to parameters given as
@@ -27,7 +23,7 @@ long uncontrolled runs).
 from __future__ import annotations
 
 import warnings
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,125 +33,35 @@ from torchrl.envs import EnvBase
 
 from beacon_torch import starts as start_sets
 from beacon_torch.autograd import graph_mode
-from beacon_torch.card import Card, GradCheck
 from beacon_torch.compiled import step_inputs
+from beacon_torch.core.card import FrameInputs
 from beacon_torch.core.checks import (
-    MAX_MEMBERS,
-    WORKSPACE,
     Checks,
     as_batch_size,
     as_device,
     as_dtype,
     as_flag,
     as_seed,
-    available_bytes,
 )
-from beacon_torch.core.physics import Physics
 from beacon_torch.core.saving import Saving
-from beacon_torch.core.state import Noise, State, map_state, select, where_members
-from beacon_torch.core.step import settle, step
+from beacon_torch.core.state import State, map_state, where_members
+from beacon_torch.core.step import step
 from beacon_torch.history import History, Rendering
+from beacon_torch.layout import Agents, Members
 from beacon_torch.params import resolve_params, short_repr
+from beacon_torch.registry import OPTIONS, EnvSpec, env_spec, params_dict, resolve_id
 
 # mixed into the seed of the random actions' generator: a stream apart from the physics'
 ACTION_STREAM = 0x9E3779B97F4A7C15
 
-# what the module has offered (some of it now lives in the core's modules)
-__all__ = [
-    "MAX_MEMBERS",
-    "WORKSPACE",
-    "FlowEnv",
-    "GradCheck",
-    "Noise",
-    "Physics",
-    "State",
-    "available_bytes",
-    "map_state",
-    "select",
-    "settle",
-    "where_members",
-]
 
-
-# what a physics defines; an env class defining one would not be read
-PHYSICS_HOOKS = {
-    "setup",
-    "initial_state",
-    "advance",
-    "observe",
-    "noise",
-    "null_action",
-    "out_of_bounds",
-    "diagnose",
-    "member_floats",
-}
-
-
-class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
-    """Base of the batched BEACON environments (see the module docstring)."""
-
-    # the case's equations; its facts below are mirrored on the env class
-    physics_type: ClassVar[type[Physics]]
-    Params: ClassVar[type]
-    episode_length: ClassVar[int]
-    discrete: ClassVar[bool] = False
-    state_type: ClassVar[type]
-    blowup_reward: ClassVar[float] = -1.0
-    diagnostics: ClassVar[dict[str, str]] = {}
-    deterministic: ClassVar[bool] = True
-    # where the action is read from and the observation and reward written to
-    # (nested keys for multi-agent variants)
-    action_key: ClassVar[str | tuple[str, ...]] = "action"
-    observation_key: ClassVar[str | tuple[str, ...]] = "observation"
-    reward_key: ClassVar[str | tuple[str, ...]] = "reward"
-
-    # the physics' facts an env class shows as its own
-    MIRRORED: ClassVar[tuple[str, ...]] = (
-        "Params",
-        "state_type",
-        "episode_length",
-        "discrete",
-        "blowup_reward",
-        "diagnostics",
-        "deterministic",
-        "sizes",
-        "inductor_options",
-    )
-
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        hooks = sorted(set(vars(cls)) & PHYSICS_HOOKS)
-        if hooks:
-            raise TypeError(
-                f"{cls.__name__} defines the physics hook(s) {hooks} on the env: they belong to a "
-                f"beacon_torch.Physics subclass, named by the env class's physics_type, and take the "
-                f"parameters as their first argument (docs/adding-an-env.md)"
-            )
-        physics = vars(cls).get("physics_type")
-        # a variant's own episode length or blow-up reward (an env class that says
-        # ``episode_length = 25``) makes a physics of its own with them
-        overrides = {name: vars(cls)[name] for name in ("episode_length", "blowup_reward") if name in vars(cls)}
-        if overrides and getattr(cls, "physics_type", None) is not None:
-            base = physics or cls.physics_type
-            physics = type(base.__name__, (base,), {**overrides, "__module__": cls.__module__})
-            cls.physics_type = physics
-        if physics is not None:
-            for name in cls.MIRRORED:
-                if hasattr(physics, name):
-                    setattr(cls, name, getattr(physics, name))
-
-    def __getattr__(self, name: str) -> Any:
-        # what the physics set up (a grid, its kernels) and its hooks read through the env
-        try:
-            return super().__getattr__(name)
-        except AttributeError:
-            physics = self.__dict__.get("physics")
-            if physics is None or name.startswith("__"):
-                raise
-            return getattr(physics, name)
+class FlowEnv(Checks, Saving, Rendering, EnvBase):
+    """A batched BEACON environment of a registered id (see the module docstring); built
+    by :func:`make`."""
 
     def __init__(
         self,
+        spec: EnvSpec,
         batch_size: int | tuple[int] = 1,
         *,
         device: str | torch.device = "cpu",
@@ -168,6 +74,10 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         starts: str | None = None,
         **params: Any,
     ) -> None:
+        if not isinstance(spec, EnvSpec):
+            raise TypeError(f"FlowEnv takes a registered id's EnvSpec (beacon_torch.make builds one), got {spec!r}")
+        # the id, its physics' type and its card: what the env is
+        self.env_spec, self.env_id, self.card = spec, spec.env_id, spec.card
         batch_size = as_batch_size(batch_size)
         device = as_device(device)
         flags = dict(
@@ -183,7 +93,7 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         self.dtype = as_dtype(dtype)
         self.num_envs = batch_size[0]
         self.params = resolve_params(
-            self.Params,
+            spec.physics.Params,
             params,
             batch_size=self.num_envs,
             device=device,
@@ -205,10 +115,16 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         # a state given to set_state with a graph, not stepped yet: a reset would drop it
         self._traced_start = False
         self._warn_traced_params()
-        self.physics = self.physics_type(self.params, self.num_envs, dtype=self.dtype, device=device)
+        self.physics = spec.physics(self.params, self.num_envs, dtype=self.dtype, device=device)
         # the observation size; continuous: the action dimension, discrete: the number
         # of choices
         self.n_obs, self.n_actions = self.physics.n_obs, self.physics.n_actions
+        # where the action is read from and the observation and reward written to
+        # (nested keys for the multi-agent layout)
+        if spec.agents is None:
+            self.layout = Members(self.batch_size, device, self.dtype)
+        else:
+            self.layout = Agents(spec.agents, self.physics.action_shape[0], self.batch_size, device, self.dtype)
         # compiled, a whole step is this one call
         self._whole_step = self.physics.kernels(step)
         self._check_memory()
@@ -245,6 +161,49 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         super().close(raise_if_closed=raise_if_closed)
 
     @property
+    def discrete(self) -> bool:
+        """Whether the actions are choices (an integer per member) rather than values."""
+        return self.physics.discrete
+
+    @property
+    def episode_length(self) -> int:
+        """Actions per episode: a member's episode is truncated after them."""
+        return self.physics.episode_length
+
+    @property
+    def diagnostics(self) -> dict[str, str]:
+        """The physical quantities given beside the reward (name -> meaning), under
+        "diagnostics" in the TensorDicts, one number per member each."""
+        return self.physics.diagnostics
+
+    @property
+    def action_key(self) -> str | tuple[str, ...]:
+        """Where the action is read from (``("agents", "action")`` in the multi-agent
+        layout)."""
+        return self.layout.action_key
+
+    @property
+    def observation_key(self) -> str | tuple[str, ...]:
+        """Where the observation is written."""
+        return self.layout.observation_key
+
+    @property
+    def reward_key(self) -> str | tuple[str, ...]:
+        """Where the reward is written."""
+        return self.layout.reward_key
+
+    @property
+    def agent_name(self) -> str | None:
+        """An agent's name in the multi-agent layout (PettingZoo's agents are
+        ``f"{agent_name}_{i}"``); None with one agent per member."""
+        return self.layout.agent_name
+
+    @property
+    def n_agents(self) -> int:
+        """Agents per member: the physics' actuators in the multi-agent layout, else 1."""
+        return self.layout.n_agents
+
+    @property
     def state(self) -> State:
         """The current state tensors (read-only view; reset first)."""
         if self._state is None:
@@ -268,19 +227,14 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
     def _make_specs(self) -> None:
         B = self.batch_size
         dev = self.device
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(*B, self.n_obs), dtype=self.dtype, device=dev),
-            shape=B,
-            device=dev,
-        )
-        self.action_spec = self._action_leaf_spec((*B, *self.action_shape))
-        self.reward_spec = Unbounded(shape=(*B, 1), dtype=self.dtype, device=dev)
+        for name, spec in self.layout.specs(self.n_obs, self.action_shape, self._action_leaf_spec).items():
+            setattr(self, name, spec)
         flag = lambda: Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)
         self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=B, device=dev)
 
     def _add_diagnostics_spec(self) -> None:
         """The diagnostics' entries, one number per member, under "diagnostics" beside
-        the observation (after the env's own specs, which a layout may redefine)."""
+        the observation."""
         if not self.diagnostics:
             return
         B, dev = self.batch_size, self.device
@@ -299,14 +253,6 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         if self.discrete:
             return Categorical(self.n_actions, shape=shape, dtype=torch.int64, device=self.device)
         return Bounded(low=-1.0, high=1.0, shape=shape, dtype=self.dtype, device=self.device)
-
-    def _pack(self, obs: torch.Tensor, reward: torch.Tensor | None) -> dict:
-        """TensorDict entries of an observation and a reward (multi-agent variants nest
-        them)."""
-        out = {"observation": obs}
-        if reward is not None:
-            out["reward"] = reward[:, None]
-        return out
 
     # ------------------------------------------------------------------ seeding
     def _set_seed(self, seed: int | None) -> None:
@@ -430,7 +376,7 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
             index = torch.randint(size, self.batch_size, generator=self.rng, device=self.device)
         else:
             index = torch.arange(self.num_envs, device=self.device) % size
-        return self.state_type(*(value[index] for value in pool))
+        return self.physics.state_type(*(value[index] for value in pool))
 
     def step_members(
         self, action: Any, stepping: torch.Tensor | None = None
@@ -491,7 +437,7 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return TensorDict(
             {
-                **self._pack(obs, None),
+                **self.layout.pack(obs, None),
                 **self._diagnostics_entry(),
                 "done": false,
                 "terminated": false.clone(),
@@ -514,7 +460,7 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
         terminated, truncated = terminated[:, None], truncated[:, None]
         return TensorDict(
             {
-                **self._pack(obs, reward),
+                **self.layout.pack(obs, reward),
                 **self._diagnostics_entry(),
                 "done": terminated | truncated,
                 "terminated": terminated,
@@ -524,8 +470,78 @@ class FlowEnv(Card, Checks, Saving, Rendering, EnvBase):
             device=self.device,
         )
 
+    def render_frame(self, states: list[State], step: int) -> np.ndarray:
+        """The card's frame of member :attr:`render_index`, drawn from ``states``
+        (:class:`~beacon_torch.core.card.FrameInputs`)."""
+        if self.card.frame is None:
+            raise NotImplementedError(f"{self.env_id}: its card has no frame to draw")
+        inputs = FrameInputs(self.physics, self.params, self.render_index, states, step, self.history.enabled)
+        return self.card.frame(inputs)
+
     def __repr__(self) -> str:
         return (
-            f"{type(self).__name__}(id={self.env_id!r}, batch_size={tuple(self.batch_size)}, "
+            f"FlowEnv(id={self.env_id!r}, batch_size={tuple(self.batch_size)}, "
             f"device={self.device}, dtype={self.dtype}, params={short_repr(self.params)})"
         )
+
+
+def make(
+    env_id: str,
+    num_envs: int | None = None,
+    *,
+    device: Any = "cpu",
+    dtype: Any = "float32",
+    seed: int | None = None,
+    params: Any = None,
+    batch_size: int | None = None,
+    **options: Any,
+) -> FlowEnv:
+    """Build a batched BEACON environment.
+
+    ``num_envs`` members are stepped together (default 1; ``batch_size`` is TorchRL's
+    name for the same number, accepted as TorchRL users write it); ``device`` and
+    ``dtype`` (float32 or float64) place the state; ``seed`` seeds the env's own
+    generator. ``params`` is the physics, a value: an instance of the env's ``Params``
+    (``beacon_torch.envs.burgers.BurgersParams(amp=5.0)``, every field) or a dict of some of its fields
+    (``{"amp": 5.0}``, the others at their defaults; ``beacon-torch list``,
+    ``docs/envs``). A parameter may also be given as a keyword
+    (``make("burgers-v0", amp=5.0)``). The other keywords are the options every env
+    has:
+
+    ``compile``
+        True (or a dict of ``torch.compile`` options) runs each step as one compiled
+        call (:meth:`FlowEnv.compile`); default False, eager (the gymnasium and
+        Stable-Baselines3 adapters default to True).
+    ``differentiable``
+        True keeps the autograd graph through the steps, so that rewards can be
+        differentiated with respect to actions, parameters and states; default False
+        (no graph).
+    ``grad_checkpoint``
+        with ``differentiable``, recompute each action's substeps in the backward pass
+        instead of keeping them (the memory of a differentiated episode becomes one
+        state per action); default False.
+    ``record_history``
+        True keeps member ``render_index``'s states since its reset, so that
+        ``render()`` draws the episode so far; default False (the current state only).
+    ``check_actions``
+        False skips the check of action values (NaN, range), which synchronises with
+        an accelerator on every step; default True.
+    ``starts``
+        ``"train"``, ``"validation"`` or ``"test"``: every episode starts from a state
+        of that set of developed, uncontrolled states (:mod:`beacon_torch.starts`)
+        instead of the env's own start; default None (the env's own, the paper's).
+    """
+    env_id = resolve_id(env_id)
+    spec = env_spec(env_id)
+    if batch_size is not None:
+        if num_envs is not None:
+            raise TypeError(f"{env_id}: give num_envs or batch_size (TorchRL's name for it), not both")
+        num_envs = batch_size
+    physics = params_dict(spec, params)
+    sugar = {k: v for k, v in options.items() if k not in OPTIONS}
+    twice = sorted(set(sugar) & set(physics))
+    if twice:
+        raise TypeError(f"{env_id}: parameter {twice[0]!r} given twice, in params and as a keyword")
+    given = {**spec.defaults, **physics, **options}
+    env = FlowEnv(spec, 1 if num_envs is None else num_envs, device=device, dtype=dtype, seed=seed, **given)
+    return env

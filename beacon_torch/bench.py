@@ -31,9 +31,10 @@ from pathlib import Path
 import torch
 import torch.utils.benchmark as benchmark
 
+from beacon_torch.base import make
 from beacon_torch.files import create_file, machine, refuse_existing, save_figure
 from beacon_torch.files import save_rows as save_rows  # where the benchmark scripts found it
-from beacon_torch.registry import env_class, make, qualified_id
+from beacon_torch.registry import env_spec, qualified_id
 
 BATCH_SIZES = (1, 16, 64, 256, 1024)
 COSTLY_BATCH_SIZES = (1, 16, 32, 64)
@@ -42,12 +43,12 @@ MAX_WARM_UP = 20  # steps; a step that still compiles after these shows in ``rec
 
 
 def default_batch_sizes(env_id: str) -> tuple[int, ...]:
-    return COSTLY_BATCH_SIZES if env_class(env_id).costly else BATCH_SIZES
+    return COSTLY_BATCH_SIZES if env_spec(env_id).card.costly else BATCH_SIZES
 
 
 def default_steps(env_id: str) -> int:
     """Timed steps per repeat: enough to dwarf the timer, few for a costly env."""
-    return 2 if env_class(env_id).costly else 20
+    return 2 if env_spec(env_id).card.costly else 20
 
 
 @dataclass
@@ -167,7 +168,7 @@ def measure(
     peak = None
     if own_process:
         peak = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else _resident_mb()
-    published = env_class(env_id).published_speed
+    published = env_spec(env_id).card.published_speed
     return Measurement(
         env=env_id,
         batch=batch,
@@ -382,7 +383,7 @@ def markdown(results: Sequence[Measurement]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for env_id, m in best(results).items():
-        target = env_class(env_id).speed_target
+        target = env_spec(env_id).card.speed_target
         # the target is for the best of the default batch sizes: judged only over them
         measured = {r.batch for r in results if r.env == env_id and r.dtype == "float32"}
         judged = set(default_batch_sizes(env_id)) <= measured

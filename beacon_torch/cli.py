@@ -23,6 +23,7 @@ repository); ``eval`` and ``plot`` read the run directories they write.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import json
 import os
@@ -67,12 +68,14 @@ def listing() -> str:
 
     lines = []
     for env_id in list_envs():
-        cls = ENVS[env_id]
-        defaults = cls.Params()  # what the defaults resolve to (start: the published state)
-        n_obs, n_actions = cls.sizes(defaults)
-        kind = f"{n_actions} discrete actions" if cls.discrete else f"{n_actions}-D continuous action"
-        lines.append(f"{env_id}: {kind}, {n_obs} observations, {cls.episode_length} steps")
-        for row in describe(cls.Params):
+        spec = ENVS[env_id]
+        physics = spec.physics
+        # what the defaults resolve to (start: the published state), a variant's own included
+        defaults = dataclasses.replace(physics.Params(), **spec.physical_defaults())
+        n_obs, n_actions = physics.sizes(defaults)
+        kind = f"{n_actions} discrete actions" if physics.discrete else f"{n_actions}-D continuous action"
+        lines.append(f"{env_id}: {kind}, {n_obs} observations, {physics.episode_length} steps")
+        for row in describe(physics.Params):
             lines.append(f"    {row['name']} = {getattr(defaults, row['name'])!r}  {row['range']}  {row['doc']}")
     return "\n".join(lines) + "\n"
 
@@ -122,10 +125,11 @@ def _plot_run(path: Path, env_id: str, null: torch.Tensor, rand: torch.Tensor) -
 
 def cmd_run(args: argparse.Namespace) -> int:
     from beacon_torch import episodes
-    from beacon_torch.registry import env_class, make, resolve_id
+    from beacon_torch.base import make
+    from beacon_torch.registry import env_spec, resolve_id
 
     args.env = resolve_id(args.env)  # "module:env-id" registers it
-    env_class(args.env)  # an unknown id fails here, before anything is built
+    env_spec(args.env)  # an unknown id fails here, before anything is built
     if args.num_envs < 1:
         raise CliError(f"--num-envs must be a positive integer, got {args.num_envs}")
     if args.gif_every < 0:
@@ -196,11 +200,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from beacon_torch import bench
     from beacon_torch.core.checks import as_device
-    from beacon_torch.registry import base_envs, env_class, resolve_id
+    from beacon_torch.registry import base_envs, env_spec, resolve_id
 
     envs = [resolve_id(env_id) for env_id in args.envs or base_envs()]
     for env_id in envs:
-        env_class(env_id)
+        env_spec(env_id)
     for b in args.num_envs or ():
         if b < 1:
             raise CliError(f"--num-envs must be positive integers, got {b}")

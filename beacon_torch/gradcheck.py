@@ -17,9 +17,11 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
-from beacon_torch.base import FlowEnv, GradCheck, State, map_state
-from beacon_torch.registry import env_class
-from beacon_torch.registry import make as make_env
+from beacon_torch.base import FlowEnv
+from beacon_torch.base import make as make_env
+from beacon_torch.core.card import GradCheck
+from beacon_torch.core.state import State, map_state
+from beacon_torch.registry import env_spec
 
 
 @dataclass(frozen=True)
@@ -94,7 +96,7 @@ def check(
 def check_env(env_id: str, case: GradCheck | None = None) -> dict[str, Derivative]:
     """:func:`check` of the env ``env_id`` (one member, float64) on ``case``, by default
     the one its card declares (``gradcheck``)."""
-    case = case or env_class(env_id).gradcheck
+    case = case or env_spec(env_id).card.gradcheck
     if case is None:
         raise ValueError(f"{env_id} declares no gradient check (its actions are discrete)")
 

@@ -31,8 +31,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from beacon_torch import gym_ids
-from beacon_torch.base import FlowEnv
-from beacon_torch.registry import compiles_by_default, env_class, list_envs, make
+from beacon_torch.base import FlowEnv, make
+from beacon_torch.registry import compiles_by_default, env_spec, list_envs
 
 NAMESPACE = gym_ids.NAMESPACE
 RENDER_FPS = 20
@@ -182,7 +182,7 @@ class BeaconVectorEnv(VectorEnv):
         env_id = _own_id(env_id, registered_id)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        length = env_class(env_id).episode_length
+        length = env_spec(env_id).physics.episode_length
         if max_episode_steps not in (None, length):
             # the batched env truncates its members itself, at the benchmark's length
             raise ValueError(
@@ -295,7 +295,7 @@ def register(env_id: str | None = None) -> None:
     """Register ``env_id`` (by default every env id of the registry) with gymnasium
     (idempotent; ``beacon_torch.register`` registers each new id there too)."""
     for own in [env_id] if env_id else list_envs():
-        gym_ids.register(own, env_class(own).episode_length)
+        gym_ids.register(own, env_spec(own).physics.episode_length)
 
 
 register()

@@ -316,24 +316,15 @@ def parse_assignments(items: Sequence[str], flag: str = "--param") -> dict[str, 
     return params
 
 
-def check_params(env_class: type, params: dict[str, Any]) -> dict[str, Any]:
-    """``params`` if they are parameters of ``env_class`` with admissible values (a
-    clear error naming the parameter otherwise), for settings that build the env later."""
-    resolved(env_class, params)
-    return params
-
-
-def resolved(env_class: type, params: dict[str, Any]) -> Any:
-    """``params`` as ``env_class``'s ``Params`` (float64, on the CPU, as many members as
-    the longest per-member list), checked: what its sizes are computed from
-    (``env_class.sizes(resolved(...))``) before any env is built."""
+def resolved(Params: type, params: dict[str, Any], env_id: str = "") -> Any:
+    """``params`` as a ``Params`` dataclass (float64, on the CPU, as many members as the
+    longest per-member list), checked: what an id's sizes are computed from before any
+    env is built (:meth:`beacon_torch.registry.EnvSpec.sizes`)."""
     if not isinstance(params, dict) or not all(isinstance(k, str) for k in params):
         raise TypeError(f"env parameters must be a dict of names to values, got {params!r}")
     members = max([len(v) for v in params.values() if isinstance(v, (list, tuple))], default=1)
     cpu = torch.device("cpu")
-    return resolve_params(
-        env_class.Params, params, batch_size=members, device=cpu, dtype=torch.float64, env_id=env_class.env_id
-    )
+    return resolve_params(Params, params, batch_size=members, device=cpu, dtype=torch.float64, env_id=env_id)
 
 
 def short_repr(params) -> str:

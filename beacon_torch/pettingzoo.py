@@ -29,18 +29,14 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from beacon_torch.base import FlowEnv
+from beacon_torch.base import make
 from beacon_torch.gym import diagnostics, member_info
-from beacon_torch.registry import env_class, list_envs, make
+from beacon_torch.registry import env_spec, list_envs
 
 
 def multi_agent_envs() -> list[str]:
     """The ids whose envs have the multi-agent layout (agents under ``"agents"``)."""
-    return [e for e in list_envs() if _is_multi_agent(env_class(e))]
-
-
-def _is_multi_agent(cls: type[FlowEnv]) -> bool:
-    return isinstance(cls.action_key, tuple) and cls.action_key[0] == "agents"
+    return [e for e in list_envs() if env_spec(e).agents is not None]
 
 
 class BeaconParallelEnv(ParallelEnv):
@@ -58,7 +54,7 @@ class BeaconParallelEnv(ParallelEnv):
         device: Any = "cpu",
         **params: Any,
     ):
-        if not _is_multi_agent(env_class(env_id)):
+        if env_spec(env_id).agents is None:
             raise ValueError(
                 f"{env_id} has one agent; PettingZoo's API is for the multi-agent layouts: {multi_agent_envs()}"
             )

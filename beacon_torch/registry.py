@@ -1,4 +1,12 @@
-"""Environment ids and their classes."""
+"""Environment ids: what each one names (a physics, its card, its default parameters,
+its layout), and the physics of an id as functions.
+
+An id is a registration, :class:`EnvSpec`: a case's module declares its physics and
+its card as plain values, and :func:`register` names them, so a variant (a level, a
+layout, the continuous twin of a discrete env) is a registration of its own and not a
+class. This module imports torch and the case modules only: the TorchRL env of an id
+is built by :func:`beacon_torch.make` (:mod:`beacon_torch.base`, the shell every env is).
+"""
 
 from __future__ import annotations
 
@@ -7,84 +15,145 @@ import importlib
 import os
 import re
 import sys
+from collections.abc import Mapping
 from typing import Any
 
 from beacon_torch import gym_ids
-from beacon_torch.base import FlowEnv
+from beacon_torch.core.card import Card
 from beacon_torch.core.checks import as_batch_size, as_device, as_dtype, check_memory
 from beacon_torch.core.physics import Physics
-from beacon_torch.envs.burgers import BurgersEnv
-from beacon_torch.envs.cylinder import CylinderEnv
-from beacon_torch.envs.ks import KSEnv
-from beacon_torch.envs.lorenz import LorenzContinuousEnv, LorenzEnv
-from beacon_torch.envs.mixing import MixingContinuousEnv, MixingEnv
-from beacon_torch.envs.pinball import PinballChaoticEnv, PinballEnv, PinballPeriodicEnv
-from beacon_torch.envs.rayleigh import RayleighEnv, RayleighSeparableEnv
-from beacon_torch.envs.shkadov import ShkadovEnv, ShkadovSeparableEnv
-from beacon_torch.envs.sloshing import SloshingEnv
-from beacon_torch.envs.vortex import VortexEnv
-from beacon_torch.params import check_params, resolve_params
+from beacon_torch.params import resolve_params, resolved
 
-ENVS: dict[str, type[FlowEnv]] = {
-    cls.env_id: cls
-    for cls in (
-        LorenzEnv,
-        LorenzContinuousEnv,
-        VortexEnv,
-        BurgersEnv,
-        SloshingEnv,
-        ShkadovEnv,
-        ShkadovSeparableEnv,
-        RayleighEnv,
-        RayleighSeparableEnv,
-        MixingEnv,
-        MixingContinuousEnv,
-        CylinderEnv,
-        KSEnv,
-        PinballEnv,
-        PinballPeriodicEnv,
-        PinballChaoticEnv,
-    )
-}
-
-
-# parameters and options that make() uses for a registered id unless given
-DEFAULTS: dict[str, dict[str, Any]] = {}
-# the module that registered an id from outside the package, so that another process
-# (a collector's worker) can import it again before building the env
-ORIGIN: dict[str, str] = {}
 # what make() takes beside an env's physical parameters
 OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "check_actions", "starts")
 
 
-def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[FlowEnv]:
-    """Make an env available by id: :func:`make`, gymnasium's ``beacon/<id>`` (and
-    ``make_vec``), the Stable-Baselines3 vector env, the conformance kit, the recipes
-    (their collector processes import the registering module again) and the CLI (as
-    ``module:env-id``, or with ``beacon-torch --import module``). ``env_class`` is a :class:`FlowEnv` subclass whose
-    ``env_id`` is ``env_id`` (a new case), or a registered env's class: then the id is a
-    variant of it, measured against it, whose ``defaults`` (physical parameters and
-    :data:`OPTIONS`) :func:`make` uses unless told otherwise. Returns the registered
-    class. Registering an id again with the same class and defaults does nothing."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class EnvSpec:
+    """A registered id: its ``physics`` (a :class:`~beacon_torch.core.physics.Physics`
+    subclass), its ``card``, the ``defaults`` :func:`make` uses unless told otherwise
+    (physical parameters and :data:`OPTIONS`), the id it is a variant of (``base``,
+    against whose scores and speed it is measured) and, for TorchRL's multi-agent
+    layout, the name of an agent (``agents``; None: one agent per member)."""
+
+    env_id: str
+    physics: type[Physics]
+    card: Card = Card()
+    defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    base: str | None = None
+    agents: str | None = None
+
+    def same(self, other: EnvSpec) -> bool:
+        """Whether ``other`` registers what this does (registrations compare, and hash,
+        by identity)."""
+        fields = lambda s: (s.env_id, s.physics, s.card, dict(s.defaults), s.base, s.agents)
+        return fields(self) == fields(other)
+
+    def base_id(self) -> str:
+        """The benchmark env this one is a variant of, or its own id."""
+        return self.base or self.env_id
+
+    def physical_defaults(self) -> dict[str, Any]:
+        """The defaults that are parameters of the physics (not options of the env)."""
+        return {k: v for k, v in self.defaults.items() if k not in OPTIONS}
+
+    def check(self, params: dict[str, Any]) -> dict[str, Any]:
+        """``params`` if they are parameters of this id with admissible values (beside
+        its defaults; a clear error naming the parameter otherwise), for settings that
+        build the env later."""
+        resolved(self.physics.Params, {**self.physical_defaults(), **params}, self.env_id)
+        return params
+
+    def sizes(self, params: dict[str, Any] | None = None) -> tuple[int, int]:
+        """``(n_obs, n_actions)`` of this id with ``params`` beside its defaults,
+        before any env is built."""
+        given = {**self.physical_defaults(), **(params or {})}
+        return self.physics.sizes(resolved(self.physics.Params, given, self.env_id))
+
+
+ENVS: dict[str, EnvSpec] = {}
+# the module that registered an id from outside the package, so that another process
+# (a collector's worker) can import it again before building the env
+ORIGIN: dict[str, str] = {}
+
+
+def register(
+    env_id: str,
+    physics: type[Physics] | EnvSpec,
+    card: Card | None = None,
+    *,
+    base: str | None = None,
+    agents: str | None = None,
+    **defaults: Any,
+) -> EnvSpec:
+    """Make an env available by id: :func:`beacon_torch.make`, gymnasium's
+    ``beacon/<id>`` (and ``make_vec``), the Stable-Baselines3 vector env, the conformance
+    kit, the recipes (their collector processes import the registering module again)
+    and the CLI (as ``module:env-id``, or with ``beacon-torch --import module``).
+
+    ``physics`` is a :class:`~beacon_torch.core.physics.Physics` subclass (a new case,
+    with its ``card``; ``base``, a registered id it is a variant of; ``agents``, an
+    agent's name for TorchRL's multi-agent layout) or a registered id's
+    :class:`EnvSpec`: then the id is a variant of it, with its physics, card (unless one
+    is given) and layout, measured against it. ``defaults`` are physical parameters and
+    :data:`OPTIONS` that :func:`make` uses unless told otherwise (a variant's add to its
+    base's). Returns the registration. Registering an id again as it is does nothing."""
     if not isinstance(env_id, str) or not re.fullmatch(r"[a-z0-9][a-z0-9_.-]*-v[0-9]+", env_id):
         raise ValueError(f"an env id is lower-case words and a version, like 'heat-v0'; got {env_id!r}")
-    if not (isinstance(env_class, type) and issubclass(env_class, FlowEnv)):
-        raise TypeError(f"register needs a FlowEnv subclass, got {env_class!r}")
-    if not env_class.env_id:
-        raise ValueError(f"{env_class.__name__} declares no env_id (set env_id = {env_id!r} on the class)")
-    state_type = getattr(env_class, "state_type", None)
-    if not (isinstance(state_type, type) and issubclass(state_type, tuple) and hasattr(state_type, "_fields")):
+    if isinstance(physics, EnvSpec):
+        if ENVS.get(physics.env_id) is not physics:
+            raise ValueError(f"{env_id}: a variant's base must be registered first ({physics.env_id!r} is not)")
+        if base is not None or agents is not None:
+            raise TypeError(f"{env_id}: a variant of {physics.env_id} takes its base and layout from it")
+        spec = physics
+        physics, card, base, agents = spec.physics, spec.card if card is None else card, spec.env_id, spec.agents
+        defaults = {**spec.defaults, **defaults}
+    _check_physics(env_id, physics)
+    card = Card() if card is None else card
+    if not isinstance(card, Card):
+        raise TypeError(f"{env_id}: card must be a beacon_torch.core.card.Card, got {type(card).__name__}")
+    if base is not None and base not in ENVS:
+        raise ValueError(f"{env_id}: its base {base!r} is not registered; a variant's base must be registered first")
+    if agents is not None and not (isinstance(agents, str) and agents.isidentifier()):
+        raise ValueError(f"{env_id}: agents must be an agent's name (an identifier), got {agents!r}")
+    _check_defaults(env_id, physics, defaults)
+    spec = EnvSpec(env_id, physics, card, dict(defaults), base, agents)
+    if env_id in ENVS:
+        if ENVS[env_id].same(spec):
+            return ENVS[env_id]
+        raise ValueError(f"{env_id} is registered already; register a new version instead")
+    ENVS[env_id] = spec
+    caller = sys._getframe(1).f_globals.get("__name__", "")
+    if caller.split(".")[0] != "beacon_torch":
+        ORIGIN[env_id] = caller
+    gym_ids.register(env_id, physics.episode_length)
+    return spec
+
+
+def _check_physics(env_id: str, physics: Any) -> None:
+    if not (isinstance(physics, type) and issubclass(physics, Physics)):
         raise TypeError(
-            f"{env_class.__name__} declares no state type (state_type = a NamedTuple of its state's tensors)"
+            f"{env_id}: register needs a beacon_torch.Physics subclass or a registered EnvSpec, got {physics!r}"
         )
-    known = {f.name for f in dataclasses.fields(env_class.Params)} | set(OPTIONS)
+    state_type = getattr(physics, "state_type", None)
+    if not (isinstance(state_type, type) and issubclass(state_type, tuple) and hasattr(state_type, "_fields")):
+        raise TypeError(f"{physics.__name__} declares no state type (state_type = a NamedTuple of its state's tensors)")
+    params = getattr(physics, "Params", None)
+    if not (isinstance(params, type) and dataclasses.is_dataclass(params)):
+        raise TypeError(f"{physics.__name__} declares no parameters (Params = a frozen dataclass of params)")
+    length = getattr(physics, "episode_length", None)
+    if isinstance(length, bool) or not isinstance(length, int) or length < 1:
+        raise TypeError(f"{physics.__name__} declares no episode length (episode_length = a positive int)")
+
+
+def _check_defaults(env_id: str, physics: type[Physics], defaults: dict[str, Any]) -> None:
+    known = {f.name for f in dataclasses.fields(physics.Params)} | set(OPTIONS)
     unknown = sorted(set(defaults) - known)
     if unknown:
-        raise ValueError(f"{env_id}: unknown default(s) {unknown}; {env_class.__name__} takes {sorted(known)}")
+        raise ValueError(f"{env_id}: unknown default(s) {unknown}; {physics.__name__} takes {sorted(known)}")
     # defaults that every make() would refuse are refused here, where they are given
-    physics = {k: v for k, v in defaults.items() if k not in OPTIONS}
     try:
-        check_params(env_class, physics)
+        resolved(physics.Params, {k: v for k, v in defaults.items() if k not in OPTIONS}, env_id)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{env_id}: its default parameters: {err}") from None
     for name in ("differentiable", "grad_checkpoint", "record_history", "check_actions"):
@@ -92,29 +161,6 @@ def register(env_id: str, env_class: type[FlowEnv], **defaults: Any) -> type[Flo
             raise TypeError(f"{env_id}: the default {name} must be True or False, got {defaults[name]!r}")
     if "compile" in defaults and not isinstance(defaults["compile"], (bool, dict)):
         raise TypeError(f"{env_id}: the default compile must be True, False or a dict of options")
-    if env_class.env_id != env_id:
-        if ENVS.get(env_class.env_id) is not env_class:
-            raise ValueError(
-                f"{env_class.__name__} is {env_class.env_id!r}, not {env_id!r}; a variant's base "
-                f"must be registered first"
-            )
-        variant = ENVS.get(env_id)
-        if variant is not None and variant.__mro__[1] is env_class and DEFAULTS.get(env_id) == defaults:
-            return variant
-        env_class = type(
-            env_class.__name__ + "Variant", (env_class,), {"env_id": env_id, "__module__": env_class.__module__}
-        )
-    if env_id in ENVS:
-        if ENVS[env_id] is env_class and DEFAULTS.get(env_id, {}) == defaults:
-            return env_class
-        raise ValueError(f"{env_id} is registered already (as {ENVS[env_id].__name__}); register a new version instead")
-    ENVS[env_id] = env_class
-    DEFAULTS[env_id] = dict(defaults)
-    caller = sys._getframe(1).f_globals.get("__name__", "")
-    if caller.split(".")[0] != "beacon_torch":
-        ORIGIN[env_id] = caller
-    gym_ids.register(env_id, env_class.episode_length)
-    return env_class
 
 
 def resolve_id(env_id: str) -> str:
@@ -156,7 +202,7 @@ def list_envs() -> list[str]:
 
 def base_envs() -> list[str]:
     """The benchmark's own envs, without their variants, in the paper's order."""
-    return [env_id for env_id, cls in ENVS.items() if cls.base_id() == env_id]
+    return [env_id for env_id, spec in ENVS.items() if spec.base_id() == env_id]
 
 
 def continuous_envs() -> list[str]:
@@ -166,13 +212,13 @@ def continuous_envs() -> list[str]:
     the package are not among them."""
     return [
         env_id
-        for env_id, cls in ENVS.items()
-        if env_id not in ORIGIN and not cls.discrete and isinstance(cls.observation_key, str)
+        for env_id, spec in ENVS.items()
+        if env_id not in ORIGIN and not spec.physics.discrete and spec.agents is None
     ]
 
 
-def env_class(env_id: str) -> type[FlowEnv]:
-    """The class of a registered id (or of ``"module:env-id"``, :func:`resolve_id`)."""
+def env_spec(env_id: str) -> EnvSpec:
+    """The registration of an id (or of ``"module:env-id"``, :func:`resolve_id`)."""
     env_id = resolve_id(env_id)
     try:
         return ENVS[env_id]
@@ -194,69 +240,6 @@ def compiles_by_default() -> bool:
     raise ValueError(
         f"$BEACON_TORCH_COMPILE must be 1, true, yes or on (compile) or 0, false, no or off (eager), got "
         f"{os.environ['BEACON_TORCH_COMPILE'][:40]!r}"
-    )
-
-
-def make(
-    env_id: str,
-    num_envs: int | None = None,
-    *,
-    device: Any = "cpu",
-    dtype: Any = "float32",
-    seed: int | None = None,
-    params: Any = None,
-    batch_size: int | None = None,
-    **options: Any,
-) -> FlowEnv:
-    """Build a batched BEACON environment.
-
-    ``num_envs`` members are stepped together (default 1; ``batch_size`` is TorchRL's
-    name for the same number, accepted as TorchRL users write it); ``device`` and
-    ``dtype`` (float32 or float64) place the state; ``seed`` seeds the env's own
-    generator. ``params`` is the physics, a value: an instance of the env's ``Params``
-    (``BurgersEnv.Params(amp=5.0)``, every field) or a dict of some of its fields
-    (``{"amp": 5.0}``, the others at their defaults; ``beacon-torch list``,
-    ``docs/envs``). A parameter may also be given as a keyword
-    (``make("burgers-v0", amp=5.0)``). The other keywords are the options every env
-    has:
-
-    ``compile``
-        True (or a dict of ``torch.compile`` options) runs each step as one compiled
-        call (:meth:`FlowEnv.compile`); default False, eager (the gymnasium and
-        Stable-Baselines3 adapters default to True).
-    ``differentiable``
-        True keeps the autograd graph through the steps, so that rewards can be
-        differentiated with respect to actions, parameters and states; default False
-        (no graph).
-    ``grad_checkpoint``
-        with ``differentiable``, recompute each action's substeps in the backward pass
-        instead of keeping them (the memory of a differentiated episode becomes one
-        state per action); default False.
-    ``record_history``
-        True keeps member ``render_index``'s states since its reset, so that
-        ``render()`` draws the episode so far; default False (the current state only).
-    ``check_actions``
-        False skips the check of action values (NaN, range), which synchronises with
-        an accelerator on every step; default True.
-    ``starts``
-        ``"train"``, ``"validation"`` or ``"test"``: every episode starts from a state
-        of that set of developed, uncontrolled states (:mod:`beacon_torch.starts`)
-        instead of the env's own start; default None (the env's own, the paper's).
-    """
-    env_id = resolve_id(env_id)
-    cls = env_class(env_id)
-    if batch_size is not None:
-        if num_envs is not None:
-            raise TypeError(f"{env_id}: give num_envs or batch_size (TorchRL's name for it), not both")
-        num_envs = batch_size
-    physics = params_dict(cls, params)
-    sugar = {k: v for k, v in options.items() if k not in OPTIONS}
-    twice = sorted(set(sugar) & set(physics))
-    if twice:
-        raise TypeError(f"{env_id}: parameter {twice[0]!r} given twice, in params and as a keyword")
-    defaults = DEFAULTS.get(env_id, {})
-    return cls(
-        1 if num_envs is None else num_envs, device=device, dtype=dtype, seed=seed, **{**defaults, **physics, **options}
     )
 
 
@@ -287,44 +270,87 @@ def functional(
     and kernels are those of the parameters given here: a mapped value may change a
     per-member parameter, not the grid's size."""
     env_id = resolve_id(env_id)
-    cls = env_class(env_id)
-    physical = params_dict(cls, params)
+    spec = env_spec(env_id)
+    physical = params_dict(spec, params)
     twice = sorted(set(given) & set(physical))
     if twice:
         raise TypeError(f"{env_id}: parameter {twice[0]!r} given twice, in params and as a keyword")
     options = sorted(set(given) & set(OPTIONS))
     if options:
         raise TypeError(f"{env_id}: {options[0]!r} is an option of the env (make), not of its physics")
-    defaults = {k: v for k, v in DEFAULTS.get(env_id, {}).items() if k not in OPTIONS}
+    defaults = spec.physical_defaults()
     members = as_batch_size(1 if num_envs is None else num_envs)[0]
     device, dtype = as_device(device), as_dtype(dtype)
     resolved = resolve_params(
-        cls.Params, {**defaults, **physical, **given}, batch_size=members, device=device, dtype=dtype, env_id=env_id
+        spec.physics.Params,
+        {**defaults, **physical, **given},
+        batch_size=members,
+        device=device,
+        dtype=dtype,
+        env_id=env_id,
     )
-    physics = cls.physics_type(resolved, members, dtype=dtype, device=device)
+    physics = spec.physics(resolved, members, dtype=dtype, device=device)
     check_memory(env_id, physics)  # before a state of that batch is ever allocated
     return physics, resolved
 
 
-def params_dict(cls: type[FlowEnv], params: Any) -> dict[str, Any]:
+def params_dict(spec: EnvSpec, params: Any) -> dict[str, Any]:
     """The parameters given to :func:`make` as a dict: ``None``, a dict of names to
     values, or an instance of the env's own ``Params``, which is the whole physics (every
     field, a registered variant's defaults included)."""
     if params is None:
         return {}
     if isinstance(params, dict):
-        names = [f.name for f in dataclasses.fields(cls.Params)]
+        names = [f.name for f in dataclasses.fields(spec.physics.Params)]
         unknown = sorted(set(params) - set(names))
         if unknown:
             # an option among them too: params are the physics alone
             raise TypeError(
-                f"unknown parameter {unknown[0]!r} of {cls.env_id} (got an unexpected keyword argument "
+                f"unknown parameter {unknown[0]!r} of {spec.env_id} (got an unexpected keyword argument "
                 f"{unknown[0]!r}); the parameters are: {', '.join(names)}"
             )
         return dict(params)
-    if isinstance(params, cls.Params):
+    if isinstance(params, spec.physics.Params):
         return {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
     raise TypeError(
-        f"{cls.env_id}: params must be a {cls.Params.__name__} (the env's Params) or a dict of its fields, "
+        f"{spec.env_id}: params must be a {spec.physics.Params.__name__} (the env's Params) or a dict of its fields, "
         f"got {type(params).__name__}"
     )
+
+
+# the package's own ids, in the paper's order (then the cases beyond it)
+from beacon_torch.envs import (  # noqa: E402 (the registry exists before the cases are named)
+    burgers,
+    cylinder,
+    ks,
+    lorenz,
+    mixing,
+    pinball,
+    rayleigh,
+    shkadov,
+    sloshing,
+    vortex,
+)
+
+register("lorenz-v0", lorenz.LorenzPhysics, lorenz.CARD)
+register("lorenz-continuous-v0", lorenz.LorenzContinuousPhysics, lorenz.CONTINUOUS_CARD, base="lorenz-v0")
+register("vortex-v0", vortex.VortexPhysics, vortex.CARD)
+register("burgers-v0", burgers.BurgersPhysics, burgers.CARD)
+register("sloshing-v0", sloshing.SloshingPhysics, sloshing.CARD)
+register("shkadov-v0", shkadov.ShkadovPhysics, shkadov.CARD)
+register("shkadov-separable-v0", shkadov.ShkadovSeparablePhysics, shkadov.CARD, base="shkadov-v0", agents="jet")
+register("rayleigh-v0", rayleigh.RayleighPhysics, rayleigh.CARD)
+register(
+    "rayleigh-separable-v0",
+    rayleigh.RayleighSeparablePhysics,
+    rayleigh.SEPARABLE_CARD,
+    base="rayleigh-v0",
+    agents="segment",
+)
+register("mixing-v0", mixing.MixingPhysics, mixing.CARD)
+register("mixing-continuous-v0", mixing.MixingContinuousPhysics, mixing.CONTINUOUS_CARD, base="mixing-v0")
+register("cylinder-v0", cylinder.CylinderPhysics, cylinder.CARD)
+register("ks-v0", ks.KSPhysics, ks.CARD)
+register("pinball-v0", pinball.PinballPhysics, pinball.CARD)
+register("pinball-periodic-v0", ENVS["pinball-v0"], pinball.PERIODIC_CARD, **pinball.PERIODIC)
+register("pinball-chaotic-v0", ENVS["pinball-v0"], pinball.CHAOTIC_CARD, **pinball.CHAOTIC)

@@ -42,9 +42,10 @@ try:
 except ImportError as err:  # pragma: no cover - exercised without the extra only
     raise ImportError("beacon_torch.sb3 needs Stable-Baselines3: pip install 'beacon-torch[sb3]'") from err
 
+from beacon_torch.base import make
 from beacon_torch.core.checks import as_flag, as_seed
 from beacon_torch.gym import _spaces, batched_action, diagnostics, member_info, reset_options, team_reward
-from beacon_torch.registry import compiles_by_default, make
+from beacon_torch.registry import compiles_by_default
 
 # what ``set_attr`` may change on a made env, each with its check
 SETTABLE = {"render_index": lambda index: index, "check_actions": lambda flag: as_flag("check_actions", flag)}

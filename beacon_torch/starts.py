@@ -180,13 +180,13 @@ def states(env, name: str):
     """The states of the set ``name`` for ``env`` (its id, dtype, device and
     parameters): the env's state type with the set's size as its batch."""
     params = tuple(sorted(shared_params(env).items()))
-    return _computed(type(env), name, str(env.dtype).removeprefix("torch."), str(env.device), params)
+    return _computed(type(env), env.env_spec, name, str(env.dtype).removeprefix("torch."), str(env.device), params)
 
 
 @functools.lru_cache(maxsize=32)
-def _computed(cls, name: str, dtype: str, device: str, params: tuple):
+def _computed(shell, spec, name: str, dtype: str, device: str, params: tuple):
     seed, size, _ = SETS[name]
-    env = cls(size, device=device, dtype=getattr(torch, dtype), seed=seed, **dict(params))
+    env = shell(spec, size, device=device, dtype=getattr(torch, dtype), seed=seed, **dict(params))
     at = offsets(name, env.episode_length).to(env.device)
     kept = None
     with torch.no_grad():
@@ -201,4 +201,4 @@ def _computed(cls, name: str, dtype: str, device: str, params: tuple):
             for into, value in zip(kept, state, strict=True):
                 into[taken] = value[taken]
     env.close()
-    return env.state_type(*kept)
+    return env.physics.state_type(*kept)

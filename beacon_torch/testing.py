@@ -56,8 +56,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, map_state
-from beacon_torch.registry import ENVS, env_class
+from beacon_torch.base import FlowEnv, make
+from beacon_torch.core.state import map_state
+from beacon_torch.registry import ENVS, EnvSpec, env_spec
 
 F64 = torch.float64
 # compiled code may fuse or reorder floating-point operations: trajectories of a few
@@ -71,25 +72,25 @@ class ConformanceError(AssertionError):
     """An env failed a conformance check."""
 
 
-CHECKS: dict[str, Callable[[type[FlowEnv]], str]] = {}
+CHECKS: dict[str, Callable[[EnvSpec], str]] = {}
 
 
-def _check(fn: Callable[[type[FlowEnv]], str | None]) -> Callable:
+def _check(fn: Callable[[EnvSpec], str | None]) -> Callable:
     CHECKS[fn.__name__.removeprefix("check_")] = fn
     return fn
 
 
-def check_flow_env(env: str | type[FlowEnv], checks: list[str] | None = None) -> dict[str, str]:
+def check_flow_env(env: str | EnvSpec, checks: list[str] | None = None) -> dict[str, str]:
     """Run the conformance ``checks`` (all by default) on ``env``, an env id or a
-    registered env class; returns ``{check: "passed" or why it does not apply}`` and
-    raises :class:`ConformanceError` at the first failure."""
-    cls = env_class(env) if isinstance(env, str) else env
-    if not (isinstance(cls, type) and issubclass(cls, FlowEnv)):
-        raise TypeError(f"check_flow_env needs an env id or a FlowEnv subclass, got {env!r}")
-    if ENVS.get(cls.env_id) is not cls:
+    registered id's :class:`~beacon_torch.registry.EnvSpec`; returns ``{check: "passed"
+    or why it does not apply}`` and raises :class:`ConformanceError` at the first
+    failure."""
+    spec = env_spec(env) if isinstance(env, str) else env
+    if not isinstance(spec, EnvSpec):
+        raise TypeError(f"check_flow_env needs an env id or a registered EnvSpec, got {env!r}")
+    if ENVS.get(spec.env_id) is not spec:
         raise ValueError(
-            f"{cls.__name__} is not registered under its env_id {cls.env_id!r}: "
-            f"beacon_torch.register it first (the adapters find envs by id)"
+            f"{spec.env_id!r} is not registered as given: beacon_torch.register it first (the adapters find envs by id)"
         )
     unknown = sorted(set(checks or ()) - set(CHECKS))
     if unknown:
@@ -97,14 +98,14 @@ def check_flow_env(env: str | type[FlowEnv], checks: list[str] | None = None) ->
     found = {}
     for name in checks or CHECKS:
         try:
-            found[name] = CHECKS[name](cls) or "passed"
+            found[name] = CHECKS[name](spec) or "passed"
         except ConformanceError:
             raise
         except AssertionError as err:
-            raise ConformanceError(f"{cls.env_id}: {name}: {err}") from err
+            raise ConformanceError(f"{spec.env_id}: {name}: {err}") from err
         except Exception as err:  # the env itself failed: a conformance failure too, named
             first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-            raise ConformanceError(f"{cls.env_id}: {name}: the env raised {type(err).__name__}: {first}") from err
+            raise ConformanceError(f"{spec.env_id}: {name}: the env raised {type(err).__name__}: {first}") from err
     return found
 
 
@@ -121,13 +122,13 @@ def quiet_torchrl():
         logger.setLevel(level)
 
 
-def _make(cls: type[FlowEnv], batch: int, **kwargs: Any) -> FlowEnv:
-    return cls(batch, **{**cls.test_settings, **kwargs})
+def _make(spec: EnvSpec, batch: int, **kwargs: Any) -> FlowEnv:
+    return make(spec.env_id, batch, **{**spec.card.test_settings, **kwargs})
 
 
-def _steps(cls: type[FlowEnv]) -> int:
+def _steps(spec: EnvSpec) -> int:
     """Actions a check runs: a few of a costly env (seconds each), more elsewhere."""
-    return 3 if cls.costly else 12
+    return 3 if spec.card.costly else 12
 
 
 def _rollout(env: FlowEnv, actions: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -156,15 +157,15 @@ def _equal(what: str, got: torch.Tensor, expected: torch.Tensor) -> None:
 
 # ---------------------------------------------------------------- the checks
 @_check
-def check_specs(cls: type[FlowEnv]) -> None:
+def check_specs(spec: EnvSpec) -> None:
     from torchrl.data import Bounded, Categorical, Unbounded
     from torchrl.envs.utils import check_env_specs
 
-    for dtype in (torch.float32,) if cls.costly else (torch.float32, F64):
+    for dtype in (torch.float32,) if spec.card.costly else (torch.float32, F64):
         for batch in (1, 4):
             with quiet_torchrl():  # its "check_env_specs succeeded!", once per call
-                check_env_specs(_make(cls, batch, dtype=dtype, seed=0), break_when_any_done="both")
-    env = _make(cls, 4)
+                check_env_specs(_make(spec, batch, dtype=dtype, seed=0), break_when_any_done="both")
+    env = _make(spec, 4)
     assert isinstance(env.full_observation_spec[env.observation_key], Unbounded), (
         "the observation spec must be unbounded"
     )
@@ -191,9 +192,9 @@ def check_specs(cls: type[FlowEnv]) -> None:
 
 
 @_check
-def check_seeding(cls: type[FlowEnv]) -> None:
-    a, b = _make(cls, 3, dtype=F64, seed=123), _make(cls, 3, dtype=F64, seed=123)
-    actions = _actions(a, _steps(cls), seed=9)
+def check_seeding(spec: EnvSpec) -> None:
+    a, b = _make(spec, 3, dtype=F64, seed=123), _make(spec, 3, dtype=F64, seed=123)
+    actions = _actions(a, _steps(spec), seed=9)
     first = _rollout(a, actions)
     _same("two envs of seed 123", first, _rollout(b, actions))
     a.set_seed(5)
@@ -208,14 +209,14 @@ def check_seeding(cls: type[FlowEnv]) -> None:
 
 
 @_check
-def check_batch_invariance(cls: type[FlowEnv]) -> str | None:
-    if not cls.deterministic:
+def check_batch_invariance(spec: EnvSpec) -> str | None:
+    if not spec.physics.deterministic:
         return "not applicable: the physics draws from the env's generator, per batch"
-    one, three = _make(cls, 1, dtype=F64, seed=0), _make(cls, 3, dtype=F64, seed=0)
-    actions = _actions(three, _steps(cls), seed=5)
+    one, three = _make(spec, 1, dtype=F64, seed=0), _make(spec, 3, dtype=F64, seed=0)
+    actions = _actions(three, _steps(spec), seed=5)
     alone = _rollout(one, [a[1:2] for a in actions])
     member = tuple(x[:, 1:2] for x in _rollout(three, actions))
-    if not cls.costly:
+    if not spec.card.costly:
         _same("member 1 of 3 and the same member alone", alone, member)
         return None
     for part, x, y in zip(("observations", "rewards", "terminations"), alone, member, strict=True):
@@ -229,8 +230,8 @@ def check_batch_invariance(cls: type[FlowEnv]) -> str | None:
 
 
 @_check
-def check_partial_reset(cls: type[FlowEnv]) -> None:
-    env = _make(cls, 4, dtype=F64, seed=1)
+def check_partial_reset(spec: EnvSpec) -> None:
+    env = _make(spec, 4, dtype=F64, seed=1)
     start = env.reset_members().clone()
     for a in _actions(env, 5):
         env.step_members(a)
@@ -242,14 +243,14 @@ def check_partial_reset(cls: type[FlowEnv]) -> None:
         _equal(f"state.{key} of the members not reset", value[~mask], before[key][~mask])
     _equal("the observations of the members not reset", obs[~mask], obs_before[~mask])
     assert env.step_count.tolist() == [0, 5, 0, 5], f"step counts after the reset: {env.step_count.tolist()}"
-    if cls.deterministic:
+    if spec.physics.deterministic:
         _equal("the reset members' observations and the first start's", obs[mask], start[mask])
     assert torch.isfinite(obs).all(), "a reset gave non-finite observations"
 
 
 @_check
-def check_blow_up(cls: type[FlowEnv]) -> None:
-    env, ref = _make(cls, 3, dtype=F64, seed=7), _make(cls, 3, dtype=F64, seed=7)
+def check_blow_up(spec: EnvSpec) -> None:
+    env, ref = _make(spec, 3, dtype=F64, seed=7), _make(spec, 3, dtype=F64, seed=7)
     actions = _actions(env, 1)
     ref_obs, ref_rew, ref_term = _rollout(ref, actions)
     env.reset_members()
@@ -261,8 +262,8 @@ def check_blow_up(cls: type[FlowEnv]) -> None:
     env.set_state(state)
     obs, reward, terminated, truncated = env.step_members(actions[0])
     assert bool(terminated[1]), "member 1, pushed to 1e150, did not end its episode"
-    assert (reward[1] == env.blowup_reward).all(), (
-        f"member 1's reward {reward[1].tolist()} is not blowup_reward {env.blowup_reward}"
+    assert (reward[1] == env.physics.blowup_reward).all(), (
+        f"member 1's reward {reward[1].tolist()} is not blowup_reward {env.physics.blowup_reward}"
     )
     assert torch.isfinite(obs).all() and torch.isfinite(reward).all(), "a blown-up member left non-finite values"
     keep = [0, 2]
@@ -277,28 +278,28 @@ def check_blow_up(cls: type[FlowEnv]) -> None:
 
 
 @_check
-def check_gradients(cls: type[FlowEnv]) -> str | None:
+def check_gradients(spec: EnvSpec) -> str | None:
     from beacon_torch.gradcheck import check, check_env
 
-    if cls.discrete or cls.gradcheck is None:
+    if spec.physics.discrete or spec.card.gradcheck is None:
         return "not applicable: discrete actions"
     case = dataclasses.replace(
-        cls.gradcheck,
-        params={**cls.test_settings, **cls.gradcheck.params},
-        steps=1 if cls.costly else cls.gradcheck.steps,
+        spec.card.gradcheck,
+        params={**spec.card.test_settings, **spec.card.gradcheck.params},
+        steps=1 if spec.card.costly else spec.card.gradcheck.steps,
     )
-    derivatives = dict(check_env(cls.env_id, case))
-    defaults = {f.name: f for f in dataclasses.fields(cls.Params)}
+    derivatives = dict(check_env(spec.env_id, case))
+    defaults = {f.name: f for f in dataclasses.fields(spec.physics.Params)}
     for name, f in defaults.items():
         if not f.metadata.get("differentiable") or name == case.param:
             continue
-        value = case.params.get(name, f.default)
+        value = case.params.get(name, spec.physical_defaults().get(name, f.default))
 
-        def make(**kwargs):
-            return cls(1, dtype=F64, seed=3, **{**case.params, **kwargs})
+        def one(**kwargs):
+            return make(spec.env_id, 1, dtype=F64, seed=3, **{**case.params, **kwargs})
 
         try:
-            derivatives[name] = check(make, name, float(value), warmup=case.warmup, steps=case.steps)[name]
+            derivatives[name] = check(one, name, float(value), warmup=case.warmup, steps=case.steps)[name]
         except RuntimeError as err:
             if "not have been used in the graph" not in str(err):
                 raise
@@ -318,11 +319,11 @@ def check_gradients(cls: type[FlowEnv]) -> str | None:
 
 
 @_check
-def check_compile(cls: type[FlowEnv]) -> None:
-    eager = _make(cls, 2, dtype=F64, seed=3)
-    compiled = _make(cls, 2, dtype=F64, seed=3, compile=True)
+def check_compile(spec: EnvSpec) -> None:
+    eager = _make(spec, 2, dtype=F64, seed=3)
+    compiled = _make(spec, 2, dtype=F64, seed=3, compile=True)
     # a whole episode, but for the cavities (an eager cavity episode takes minutes)
-    actions = _actions(eager, 3 if cls.costly else cls.episode_length, seed=1)
+    actions = _actions(eager, 3 if spec.card.costly else spec.physics.episode_length, seed=1)
     for what, c, e in zip(
         ("observations", "rewards", "terminations"), _rollout(compiled, actions), _rollout(eager, actions), strict=True
     ):
@@ -330,24 +331,24 @@ def check_compile(cls: type[FlowEnv]) -> None:
             torch.testing.assert_close(c, e, **ROUND_OFF)
         except AssertionError as err:
             raise AssertionError(f"compiled and eager {what} differ beyond round-off: {err}") from None
-    assert compiled.kernels._cache, "the compiled env's step did not go through torch.compile"
+    assert compiled.physics.kernels._cache, "the compiled env's step did not go through torch.compile"
 
 
 @_check
-def check_adapters(cls: type[FlowEnv]) -> None:
+def check_adapters(spec: EnvSpec) -> None:
     from gymnasium.utils.env_checker import check_env
 
     from beacon_torch.gym import BeaconGymEnv, BeaconVectorEnv, team_reward
     from beacon_torch.sb3 import BeaconVecEnv
 
-    settings = cls.test_settings
-    single = BeaconGymEnv(cls.env_id, render_mode="rgb_array", compile=False, **settings)
+    settings = spec.card.test_settings
+    single = BeaconGymEnv(spec.env_id, render_mode="rgb_array", compile=False, **settings)
     check_env(single, skip_render_check=False)
     obs, _ = single.reset(seed=3)
-    ref = _make(cls, 1, seed=3)
+    ref = _make(spec, 1, seed=3)
     _equal("the gymnasium env's first observation", torch.as_tensor(obs), ref.reset_members()[0])
     single.action_space.seed(0)
-    for _ in range(_steps(cls)):
+    for _ in range(_steps(spec)):
         action = single.action_space.sample()
         obs, reward, terminated, truncated, _ = single.step(action)
         o, r, t, u = ref.step_members(torch.as_tensor(np.asarray(action))[None])
@@ -356,10 +357,10 @@ def check_adapters(cls: type[FlowEnv]) -> None:
             "the gymnasium env's reward or flags differ"
         )
     # the vector envs: float64, so that their rewards compare with the batched env's
-    gym_vector = BeaconVectorEnv(cls.env_id, 3, dtype="float64", compile=False, **settings)
-    sb3_vector = BeaconVecEnv(cls.env_id, 3, dtype="float64", seed=4, compile=False, **settings)
+    gym_vector = BeaconVectorEnv(spec.env_id, 3, dtype="float64", compile=False, **settings)
+    sb3_vector = BeaconVecEnv(spec.env_id, 3, dtype="float64", seed=4, compile=False, **settings)
     for name, venv in (("gymnasium's vector env", gym_vector), ("the Stable-Baselines3 vector env", sb3_vector)):
-        batched = _make(cls, 3, dtype=F64, seed=4)
+        batched = _make(spec, 3, dtype=F64, seed=4)
         obs = venv.reset(seed=4)[0] if venv is gym_vector else venv.reset()
         _equal(f"{name}: first observations", torch.as_tensor(obs), batched.reset_members())
         for a in _actions(batched, 3, seed=2):
@@ -374,14 +375,14 @@ def check_adapters(cls: type[FlowEnv]) -> None:
 
 
 @_check
-def check_render(cls: type[FlowEnv]) -> None:
-    env = _make(cls, 2, record_history=True, seed=0)
+def check_render(spec: EnvSpec) -> None:
+    env = _make(spec, 2, record_history=True, seed=0)
     env.reset_members()
     first = env.render()
     assert isinstance(first, np.ndarray) and first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3, (
         "render() must give an RGB uint8 image"
     )
-    for a in _actions(env, _steps(cls)):
+    for a in _actions(env, _steps(spec)):
         env.step_members(a)
     frame = env.render()
     assert frame.shape == first.shape, "frames of one env differ in size"

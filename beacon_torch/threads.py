@@ -44,9 +44,9 @@ def fastest(env_id: str, batch: int, training: bool = False) -> int | None:
     step at the measured batch size nearest to ``batch`` (on a log scale), or with
     ``training`` its recipe's training (PPO at the recipe's defaults: collection and
     network updates); at most this machine's cores, None where it was not measured."""
-    from beacon_torch.registry import env_class
+    from beacon_torch.registry import env_spec
 
-    env = env_class(env_id).base_id()
+    env = env_spec(env_id).base_id()
     if training:
         count = _count((_table().get("training") or {}).get(env))
         return None if count is None else min(count, cores())

@@ -24,16 +24,16 @@ from beacon_torch import episodes
 from beacon_torch.files import create_file, refuse_existing
 from beacon_torch.registry import ENVS, base_envs
 
-CAVITIES = [env_id for env_id in base_envs() if ENVS[env_id].family == "2-D"]
+CAVITIES = [env_id for env_id in base_envs() if ENVS[env_id].card.family == "2-D"]
 
 
 def substep_breakdown(env, repeats: int = 50) -> dict:
     """Milliseconds per batched substep: the Poisson solve alone, and the whole substep."""
     rhs = torch.randn((env.nx, env.ny, env.num_envs), dtype=env.dtype, device=env.device)  # batch last
-    env.solver.solve(rhs)
+    env.physics.solver.solve(rhs)
     start = time.perf_counter()
     for _ in range(repeats):
-        env.solver.solve(rhs)
+        env.physics.solver.solve(rhs)
     poisson = (time.perf_counter() - start) / repeats
     return {"poisson_ms": 1e3 * poisson}
 
@@ -56,7 +56,7 @@ def main() -> None:
     }
     for env_id in args.envs:
         env = beacon_torch.make(env_id, args.batch, dtype=args.dtype, compile=args.compile)
-        substeps, published = env.substeps, env.published_speed
+        substeps, published = env.physics.substeps, env.card.published_speed
         compile_s = 0.0
         if args.compile:  # compile on a throw-away step, outside the timed episode
             start = time.perf_counter()

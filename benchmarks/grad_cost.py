@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from beacon_torch.registry import continuous_envs, env_class
+from beacon_torch.registry import continuous_envs, env_spec
 
 HERE = Path(__file__).resolve()
 # a smooth reward where the default has no gradient
@@ -156,7 +156,7 @@ def page_table(folder: Path) -> str:
         r = newest[env_id]
         # a way not measured (the wakes' eager path: minutes a round) is a dash
         ratio = lambda kind, r=r: f"{r[f'{kind}_ratio']:.1f} x" if f"{kind}_ratio" in r else "-"
-        physics = env_class(env_id).physics_type
+        physics = env_spec(env_id).physics
         way = "one graph an action" if physics.grad_whole_action else f"chunks of {physics.grad_chunk}"
         compiled = f"{ratio('compiled')} ({way})" if "compiled_ratio" in r else "-"
         lines.append(

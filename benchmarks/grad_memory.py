@@ -210,7 +210,7 @@ def main(argv=None) -> None:
         )
         print("|---|---|---|---|---|---|")
         for env_id in args.envs:
-            n = beacon_torch.registry.ENVS[env_id].episode_length
+            n = beacon_torch.registry.ENVS[env_id].physics.episode_length
             per_action, seconds, finite, largest = measure(env_id, n, args.batch, dtype, True, **ENVS[env_id])
             print(
                 f"| {env_id} | {n} | {_bytes(per_action * n)} | {seconds * n:,.1f} s | {finite} | {largest:.1e} |",

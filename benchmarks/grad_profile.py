@@ -78,11 +78,11 @@ def _scoped(fn, name: str):
 
 def _own_modules(env_id: str) -> list:
     """The numerics modules and the env's own (its module, and its package's modules)."""
-    from beacon_torch.registry import env_class
+    from beacon_torch.registry import env_spec
 
-    package = env_class(env_id).__module__.rsplit(".", 1)[0]
+    package = env_spec(env_id).__module__.rsplit(".", 1)[0]
     if package == "beacon_torch.envs":  # a one-module env
-        package = env_class(env_id).__module__
+        package = env_spec(env_id).__module__
     return [
         m
         for name, m in sorted(sys.modules.items())

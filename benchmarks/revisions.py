@@ -46,11 +46,13 @@ def worker(
     import torch
 
     import beacon_torch
-    from beacon_torch.registry import env_class
+    from beacon_torch import registry
 
     torch.set_num_threads(1)
     for env_id in envs:
-        costly = env_class(env_id).costly
+        # the tree before may be one whose ids were classes with the card's fields on them
+        spec = registry.env_spec(env_id) if hasattr(registry, "env_spec") else registry.env_class(env_id)
+        costly = spec.card.costly if hasattr(spec, "card") else spec.costly
         for mode in [m for m in modes if m == "eager" or not costly]:
             for batch in batches:
                 env = beacon_torch.make(env_id, batch, seed=0, compile=mode == "compiled")

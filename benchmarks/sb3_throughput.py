@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import beacon_torch  # noqa: F401  (registers the gymnasium ids)
 from beacon_torch.files import machine, save_rows
-from beacon_torch.registry import base_envs, env_class
+from beacon_torch.registry import base_envs, env_spec
 from beacon_torch.sb3 import BeaconVecEnv
 
 ENVS = base_envs()  # the seven benchmark envs
@@ -57,7 +57,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     rows = []
     for env_id in args.envs:
-        seconds = args.seconds * (4 if env_class(env_id).costly else 1)
+        seconds = args.seconds * (4 if env_spec(env_id).card.costly else 1)
         for copies in args.copies:
             batched = rate(BeaconVecEnv(env_id, copies, seed=0), seconds)
             dummy = rate(

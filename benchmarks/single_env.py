@@ -30,7 +30,7 @@ from tensordict import TensorDict
 
 from beacon_torch.bench import compiled_graphs, warm_up
 from beacon_torch.files import machine, save_rows
-from beacon_torch.registry import base_envs, env_class
+from beacon_torch.registry import base_envs, env_spec
 
 ENVS = base_envs()  # the seven benchmark envs
 
@@ -100,7 +100,7 @@ def measure(env_id: str, compiled: bool, seconds: float, repeats: int) -> dict:
     return {
         "env": env_id,
         "mode": "compiled" if compiled else "eager",
-        "published": env_class(env_id).published_speed,
+        "published": env_spec(env_id).card.published_speed,
         **measured,
         "recompiles": recompiles,
     }
@@ -127,7 +127,7 @@ def main() -> None:
     rows = []
     for env_id in args.envs:
         for mode in args.modes:
-            seconds = args.seconds * (3 if env_class(env_id).costly else 1)
+            seconds = args.seconds * (3 if env_spec(env_id).card.costly else 1)
             r = measure(env_id, mode == "compiled", seconds, args.repeats)
             rows.append(r)
             print(

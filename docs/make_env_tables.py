@@ -40,9 +40,9 @@ def block(env_id: str) -> str:
         "",
         "| diagnostic | meaning |",
         "|---|---|",
-        *(f"| `{name}` | {doc} |" for name, doc in cls.diagnostics.items()),
+        *(f"| `{name}` | {doc} |" for name, doc in cls.physics.diagnostics.items()),
     ]
-    return markdown(cls.Params) + "\n\n" + "\n".join(rows)
+    return markdown(cls.physics.Params) + "\n\n" + "\n".join(rows)
 
 
 if __name__ == "__main__":

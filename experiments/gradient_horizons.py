@@ -197,9 +197,9 @@ def reaches_episode(rows: list[dict]) -> bool:
     """Whether the measured horizons reach the env's episode, or a knee was found: only
     then does :func:`default_horizon` bound what the recipes may differentiate (a record
     cut short by its time budget says nothing of the horizons it left out)."""
-    from beacon_torch.registry import env_class
+    from beacon_torch.registry import env_spec
 
-    return knee(rows) is not None or max(r["horizon"] for r in rows) >= env_class(rows[0]["env"]).episode_length
+    return knee(rows) is not None or max(r["horizon"] for r in rows) >= env_spec(rows[0]["env"]).physics.episode_length
 
 
 def newest(folder: Path) -> dict[str, list[dict]]:
@@ -269,7 +269,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     from beacon_torch.files import save_rows
     from beacon_torch.params import parse_assignments
-    from beacon_torch.registry import env_class
+    from beacon_torch.registry import env_spec
 
     params = dict(parse_assignments(args.param))
     if args.page is not None:
@@ -286,7 +286,7 @@ def main() -> None:
     if not args.envs:
         parser.error("give --envs to measure, or --page to write the records")
     for env_id in args.envs:
-        length = env_class(env_id).episode_length
+        length = env_spec(env_id).physics.episode_length
         horizons = args.horizons or sorted({*(2**k for k in range(length.bit_length()) if 2**k <= length), length})
         start = Start(env_id, args.members, args.seed, params, checkpoint=args.grad_checkpoint, device=args.device)
         rows = horizons_within(env_id, horizons, start.norm, args.budget_s)

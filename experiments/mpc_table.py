@@ -25,7 +25,7 @@ def records(folder: Path = RECORDS) -> list[dict]:
 def table(rows: list[dict]) -> str:
     """The records as a markdown table. A planned action costs ``horizon x iterations``
     differentiated steps: the cost at FluidGym's 20 x 10 is the recorded one scaled."""
-    from beacon_torch.registry import env_class
+    from beacon_torch.registry import env_spec
     from beacon_torch.training.report import scaled
 
     lines = [
@@ -38,7 +38,7 @@ def table(rows: list[dict]) -> str:
         model = ", ".join(f"{k}={v}" for k, v in r["plan_params"].items()) or "the env's"
         per_action = r["cpu_s_per_action"]
         default = per_action * (20 * 10) / (s["horizon"] * s["iterations"])
-        hours = default * env_class(r["env"]).episode_length / 3600
+        hours = default * env_spec(r["env"]).physics.episode_length / 3600
         episode = f"{hours:.1f} h" if hours >= 1 else f"{60 * hours:.0f} min"
         if "score_mean" in r:
             if "normalised" not in r:

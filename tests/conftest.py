@@ -22,16 +22,16 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 ENVS = beacon_torch.registry.ENVS
 ALL_ENVS = beacon_torch.list_envs()
-CONTINUOUS_ENVS = [e for e in ALL_ENVS if not ENVS[e].discrete]
-DISCRETE_ENVS = [e for e in ALL_ENVS if ENVS[e].discrete]
-DETERMINISTIC_ENVS = [e for e in ALL_ENVS if ENVS[e].deterministic]
+CONTINUOUS_ENVS = [e for e in ALL_ENVS if not ENVS[e].physics.discrete]
+DISCRETE_ENVS = [e for e in ALL_ENVS if ENVS[e].physics.discrete]
+DETERMINISTIC_ENVS = [e for e in ALL_ENVS if ENVS[e].physics.deterministic]
 # the 2-D cavities take tens of seconds an episode: their whole episodes are run by
 # test_scores.py, the behaviour tests that need whole episodes run on the others
-EXPENSIVE_ENVS = {e for e in ALL_ENVS if ENVS[e].costly}
+EXPENSIVE_ENVS = {e for e in ALL_ENVS if ENVS[e].card.costly}
 CHEAP_ENVS = [e for e in ALL_ENVS if e not in EXPENSIVE_ENVS]
 # the cheaper settings each env declares for the behaviour tests run on every env (the
 # published numbers are checked with the defaults in test_scores.py)
-FAST = {e: ENVS[e].test_settings for e in ALL_ENVS}
+FAST = {e: ENVS[e].card.test_settings for e in ALL_ENVS}
 
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,15 +141,14 @@ def short_lorenz():
     import gymnasium
 
     from beacon_torch import registry
-    from beacon_torch.envs.lorenz import LorenzEnv
+    from beacon_torch.envs.lorenz import CARD, LorenzPhysics
 
-    class ShortLorenz(LorenzEnv):
-        env_id = "short-lorenz-v0"
+    class ShortLorenz(LorenzPhysics):
         episode_length = 25
 
-    beacon_torch.register("short-lorenz-v0", ShortLorenz)
+    beacon_torch.register("short-lorenz-v0", ShortLorenz, CARD, base="lorenz-v0")
     yield "short-lorenz-v0"
-    for table in (registry.ENVS, registry.DEFAULTS, registry.ORIGIN):
+    for table in (registry.ENVS, registry.ORIGIN):
         table.pop("short-lorenz-v0", None)
     gymnasium.registry.pop("beacon/short-lorenz-v0", None)
 

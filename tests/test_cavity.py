@@ -28,8 +28,8 @@ def test_flow_stays_divergence_free(env_id):
     env = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0)
     g = torch.Generator().manual_seed(0)
     run_actions(env, [env.random_action(g)])
-    flow = env.cavity.to_solver(env.flow(env.state), env.ghosts)
-    div = divergence(flow.u, flow.v, env.dx, env.dy)
+    flow = env.physics.cavity.to_solver(env.physics.flow(env.state), env.physics.ghosts)
+    div = divergence(flow.u, flow.v, env.physics.dx, env.physics.dy)
     if env_id == "mixing-v0":
         # the increment's zero ghost on the lid leaves, as published, the top cells
         # their own divergence

@@ -128,14 +128,9 @@ def test_the_stored_listing_is_the_envs_own():
 
 USER_ENV = """
 import beacon_torch
-from beacon_torch.envs.lorenz import LorenzEnv
+from beacon_torch.envs.lorenz import CARD, LorenzPhysics
 
-
-class Heat(LorenzEnv):
-    env_id = "heat-v0"
-
-
-beacon_torch.register("heat-v0", Heat)
+beacon_torch.register("heat-v0", LorenzPhysics, CARD)
 """
 
 

@@ -29,8 +29,8 @@ def test_one_compiled_call_per_action(env_id):
     env.reset_members()
     env.step_members(env.random_action(g))  # compiles
     calls = []
-    for fn, compiled in list(env.kernels._cache.items()):
-        env.kernels._cache[fn] = lambda *a, _c=compiled, **k: calls.append(1) or _c(*a, **k)
+    for fn, compiled in list(env.physics.kernels._cache.items()):
+        env.physics.kernels._cache[fn] = lambda *a, _c=compiled, **k: calls.append(1) or _c(*a, **k)
     for _ in range(5):
         env.step_members(env.random_action(g))
     assert len(calls) == 5
@@ -69,10 +69,10 @@ def test_adapters_compile_unless_told_not_to(monkeypatch):
         gymnasium.make_vec("beacon/lorenz-v0", num_envs=2).env,
         BeaconVecEnv("lorenz-v0", 2).env,
     ]
-    assert all(env.kernels.options is not None for env in made)
-    assert gymnasium.make("beacon/lorenz-v0", compile=False).unwrapped.env.kernels.options is None
+    assert all(env.physics.kernels.options is not None for env in made)
+    assert gymnasium.make("beacon/lorenz-v0", compile=False).unwrapped.env.physics.kernels.options is None
     monkeypatch.setenv("BEACON_TORCH_COMPILE", "0")
-    assert BeaconVecEnv("lorenz-v0", 2).env.kernels.options is None
+    assert BeaconVecEnv("lorenz-v0", 2).env.physics.kernels.options is None
 
 
 def test_compilation_happens_once_not_per_step():
@@ -119,7 +119,7 @@ def test_a_differentiated_loop_compiles_its_substep_once_whatever_its_length():
 
 def test_compile_accepts_torch_compile_options_and_rejects_nonsense():
     env = beacon_torch.make("lorenz-v0", 2, compile={"mode": "default"})
-    assert env.kernels.options["mode"] == "default" and env.kernels.options["fullgraph"]
+    assert env.physics.kernels.options["mode"] == "default" and env.physics.kernels.options["fullgraph"]
     with pytest.raises(TypeError, match="compile"):
         beacon_torch.make("lorenz-v0", 2, compile="yes")
 
@@ -140,8 +140,8 @@ def test_compiled_envs_leave_dynamo_settings_as_they_found_them():
     before = torch._dynamo.config.recompile_limit, while_loop_op.cacheable()
     env = make("lorenz-v0", 3, compile=True)
     seen = []
-    env.kernels._cache.clear()
-    kernel = env.kernels(
+    env.physics.kernels._cache.clear()
+    kernel = env.physics.kernels(
         lambda x: seen.append((torch._dynamo.config.recompile_limit, while_loop_op._cacheable)) or x * 2
     )
     assert torch.equal(kernel(torch.ones(2)), 2 * torch.ones(2))
@@ -223,10 +223,10 @@ def test_whole_step_compiled_handles_a_blow_up_as_the_eager_step(env_id):
     (obs_e, rew_e, term_e, trunc_e), (obs_c, rew_c, term_c, trunc_c) = out
     assert term_e[:, 1].any(), "the extreme member never blew up"
     assert torch.equal(term_c, term_e) and torch.equal(trunc_c, trunc_e)
-    assert (rew_c[term_c] == compiled.blowup_reward).all()
+    assert (rew_c[term_c] == compiled.physics.blowup_reward).all()
     torch.testing.assert_close(obs_c, obs_e, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(rew_c, rew_e, rtol=1e-9, atol=1e-12)
-    assert [fn.__name__ for fn in compiled.kernels._cache] == ["step"]  # nothing compiled apart
+    assert [fn.__name__ for fn in compiled.physics.kernels._cache] == ["step"]  # nothing compiled apart
 
 
 def test_a_differentiated_loop_runs_in_chunks_to_the_eager_gradient():
@@ -284,4 +284,4 @@ def test_a_small_action_is_one_differentiated_compiled_call_with_the_eager_gradi
     assert torch.isfinite(g_c).all() and g_e.abs().max() > 0
     torch.testing.assert_close(r_c, r_e, **ROUND_OFF)
     torch.testing.assert_close(g_c, g_e, rtol=1e-8, atol=1e-10 * g_e.abs().max().item())
-    assert advance_settled in envs[1].kernels._cache  # the action compiled whole
+    assert advance_settled in envs[1].physics.kernels._cache  # the action compiled whole

@@ -12,8 +12,9 @@ import torch
 
 import beacon_torch
 from beacon_torch.arguments import load_script
-from beacon_torch.envs.burgers import BurgersEnv, BurgersPhysics
-from beacon_torch.registry import DEFAULTS, ENVS
+from beacon_torch.envs import burgers
+from beacon_torch.envs.burgers import BurgersPhysics
+from beacon_torch.registry import ENVS
 from beacon_torch.testing import CHECKS, ConformanceError, check_flow_env
 
 from conftest import ALL_ENVS, EXPENSIVE_ENVS
@@ -39,7 +40,6 @@ def test_every_env_passes_the_kit(env_id, check):
 
 def unregister(env_id):
     ENVS.pop(env_id, None)
-    DEFAULTS.pop(env_id, None)
     beacon_torch.registry.ORIGIN.pop(env_id, None)
     gymnasium.registry.pop(f"beacon/{env_id}", None)
 
@@ -55,7 +55,8 @@ def example():
 
 @pytest.mark.slow(seconds=30)
 def test_the_worked_example_passes_every_check(example):
-    assert beacon_torch.registry.env_class("heat-v0") is example.HeatEnv
+    spec = beacon_torch.registry.env_spec("heat-v0")
+    assert spec.physics is example.HeatPhysics and spec.card is example.CARD
     found = check_flow_env("heat-v0")
     assert found == {
         check: "not applicable: the physics draws from the env's generator, per batch"
@@ -76,9 +77,9 @@ def test_an_env_without_published_facts_registers_benches_and_is_refused_by_the_
     from beacon_torch import bench
     from beacon_torch.training import report
 
-    cls = example.HeatEnv
-    assert (cls.published_speed, cls.speed_target, cls.paper_ppo, cls.costly) == (None, None, None, False)
-    assert cls.scale_reference() is None
+    card = beacon_torch.registry.env_spec("heat-v0").card
+    assert (card.published_speed, card.speed_target, card.paper_ppo, card.costly) == (None, None, None, False)
+    assert card.scale_reference() is None
     measured = bench.measure("heat-v0", 4, steps=2, repeats=1)
     assert measured.transitions_per_s > 0 and measured.published_per_s is None and measured.speedup is None
     assert "| heat-v0 |" in bench.markdown([measured]) and "| - | - |  |" in bench.markdown([measured])
@@ -95,15 +96,15 @@ def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
     import beacon_torch.gym  # gymnasium's ids, registered as envs are
 
     try:
-        cls = beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0)
-        assert cls.base_id() == "burgers-v0" and cls.paper_ppo == BurgersEnv.paper_ppo
+        spec = beacon_torch.register("burgers-calm-v0", ENVS["burgers-v0"], sigma=0.0)
+        assert spec.base_id() == "burgers-v0" and spec.card is burgers.CARD and spec.physics is BurgersPhysics
         env = beacon_torch.make("burgers-calm-v0", 2)
         assert env.env_id == "burgers-calm-v0" and env.params.sigma.tolist() == [0.0, 0.0]
         assert beacon_torch.make("burgers-calm-v0", 1, sigma=0.2).params.sigma.tolist() == [pytest.approx(0.2)]
         assert "beacon/burgers-calm-v0" in gymnasium.registry
-        assert beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0) is cls  # again: nothing new
+        assert beacon_torch.register("burgers-calm-v0", ENVS["burgers-v0"], sigma=0.0) is spec  # again: nothing new
         with pytest.raises(ValueError, match="registered already"):
-            beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.05)
+            beacon_torch.register("burgers-calm-v0", ENVS["burgers-v0"], sigma=0.05)
     finally:
         unregister("burgers-calm-v0")
     assert "burgers-calm-v0" not in beacon_torch.list_envs()
@@ -111,9 +112,9 @@ def test_a_registered_variant_gets_make_gymnasium_and_its_base_card():
 
 CALM = """
 import beacon_torch
-from beacon_torch.envs.burgers import BurgersEnv, BurgersPhysics
+from beacon_torch.registry import ENVS
 
-beacon_torch.register("burgers-calm-v0", BurgersEnv, sigma=0.0)
+beacon_torch.register("burgers-calm-v0", ENVS["burgers-v0"], sigma=0.0)
 """
 
 
@@ -158,15 +159,15 @@ def test_an_env_registered_by_a_module_reaches_other_processes(tmp_path, monkeyp
 
 def test_register_refuses_what_it_cannot_serve():
     with pytest.raises(ValueError, match="lower-case words and a version"):
-        beacon_torch.register("Burgers", BurgersEnv)
-    with pytest.raises(TypeError, match="FlowEnv subclass"):
+        beacon_torch.register("Burgers", BurgersPhysics)
+    with pytest.raises(TypeError, match="Physics subclass or a registered EnvSpec"):
         beacon_torch.register("thing-v0", dict)
     with pytest.raises(ValueError, match="unknown default"):
-        beacon_torch.register("burgers-odd-v0", BurgersEnv, viscosity=1.0)
+        beacon_torch.register("burgers-odd-v0", BurgersPhysics, viscosity=1.0)
     with pytest.raises(ValueError, match="registered already"):
-        beacon_torch.register("lorenz-v0", BurgersEnv)
-    untyped = type("UntypedEnv", (BurgersEnv,), {"env_id": "untyped-v0", "state_type": dict})
-    with pytest.raises(TypeError, match="UntypedEnv declares no state type"):
+        beacon_torch.register("lorenz-v0", BurgersPhysics)
+    untyped = type("UntypedPhysics", (BurgersPhysics,), {"state_type": dict})
+    with pytest.raises(TypeError, match="UntypedPhysics declares no state type"):
         beacon_torch.register("untyped-v0", untyped)
     assert "burgers-odd-v0" not in ENVS and "untyped-v0" not in ENVS
 
@@ -174,15 +175,15 @@ def test_register_refuses_what_it_cannot_serve():
 def test_the_state_is_the_envs_declared_type(monkeypatch):
     """Every env's state is its NamedTuple, batch first, whatever path made it."""
     for env_id in ALL_ENVS:
-        cls = ENVS[env_id]
-        assert issubclass(cls.state_type, tuple) and cls.state_type._fields, env_id
+        state_type = ENVS[env_id].physics.state_type
+        assert issubclass(state_type, tuple) and state_type._fields, env_id
     env = beacon_torch.make("burgers-v0", 2, seed=0)
     env.reset()
-    assert type(env.state) is env.state_type and env.state.u.shape[0] == 2
+    assert type(env.state) is env.physics.state_type and env.state.u.shape[0] == 2
     env.step_members(env.null_action())
-    assert type(env.state) is env.state_type
+    assert type(env.state) is env.physics.state_type
     env.set_state(env.state._asdict())  # a dict of its fields is taken too
-    assert type(env.state) is env.state_type
+    assert type(env.state) is env.physics.state_type
     not_a_state = lambda self, p, generator, mask=None: {"u": torch.zeros(2, 500)}
     monkeypatch.setattr(BurgersPhysics, "initial_state", not_a_state)
     with pytest.raises(TypeError, match="burgers-v0: initial_state returned a dict, not the env's state type"):

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import torch
 
+import beacon_torch
 from beacon_torch.envs import cylinder
-from beacon_torch.envs.cylinder import Channel, CylinderEnv, jet_target, rest, run
+from beacon_torch.envs.cylinder import CARD, Channel, CylinderParams, jet_target, rest, run
 from beacon_torch.numerics.grid import NEUMANN, ZERO_FACE
 from beacon_torch.numerics.poisson import PoissonSolver, laplacian_1d
 
@@ -186,7 +187,7 @@ def test_page_shows_the_recorded_validation_and_the_parameters():
     paths = sorted((ROOT / "validation" / "results" / "cylinder").glob("cylinder_validation-*.json"))
     page = (ROOT / "docs" / "envs" / "cylinder.md").read_text()
     assert validation.table(json.loads(paths[-1].read_text())["rows"]) in page
-    assert markdown(CylinderEnv.Params) in page
+    assert markdown(CylinderParams) in page
     assert (ROOT / "docs" / "img" / "cylinder-validation.png").exists()
 
 
@@ -198,7 +199,7 @@ def test_the_normalised_scores_one_is_the_recorded_base_flow_after_the_recorded_
     every action of Rabault et al. and above every recorded policy's score."""
     folder = ROOT / "validation" / "results" / "cylinder"
     record = json.loads(sorted(folder.glob("cylinder_reference-*.json"))[-1].read_text())["rows"][0]
-    assert CylinderEnv.reference.score == record["reference"] and CylinderEnv.paper_ppo is None
+    assert CARD.reference.score == record["reference"] and CARD.paper_ppo is None
     # the base flow is a validation's record, the policies' drags an experiment's
     rooms = [folder, ROOT / "experiments" / "results" / "cylinder"]
     inputs = [
@@ -217,9 +218,9 @@ def test_the_normalised_scores_one_is_the_recorded_base_flow_after_the_recorded_
 def test_validation_figures_of_the_default_grid_are_the_recorded_ones():
     """From the developed start of the default grid (the recorded run's last state),
     2.4 more shedding periods in float64 give the recorded figures."""
-    record = recorded(CylinderEnv.Params().cells_per_diameter, cylinder.DT)
-    env = CylinderEnv(1, dtype=torch.float64)
-    channel, flow = env.channel, cylinder.Flow(*(f[None] for f in env.physics._start(env.params)))
+    record = recorded(CylinderParams().cells_per_diameter, cylinder.DT)
+    physics, params = beacon_torch.functional("cylinder-v0", 1, dtype=torch.float64)
+    channel, flow = physics.channel, cylinder.Flow(*(f[None] for f in physics._start(params)))
     zero = torch.zeros(1, dtype=torch.float64)
     steps = 1600
     drag, lift = np.empty(steps), np.empty(steps)
@@ -254,7 +255,7 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
     # member does the same arithmetic in the same batched operations, so it agrees to
     # the last bit on any processor (an env of one member would agree to float32's
     # rounding only, which 160 actions of shedding grow)
-    free = CylinderEnv(2, cells_per_diameter=10)
+    free = beacon_torch.make("cylinder-v0", 2, cells_per_diameter=10)
     free.reset()
     drag = []
     for _ in range(2):

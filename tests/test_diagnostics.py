@@ -18,14 +18,14 @@ from conftest import ALL_ENVS, ENVS, EXPENSIVE_ENVS, FAST, make
 @pytest.mark.parametrize("env_id", ALL_ENVS)
 def test_every_env_reports_its_diagnostics_in_the_tensordict(env_id):
     cls = ENVS[env_id]
-    assert cls.diagnostics, f"{env_id} declares no diagnostics"
+    assert cls.physics.diagnostics, f"{env_id} declares no diagnostics"
     env = make(env_id, 2)
     steps = 1 if env_id in EXPENSIVE_ENVS else 3
     rollout = env.rollout(steps)
-    for name in cls.diagnostics:
+    for name in cls.physics.diagnostics:
         for where in (rollout["diagnostics", name], rollout["next", "diagnostics", name]):
             assert where.shape == (2, steps) and where.dtype == env.dtype and torch.isfinite(where).all()
-    assert set(env.last_diagnostics) == set(cls.diagnostics)
+    assert set(env.last_diagnostics) == set(cls.physics.diagnostics)
 
 
 @pytest.mark.parametrize(
@@ -63,7 +63,7 @@ def test_every_adapter_reports_the_same_info():
     diagnostics and blew_up, by the same names, in reset and step."""
     from beacon_torch.pettingzoo import parallel_env
 
-    names = {*ENVS["burgers-v0"].diagnostics, "blew_up"}
+    names = {*ENVS["burgers-v0"].physics.diagnostics, "blew_up"}
     single = gymnasium.make("beacon/burgers-v0", compile=False)
     _, info = single.reset(seed=0)
     assert set(info) == names
@@ -80,7 +80,7 @@ def test_every_adapter_reports_the_same_info():
     assert all(set(i) == names | {"TimeLimit.truncated"} for i in infos)
     zoo = parallel_env("shkadov-separable-v0", **FAST["shkadov-separable-v0"])
     _, infos = zoo.reset(seed=0)
-    zoo_names = {*ENVS["shkadov-separable-v0"].diagnostics, "blew_up"}
+    zoo_names = {*ENVS["shkadov-separable-v0"].physics.diagnostics, "blew_up"}
     assert all(set(i) == zoo_names for i in infos.values())
     *_, infos = zoo.step({agent: zoo.action_space(agent).sample() for agent in zoo.agents})
     assert all(set(i) == zoo_names for i in infos.values())

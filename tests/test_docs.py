@@ -49,7 +49,7 @@ def registry_kept():
     before = set(registry.ENVS)
     yield
     for env_id in set(registry.ENVS) - before:
-        for table in (registry.ENVS, registry.DEFAULTS, registry.ORIGIN):
+        for table in (registry.ENVS, registry.ORIGIN):
             table.pop(env_id, None)
         gymnasium.registry.pop(f"beacon/{env_id}", None)
 

@@ -283,7 +283,7 @@ def test_each_reference_says_where_its_one_comes_from_and_a_share_scales_with_no
     (Vignon et al.'s Nusselt number, 2.0496 against 2.675 uncontrolled) is a share of no
     control's score from the same starts, so that the same reduction scores 1 whatever
     this grid's level of no control."""
-    from beacon_torch.card import PAPER_PPO, Reference
+    from beacon_torch.core.card import PAPER_PPO, Reference
 
     def pair(**changes) -> Path:
         path = tmp_path / f"{changes['env']}-{changes['algo']}.json"

@@ -9,7 +9,7 @@ from torchrl.envs.utils import check_env_specs
 
 import beacon_torch
 from beacon_torch import episodes
-from beacon_torch.card import COMPUTED, PAPER_PPO, PHYSICAL_LIMIT, PUBLISHED_RESULT
+from beacon_torch.core.card import COMPUTED, PAPER_PPO, PHYSICAL_LIMIT, PUBLISHED_RESULT
 
 from conftest import EXPENSIVE_ENVS, make, run_actions
 
@@ -40,7 +40,7 @@ def test_rollout_keeps_going_with_auto_reset(cheap_env_id):
     last_end = torch.where(done, torch.arange(n + 3), -1).amax(1)
     assert env.step_count.tolist() == (n + 2 - last_end).tolist()
     # the step after an end starts from the reset observation
-    if env.deterministic:
+    if env.physics.deterministic:
         first = env.reset()[env.observation_key]
         for b, t in done[:, :-1].nonzero().tolist():
             torch.testing.assert_close(r[env.observation_key][b, t + 1], first[b])
@@ -156,7 +156,7 @@ def test_blow_up_ends_that_member_only(env_id, dtype):
         assert torch.isfinite(out[env.observation_key]).all() and torch.isfinite(out[env.reward_key]).all()
         if out["terminated"][2, 0] and done_at is None:
             done_at = i
-            assert (out[env.reward_key][2] == env.blowup_reward).all()
+            assert (out[env.reward_key][2] == env.physics.blowup_reward).all()
             assert out["done"][2, 0]
         assert not out["terminated"][[0, 1, 3]].any()
         rewards.append(out[env.reward_key].clone())
@@ -237,7 +237,7 @@ def test_a_blowup_never_pays(env_id, params, push):
     blown = episodes.scores(rollout)
     calm = beacon_torch.make(env_id, 2, dtype=torch.float64, seed=0, **{k: v for k, v in params.items() if k != "amp"})
     uncontrolled = episodes.scores(episodes.episode(calm, episodes.null_policy(calm)))
-    assert (blown <= env.blowup_reward).all() and (blown < uncontrolled).all()
+    assert (blown <= env.physics.blowup_reward).all() and (blown < uncontrolled).all()
 
 
 # where each "= 1" beyond the paper's PPO comes from (None: no reference yet, and the
@@ -253,14 +253,14 @@ SOURCES = {
 
 
 def test_every_env_declares_its_card():
-    """What benchmarks, reports and tests know of an env comes from its class: a family
+    """What benchmarks, reports and tests know of an env comes from its card: a family
     and a cost, the published speed and the speed aimed at where published code is run
     here, a reference score, a gradient check of a differentiable parameter wherever
-    the actions are continuous; a variant is measured against its base env, whose card
-    it inherits."""
+    the actions are continuous, a frame; a variant is measured against its base env,
+    whose card it shares or changes."""
     import dataclasses
 
-    from beacon_torch.base import GradCheck
+    from beacon_torch.core.card import Card, GradCheck
 
     envs = beacon_torch.registry.ENVS
     assert beacon_torch.registry.base_envs() == [
@@ -308,33 +308,38 @@ def test_every_env_declares_its_card():
         "pinball-periodic-v0",
         "pinball-chaotic-v0",
     ]
-    for env_id, cls in envs.items():
-        assert cls.family in ("ode", "1-D", "2-D"), env_id
-        assert cls.costly == (cls.family == "2-D"), env_id  # of these envs, the 2-D flows
+    for env_id, spec in envs.items():
+        assert isinstance(spec.card, Card) and callable(spec.card.frame), env_id
+        assert spec.card.family in ("ode", "1-D", "2-D"), env_id
+        assert spec.card.costly == (spec.card.family == "2-D"), env_id  # of these envs, the 2-D flows
         # beyond BEACON and on the cylinder (no paper's PPO for its set-up), no "= 1" is
         # a PPO score of the paper
-        beyond = cls.env_id in ("ks-v0", "rayleigh-separable-v0") or cls.base_id() == "pinball-v0"
-        no_paper = beyond or cls.base_id() == "cylinder-v0"
-        assert cls.paper_ppo is None if no_paper else math.isfinite(cls.paper_ppo), env_id
-        source = None if cls.scale_reference() is None else cls.scale_reference().source
-        assert source == SOURCES.get(cls.env_id, PAPER_PPO), env_id
-        if beyond or cls.base_id() == "cylinder-v0":  # no published code run here
-            assert cls.published_speed is None and cls.speed_target is None
+        beyond = spec.env_id in ("ks-v0", "rayleigh-separable-v0") or spec.base_id() == "pinball-v0"
+        no_paper = beyond or spec.base_id() == "cylinder-v0"
+        assert spec.card.paper_ppo is None if no_paper else math.isfinite(spec.card.paper_ppo), env_id
+        source = None if spec.card.scale_reference() is None else spec.card.scale_reference().source
+        assert source == SOURCES.get(spec.env_id, PAPER_PPO), env_id
+        if beyond or spec.base_id() == "cylinder-v0":  # no published code run here
+            assert spec.card.published_speed is None and spec.card.speed_target is None
         else:
-            assert cls.published_speed > 0 and cls.speed_target > 0, env_id
-        base = envs[cls.base_id()]
+            assert spec.card.published_speed > 0 and spec.card.speed_target > 0, env_id
+        base = envs[spec.base_id()]
         # a variant is measured against its base's card; Vignon's channel is a case of
         # its own on rayleigh's solver
-        card = (base.published_speed, base.paper_ppo) if cls.env_id != "rayleigh-separable-v0" else (None, None)
-        assert (cls.published_speed, cls.paper_ppo, cls.family, cls.costly) == (*card, base.family, base.costly) or (
-            cls is base
-        ), env_id
-        assert (cls.gradcheck is None) == cls.discrete, env_id
-        if cls.gradcheck is not None:
-            assert isinstance(cls.gradcheck, GradCheck)
-            fields = {f.name: f for f in dataclasses.fields(cls.Params)}
-            assert fields[cls.gradcheck.param].metadata["differentiable"], env_id
-        cls.Params(**cls.test_settings)  # parameters the env knows, in range
+        card = (
+            (base.card.published_speed, base.card.paper_ppo) if spec.env_id != "rayleigh-separable-v0" else (None, None)
+        )
+        assert (spec.card.published_speed, spec.card.paper_ppo, spec.card.family, spec.card.costly) == (
+            *card,
+            base.card.family,
+            base.card.costly,
+        ) or (spec is base), env_id
+        assert (spec.card.gradcheck is None) == spec.physics.discrete, env_id
+        if spec.card.gradcheck is not None:
+            assert isinstance(spec.card.gradcheck, GradCheck)
+            fields = {f.name: f for f in dataclasses.fields(spec.physics.Params)}
+            assert fields[spec.card.gradcheck.param].metadata["differentiable"], env_id
+        spec.physics.Params(**spec.card.test_settings)  # parameters the env knows, in range
 
 
 def test_a_physics_missing_a_hook_is_refused_when_built():
@@ -345,47 +350,45 @@ def test_a_physics_missing_a_hook_is_refused_when_built():
 
     class Incomplete(beacon_torch.Physics):
         Params = BurgersPhysics.Params
+        state_type = BurgersPhysics.state_type
         episode_length = 10
         sizes = BurgersPhysics.sizes
         initial_state = BurgersPhysics.initial_state
         observe = BurgersPhysics.observe
 
-    class IncompleteEnv(beacon_torch.base.FlowEnv):
-        env_id = "incomplete-v0"
-        physics_type = Incomplete
-
     with pytest.raises(TypeError, match="advance"):
-        IncompleteEnv(1)
+        beacon_torch.base.FlowEnv(beacon_torch.registry.EnvSpec("incomplete-v0", Incomplete), 1)
 
 
-def test_an_env_class_spelling_a_physics_hook_is_told_where_it_goes():
-    """An env written the old way (its hooks on the env, reading self.params) is
-    refused when its class is defined, in one line naming the new place."""
-    expected = "Old defines the physics hook\\(s\\) \\['advance', 'observe'\\] on the env: they belong to a "
-    expected += "beacon_torch.Physics subclass"
-    with pytest.raises(TypeError, match=expected):
+def test_register_takes_a_physics_and_says_so_of_anything_else():
+    """A case is its physics: register refuses an env class, a physics without a state
+    type or a card that is not one, in one line naming what it takes."""
+    from beacon_torch.envs.lorenz import LorenzPhysics
 
-        class Old(beacon_torch.base.FlowEnv):
-            def advance(self, state, action, count, noise):
-                return state, action
+    with pytest.raises(TypeError, match="register needs a beacon_torch.Physics subclass or a registered EnvSpec"):
+        beacon_torch.register("old-v0", beacon_torch.base.FlowEnv)
 
-            def observe(self, state):
-                return state
+    class Stateless(LorenzPhysics):
+        state_type = None
+
+    with pytest.raises(TypeError, match="declares no state type"):
+        beacon_torch.register("stateless-v0", Stateless)
+    with pytest.raises(TypeError, match="card must be a beacon_torch.core.card.Card"):
+        beacon_torch.register("carded-v0", LorenzPhysics, {"paper_ppo": 1.0})
+    assert not {"old-v0", "stateless-v0", "carded-v0"} & set(beacon_torch.list_envs())
 
 
-def test_a_variant_class_may_shorten_the_episode_of_its_physics():
-    """An env class that says ``episode_length = 3`` steps a physics of its own with
-    it (truncated after 3 actions), and leaves its base env's physics as it was."""
-    from beacon_torch.envs.lorenz import LorenzEnv, LorenzPhysics
+def test_a_physics_subclass_may_shorten_the_episode():
+    """A physics that says ``episode_length = 3`` is truncated after 3 actions, with its
+    own blow-up reward, and leaves its base physics as it was."""
+    from beacon_torch.envs.lorenz import CARD, LorenzPhysics
 
-    class Short(LorenzEnv):
-        env_id = "three-lorenz-v0"
+    class Short(LorenzPhysics):
         episode_length = 3
         blowup_reward = -7.0
 
-    assert issubclass(Short.physics_type, LorenzPhysics) and Short.physics_type.episode_length == 3
-    assert LorenzEnv.physics_type.episode_length == 500 and LorenzEnv.episode_length == 500
-    env = Short(2)
+    env = beacon_torch.base.FlowEnv(beacon_torch.registry.EnvSpec("three-lorenz-v0", Short, CARD), 2)
+    assert LorenzPhysics.episode_length == 500 and env.episode_length == 3
     env.reset()
     flags = [env.step_members(env.null_action())[3].tolist() for _ in range(3)]
     assert flags == [[False, False], [False, False], [True, True]] and env.physics.blowup_reward == -7.0
@@ -393,8 +396,8 @@ def test_a_variant_class_may_shorten_the_episode_of_its_physics():
 
 def test_an_env_registered_from_outside_the_package_is_not_among_its_continuous_envs(monkeypatch):
     from beacon_torch import registry
-    from beacon_torch.envs.burgers import BurgersEnv
+    from beacon_torch.envs.burgers import BurgersPhysics
 
-    monkeypatch.setitem(registry.ENVS, "my-burgers-v0", BurgersEnv)
+    monkeypatch.setitem(registry.ENVS, "my-burgers-v0", registry.EnvSpec("my-burgers-v0", BurgersPhysics))
     monkeypatch.setitem(registry.ORIGIN, "my-burgers-v0", "my_envs.burgers")
     assert "my-burgers-v0" in registry.list_envs() and "my-burgers-v0" not in registry.continuous_envs()

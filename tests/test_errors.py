@@ -142,7 +142,7 @@ def test_a_member_stepped_after_its_episode_goes_on_as_documented():
     again = env.step(td)["next"]
     assert again["truncated"].all() and int(env.step_count[0]) == env.episode_length + 1
     assert torch.isfinite(again["observation"]).all()
-    assert again["terminated"][1] and again["reward"][1] == env.blowup_reward
+    assert again["terminated"][1] and again["reward"][1] == env.physics.blowup_reward
 
 
 def test_reset_takes_a_seed_and_a_rollout_without_a_policy_reproduces():

@@ -27,7 +27,7 @@ def test_burgers_inlet_noise_is_one_draw_per_action_and_actuator_acts_downstream
     env = beacon_torch.make("burgers-v0", 1, dtype=torch.float64, sigma=0.0)
     run_actions(env, [torch.ones(1, 1, dtype=torch.float64)])
     u = env.state.u[0]
-    assert u[env.ctrl] < 0.5 and (u[: env.ctrl - 5] == 0.5).all()
+    assert u[env.physics.ctrl] < 0.5 and (u[: env.physics.ctrl - 5] == 0.5).all()
 
 
 def test_sloshing_rest_is_steady_and_excitation_moves_the_tank():

@@ -11,7 +11,7 @@ import torch
 from torch.func import grad, jacrev, vmap
 
 import beacon_torch
-from beacon_torch.registry import env_class, list_envs
+from beacon_torch.registry import env_spec, list_envs
 
 MEMBERS = 3
 
@@ -24,9 +24,9 @@ def same(a, b) -> bool:
 def test_a_functional_rollout_is_the_envs_bit_for_bit(env_id):
     """From the same seed, the functional start, steps, rewards, flags and diagnostics
     are the TorchRL env's, in float64, noise and random starts included."""
-    cls = env_class(env_id)
-    settings = dict(cls.test_settings)
-    steps = 2 if cls.costly else 6
+    cls = env_spec(env_id)
+    settings = dict(cls.card.test_settings)
+    steps = 2 if cls.card.costly else 6
     env = beacon_torch.make(env_id, MEMBERS, dtype="float64", seed=4, **settings)
     physics, params = beacon_torch.functional(env_id, MEMBERS, dtype="float64", **settings)
     assert isinstance(physics, beacon_torch.Physics) and not isinstance(physics, torch.nn.Module)

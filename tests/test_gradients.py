@@ -239,19 +239,19 @@ REACH = {
     "shkadov-v0": (1, 2, {"random_start": 0}),
     "shkadov-separable-v0": (1, 2, {"random_start": 0}),
     "rayleigh-v0": (0, 1, {}),
-    "rayleigh-separable-v0": (0, 1, ENVS["rayleigh-separable-v0"].test_settings),
-    "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].test_settings),
-    "cylinder-v0": (0, 1, ENVS["cylinder-v0"].test_settings),
+    "rayleigh-separable-v0": (0, 1, ENVS["rayleigh-separable-v0"].card.test_settings),
+    "mixing-continuous-v0": (0, 1, ENVS["mixing-continuous-v0"].card.test_settings),
+    "cylinder-v0": (0, 1, ENVS["cylinder-v0"].card.test_settings),
     "ks-v0": (2, 2, {}),
-    "pinball-v0": (0, 1, ENVS["pinball-v0"].test_settings),
-    "pinball-periodic-v0": (0, 1, ENVS["pinball-periodic-v0"].test_settings),
-    "pinball-chaotic-v0": (0, 1, ENVS["pinball-chaotic-v0"].test_settings),
+    "pinball-v0": (0, 1, ENVS["pinball-v0"].card.test_settings),
+    "pinball-periodic-v0": (0, 1, ENVS["pinball-periodic-v0"].card.test_settings),
+    "pinball-chaotic-v0": (0, 1, ENVS["pinball-chaotic-v0"].card.test_settings),
 }
 DIFFERENTIABLE = [
     (env_id, f.name)
     for env_id, cls in beacon_torch.registry.ENVS.items()
-    if not cls.discrete
-    for f in dataclasses.fields(cls.Params)
+    if not cls.physics.discrete
+    for f in dataclasses.fields(cls.physics.Params)
     if f.metadata["differentiable"]
 ]
 
@@ -261,7 +261,10 @@ def test_every_differentiable_parameter_reaches_the_rewards(env_id, name):
     """A parameter that the physics read only when the env was built (under no_grad)
     would get a silent zero gradient: each one declared differentiable must not."""
     warmup, steps, settings = REACH[env_id]
-    default = next(f.default for f in dataclasses.fields(beacon_torch.registry.ENVS[env_id].Params) if f.name == name)
+    spec = beacon_torch.registry.ENVS[env_id]
+    default = spec.physical_defaults().get(
+        name, next(f.default for f in dataclasses.fields(spec.physics.Params) if f.name == name)
+    )
     theta = torch.tensor(float(settings.get(name, default)), dtype=F64, requires_grad=True)
     env = beacon_torch.make(env_id, dtype=F64, seed=0, differentiable=True, **{**settings, name: theta})
     start = generic_start(env, warmup)

@@ -43,11 +43,32 @@ def test_the_architecture_page_shows_the_house_as_it_is():
     assert f"{house.BEGIN}\n{house.block()}\n{house.END}" in page, "run tools/house.py --page docs/architecture.md"
 
 
+def test_a_case_and_its_physics_as_functions_need_no_torchrl():
+    """The floors below the shell (the numerics, the core, the cases, the registry)
+    import torch and never TorchRL or TensorDict, read from the source; and a process
+    that imports a case module and takes an id's physics as functions has imported
+    neither."""
+    import subprocess
+    import sys
+
+    assert house.shell_imports() == []
+    assert house.outside(house.PACKAGE / "base.py") >= {"torchrl", "tensordict"}  # the check sees them
+    code = (
+        "import sys, beacon_torch.envs.ks, beacon_torch; beacon_torch.functional('ks-v0', 2); "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'torchrl', 'tensordict'}))"
+    )
+    ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert ran.stdout.strip() == "[]", ran.stdout
+    code = "import sys, beacon_torch; beacon_torch.make('ks-v0'); print('torchrl' in sys.modules)"
+    ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert ran.stdout.strip() == "True"  # the subprocess sees an import where there is one
+
+
 def test_the_graph_is_read_as_python_reads_it():
     """The checks above see what they claim: a known upward import and the package's
     lazy top-level names are found."""
     edges = graph()
-    assert "beacon_torch.base" in edges["beacon_torch.envs.burgers"]
+    assert "beacon_torch.core.physics" in edges["beacon_torch.envs.burgers"]
     assert "beacon_torch.training.evaluation" in edges["beacon_torch.cli"]  # imported inside a function
     assert "beacon_torch.base" not in edges["beacon_torch.history"]  # under TYPE_CHECKING only
     assert "beacon_torch.core.state" in graph(annotations=True)["beacon_torch.history"]

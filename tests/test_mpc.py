@@ -154,19 +154,19 @@ def test_the_gradients_page_shows_a_recorded_plan_of_every_continuous_env():
     evaluation, or the cost of planned actions where an episode takes more than an
     hour), and the page's table is the one its script writes from them."""
     table = script("experiments/mpc_table.py")
-    from beacon_torch.registry import continuous_envs, env_class
+    from beacon_torch.registry import continuous_envs, env_spec
 
     rows = table.records()
     assert {r["env"] for r in rows} == set(continuous_envs())
     # evaluated: scored over whole episodes (normalised where the env has a reference score)
     evaluated = {r["env"] for r in rows if "score_mean" in r}
     assert {"lorenz-continuous-v0", "burgers-v0", "vortex-v0", "sloshing-v0", "ks-v0"} <= evaluated
-    assert all("normalised" in r for r in rows if "score_mean" in r and env_class(r["env"]).paper_ppo is not None)
+    assert all("normalised" in r for r in rows if "score_mean" in r and env_spec(r["env"]).card.paper_ppo is not None)
     # an env left unplanned is one whose episode at FluidGym's 20 x 10 takes over an hour
     for r in rows:
         if r["env"] not in evaluated:
             s = r["settings"]
             per_action = r["cpu_s_per_action"] * 200 / (s["horizon"] * s["iterations"])
-            assert per_action * env_class(r["env"]).episode_length > 3600, r["env"]
+            assert per_action * env_spec(r["env"]).physics.episode_length > 3600, r["env"]
     page = (Path(__file__).resolve().parents[1] / "docs" / "gradients.md").read_text()
     assert table.table(rows) in page

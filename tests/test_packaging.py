@@ -105,7 +105,7 @@ def test_the_docs_site_builds_the_guides_and_the_api_reference(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     site = tmp_path / "site"
     envs = (site / "api" / "envs" / "index.html").read_text()
-    assert "LorenzParams" in envs and "ShkadovSeparableEnv" in envs
+    assert "LorenzParams" in envs and "ShkadovSeparablePhysics" in envs
     assert "step_members" in (site / "api" / "base" / "index.html").read_text()
     start = (site / "quickstart" / "index.html").read_text()
     for page in (

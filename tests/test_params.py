@@ -79,24 +79,24 @@ def test_bad_parameters_raise_naming_the_parameter(env_id, kwargs, exc, words):
 def test_params_are_a_value_separate_from_the_options():
     """``params=`` takes the env's ``Params`` (the whole physics) or a dict of some of its
     fields; keywords stay sugar for the same; options never mix with them."""
-    from beacon_torch.envs.burgers import BurgersEnv
+    from beacon_torch.envs.burgers import BurgersParams
 
-    as_value = beacon_torch.make("burgers-v0", 2, params=BurgersEnv.Params(amp=5.0, sigma=0.2), seed=0)
+    as_value = beacon_torch.make("burgers-v0", 2, params=BurgersParams(amp=5.0, sigma=0.2), seed=0)
     as_dict = beacon_torch.make("burgers-v0", 2, params={"amp": 5.0, "sigma": 0.2}, seed=0)
     as_keywords = beacon_torch.make("burgers-v0", 2, amp=5.0, sigma=0.2, seed=0)
     for env in (as_value, as_dict, as_keywords):
         assert env.params.amp.tolist() == [5.0, 5.0] and env.params.sigma.tolist() == pytest.approx([0.2, 0.2])
-        assert env.params.ctrl_pos == BurgersEnv.Params().ctrl_pos
+        assert env.params.ctrl_pos == BurgersParams().ctrl_pos
     both = beacon_torch.make("burgers-v0", 2, params={"amp": 5.0}, record_history=True)
     assert both.history.enabled and both.params.amp.tolist() == [5.0, 5.0]
     with pytest.raises(TypeError, match="'amp' given twice"):
         beacon_torch.make("burgers-v0", params={"amp": 5.0}, amp=6.0)
     with pytest.raises(TypeError, match="BurgersParams .*or a dict"):
         beacon_torch.make("burgers-v0", params=("amp", 5.0))
-    from beacon_torch.envs.lorenz import LorenzEnv
+    from beacon_torch.envs.lorenz import LorenzParams
 
     with pytest.raises(TypeError, match="burgers-v0: params must be a BurgersParams"):
-        beacon_torch.make("burgers-v0", params=LorenzEnv.Params())
+        beacon_torch.make("burgers-v0", params=LorenzParams())
     with pytest.raises(TypeError, match="unknown parameter 'compile'"):
         beacon_torch.make("burgers-v0", params={"compile": True})
 
@@ -220,4 +220,4 @@ def test_published_rayleigh_start_has_the_published_nusselt_number():
     for start in ("published", "generated"):
         env = beacon_torch.make("rayleigh-v0", 1, dtype=torch.float64, start=start)
         env.reset()
-        assert nusselt(env.state.theta, env.dy).item() == pytest.approx(2.16, rel=0.01)
+        assert nusselt(env.state.theta, env.physics.dy).item() == pytest.approx(2.16, rel=0.01)

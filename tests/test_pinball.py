@@ -12,7 +12,7 @@ import torch
 
 import beacon_torch
 from beacon_torch.envs import pinball
-from beacon_torch.registry import env_class
+from beacon_torch.registry import env_spec
 
 from conftest import random_policy_file, script
 
@@ -59,7 +59,7 @@ def test_forcing_gives_a_turning_cylinder_its_rigid_rotation():
 
 
 def test_turning_cylinders_spend_power_and_feel_the_torque_against_them():
-    env = beacon_torch.make("pinball-v0", 2, dtype=torch.float64, **pinball.PinballEnv.test_settings)
+    env = beacon_torch.make("pinball-v0", 2, dtype=torch.float64, **pinball.CARD.test_settings)
     td = env.reset()
     action = torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0]], dtype=torch.float64)
     td = env.step(td.set("action", action))["next"]
@@ -209,8 +209,7 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
     beside it spends none, and a non-wake env is refused in one line."""
     import numpy as np
 
-    for cls in (pinball.PinballPhysics, pinball.PinballEnv):  # short episodes: the test's time
-        monkeypatch.setattr(cls, "episode_length", 6)
+    monkeypatch.setattr(pinball.PinballPhysics, "episode_length", 6)  # short episodes: the test's time
 
     control = script("experiments/wake_control.py")
     params = {"cells_per_diameter": 10}
@@ -345,4 +344,4 @@ def test_the_recorded_policies_boat_tail_past_the_base_flows_reference_as_the_pa
         assert seen["omega_top"][50:].mean() < 0 < seen["omega_bottom"][50:].mean()
         assert (seen["drag"] + seen["power"]).mean() < seen["uncontrolled_drag"].mean()
         assert row["score_episode"] > record["reference"] and policy["score"] == pytest.approx(row["score_episode"])
-    assert env_class(row["env"]).paper_ppo is None
+    assert env_spec(row["env"]).card.paper_ppo is None

@@ -1,6 +1,8 @@
 """Shipped policies (``beacon_torch.pretrained``): every one loads and acts in its env's
 action spec; the export folds a training's observation normalisation into the network."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -148,7 +150,12 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     (again,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
     assert again["recorded"] == 2.0 and again["seconds"] != row["seconds"] and "| 2 |" in page.read_text()
     # an env whose card has no paper score: its scores stand, not normalised
-    monkeypatch.setattr(beacon_torch.registry.env_class("vortex-v0"), "paper_ppo", None)
+    spec = beacon_torch.registry.ENVS["vortex-v0"]  # a card without the paper's score
+    monkeypatch.setitem(
+        beacon_torch.registry.ENVS,
+        "vortex-v0",
+        dataclasses.replace(spec, card=dataclasses.replace(spec.card, paper_ppo=None)),
+    )
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     (bare,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
     assert bare["normalised"] is bare["test_normalised"] is None and bare["score"] == again["score"]

@@ -25,7 +25,7 @@ CAVITY_CHECK = settings(CHECK, max_examples=4)
 
 def member_params(env_id: str) -> list:
     """The parameters that may differ per member (the others fix the grid or a start)."""
-    fields = dataclasses.fields(beacon_torch.registry.ENVS[env_id].Params)
+    fields = dataclasses.fields(beacon_torch.registry.ENVS[env_id].physics.Params)
     return [f for f in fields if f.metadata["per_member"] and f.metadata["kind"] in ("real", "complex")]
 
 
@@ -85,7 +85,7 @@ def test_valid_parameters_and_any_actions_stay_finite_or_end_cleanly(env_id):
             assert torch.isfinite(obs).all() and torch.isfinite(reward).all(), params
             terminated = out["terminated"][:, 0]
             fresh = terminated & ~ended
-            assert (reward.reshape(MEMBERS, -1)[fresh] == env.blowup_reward).all()
+            assert (reward.reshape(MEMBERS, -1)[fresh] == env.physics.blowup_reward).all()
             ended |= terminated
             td = out
 

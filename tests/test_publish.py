@@ -4,6 +4,7 @@ the summary beside them; a summary that says otherwise is refused in one line na
 it, and nothing in the repository changes."""
 
 import copy
+import dataclasses
 import json
 import math
 
@@ -11,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import beacon_torch
 from beacon_torch.training.config import PPOConfig, configure
 from beacon_torch.training.evaluation import summarise
 
@@ -116,11 +118,15 @@ def test_a_pair_of_an_env_without_a_paper_score_is_published_and_listed_by_its_o
     """A case from beyond the paper has no paper score on its card: its pair is
     published all the same (checked like any other), and the results page lists its
     scores beside no control outside the normalised protocol, which still refuses it."""
-    from beacon_torch.registry import env_class
     from beacon_torch.training import report
 
     recorded, images, shipped = repo
-    monkeypatch.setattr(env_class("short-lorenz-v0"), "paper_ppo", None)
+    spec = beacon_torch.registry.ENVS["short-lorenz-v0"]  # a card without the paper's score
+    monkeypatch.setitem(
+        beacon_torch.registry.ENVS,
+        "short-lorenz-v0",
+        dataclasses.replace(spec, card=dataclasses.replace(spec.card, paper_ppo=None)),
+    )
     with pytest.raises(ValueError, match="its eval_mean 5.0 is not what its seeds give"):
         reproduce.publish(
             forged(pair, tmp_path / "forged", lambda s: s.update(eval_mean=5.0)), recorded, images, shipped

@@ -473,7 +473,7 @@ def test_every_env_trains_with_the_papers_algorithms(env_id, algo, tmp_path, mon
         monkeypatch.setattr(
             training_env,
             "make_env",
-            functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].test_settings),
+            functools.partial(training_env.make_env, **beacon_torch.registry.ENVS[env_id].card.test_settings),
         )
 
     tiny = dict(

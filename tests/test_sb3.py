@@ -70,7 +70,7 @@ def test_vec_env_blow_up_is_a_termination_not_a_time_limit():
         if done[1]:
             break
     assert done[1] and not done[0]
-    assert reward[1] == venv.env.blowup_reward
+    assert reward[1] == venv.env.physics.blowup_reward
     assert infos[1]["TimeLimit.truncated"] is False and np.isfinite(infos[1]["terminal_observation"]).all()
     assert "terminal_observation" not in infos[0]
     assert np.isfinite(obs).all() and venv.env.step_count[1] == 0

@@ -33,11 +33,11 @@ def rollout(env_id: str) -> dict[str, list]:
     """Observations and rewards of ``MEMBERS`` members over a few random actions (two of
     a cavity), float64, the env's test settings."""
     cls = ENVS[env_id]
-    env = cls(MEMBERS, dtype=torch.float64, seed=SEED, **cls.test_settings)
+    env = cls(MEMBERS, dtype=torch.float64, seed=SEED, **cls.card.test_settings)
     g = torch.Generator().manual_seed(SEED)
     obs = [env.reset_members().tolist()]
     rewards = []
-    for _ in range(2 if cls.costly else 10):
+    for _ in range(2 if cls.card.costly else 10):
         o, r, _, _ = env.step_members(env.random_action(g))
         obs.append(o.tolist())
         rewards.append(r.tolist())

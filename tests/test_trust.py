@@ -954,7 +954,7 @@ def test_state_dicts_and_states_are_checked_for_what_they_claim():
     # never reset: the shapes come from the start it would take, its generator untouched
     rng = env.rng.get_state()
     with pytest.raises(ValueError, match="state.u must have shape \\(2, 500\\)"):
-        env.set_state({k: torch.zeros(2, 3) for k in env.state_type._fields})
+        env.set_state({k: torch.zeros(2, 3) for k in env.physics.state_type._fields})
     assert torch.equal(env.rng.get_state(), rng)
     with pytest.raises(
         KeyError, match="lacks \\['state.u', 'state.u_prev', 'state.a', 'rng', 'action_rng', 'params'\\]"
@@ -972,18 +972,14 @@ def test_state_dicts_and_states_are_checked_for_what_they_claim():
 
 
 def test_an_env_whose_observe_disagrees_with_its_sizes_is_named(tmp_path):
-    from beacon_torch.envs.lorenz import LorenzEnv, LorenzPhysics
+    from beacon_torch.envs.lorenz import CARD, LorenzPhysics
     from beacon_torch.testing import ConformanceError, check_flow_env
 
     class NarrowPhysics(LorenzPhysics):
         def observe(self, p, state):
             return super().observe(p, state)[:, :3]
 
-    class Narrow(LorenzEnv):
-        env_id = "narrow-lorenz-v0"
-        physics_type = NarrowPhysics
-
-    beacon_torch.register("narrow-lorenz-v0", Narrow)
+    beacon_torch.register("narrow-lorenz-v0", NarrowPhysics, CARD)
     try:
         with pytest.raises(
             ValueError, match="observe\\(\\) returned shape \\(2, 3\\), the observation spec says \\(2, 6\\)"
@@ -994,13 +990,12 @@ def test_an_env_whose_observe_disagrees_with_its_sizes_is_named(tmp_path):
         ):
             check_flow_env("narrow-lorenz-v0", checks=["specs"])
         with pytest.raises(ValueError, match="its default parameters: .*'rho'"):
-            beacon_torch.register("bad-lorenz-v0", LorenzEnv, rho=-5.0)
+            beacon_torch.register("bad-lorenz-v0", LorenzPhysics, rho=-5.0)
         with pytest.raises(TypeError, match="default differentiable must be True or False"):
-            beacon_torch.register("bad-lorenz-v1", LorenzEnv, differentiable="yes")
+            beacon_torch.register("bad-lorenz-v1", LorenzPhysics, differentiable="yes")
         assert "bad-lorenz-v0" not in beacon_torch.registry.ENVS
     finally:
         beacon_torch.registry.ENVS.pop("narrow-lorenz-v0", None)
-        beacon_torch.registry.DEFAULTS.pop("narrow-lorenz-v0", None)
 
 
 def test_small_misuses_are_clear_errors():

@@ -26,14 +26,16 @@ BEGIN, END = "<!-- the house: tools/house.py -->", "<!-- end of the house -->"
 LAYERS = [
     # what needs nothing of the library: files, checks of received data, parameters,
     # the compiled-call helpers, figures, argument types, the numerics
-    ("foundations", {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics", "card"}),
-    # the core: the physics' interface and the step function, the env machinery and
-    # its caches, starts and bookkeeping, the multi-agent layout
-    ("core", {"cache", "starts", "history", "autograd", "core", "base", "episodes", "agents"}),
-    # the physics of each case
+    ("foundations", {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics"}),
+    # the core: the physics' interface, the step function, the card, the state's
+    # vocabulary, the checks and saved state of an env, cached starts, the history
+    ("core", {"cache", "starts", "history", "autograd", "core"}),
+    # the physics of each case, its card and its frame
     ("cases", {"envs"}),
-    # the registry and what works on any registered env
-    ("registry", {"registry", "__init__", "reference", "gradcheck", "bench", "threads"}),
+    # the ids: what each names, and the physics of an id as functions
+    ("registry", {"registry", "__init__", "reference", "threads"}),
+    # the TorchRL shell every env is (FlowEnv, make, the layouts) and what steps it
+    ("shell", {"base", "layout", "episodes", "gradcheck", "bench"}),
     # the adapters and the conformance kit that checks them
     ("adapters", {"gym", "sb3", "pettingzoo", "testing"}),
     # the training layer and the policies it ships
@@ -41,6 +43,10 @@ LAYERS = [
     # the command line
     ("commands", {"cli", "__main__"}),
 ]
+# the floors that import torch and never TorchRL: a case and its physics as functions
+# need nothing of the shell
+TORCH_ONLY = ("foundations", "core", "cases", "registry")
+SHELL_PACKAGES = ("torchrl", "tensordict")
 # the scripts above the package, one folder each
 SCRIPTS = ("recipes", "tools", "benchmarks", "validation", "experiments", "docs")
 
@@ -94,6 +100,32 @@ def imports(name: str, path: Path, known: set[str], annotations: bool = False) -
             continue
         found |= {t for t in targets if t in known and t != name}
     return found
+
+
+def outside(path: Path) -> set[str]:
+    """The top-level names of the packages outside this one that a module imports (every
+    ``import`` statement but those under ``TYPE_CHECKING``)."""
+    tree = ast.parse(path.read_text())
+    hidden = type_checking_only(tree)
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in hidden:
+            continue
+        if isinstance(node, ast.Import):
+            found |= {alias.name.split(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module.split(".")[0])
+    return found - {"beacon_torch"}
+
+
+def shell_imports() -> list[str]:
+    """The modules of the torch-only floors that import TorchRL or TensorDict."""
+    torch_only = {k for k, (floor, _) in enumerate(LAYERS) if floor in TORCH_ONLY}
+    return [
+        f"{name} (floor {LAYERS[layer(name)][0]}) imports {', '.join(sorted(outside(path) & set(SHELL_PACKAGES)))}"
+        for name, path in modules().items()
+        if layer(name) in torch_only and outside(path) & set(SHELL_PACKAGES)
+    ]
 
 
 def graph(annotations: bool = False) -> dict[str, set[str]]:
@@ -172,6 +204,8 @@ def floors_table() -> str:
         f"Circles: {len(circles)}; with the annotations' imports, {len(circles_hints)}"
         + (" (" + "; ".join(" <-> ".join(c) for c in circles_hints) + ")" if circles_hints else "")
         + ".",
+        f"Modules of the torch-only floors ({', '.join(TORCH_ONLY)}) that import TorchRL or TensorDict: "
+        f"{len(shell_imports())}.",
     ]
     return "\n".join(rows + said)
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from beacon_torch import files, pretrained, received, threads
 from beacon_torch.arguments import find_user_modules, load_script, positive
-from beacon_torch.registry import ENVS, env_class
+from beacon_torch.registry import ENVS, env_spec
 from beacon_torch.training import report
 from beacon_torch.training.config import CONFIGS, configure, paper_frames, quiet_torchrl
 from beacon_torch.training.evaluation import plot_runs, summarise, summary_of
@@ -242,10 +242,10 @@ def results_block(recorded: Path, page: Path, images: Path) -> str:
     for s in summaries:
         if (
             s["algo"] == "ppo"
-            and env_class(s["env"]).base_id() == s["env"]
-            and env_class(s["env"]).paper_ppo is not None
+            and env_spec(s["env"]).base_id() == s["env"]
+            and env_spec(s["env"]).card.paper_ppo is not None
         ):
-            floor, best = env_class(s["env"]).paper_ppo, max(seed["eval"] for seed in s["seeds"])
+            floor, best = env_spec(s["env"]).card.paper_ppo, max(seed["eval"] for seed in s["seeds"])
             met = "met" if s["train_mean"] >= floor and best >= floor else "**missed**"
             floors.append(
                 f"| {s['env']} | {floor:g} | {s['train_mean']:.4g} | {best:.4g} | {s['frames']:,} "

@@ -57,7 +57,7 @@ def measure(env_id: str, batch: int, seed: int) -> list[str]:
     done = rollout["next", "done"][..., 0]
     terminated = (rollout["next", "terminated"][..., 0] & (done.cumsum(-1) == done.to(torch.int64))).any(-1)
     lines = [
-        f"{env_id} (batch {batch}, seed {seed}, blow-up reward {env.blowup_reward}, "
+        f"{env_id} (batch {batch}, seed {seed}, blow-up reward {env.physics.blowup_reward}, "
         f"{time.perf_counter() - start:.0f} s)"
     ]
     for k, name in enumerate(named):

@@ -18,7 +18,7 @@ import argparse
 from beacon_torch.gradcheck import check_env
 from beacon_torch.registry import ENVS
 
-CHECKED = [env_id for env_id, cls in ENVS.items() if cls.gradcheck is not None]
+CHECKED = [env_id for env_id, cls in ENVS.items() if cls.card.gradcheck is not None]
 
 
 def main(argv=None) -> None:
@@ -28,7 +28,7 @@ def main(argv=None) -> None:
     print("| env | derivative | autograd | central differences | relative error | actions (warm-up + differentiated) |")
     print("|---|---|---|---|---|---|")
     for env_id in args.envs:
-        case = ENVS[env_id].gradcheck
+        case = ENVS[env_id].card.gradcheck
         result = check_env(env_id)
         for what, d in result.items():
             print(

@@ -22,7 +22,7 @@ import torch
 
 from beacon_torch import reference
 from beacon_torch.files import create_file, refuse_existing
-from beacon_torch.registry import env_class
+from beacon_torch.registry import env_spec
 
 
 def main() -> None:
@@ -40,7 +40,9 @@ def main() -> None:
     ]
     for env_id in args.env_ids:
         # the envs with a choice of Poisson solver replay with each
-        solvers = ("direct", "jacobi") if "solver" in {f.name for f in fields(env_class(env_id).Params)} else (None,)
+        solvers = (
+            ("direct", "jacobi") if "solver" in {f.name for f in fields(env_spec(env_id).physics.Params)} else (None,)
+        )
         for solver in solvers:
             start = time.perf_counter()
             agreement = reference.replay(env_id, **({"solver": solver} if solver else {}))

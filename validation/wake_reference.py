@@ -53,7 +53,8 @@ def held(env_id: str, base_flow: dict, params: dict) -> tuple[float, float]:
         cd_base = base_flow["rows"][0]["cd_base"]
         return cd_base, float(cylinder_rewards(cd_base, 0.0))
     if env_id.startswith("pinball"):
-        level = ENVS[env_id].Params(**params)
+        spec = ENVS[env_id]
+        level = spec.physics.Params(**{**spec.physical_defaults(), **params})
         cells, re = int(level.cells_per_diameter), float(level.re)
         for row in base_flow["rows"]:
             for found in row["levels"] if row["cells_per_diameter"] == cells else []:

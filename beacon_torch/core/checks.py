@@ -113,7 +113,7 @@ class Checks:
     def _check_memory(self) -> None:
         """Refuse a batch whose states would not fit in the device's free memory, before
         anything of its size is allocated."""
-        check_memory(self.env_id, self)
+        check_memory(self.env_id, self.physics)
 
     def to(self, *args, **kwargs) -> Checks:
         """The env itself: its state, generator and kernels live on the device it was
@@ -236,11 +236,11 @@ class Checks:
         fields) as the env's state type in its dtype and on its device, its fields,
         shapes and values checked; and the fields that require grad."""
         name = self.env_id or type(self).__name__
-        fields = self.state_type._fields
-        if isinstance(state, self.state_type):
+        fields = self.physics.state_type._fields
+        if isinstance(state, self.physics.state_type):
             state = state._asdict()
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-            raise TypeError(f"{name}: set_state needs a {self.state_type.__name__} of tensors like env.state")
+            raise TypeError(f"{name}: set_state needs a {self.physics.state_type.__name__} of tensors like env.state")
         missing = sorted(set(fields) - set(state))
         extra = sorted(set(state) - set(fields))
         if missing or extra:
@@ -263,7 +263,7 @@ class Checks:
             )
         # every state is of the env's dtype (integers given are cast), as its specs say;
         # its values are checked after the cast (1e39 is finite in float64 only)
-        state = self.state_type(*(state[k].to(self.device, self.dtype) for k in fields))
+        state = self.physics.state_type(*(state[k].to(self.device, self.dtype) for k in fields))
         for key, value in state._asdict().items():
             if not bool(torch.isfinite(value.detach()).all()):
                 raise ValueError(f"{name}: state.{key} has values that are not finite in {self.dtype}")
@@ -313,10 +313,10 @@ class Checks:
     def _check_type(self, state: Any) -> None:
         """Refuse a start that is not of the env's state type (a physics whose
         ``initial_state`` returns a dict or a tuple)."""
-        if type(state) is not self.state_type:
+        if type(state) is not self.physics.state_type:
             raise TypeError(
                 f"{self.env_id}: initial_state returned a {type(state).__name__}, not the env's "
-                f"state type {self.state_type.__name__}"
+                f"state type {self.physics.state_type.__name__}"
             )
 
     def _check_start(self, state: Any, obs: torch.Tensor) -> None:

@@ -44,7 +44,7 @@ class Saving:
         state = {key.removeprefix("state."): value for key, value in state_dict.items() if key.startswith("state.")}
         entries = ("count", "rng", "action_rng", "params")
         unknown = set(state_dict) - {f"state.{k}" for k in state} - set(entries)
-        missing = [] if state else [f"state.{k}" for k in self.state_type._fields]
+        missing = [] if state else [f"state.{k}" for k in self.physics.state_type._fields]
         missing += [key for key in entries if key not in state_dict and (key != "count" or state)]
         if strict and (unknown or missing):
             raise KeyError(

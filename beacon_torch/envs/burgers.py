@@ -17,7 +17,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
+from beacon_torch.core.card import Card, FrameInputs, GradCheck
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise
 from beacon_torch.numerics import bdf2_explicit_step, tvd_derivative, van_leer
 from beacon_torch.params import param
 
@@ -124,25 +126,25 @@ class BurgersPhysics(Physics):
         return state.u[:, self.ctrl - N_OBS : self.ctrl]
 
 
-class BurgersEnv(FlowEnv):
-    """Batched burgers-v0 (1 continuous action: the point forcing)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The velocity profile, the forcing's place and the target."""
+    from beacon_torch.render import burgers_frame
 
-    env_id = "burgers-v0"
-    physics_type = BurgersPhysics
-    family = "1-D"
-    published_speed = 2_670.0
-    speed_target = 5.0
-    paper_ppo = -1.75
+    last = f.states[-1]
+    u = last.u.double().numpy()
+    x = DX * np.arange(f.physics.n_cells)
+    t = DT * SUBSTEPS * f.step
+    u_target = float(f.params.u_target[f.member])
+    return burgers_frame(x, u, f.physics.ctrl * DX, u_target, float(last.a), t)
+
+
+CARD = Card(
+    family="1-D",
+    published_speed=2_670.0,
+    speed_target=5.0,
+    paper_ppo=-1.75,
     # the reward region sees the inlet noise after about 40 actions (before, |u - 0.5|
     # sits on its kink everywhere there)
-    gradcheck = GradCheck("u_target", 0.5, warmup=60, steps=4)
-
-    def render_frame(self, history: list[BurgersState], step: int) -> np.ndarray:
-        from beacon_torch.render import burgers_frame
-
-        last = history[-1]
-        u = last.u.double().numpy()
-        x = DX * np.arange(self.n_cells)
-        t = DT * SUBSTEPS * step
-        u_target = float(self.params.u_target[self.render_index])
-        return burgers_frame(x, u, self.ctrl * DX, u_target, float(last.a), t)
+    gradcheck=GradCheck("u_target", 0.5, warmup=60, steps=4),
+    frame=frame,
+)

@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, Physics, State
+from beacon_torch.core.card import FrameInputs
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import State
 from beacon_torch.numerics.grid import NEUMANN, Ghosts
 from beacon_torch.numerics.projection import Cavity, Flow
 
@@ -165,38 +167,35 @@ class CavityPhysics(Physics):
         return state.probes.flatten(1)
 
 
-class CavityEnv(FlowEnv):
-    """Base of the cavity envs: their card and their frames."""
+def cavity_frame(
+    name: str,
+    actuation: Callable[[Any, State], np.ndarray],
+    scalar_range: Callable[[Any, int], tuple[float, float]],
+    action_labels: Sequence[str] | None = None,
+) -> Callable[..., np.ndarray]:
+    """The frame function of a cavity env (its card's ``frame``): the scalar's field and
+    the velocity of the last state, titled ``name``, with the bars ``actuation(physics,
+    state)`` (named ``action_labels``, else numbered) and the colour range
+    ``scalar_range(params, member)``."""
 
-    family = "2-D"
-    costly = True  # an action is tens of substeps of a 2-D projection
-    # the names of the actuation bars of a frame (None: numbered)
-    action_labels: ClassVar[Sequence[str] | None] = None
-
-    def actuation(self, state: State) -> np.ndarray:
-        """The actuation bars of a frame of one member's ``state``."""
-        raise NotImplementedError
-
-    def scalar_range(self) -> tuple[float, float]:
-        """The colour range of the scalar in the frames of member ``render_index``."""
-        raise NotImplementedError
-
-    def render_frame(self, history: list[State], step: int) -> np.ndarray:
+    def frame(f: FrameInputs) -> np.ndarray:
         from beacon_torch.render import cavity_frame
 
-        last = history[-1]
-        vmin, vmax = self.scalar_range()
+        last, physics = f.states[-1], f.physics
+        vmin, vmax = scalar_range(f.params, f.member)
         return cavity_frame(
-            self.env_id.split("-")[0],
-            getattr(last, self.scalar)[1:-1, 1:-1].double().numpy(),
+            name,
+            getattr(last, physics.scalar)[1:-1, 1:-1].double().numpy(),
             last.u.double().numpy(),
             last.v.double().numpy(),
-            self.params.L,
-            self.params.H,
-            self.actuation(last),
-            t=self.dt * self.substeps * step,
-            scalar_label=self.scalar,
+            f.params.L,
+            f.params.H,
+            actuation(physics, last),
+            t=physics.dt * physics.substeps * f.step,
+            scalar_label=physics.scalar,
             vmin=vmin,
             vmax=vmax,
-            action_labels=self.action_labels,
+            action_labels=action_labels,
         )
+
+    return frame

@@ -27,9 +27,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
 from beacon_torch.cache import cached
-from beacon_torch.card import PHYSICAL_LIMIT, Reference
+from beacon_torch.core.card import PHYSICAL_LIMIT, Card, FrameInputs, GradCheck, Reference
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise
 from beacon_torch.params import param
 
 DT = 0.05
@@ -239,7 +240,7 @@ class KSPhysics(Physics):
     def setup(self, p) -> None:
         self.L, self.n, self.sigma = float(p.L), int(p.n), float(p.sigma)
         self._weights = self.tensor(stage_matrices(self.L, self.n, self.sigma))
-        self._target = self.tensor(equilibrium(p.target, self.L, self.n))
+        self.target = self.tensor(equilibrium(p.target, self.L, self.n))
         self._sensors = slice(0, self.n, self.n // N_SENSORS)
         self._starts = None
         self._step = self.kernels(ks_step)
@@ -265,13 +266,13 @@ class KSPhysics(Physics):
 
     def advance(self, p, state: KSState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         u = self._step(state.u, self.member(p.amp) * action, self._weights)
-        reward = -torch.linalg.vector_norm(u - self._target, dim=-1)
+        reward = -torch.linalg.vector_norm(u - self.target, dim=-1)
         return KSState(u=u, a=action), reward
 
     def diagnose(self, p, state: KSState) -> dict[str, torch.Tensor]:
         u = state.u
         return {
-            "distance": torch.linalg.vector_norm(u - self._target, dim=-1),
+            "distance": torch.linalg.vector_norm(u - self.target, dim=-1),
             "energy": 0.5 * (u * u).mean(-1),
             "mean": u.mean(-1),
         }
@@ -280,21 +281,22 @@ class KSPhysics(Physics):
         return state.u[:, self._sensors]
 
 
-class KSEnv(FlowEnv):
-    """Batched ks-v0 (4 continuous actions: the actuators' amplitudes)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The field against the target equilibrium, and the actuators' amplitudes."""
+    from beacon_torch.render import ks_frame
 
-    env_id = "ks-v0"
-    physics_type = KSPhysics
-    family = "1-D"
+    last, physics = f.states[-1], f.physics
+    x = physics.L * np.arange(physics.n) / physics.n
+    target = physics.target.double().numpy()
+    return ks_frame(x, last.u.double().numpy(), target, last.a.double().numpy(), DT * f.step)
+
+
+CARD = Card(
+    family="1-D",
     # no published controller's distance can be read; the distance cannot go below 0
-    reference = Reference(
+    reference=Reference(
         PHYSICAL_LIMIT, "the target equilibrium held exactly from the first action: distance 0", score=0.0
-    )
-    gradcheck = GradCheck("amp", 0.5, warmup=20, steps=5)
-
-    def render_frame(self, history: list[KSState], step: int) -> np.ndarray:
-        from beacon_torch.render import ks_frame
-
-        last = history[-1]
-        x = self.L * np.arange(self.n) / self.n
-        return ks_frame(x, last.u.double().numpy(), self._target.double().numpy(), last.a.double().numpy(), DT * step)
+    ),
+    gradcheck=GradCheck("amp", 0.5, warmup=20, steps=5),
+    frame=frame,
+)

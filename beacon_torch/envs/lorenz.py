@@ -20,13 +20,16 @@ scored, logged and evaluated on the published reward.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
+from beacon_torch.core.card import Card, FrameInputs, GradCheck
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -142,27 +145,16 @@ class LorenzContinuousPhysics(LorenzPhysics):
     null_action = Physics.null_action
 
 
-class LorenzEnv(FlowEnv):
-    """Batched lorenz-v0 (discrete forcing in {-1, 0, +1})."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The trajectory of a member's episode so far, and its forcing."""
+    from beacon_torch.render import lorenz_frame
 
-    env_id = "lorenz-v0"
-    physics_type = LorenzPhysics
-    family = "ode"
-    published_speed = 62_300.0
-    speed_target = 20.0
-    paper_ppo = 400.0
-
-    def render_frame(self, history: list[LorenzState], step: int) -> np.ndarray:
-        from beacon_torch.render import lorenz_frame
-
-        xyz = torch.stack([s.xyz for s in history]).double().numpy()
-        return lorenz_frame(xyz, float(history[-1].u), t=DT * step)
+    xyz = torch.stack([s.xyz for s in f.states]).double().numpy()
+    return lorenz_frame(xyz, float(f.states[-1].u), t=DT * f.step)
 
 
-class LorenzContinuousEnv(LorenzEnv):
-    """lorenz-continuous-v0: the same system with a forcing u = action in [-1, 1]."""
-
-    env_id = "lorenz-continuous-v0"
-    physics_type = LorenzContinuousPhysics
-    # the indicator reward has no gradient: its smooth version (docs/gradients.md)
-    gradcheck = GradCheck("rho", 28.0, warmup=10, steps=20, params={"reward_width": 1.0})
+CARD = Card(family="ode", published_speed=62_300.0, speed_target=20.0, paper_ppo=400.0, frame=frame)
+# the indicator reward has no gradient: its smooth version (docs/gradients.md)
+CONTINUOUS_CARD = dataclasses.replace(
+    CARD, gradcheck=GradCheck("rho", 28.0, warmup=10, steps=20, params={"reward_width": 1.0})
+)

@@ -16,14 +16,15 @@ mean distance of c from its perfectly mixed value.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
-from beacon_torch.base import GradCheck, Noise
-from beacon_torch.envs.cavity import N_OBS, CavityEnv, CavityPhysics, transport
+from beacon_torch.core.card import Card, GradCheck
+from beacon_torch.core.state import Noise
+from beacon_torch.envs.cavity import N_OBS, CavityPhysics, cavity_frame, transport
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
 from beacon_torch.numerics.projection import Cavity, Flow
 from beacon_torch.numerics.staggered import project
@@ -184,30 +185,20 @@ class MixingContinuousPhysics(MixingPhysics):
         return a
 
 
-class MixingEnv(CavityEnv):
-    """Batched mixing-v0 (4 discrete actions: which walls move, which way)."""
-
-    env_id = "mixing-v0"
-    physics_type = MixingPhysics
-    published_speed = 3.7
-    speed_target = 30.0
-    paper_ppo = -12.0
+CARD = Card(
+    family="2-D",
+    costly=True,  # an action is tens of substeps of a 2-D projection
+    published_speed=3.7,
+    speed_target=30.0,
+    paper_ppo=-12.0,
     # a 30 x 30 cavity of the same scheme and the same probes, a tenth of the published
     # grid's cost
-    test_settings = {"L": 0.3, "H": 0.3, "side": 0.2}
-    action_labels = ("u_b", "u_t", "v_l", "v_r")
-
-    def actuation(self, state: MixingState) -> np.ndarray:
-        return state.walls.double().numpy()
-
-    def scalar_range(self) -> tuple[float, float]:
-        return 0.0, float(self.params.c0[self.render_index])
-
-
-class MixingContinuousEnv(MixingEnv):
-    """mixing-continuous-v0: a in [-1, 1]^2 drives the bottom/top walls at
-    (+a0, -a0) u_max and the right/left walls at (+a1, -a1) u_max."""
-
-    env_id = "mixing-continuous-v0"
-    physics_type = MixingContinuousPhysics
-    gradcheck = GradCheck("re", 100.0, warmup=1, steps=1)
+    test_settings={"L": 0.3, "H": 0.3, "side": 0.2},
+    frame=cavity_frame(
+        "mixing",
+        lambda physics, state: state.walls.double().numpy(),
+        lambda params, member: (0.0, float(params.c0[member])),
+        ("u_b", "u_t", "v_l", "v_r"),
+    ),
+)
+CONTINUOUS_CARD = dataclasses.replace(CARD, gradcheck=GradCheck("re", 100.0, warmup=1, steps=1))

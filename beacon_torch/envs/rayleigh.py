@@ -27,15 +27,13 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
-from beacon_torch.agents import AgentsLayout
-from beacon_torch.base import GradCheck, Noise, map_state
 from beacon_torch.cache import cached
-from beacon_torch.card import PUBLISHED_RESULT, Reference
-from beacon_torch.envs.cavity import N_OBS, PROBED, CavityEnv, CavityPhysics, grid, transport
+from beacon_torch.core.card import PUBLISHED_RESULT, Card, GradCheck, Reference
+from beacon_torch.core.state import Noise, map_state
+from beacon_torch.envs.cavity import N_OBS, PROBED, CavityPhysics, cavity_frame, grid, transport
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, PERIODIC, VALUE, Ghosts, edge_offset
 from beacon_torch.numerics.projection import Cavity, Flow
 from beacon_torch.numerics.staggered import project
@@ -196,7 +194,7 @@ def developed_convection(
     # the physics of these parameters runs the substeps; its own start is never made
     given = {**dataclasses.asdict(p), "start": "generated"}
     cpu, f64 = torch.device("cpu"), torch.float64
-    p = resolve_params(type(p), given, batch_size=1, device=cpu, dtype=f64, env_id=RayleighEnv.env_id)
+    p = resolve_params(type(p), given, batch_size=1, device=cpu, dtype=f64, env_id="rayleigh-v0")
     physics = RayleighPhysics(p, 1, dtype=f64, device=cpu)
     g = torch.Generator().manual_seed(seed)
     flow = Flow(*rest_state(1, physics.nx, physics.ny, torch.float64, "cpu"))
@@ -315,21 +313,19 @@ class RayleighPhysics(CavityPhysics):
         return {"nusselt": nusselt(state.theta, self.dy), "kinetic_energy": self.kinetic_energy(state)}
 
 
-class RayleighEnv(CavityEnv):
-    """Batched rayleigh-v0 (one continuous action per bottom segment)."""
-
-    env_id = "rayleigh-v0"
-    physics_type = RayleighPhysics
-    published_speed = 13.8
-    speed_target = 20.0
-    paper_ppo = -130.0
-    gradcheck = GradCheck("ra", 1e4, warmup=0, steps=2)
-
-    def actuation(self, state: RayleighState) -> np.ndarray:
-        return (state.bottom.double().numpy()[:: self.nx // self.n_actions] - T_HOT) / C
-
-    def scalar_range(self) -> tuple[float, float]:
-        return T_COLD, T_HOT
+CARD = Card(
+    family="2-D",
+    costly=True,  # an action is tens of substeps of a 2-D projection
+    published_speed=13.8,
+    speed_target=20.0,
+    paper_ppo=-130.0,
+    gradcheck=GradCheck("ra", 1e4, warmup=0, steps=2),
+    frame=cavity_frame(
+        "rayleigh",
+        lambda physics, state: (state.bottom.double().numpy()[:: physics.nx // physics.n_actions] - T_HOT) / C,
+        lambda params, member: (T_COLD, T_HOT),
+    ),
+)
 
 
 # Vignon et al. (2023)'s channel: x in [0, 2 pi) periodic, y in [-1, 1], Ra = 1e4 and
@@ -383,6 +379,7 @@ class RayleighSeparablePhysics(RayleighPhysics):
     middle) and rewards ``[B, n_sgts]``."""
 
     Params = RayleighSeparableParams
+    episode_length = 200
     diagnostics = {
         "nusselt": "the whole flow's Nusselt number, (<v theta> - kappa d<theta>/dy) / (kappa dT / H)",
         "kinetic_energy": "half the mean squared speed in the flow",
@@ -440,26 +437,23 @@ class RayleighSeparablePhysics(RayleighPhysics):
         return {"nusselt": self.column_nusselt(p, state).mean(-1), "kinetic_energy": self.kinetic_energy(state)}
 
 
-class RayleighSeparableEnv(AgentsLayout, RayleighEnv):
-    """rayleigh-separable-v0: the bottom segments as agents of one convection flow
-    (Vignon et al. 2023), TorchRL's multi-agent layout (:class:`AgentsLayout`): each
-    agent observes the probes above its window of segments, sets its segment's
-    temperature and is rewarded by minus a mix of its own and the whole flow's Nusselt
-    numbers. The default is Vignon's channel; ``**BEACON`` gives rayleigh-v0's cavity."""
-
-    env_id = "rayleigh-separable-v0"
-    physics_type = RayleighSeparablePhysics
-    agent_name = "segment"
-    episode_length = 200
-    test_settings = {"period": 0.1}  # ten substeps an action
-    published_speed = None
-    speed_target = None
-    paper_ppo = None
-    # the agents' mean reward is minus the flow's Nusselt number, so its reduction is the
-    # score's; the share carries over where this grid's level differs from theirs
-    reference = Reference(
+# rayleigh-separable-v0: the bottom segments as agents of one convection flow (Vignon
+# et al. 2023) in TorchRL's multi-agent layout: each agent observes the probes above
+# its window of segments, sets its segment's temperature and is rewarded by minus a mix
+# of its own and the whole flow's Nusselt numbers. The default is Vignon's channel;
+# ``**BEACON`` gives rayleigh-v0's cavity.
+SEPARABLE_CARD = dataclasses.replace(
+    CARD,
+    test_settings={"period": 0.1},  # ten substeps an action
+    published_speed=None,
+    speed_target=None,
+    paper_ppo=None,
+    # the agents' mean reward is minus the flow's Nusselt number, so its reduction is
+    # the score's; the share carries over where this grid's level differs from theirs
+    reference=Reference(
         PUBLISHED_RESULT,
         "Vignon et al., Phys. Fluids 35 (2023): the multi-agent PPO's Nusselt number 2.0496 against 2.675 "
         "uncontrolled (their plotting script)",
         ratio=2.0496 / 2.675,
-    )
+    ),
+)

@@ -29,10 +29,11 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.agents import AgentsLayout
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
+from beacon_torch.core.card import Card, FrameInputs, GradCheck
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise, map_state, where_members
 from beacon_torch.numerics import (
     ab2_step,
     interpolated_action,
@@ -385,41 +386,30 @@ class ShkadovSeparablePhysics(ShkadovPhysics):
         return super().observe(p, state).reshape(self.num_envs, self.n_jets, -1)
 
 
-class ShkadovEnv(FlowEnv):
-    """Batched shkadov-v0 (one continuous action per jet)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The film's height and the jets' actions, over the space-time diagram of the
+    episode when it is recorded."""
+    from beacon_torch import render
 
-    env_id = "shkadov-v0"
-    physics_type = ShkadovPhysics
-    family = "1-D"
-    published_speed = 300.0
-    speed_target = 5.0
-    paper_ppo = -0.8
-    gradcheck = GradCheck("delta", 0.1, warmup=3, steps=3)
+    x = DX * np.arange(f.physics.n_cells)
+    h = torch.stack([s.h for s in f.states]).double().numpy()
+    actions = f.states[-1].u_prev.double().numpy().ravel()
+    jets_x = [DX * c for c in f.physics.jet_centres]
+    return render.shkadov_frame(x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS, f.step, space_time=f.recorded)
+
+
+# shkadov-separable-v0 has the same card: the jets as agents of TorchRL's multi-agent
+# layout, under the "agents" sub-TensorDict (agent dimension after the batch):
+# observation [B, n_jets, 10] (the flow rate upstream of each jet), action
+# [B, n_jets, 1] and reward [B, n_jets, 1] (each jet's own downstream flatness; their
+# mean is the shkadov-v0 reward); the done flags are shared, at the root
+CARD = Card(
+    family="1-D",
+    published_speed=300.0,
+    speed_target=5.0,
+    paper_ppo=-0.8,
+    gradcheck=GradCheck("delta", 0.1, warmup=3, steps=3),
     # a reset runs up to 3 uncontrolled actions instead of 400
-    test_settings = {"random_start": 3}
-
-    def render_frame(self, history: list[ShkadovState], step: int) -> np.ndarray:
-        from beacon_torch import render
-
-        x = DX * np.arange(self.n_cells)
-        h = torch.stack([s.h for s in history]).double().numpy()
-        actions = history[-1].u_prev.double().numpy().ravel()
-        jets_x = [DX * c for c in self.jet_centres]
-        return render.shkadov_frame(
-            x, h, jets_x, JET_HALF_WIDTH, actions, DT * SUBSTEPS, step, space_time=self.history.enabled
-        )
-
-
-class ShkadovSeparableEnv(AgentsLayout, ShkadovEnv):
-    """shkadov-separable-v0: the jets as agents sharing the physics.
-
-    Under the ``"agents"`` sub-TensorDict (TorchRL's multi-agent convention, agent
-    dimension after the batch): ``observation`` ``[B, n_jets, 10]`` (the flow rate
-    upstream of each jet), ``action`` ``[B, n_jets, 1]`` and ``reward`` ``[B, n_jets, 1]``
-    (each jet's own downstream flatness; their mean is the shkadov-v0 reward). The done
-    flags are shared, at the root. One policy applied per agent fits any ``n_jets``.
-    """
-
-    env_id = "shkadov-separable-v0"
-    physics_type = ShkadovSeparablePhysics
-    agent_name = "jet"
+    test_settings={"random_start": 3},
+    frame=frame,
+)

@@ -23,9 +23,11 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state, where_members
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
+from beacon_torch.core.card import Card, FrameInputs, GradCheck
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise, map_state, where_members
 from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
 from beacon_torch.params import param
 from beacon_torch.starts import PUBLISHED, choose_start, published_members, published_table, start_param
@@ -232,20 +234,20 @@ class SloshingPhysics(Physics):
         return ((h < H_MIN) | (h > H_MAX)).any(-1)
 
 
-class SloshingEnv(FlowEnv):
-    """Batched sloshing-v0 (1 continuous action: the tank acceleration)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The free surface in the tank and its acceleration."""
+    from beacon_torch.render import sloshing_frame
 
-    env_id = "sloshing-v0"
-    physics_type = SloshingPhysics
-    family = "1-D"
-    published_speed = 1_060.0
-    speed_target = 5.0
-    paper_ppo = -1.1
-    gradcheck = GradCheck("g", 9.81, warmup=5, steps=4)
+    last = f.states[-1]
+    x = f.physics.dx * (np.arange(f.physics.n_cells) + 0.5)
+    return sloshing_frame(x, last.h.double().numpy(), float(last.u_prev), DT_ACT * f.step)
 
-    def render_frame(self, history: list[SloshingState], step: int) -> np.ndarray:
-        from beacon_torch.render import sloshing_frame
 
-        last = history[-1]
-        x = self.dx * (np.arange(self.n_cells) + 0.5)
-        return sloshing_frame(x, last.h.double().numpy(), float(last.u_prev), DT_ACT * step)
+CARD = Card(
+    family="1-D",
+    published_speed=1_060.0,
+    speed_target=5.0,
+    paper_ppo=-1.1,
+    gradcheck=GradCheck("g", 9.81, warmup=5, steps=4),
+    frame=frame,
+)

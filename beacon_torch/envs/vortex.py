@@ -22,7 +22,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
+from beacon_torch.core.card import Card, FrameInputs, GradCheck
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise
 from beacon_torch.numerics import lsrk4_step
 from beacon_torch.params import param
 
@@ -163,20 +165,21 @@ class VortexPhysics(Physics):
         return torch.cat((state.ay, state.rate), -1)
 
 
-class VortexEnv(FlowEnv):
-    """Batched vortex-v0 (2 continuous actions: gain and phase of the feedback)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The cylinder's transverse position over the episode and the feedback's gain and
+    phase."""
+    from beacon_torch.render import vortex_frame
 
-    env_id = "vortex-v0"
-    physics_type = VortexPhysics
-    family = "ode"
-    published_speed = 6_560.0
-    speed_target = 20.0
-    paper_ppo = 38.0
-    gradcheck = GradCheck("re", 50.0, warmup=20, steps=20)
+    ay = torch.stack([s.ay for s in f.states]).double().numpy()
+    last = f.states[-1]
+    return vortex_frame(ay, float(last.k), float(last.phi), t=DT_ACT * f.step)
 
-    def render_frame(self, history: list[VortexState], step: int) -> np.ndarray:
-        from beacon_torch.render import vortex_frame
 
-        ay = torch.stack([s.ay for s in history]).double().numpy()
-        last = history[-1]
-        return vortex_frame(ay, float(last.k), float(last.phi), t=DT_ACT * step)
+CARD = Card(
+    family="ode",
+    published_speed=6_560.0,
+    speed_target=20.0,
+    paper_ppo=38.0,
+    gradcheck=GradCheck("re", 50.0, warmup=20, steps=20),
+    frame=frame,
+)

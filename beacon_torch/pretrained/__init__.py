@@ -30,8 +30,7 @@ from torch import nn
 
 from beacon_torch import received
 from beacon_torch.files import save_tensors
-from beacon_torch.params import check_params
-from beacon_torch.registry import ENVS, env_class
+from beacon_torch.registry import ENVS, env_spec
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import CHECKPOINT, MAX_HIDDEN, load_checkpoint
@@ -50,7 +49,7 @@ def split_name(name: str) -> tuple[str, str]:
     algo, sep, env_id = name.partition("/") if isinstance(name, str) else ("", "", "")
     if not sep or not algo or "/" in env_id:
         raise ValueError(f"a trained pair is named ALGO/ENV, like 'ppo/burgers-v0'; got {name!r}")
-    env_class(env_id)  # an unknown id: the registry's error
+    env_spec(env_id)  # an unknown id: the registry's error
     return algo, env_id
 
 
@@ -143,7 +142,7 @@ def _read(path: Path, env_id: str | None = None) -> tuple[dict, TensorDictModule
             raise ValueError(f"{path}: a policy of {record['env']}, not of {env_id}")
         params = record.get("params", {})
         try:
-            check_params(ENVS[record["env"]], params)
+            ENVS[record["env"]].check(params)
         except (TypeError, ValueError) as err:
             raise ValueError(f"{path}: its env parameters: {err}") from None
         env = make_env(record["env"], 1, norm_steps=0, **params)

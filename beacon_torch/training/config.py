@@ -23,10 +23,9 @@ from typing import ClassVar
 import beacon_torch
 from beacon_torch import threads
 from beacon_torch.arguments import find_user_modules, plain
-from beacon_torch.base import FlowEnv
 from beacon_torch.core.checks import as_device
-from beacon_torch.params import check_params, parse_assignments, resolved
-from beacon_torch.registry import ENVS, compiles_by_default, continuous_envs, env_class
+from beacon_torch.params import parse_assignments
+from beacon_torch.registry import ENVS, EnvSpec, compiles_by_default, continuous_envs, env_spec
 from beacon_torch.training.env import NORM_STEPS
 from beacon_torch.training.evaluation import HELD_OUT, learning_curve
 from beacon_torch.training.run import CHECKPOINT, MAX_HIDDEN, fits, load_checkpoint
@@ -488,32 +487,32 @@ class MPCConfig(Settings):
 CONFIGS = {cls.algo: cls for cls in (PPOConfig, TD3Config, SACConfig, DQNConfig, GradConfig, SHACConfig)}
 
 
-def unfit(cls: type[Settings], env: type[FlowEnv]) -> str | None:
+def unfit(cls: type[Settings], env: EnvSpec) -> str | None:
     """Why ``cls``'s algorithm cannot control ``env`` (its actions, its agents), or None."""
     trainer = issubclass(cls, Config)
-    if cls.action_kind == "continuous" and env.discrete:
+    if cls.action_kind == "continuous" and env.physics.discrete:
         twin = next((e for e in continuous_envs() if ENVS[e].base_id() == env.base_id()), None)
         hint = f" (use ppo or dqn{f', or {twin}' if twin else ''})" if trainer else (f" (use {twin})" if twin else "")
         return f"{cls.algo} needs continuous actions; {env.env_id} has discrete ones{hint}"
-    if cls.action_kind == "discrete" and not env.discrete:
+    if cls.action_kind == "discrete" and not env.physics.discrete:
         return f"{cls.algo} needs discrete actions; {env.env_id} has continuous ones (use ppo or td3)"
-    if isinstance(env.observation_key, tuple) and not cls.multi_agent:
+    if env.agents is not None and not cls.multi_agent:
         single = env.base_id() if env.base_id() != env.env_id else "its single-agent layout"
         use = f"use ppo, or {single}" if trainer else f"use {single}"
-        return f"{cls.algo} controls single-agent layouts; {env.env_id} has one agent per jet ({use})"
+        return f"{cls.algo} controls single-agent layouts; {env.env_id} has one agent per {env.agents} ({use})"
     return None
 
 
 def paper_algorithms(env_id: str) -> tuple[str, ...]:
     """The algorithms the paper trains on an env: PPO on every one, TD3 where the actions
     are continuous and DQN where they are discrete, on single-agent layouts."""
-    env = env_class(env_id)
+    env = env_spec(env_id)
     return tuple(cls.algo for cls in (PPOConfig, TD3Config, DQNConfig) if unfit(cls, env) is None)
 
 
 def paper_frames(env_id: str) -> int:
     """The paper's PPO budget of ``env_id``, the default budget of every algorithm."""
-    return PPO.get(env_class(env_id).base_id(), {}).get("frames", Config.frames)
+    return PPO.get(env_spec(env_id).base_id(), {}).get("frames", Config.frames)
 
 
 def defaults(cls: type[Settings], env_id: str) -> dict:
@@ -522,7 +521,7 @@ def defaults(cls: type[Settings], env_id: str) -> dict:
     # BEACON_TORCH_COMPILE=0 turns a table's compilation off too
     off = {} if compiles_by_default() else {"compile": False}
     budget = {"frames": int(paper_frames(env_id) * cls.budget_share)} if issubclass(cls, Config) else {}
-    return {**budget, **cls.table.get(env_class(env_id).base_id(), {}), **off}
+    return {**budget, **cls.table.get(env_spec(env_id).base_id(), {}), **off}
 
 
 def _typed(name: str, kind: str, value):
@@ -592,11 +591,11 @@ def check_settings(cfg: Settings) -> Settings:
             raise ValueError(
                 f"setting '{f.name}' must be one of {', '.join(map(repr, f.metadata['choices']))}, got {value!r}"
             )
-    env = beacon_torch.registry.env_class(cfg.env)
+    env = beacon_torch.registry.env_spec(cfg.env)
     for f in fields(cfg):
         if f.type == "dict":
             try:
-                check_params(env, {**cfg.params, **getattr(cfg, f.name)})
+                env.check({**cfg.params, **getattr(cfg, f.name)})
             except (TypeError, ValueError) as err:
                 raise ValueError(f"setting '{f.name}' ({f.metadata['flag']}): {err}") from None
     as_device(cfg.device)
@@ -658,7 +657,7 @@ def _check(cfg: Settings) -> Settings:
             "setting 'logger' = 'wandb' needs a Weights & Biases key (wandb login, or $WANDB_API_KEY), or "
             "WANDB_MODE=offline to log into the run directory only"
         )
-    env = beacon_torch.registry.env_class(cfg.env)
+    env = beacon_torch.registry.env_spec(cfg.env)
     # a collected batch is held whole (with the advantages, for PPO)
     fits(
         f"a collected batch of {cfg.per_round():,} transitions", 2 * cfg.per_round() * transition_bytes(env, cfg.params)
@@ -674,11 +673,11 @@ def _check(cfg: Settings) -> Settings:
     return cfg
 
 
-def transition_bytes(env: type[FlowEnv], params: dict) -> int:
+def transition_bytes(env: EnvSpec, params: dict) -> int:
     """About the bytes one stored transition of ``env`` takes in a replay buffer: the
     observation before and after, the action and the policy's output, rewards and
     returns (float32), the end flags and the trajectory's id."""
-    n_obs, n_actions = env.sizes(resolved(env, params))
+    n_obs, n_actions = env.sizes(params)
     return 4 * (2 * n_obs + 3 * n_actions + 4) + 6 + 8
 
 
@@ -747,7 +746,7 @@ def _env_of(argv: list[str] | None) -> str | None:
         return None
     try:
         env_id = beacon_torch.registry.resolve_id(known.env)
-        env_class(env_id)
+        env_spec(env_id)
         return env_id
     except (KeyError, ValueError, TypeError, ImportError):
         return None  # reported by the full parse

@@ -139,7 +139,7 @@ def make_collector(
             seed=seed + 7919 * (k + 1),
             norm=env.transform[0].state_dict(),
             dtype=base.dtype,
-            compile=base.kernels.options or False,
+            compile=base.physics.kernels.options or False,
             starts=base.starts,
             **(params or {}),
         )
@@ -215,7 +215,7 @@ def horizon_bytes(
             action.requires_grad_()
         with saved_storages() as saved:
             env.step_members(action)
-        return max(sum(saved.values()), env.member_floats() * env.dtype.itemsize)
+        return max(sum(saved.values()), env.physics.member_floats() * env.dtype.itemsize)
 
     whole = one_action(False)
     if not grad_checkpoint:

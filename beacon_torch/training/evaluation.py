@@ -149,7 +149,7 @@ def diagnostics_figure(env_id: str, controlled, uncontrolled, path: str | Path) 
     rollouts of the same starts, a new file: the mean over the members of the
     controlled episodes with their range, and of the uncontrolled ones dashed. A
     member's values stop where its episode ended."""
-    panels = [*beacon_torch.registry.ENVS[env_id].diagnostics, "reward"]
+    panels = [*beacon_torch.registry.ENVS[env_id].physics.diagnostics, "reward"]
     series = [
         (label, {name: _per_action(rollout, name) for name in panels})
         for label, rollout in (("controlled", controlled), ("uncontrolled", uncontrolled))
@@ -331,7 +331,7 @@ def _uncontrolled(env_id: str, progress: bool = True) -> float:
     """The uncontrolled score drawn beside curves: in the recipes' float32 (chaotic
     lorenz-v0 scores 238 there, 207 in float64); one episode where the physics is
     deterministic, else the mean of 16."""
-    num_envs = 1 if beacon_torch.registry.ENVS[env_id].deterministic else 16
+    num_envs = 1 if beacon_torch.registry.ENVS[env_id].physics.deterministic else 16
     ref = beacon_torch.make(env_id, num_envs, seed=0)
     title = f"{env_id} uncontrolled" if progress else None
     rollout = episodes.episode(ref, episodes.null_policy(ref), progress=title)

@@ -23,9 +23,9 @@ import numpy as np
 from scipy import stats
 
 from beacon_torch import received
-from beacon_torch.card import Reference
+from beacon_torch.core.card import Reference
 from beacon_torch.files import create_file, refuse_existing, save_figure, write_text
-from beacon_torch.registry import ENVS, env_class
+from beacon_torch.registry import ENVS, env_spec
 from beacon_torch.training.evaluation import CURVE_POINTS, summarise
 from beacon_torch.training.run import ALGORITHMS as RUN_ALGORITHMS
 
@@ -36,12 +36,12 @@ CONFIDENCE = 0.95
 def normalisable(env_id: str) -> bool:
     """Whether the protocol can normalise ``env_id``'s scores: its card gives the
     scale's "= 1" (the paper's PPO score or another declared reference)."""
-    return env_class(env_id).scale_reference() is not None
+    return env_spec(env_id).card.scale_reference() is not None
 
 
 def scale_reference(env_id: str) -> Reference:
     """The "= 1" of ``env_id``'s scores (its base env's for a variant), with its source."""
-    found = env_class(env_id).scale_reference()
+    found = env_spec(env_id).card.scale_reference()
     if found is None:
         raise ValueError(f"{env_id} has no reference on its card (paper_ppo or reference): nothing to normalise by")
     return found

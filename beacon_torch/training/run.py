@@ -45,7 +45,6 @@ from torchrl.record.loggers import CSVLogger
 
 from beacon_torch import files, received, threads
 from beacon_torch.core.checks import available_bytes
-from beacon_torch.params import check_params, resolved
 from beacon_torch.registry import ENVS
 from beacon_torch.training.env import sibling
 from beacon_torch.training.networks import NETWORKS
@@ -91,7 +90,7 @@ def checkpoint_bytes(env_id: str, params: dict, hidden: int) -> int:
     """The most bytes of tensors a checkpoint of a run on ``env_id`` whose networks are
     ``hidden`` wide can hold: :data:`NETWORK_COPIES` networks of three hidden layers
     fed an observation and an action, in float64, and the observation statistics."""
-    n_obs, n_actions = ENVS[env_id].sizes(resolved(ENVS[env_id], params))
+    n_obs, n_actions = ENVS[env_id].sizes(params)
     network = hidden * (n_obs + n_actions + 3 * hidden + 2 * n_actions + 8) + 2 * n_actions + 1
     return 8 * (NETWORK_COPIES * network + 2 * n_obs) + 2**16
 
@@ -134,7 +133,7 @@ def check_checkpoint(state, path: str | Path) -> None:
     if not isinstance(state["config"], dict) or not all(isinstance(k, str) for k in state["config"]):
         raise bad("'config' must be a dict of settings")
     try:
-        check_params(ENVS[state["env"]], state["config"].get("params", {}))
+        ENVS[state["env"]].check(state["config"].get("params", {}))
     except (TypeError, ValueError) as err:
         raise bad(f"its env parameters: {err}") from None
     policy = state["policy"]
@@ -147,9 +146,9 @@ def check_checkpoint(state, path: str | Path) -> None:
         raise bad(
             f"'policy' must name a network of {sorted(NETWORKS)} and a width in [1, {MAX_HIDDEN}], got {policy!r}"
         )
-    cls = ENVS[state["env"]]
-    n_obs, n_actions = cls.sizes(resolved(cls, state["config"].get("params", {})))
-    if isinstance(cls.observation_key, tuple):
+    spec = ENVS[state["env"]]
+    n_obs, n_actions = spec.sizes(state["config"].get("params", {}))
+    if spec.agents is not None:
         # a multi-agent layout (one action per agent) normalises each agent's share
         n_obs //= n_actions
     stored = sum(t.numel() * t.element_size() for t in received.tensors_in(state))
@@ -685,7 +684,7 @@ class Run:
                 f"{self.path}: a replay buffer of {capacity:,} transitions, not the {recorded!r} its settings give"
             )
         params = self.state["config"].get("params", {})
-        sizes = ENVS[self.env_id].sizes(resolved(ENVS[self.env_id], params))
+        sizes = ENVS[self.env_id].sizes(params)
         check_buffer(folder, capacity, max(*sizes, 1))
         # the transitions the checkpoint counted, oldest first (the buffer may hold more:
         # a stop between its save and the checkpoint's), into a buffer of the resumed size

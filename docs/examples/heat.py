@@ -9,8 +9,8 @@ dt = 0.4 dx^2 / kappa per action, 100 actions. The agent sees 4 thermometers and
 rewarded by minus the mean squared distance of the rod to T = 1 - 4 (x - 1/2)^2.
 
 Written as a user of beacon-torch would write a new case (docs/adding-an-env.md): one
-module (its physics and the env that shows it), registered with
-``beacon_torch.register`` and checked by the conformance kit.
+module of its state, its parameters, its physics and, as plain values, its card and its
+frame, registered with ``beacon_torch.register`` and checked by the conformance kit.
 """
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ import numpy as np
 import torch
 
 import beacon_torch
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics
+from beacon_torch.core.card import Card, FrameInputs, GradCheck
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise
 from beacon_torch.params import param
 
 N_CELLS = 32
@@ -69,8 +71,8 @@ class HeatPhysics(Physics):
 
     def setup(self, p) -> None:
         x = (torch.arange(N_CELLS + 2, dtype=self.dtype, device=self.device) - 0.5) * DX
-        self._x = x
-        self._target = 1.0 - 4.0 * (x - 0.5) ** 2
+        self.x = x
+        self.target = 1.0 - 4.0 * (x - 0.5) ** 2
         self._heater = torch.exp(-(((x[1:-1] - 0.3) / 0.05) ** 2))
         # kappa is one number for the batch (per_member=False): it fixes the time step
         self._kappa = float(p.kappa)
@@ -79,13 +81,13 @@ class HeatPhysics(Physics):
 
     def initial_state(self, p, generator, mask=None) -> HeatState:
         where = torch.rand((self.num_envs, 1), generator=generator, dtype=self.dtype, device=self.device)
-        bump = self.member(p.spot) * torch.exp(-(((self._x - where) / 0.1) ** 2))
+        bump = self.member(p.spot) * torch.exp(-(((self.x - where) / 0.1) ** 2))
         return HeatState(T=torch.nn.functional.pad(bump[:, 1:-1], (1, 1)))
 
     def advance(self, p, state: HeatState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         heating = self.member(p.power) * action * self._heater
         T = self._substeps(SUBSTEPS, state.T, heating, self._kappa, self._dt)
-        reward = -((T - self._target) ** 2).mean(-1)
+        reward = -((T - self.target) ** 2).mean(-1)
         return HeatState(T=T), reward
 
     def observe(self, p, state: HeatState) -> torch.Tensor:
@@ -95,27 +97,22 @@ class HeatPhysics(Physics):
         return state.T.abs().amax(-1) > 1e3
 
 
-class HeatEnv(FlowEnv):
-    """Batched heat-v0 (1 continuous action: the heater's power)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The rod's temperature against the target profile."""
+    from beacon_torch.render import new_figure, to_rgb
 
-    env_id = "heat-v0"
-    physics_type = HeatPhysics
-    # the card
-    family = "1-D"
-    gradcheck = GradCheck("power", 20.0, warmup=5, steps=3)
-
-    def render_frame(self, history: list[HeatState], step: int) -> np.ndarray:
-        from beacon_torch.render import new_figure, to_rgb
-
-        fig = new_figure()
-        ax = fig.add_axes((0.1, 0.14, 0.85, 0.74))
-        ax.plot(self._x.numpy(), self._target.numpy(), color="#555555", lw=0.6, ls="--")
-        ax.plot(self._x.numpy(), history[-1].T.double().numpy(), color="#d62728")
-        ax.set_ylim(-0.5, 2.0)
-        ax.set_xlabel("x")
-        ax.set_ylabel("T")
-        ax.set_title(f"heat   action {step}", fontsize=10)
-        return to_rgb(fig)
+    x, target = f.physics.x.cpu().numpy(), f.physics.target.cpu().numpy()
+    fig = new_figure()
+    ax = fig.add_axes((0.1, 0.14, 0.85, 0.74))
+    ax.plot(x, target, color="#555555", lw=0.6, ls="--")
+    ax.plot(x, f.states[-1].T.double().numpy(), color="#d62728")
+    ax.set_ylim(-0.5, 2.0)
+    ax.set_xlabel("x")
+    ax.set_ylabel("T")
+    ax.set_title(f"heat   action {f.step}", fontsize=10)
+    return to_rgb(fig)
 
 
-beacon_torch.register("heat-v0", HeatEnv)
+CARD = Card(family="1-D", gradcheck=GradCheck("power", 20.0, warmup=5, steps=3), frame=frame)
+
+beacon_torch.register("heat-v0", HeatPhysics, CARD)

@@ -91,7 +91,7 @@ from beacon_torch.envs.cylinder.channel import (
     step,
     wall_velocity,
 )
-from beacon_torch.envs.cylinder.env import CylinderEnv, CylinderParams, CylinderPhysics, CylinderState, jet_target
+from beacon_torch.envs.cylinder.env import CARD, CylinderParams, CylinderPhysics, CylinderState, jet_target
 from beacon_torch.envs.cylinder.validation import SCHAEFER_TUREK, shedding_figures
 from beacon_torch.numerics.bodies import DIFFUSION_LIMIT, Axis, ImmersedBoundary, probe_stencil, stable
 
@@ -142,5 +142,5 @@ __all__ = [
     "developed_shedding",
     "jet_target",
     "CylinderPhysics",
-    "CylinderEnv",
+    "CARD",
 ]

@@ -27,6 +27,7 @@ def main() -> None:
     from beacon_torch.envs import cylinder
     from beacon_torch.files import save_rows
     from beacon_torch.numerics import frequency_damping
+    from beacon_torch.params import resolve_params
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--time", type=float, default=12.0, help="time units of damping")
@@ -35,9 +36,11 @@ def main() -> None:
     parser.add_argument("--out", default="runs/cylinder_base_flow")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    env = cylinder.CylinderEnv(1, dtype=torch.float64)
-    channel, dt = env.channel, cylinder.DT
-    flow = cylinder.Flow(*(f[None] for f in env.physics._start(env.params)))
+    f64, cpu = torch.float64, torch.device("cpu")
+    params = resolve_params(cylinder.CylinderParams, {}, batch_size=1, device=cpu, dtype=f64, env_id="cylinder-v0")
+    physics = cylinder.CylinderPhysics(params, 1, dtype=f64)
+    channel, dt = physics.channel, cylinder.DT
+    flow = cylinder.Flow(*(f[None] for f in physics._start(params)))
     mean, steps = [], int(round(1.0 / dt))
     zero = torch.zeros(1, dtype=torch.float64)
     with torch.no_grad():
@@ -68,7 +71,7 @@ def main() -> None:
                 )
     last = history[-1]
     result = {
-        "cells_per_diameter": int(env.params.cells_per_diameter),
+        "cells_per_diameter": int(params.cells_per_diameter),
         "chi": args.chi,
         "delta": args.delta,
         "cd_base": last["cd"],

@@ -9,9 +9,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state
 from beacon_torch.cache import cached
-from beacon_torch.card import COMPUTED, Reference
+from beacon_torch.core.card import COMPUTED, Card, FrameInputs, GradCheck, Reference
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise, map_state
 from beacon_torch.envs.cylinder.channel import (
     CENTRE,
     DEVELOP_TIME,
@@ -169,13 +170,36 @@ class CylinderPhysics(Physics):
         return state.u.abs().flatten(1).amax(1) > 10.0 * U_MAX
 
 
-class CylinderEnv(FlowEnv):
-    """Batched cylinder-v0 (2 continuous actions: the two jets' flow rates)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The vorticity around the cylinder, its drag and lift, and the jets' rate."""
+    from matplotlib.patches import Circle
 
-    env_id = "cylinder-v0"
-    physics_type = CylinderPhysics
-    family = "2-D"
-    costly = True  # an action is 50 substeps of the 2-D flow
+    from beacon_torch.render import action_bars, new_figure, to_rgb
+
+    last, c = f.states[-1], f.physics.channel
+    x, y, vorticity = c.vorticity(last.u, last.v)
+    fig = new_figure(size=(8.0, 2.8))
+    ax = fig.add_axes((0.05, 0.16, 0.66, 0.7))
+    field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
+    ax.add_patch(Circle(CENTRE, RADIUS, color="0.3"))
+    ax.set_xlim(0.0, 1.2)
+    ax.set_ylim(0.0, HEIGHT)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+    fig.colorbar(field, cax=fig.add_axes((0.725, 0.2, 0.012, 0.62)), label="vorticity")
+    t = DT * SUBSTEPS * f.step
+    drag, lift = float(coefficient(last.drag)), float(coefficient(last.lift))
+    ax.set_title(f"cylinder   t = {t:.2f}   C_D = {drag:.3f}   C_L = {lift:+.3f}", fontsize=9)
+    # the bottom jet's rate is always the top's with the other sign: one bar says both
+    bars = fig.add_axes((0.86, 0.2, 0.1, 0.6))
+    action_bars(bars, [float(last.q) / Q_MAX], ["top jet Q"], [(-1.0, 1.0)])
+    bars.set_title("jets (bottom: -Q)", fontsize=8)
+    return to_rgb(fig)
+
+
+CARD = Card(
+    family="2-D",
+    costly=True,  # an action is 50 substeps of the 2-D flow
     # beyond BEACON: the published solver (FEniCS) is not run here, so the card has no
     # published speed or target (the case's own: an episode of 16 members in 90 s,
     # benchmarks/RESULTS.md)
@@ -187,35 +211,12 @@ class CylinderEnv(FlowEnv):
     # first action. Computed by validation/wake_reference.py from the recorded
     # base flow and policies (its record in validation/results/cylinder/; the tests
     # check this value against it). No paper gives a PPO score for this set-up.
-    reference = Reference(
+    reference=Reference(
         COMPUTED,
         "validation/wake_reference.py: the best policy's transient, then the steady base flow's drag",
         score=0.6021481412219859,
-    )
-    gradcheck = GradCheck("nu", NU, warmup=1, steps=1)
-    test_settings = {"cells_per_diameter": 10}
-
-    def render_frame(self, history: list[CylinderState], step: int) -> np.ndarray:
-        from matplotlib.patches import Circle
-
-        from beacon_torch.render import action_bars, new_figure, to_rgb
-
-        last, c = history[-1], self.channel
-        x, y, vorticity = c.vorticity(last.u, last.v)
-        fig = new_figure(size=(8.0, 2.8))
-        ax = fig.add_axes((0.05, 0.16, 0.66, 0.7))
-        field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-40, vmax=40, shading="nearest")
-        ax.add_patch(Circle(CENTRE, RADIUS, color="0.3"))
-        ax.set_xlim(0.0, 1.2)
-        ax.set_ylim(0.0, HEIGHT)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-        fig.colorbar(field, cax=fig.add_axes((0.725, 0.2, 0.012, 0.62)), label="vorticity")
-        t = DT * SUBSTEPS * step
-        drag, lift = float(coefficient(last.drag)), float(coefficient(last.lift))
-        ax.set_title(f"cylinder   t = {t:.2f}   C_D = {drag:.3f}   C_L = {lift:+.3f}", fontsize=9)
-        # the bottom jet's rate is always the top's with the other sign: one bar says both
-        bars = fig.add_axes((0.86, 0.2, 0.1, 0.6))
-        action_bars(bars, [float(last.q) / Q_MAX], ["top jet Q"], [(-1.0, 1.0)])
-        bars.set_title("jets (bottom: -Q)", fontsize=8)
-        return to_rgb(fig)
+    ),
+    gradcheck=GradCheck("nu", NU, warmup=1, steps=1),
+    test_settings={"cells_per_diameter": 10},
+    frame=frame,
+)

@@ -29,15 +29,18 @@ Reward per action: minus the net drag power, the three drag coefficients' sum pl
 rotations' power coefficient (weighted by ``power_weight``).
 
 The package: the flow (:mod:`~beacon_torch.envs.pinball.flow`: the grid, the bodies,
-one time step, the developed start) and the env (:mod:`~beacon_torch.envs.pinball.env`).
+one time step, the developed start) and its physics and card, with the levels' parameters
+(:mod:`~beacon_torch.envs.pinball.env`).
 """
 
 from beacon_torch.envs.pinball.env import (
+    CARD,
+    CHAOTIC,
+    CHAOTIC_CARD,
     MAX_ROTATION,
-    PinballChaoticEnv,
-    PinballEnv,
+    PERIODIC,
+    PERIODIC_CARD,
     PinballParams,
-    PinballPeriodicEnv,
     PinballPhysics,
     PinballState,
 )
@@ -77,7 +80,9 @@ __all__ = [
     "PinballParams",
     "PinballState",
     "PinballPhysics",
-    "PinballEnv",
-    "PinballPeriodicEnv",
-    "PinballChaoticEnv",
+    "CARD",
+    "PERIODIC",
+    "PERIODIC_CARD",
+    "CHAOTIC",
+    "CHAOTIC_CARD",
 ]

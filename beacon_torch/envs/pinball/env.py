@@ -3,6 +3,7 @@ reward (the case: :mod:`beacon_torch.envs.pinball`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -10,9 +11,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import FlowEnv, GradCheck, Noise, Physics, map_state
 from beacon_torch.cache import cached
-from beacon_torch.card import PUBLISHED_RESULT, Reference
+from beacon_torch.core.card import PUBLISHED_RESULT, Card, FrameInputs, GradCheck, Reference
+from beacon_torch.core.physics import Physics
+from beacon_torch.core.state import Noise, map_state
 from beacon_torch.envs.pinball.flow import (
     CYLINDERS,
     DIAMETER,
@@ -215,86 +217,62 @@ class PinballPhysics(Physics):
         return state.u.abs().flatten(1).amax(1) > 10.0 * U_INF
 
 
-class PinballEnv(FlowEnv):
-    """Batched pinball-v0 (3 continuous actions: the cylinders' angular velocities)."""
+def frame(f: FrameInputs) -> np.ndarray:
+    """The vorticity around the cylinders, their rotations and the drag."""
+    from matplotlib.patches import Circle, FancyArrowPatch
 
-    env_id = "pinball-v0"
-    physics_type = PinballPhysics
-    family = "2-D"
-    costly = True  # an action is 100 substeps of the 2-D flow
-    gradcheck = GradCheck("re", 30.0, warmup=1, steps=1)
-    test_settings = {"cells_per_diameter": 10}
+    from beacon_torch.render import action_bars, new_figure, to_rgb
 
-    def render_frame(self, history: list[PinballState], step: int) -> np.ndarray:
-        from matplotlib.patches import Circle, FancyArrowPatch
-
-        from beacon_torch.render import action_bars, new_figure, to_rgb
-
-        last, b = history[-1], self.box
-        x, y, vorticity = b.vorticity(last.u, last.v)
-        fig = new_figure(size=(8.6, 3.2))
-        ax = fig.add_axes((0.05, 0.14, 0.62, 0.74))
-        field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-3, vmax=3, shading="nearest")
-        omega = last.omega.double().numpy()
-        for c, w in zip(CYLINDERS, omega, strict=True):
-            ax.add_patch(Circle((c.x, c.y), c.radius, color="0.3"))
-            if abs(w) > 1e-3:
-                # an arc around the cylinder, its arrow in the sense of rotation
-                start, end = (c.x + 0.62, c.y), (c.x, c.y + 0.62 * np.sign(w))
-                arc = f"arc3,rad={0.4 * np.sign(w)}"
-                style = dict(arrowstyle="-|>", mutation_scale=9, lw=1.6, color="gold")
-                ax.add_patch(FancyArrowPatch(start, end, connectionstyle=arc, **style))
-        ax.set_xlim(-3.0, 9.0)
-        ax.set_ylim(-3.0, 3.0)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-        fig.colorbar(field, cax=fig.add_axes((0.685, 0.2, 0.012, 0.62)), label="vorticity")
-        t = DT * SUBSTEPS * step
-        drag = float(coefficient(last.drag).sum())
-        re = float(self.params.re)
-        ax.set_title(f"fluidic pinball   Re = {re:g}   t = {t:.1f}   sum C_D = {drag:.3f}", fontsize=9)
-        bars = fig.add_axes((0.79, 0.2, 0.19, 0.6))
-        bound = float(self.params.max_rotation) or 1.0
-        action_bars(bars, list(omega / bound), ["front", "top", "bottom"], [(-1.0, 1.0)] * 3)
-        bars.set_title("rotation / bound", fontsize=8)
-        return to_rgb(fig)
+    last, b = f.states[-1], f.physics.box
+    x, y, vorticity = b.vorticity(last.u, last.v)
+    fig = new_figure(size=(8.6, 3.2))
+    ax = fig.add_axes((0.05, 0.14, 0.62, 0.74))
+    field = ax.pcolormesh(x, y, vorticity.T, cmap="RdBu_r", vmin=-3, vmax=3, shading="nearest")
+    omega = last.omega.double().numpy()
+    for c, w in zip(CYLINDERS, omega, strict=True):
+        ax.add_patch(Circle((c.x, c.y), c.radius, color="0.3"))
+        if abs(w) > 1e-3:
+            # an arc around the cylinder, its arrow in the sense of rotation
+            start, end = (c.x + 0.62, c.y), (c.x, c.y + 0.62 * np.sign(w))
+            arc = f"arc3,rad={0.4 * np.sign(w)}"
+            style = dict(arrowstyle="-|>", mutation_scale=9, lw=1.6, color="gold")
+            ax.add_patch(FancyArrowPatch(start, end, connectionstyle=arc, **style))
+    ax.set_xlim(-3.0, 9.0)
+    ax.set_ylim(-3.0, 3.0)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+    fig.colorbar(field, cax=fig.add_axes((0.685, 0.2, 0.012, 0.62)), label="vorticity")
+    t = DT * SUBSTEPS * f.step
+    drag = float(coefficient(last.drag).sum())
+    re = float(f.params.re)
+    ax.set_title(f"fluidic pinball   Re = {re:g}   t = {t:.1f}   sum C_D = {drag:.3f}", fontsize=9)
+    bars = fig.add_axes((0.79, 0.2, 0.19, 0.6))
+    bound = float(f.params.max_rotation) or 1.0
+    action_bars(bars, list(omega / bound), ["front", "top", "bottom"], [(-1.0, 1.0)] * 3)
+    bars.set_title("rotation / bound", fontsize=8)
+    return to_rgb(fig)
 
 
-@dataclass(frozen=True)
-class PinballPeriodicParams(PinballParams):
-    re: float = re_param(100.0)
+CARD = Card(
+    family="2-D",
+    costly=True,  # an action is 100 substeps of the 2-D flow
+    gradcheck=GradCheck("re", 30.0, warmup=1, steps=1),
+    test_settings={"cells_per_diameter": 10},
+    frame=frame,
+)
 
-
-@dataclass(frozen=True)
-class PinballChaoticParams(PinballParams):
-    re: float = re_param(130.0)
-
-
-class PinballPeriodicPhysics(PinballPhysics):
-    Params = PinballPeriodicParams
-
-
-class PinballChaoticPhysics(PinballPhysics):
-    Params = PinballChaoticParams
-
-
-class PinballPeriodicEnv(PinballEnv):
-    """pinball-v0 at Re 100: periodic shedding, past the pitchfork (asymmetric)."""
-
-    env_id = "pinball-periodic-v0"
-    physics_type = PinballPeriodicPhysics
+# pinball-periodic-v0: Re 100, periodic shedding past the pitchfork (asymmetric)
+PERIODIC = {"re": 100.0}
+PERIODIC_CARD = dataclasses.replace(
+    CARD,
     # the reward is minus the net drag power's coefficients, so their saving is the score's
-    reference = Reference(
+    reference=Reference(
         PUBLISHED_RESULT,
         "Li et al., J. Fluid Mech. 932 (2022), Re 100: the net drag power 29 % below no control",
         ratio=0.71,
-    )
-    gradcheck = GradCheck("re", 100.0, warmup=1, steps=1)
-
-
-class PinballChaoticEnv(PinballEnv):
-    """pinball-v0 at Re 130: chaotic (HydroGym's chaotic pinball)."""
-
-    env_id = "pinball-chaotic-v0"
-    physics_type = PinballChaoticPhysics
-    gradcheck = GradCheck("re", 130.0, warmup=1, steps=1)
+    ),
+    gradcheck=GradCheck("re", 100.0, warmup=1, steps=1),
+)
+# pinball-chaotic-v0: Re 130, chaotic (HydroGym's chaotic pinball)
+CHAOTIC = {"re": 130.0}
+CHAOTIC_CARD = dataclasses.replace(CARD, gradcheck=GradCheck("re", 130.0, warmup=1, steps=1))

@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.base import map_state
+from beacon_torch.core.state import map_state
 from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, advance, stable
 from beacon_torch.numerics.grid import GRADIENT
 

@@ -1,12 +1,14 @@
-"""An env's card: what the library knows of an env beyond its equations, declared as
-class attributes in its module (a variant subclasses its base env and inherits it).
+"""An env's card: what the library knows of an env beyond its equations, a value that
+its case module declares beside its physics and that registering an id attaches to it
+(a variant takes its base's card, or one made from it with ``dataclasses.replace``).
 Benchmarks, reports and the test suite read it; nothing keeps a list of envs of its
 own. Facts an env does not have stay None: a user's env registers without them."""
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,47 +62,55 @@ class Reference:
         return f"{number} ({self.source})"
 
 
-class Card:
-    """The card's fields, with what an env that says nothing has."""
+class FrameInputs(NamedTuple):
+    """What a frame is drawn from: the member ``member`` of an env of ``physics`` and
+    ``params`` (per-member values: its own are entries ``member``), its ``states`` to
+    draw, on the CPU, without the batch dimension (the episode so far when ``recorded``,
+    else the current one), and ``step``, its actions since its reset (the clock of the
+    last state)."""
 
-    env_id: ClassVar[str] = ""
+    physics: Any
+    params: Any
+    member: int
+    states: list
+    step: int
+    recorded: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class Card:
+    """What the library knows of an env beyond its equations (every field optional)."""
+
     # what the env solves: "ode", "1-D" or "2-D" (a flow in one or two space dimensions)
-    family: ClassVar[str]
+    family: str | None = None
     # whether an action costs seconds rather than milliseconds: tests and benchmarks
     # run fewer of its steps
-    costly: ClassVar[bool] = False
+    costly: bool = False
     # transitions per second of the published single-env NumPy/Numba code on one core
     # of this project's Intel Xeon machine kind (None: no published code is run here)
-    published_speed: ClassVar[float | None] = None
+    published_speed: float | None = None
     # the speed-up over it aimed at, at the best batch size, float32, 2 CPU cores
-    speed_target: ClassVar[float | None] = None
+    speed_target: float | None = None
     # the score the paper's PPO reaches, read from its curves as the mean of the last
     # tenth of its training episodes: the "= 1" of the reports' normalised scores
     # where the env declares no other ``reference``
-    paper_ppo: ClassVar[float | None] = None
+    paper_ppo: float | None = None
     # the "= 1" of an env that has no paper's PPO, with its source (None, and no
     # ``paper_ppo``: the protocol has nothing to normalise by)
-    reference: ClassVar[Reference | None] = None
+    reference: Reference | None = None
     # the gradient check on the published settings (None where the actions are discrete)
-    gradcheck: ClassVar[GradCheck | None] = None
+    gradcheck: GradCheck | None = None
     # parameters that make an episode cheap, for the behaviour tests run on every env
-    test_settings: ClassVar[dict[str, Any]] = {}
+    test_settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    # the frame ``render()`` draws, ``frame(FrameInputs) -> H x W x 3 uint8 array``
+    # (None: the env draws nothing)
+    frame: Callable[[FrameInputs], Any] | None = None
 
-    @classmethod
-    def scale_reference(cls) -> Reference | None:
+    def scale_reference(self) -> Reference | None:
         """The "= 1" of this env's normalised scores: its ``reference``, or its paper's
         PPO score, or None."""
-        if cls.reference is not None:
-            return cls.reference
-        if cls.paper_ppo is not None:
-            return Reference(PAPER_PPO, "read from the paper's learning curves", score=cls.paper_ppo)
+        if self.reference is not None:
+            return self.reference
+        if self.paper_ppo is not None:
+            return Reference(PAPER_PPO, "read from the paper's learning curves", score=self.paper_ppo)
         return None
-
-    @classmethod
-    def base_id(cls) -> str:
-        """The benchmark env this one is a variant of, or its own id: a variant
-        subclasses its base env, against whose scores and speed it is measured."""
-        for klass in cls.__mro__[1:]:
-            if klass.__dict__.get("env_id"):
-                return klass.env_id
-        return cls.env_id
