@@ -32,12 +32,12 @@ ROUND_OFF = {"ks-v0": dict(rtol=1e-7, atol=1e-8)}
 def rollout(env_id: str) -> dict[str, list]:
     """Observations and rewards of ``MEMBERS`` members over a few random actions (two of
     a cavity), float64, the env's test settings."""
-    cls = ENVS[env_id]
-    env = cls(MEMBERS, dtype=torch.float64, seed=SEED, **cls.card.test_settings)
+    spec = ENVS[env_id]
+    env = beacon_torch.make(env_id, MEMBERS, dtype=torch.float64, seed=SEED, **spec.card.test_settings)
     g = torch.Generator().manual_seed(SEED)
     obs = [env.reset_members().tolist()]
     rewards = []
-    for _ in range(2 if cls.card.costly else 10):
+    for _ in range(2 if spec.card.costly else 10):
         o, r, _, _ = env.step_members(env.random_action(g))
         obs.append(o.tolist())
         rewards.append(r.tolist())
