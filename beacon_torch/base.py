@@ -31,31 +31,22 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from beacon_torch import seeds
 from beacon_torch import starts as start_sets
 from beacon_torch.autograd import graph_mode
 from beacon_torch.compiled import step_inputs
+from beacon_torch.core import saving
 from beacon_torch.core.card import FrameInputs
-from beacon_torch.core.checks import (
-    Checks,
-    as_batch_size,
-    as_device,
-    as_dtype,
-    as_flag,
-    as_seed,
-)
-from beacon_torch.core.saving import Saving
+from beacon_torch.core.checks import Guard, as_batch_size, as_device, as_dtype, as_flag, as_seed, check_memory
 from beacon_torch.core.state import State, map_state, where_members
 from beacon_torch.core.step import step
-from beacon_torch.history import History, Rendering
+from beacon_torch.history import History
 from beacon_torch.layout import Agents, Members
 from beacon_torch.params import resolve_params, short_repr
 from beacon_torch.registry import OPTIONS, EnvSpec, env_spec, params_dict, resolve_id
 
-# mixed into the seed of the random actions' generator: a stream apart from the physics'
-ACTION_STREAM = 0x9E3779B97F4A7C15
 
-
-class FlowEnv(Checks, Saving, Rendering, EnvBase):
+class FlowEnv(EnvBase):
     """A batched BEACON environment of a registered id (see the module docstring); built
     by :func:`make`."""
 
@@ -110,12 +101,13 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         self.starts = start_sets.check(starts)
         # recompute each action's substeps in the backward pass instead of keeping them
         self.grad_checkpoint = grad_checkpoint
-        self._warned_grad = False
         self.history = History(record_history)
         # a state given to set_state with a graph, not stepped yet: a reset would drop it
         self._traced_start = False
-        self._warn_traced_params()
         self.physics = spec.physics(self.params, self.num_envs, dtype=self.dtype, device=device)
+        # what it is given while it runs is checked by a guard of its own
+        self.guard = Guard(self.env_id, self.physics, differentiable)
+        self.guard.traced_params(self.params)
         # the observation size; continuous: the action dimension, discrete: the number
         # of choices
         self.n_obs, self.n_actions = self.physics.n_obs, self.physics.n_actions
@@ -127,12 +119,10 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
             self.layout = Agents(spec.agents, self.physics.action_shape[0], self.batch_size, device, self.dtype)
         # compiled, a whole step is this one call
         self._whole_step = self.physics.kernels(step)
-        self._check_memory()
+        check_memory(self.env_id, self.physics)
         self._make_specs()
         self._add_diagnostics_spec()
         self._closed = False
-        if seed is None:
-            seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
         self.rng = torch.Generator(device=device)
         # TorchRL's random actions (a rollout without a policy), a stream of their own
         # so that they leave the physics' draws as they are
@@ -153,6 +143,28 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         ``warmup`` is accepted for TorchRL's signature and has nothing to do here."""
         self.physics.kernels.compile(**kwargs)
         return self
+
+    def to(self, *args, **kwargs) -> FlowEnv:
+        """The env itself: its state, generator and kernels live on the device it was
+        made on and in its dtype, so moving or converting it is refused
+        (``make(..., device=..., dtype=...)`` builds one there)."""
+        device, dtype = torch._C._nn._parse_to(*args, **kwargs)[:2]
+        if device is not None and as_device(device) != self.device:
+            raise ValueError(
+                f"{self.env_id}: an env stays on the device it was made on ({self.device}); "
+                f"make(..., device={str(device)!r}) builds one on {device}"
+            )
+        if dtype is not None and dtype != self.dtype:
+            name = str(dtype).removeprefix("torch.")
+            raise ValueError(
+                f"{self.env_id}: an env keeps the dtype it was made with ({self.dtype}); "
+                f"make(..., dtype={name!r}) builds one in {name}"
+            )
+        return self
+
+    def _check_open(self, what: str) -> None:
+        if self._closed:
+            raise RuntimeError(f"{self.env_id}: {what}() on a closed env; make a new one")
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         """Free the state; stepping or resetting afterwards is an error."""
@@ -224,6 +236,25 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         return self._count
 
     # ------------------------------------------------------------------ specs
+    def _observation_shape(self) -> torch.Size:
+        return self.observation_spec[self.observation_key].shape
+
+    def _field_shapes(self) -> dict[str, torch.Size]:
+        """The shape of each field of the state (the batch first): the current state's,
+        or, before the first reset, that of a start computed once without drawing from
+        the env's generator."""
+        if self._state is not None:
+            return {key: value.shape for key, value in self._state._asdict().items()}
+        if self._shapes is None:
+            rng = self.rng.get_state()
+            try:
+                with torch.no_grad():
+                    start = self.physics.initial_state(self.params, self.rng)
+            finally:
+                self.rng.set_state(rng)
+            self._shapes = {key: value.shape for key, value in start._asdict().items()}
+        return self._shapes
+
     def _make_specs(self) -> None:
         B = self.batch_size
         dev = self.device
@@ -256,10 +287,9 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
 
     # ------------------------------------------------------------------ seeding
     def _set_seed(self, seed: int | None) -> None:
-        if seed is None:
-            seed = int(torch.empty((), dtype=torch.int64).random_().item()) % 2**63
-        self.rng.manual_seed(as_seed(seed))
-        self.action_rng.manual_seed(as_seed(seed) ^ ACTION_STREAM)
+        seed = seeds.fresh() if seed is None else as_seed(seed)
+        self.rng.manual_seed(seed)
+        self.action_rng.manual_seed(seeds.actions(seed))
 
     @property
     def action_shape(self) -> tuple[int, ...]:
@@ -292,10 +322,10 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         Continuous actions are clipped to [-1, 1]; NaN/inf, a wrong shape or a
         non-floating dtype raise. Discrete actions must be integers in [0, n).
         """
-        action = self._action_form(action)
+        action = self.guard.action(action)
         taken, valid = self.physics.action_values(action)
         if self.check_actions and not bool(valid):
-            self._refuse_values(action)
+            self.guard.refuse_values(action)
         return taken
 
     # ------------------------------------------------------------------ gradients
@@ -313,17 +343,43 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         this env or another one of the same kind and batch size) with ``count`` actions
         already taken; returns the observation. Tensors that require grad are kept, so a
         differentiable env gives gradients with respect to the state."""
-        state, traced = self._checked_state(state)
-        count = self._checked_count(count)
+        state, traced = self.guard.state(state, self._field_shapes())
+        count = self.guard.count(count)
         with graph_mode(self.differentiable):
             obs = self.physics.observe(self.params, state)
-        self._check_observation(obs)
+        self.guard.observation(obs, self._observation_shape())
         self._state, self._obs = step_inputs(state, obs)
         with graph_mode(self.differentiable):
             self._diagnostics = self.physics.diagnose(self.params, self._state)
         self._count = count.expand(self.batch_size).clone()
         self._traced_start = self.differentiable and bool(traced)
         return self._obs
+
+    # ------------------------------------------------------------------ saving
+    def state_dict(self, *args, destination=None, prefix: str = "", keep_vars: bool = False):
+        """Where the env is: the state of every member (``state.<key>``), the actions
+        taken in their episodes (``count``), the generators' states (``rng``,
+        ``action_rng``) and the parameters it steps with (``params``);
+        :meth:`load_state_dict` continues from there (an env of the same id, batch size
+        and parameters)."""
+        out = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
+        generators = {"rng": self.rng, "action_rng": self.action_rng}
+        out.update(saving.entries(self._state, self._count, generators, self.params, prefix, keep_vars))
+        return out
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Continue from :meth:`state_dict` (its state checked as :meth:`set_state`
+        checks it, after the cast to this env's dtype). The parameters it records must
+        be this env's (a state of other physics is refused); ``strict`` (the default)
+        also requires every entry a stepped env's state dict has, and no other."""
+        generators = {"rng": self.rng, "action_rng": self.action_rng}
+        fields = self.physics.state_type._fields
+        state, count, saved = saving.read(state_dict, self.env_id, fields, self.params, generators, strict)
+        if state:
+            self.set_state(state, count)
+        for key, value in saved.items():
+            generators[key].set_state(value)
+        return torch.nn.modules.module._IncompatibleKeys([], [])
 
     # ------------------------------------------------------------------ the step itself
     # TorchRL's ``reset``/``step`` and the gymnasium and Stable-Baselines3 adapters all
@@ -335,7 +391,7 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         ``[batch, 1]`` bool) is true, for all of them when it is None; returns the
         observation of every member (the others keep theirs)."""
         self._check_open("reset")
-        mask = self._members_mask(mask, "_reset")
+        mask = self.guard.members_mask(mask, "_reset")
         if self._traced_start and (mask is None or bool(mask.any())):
             warnings.warn(
                 f"{self.env_id}: this reset replaces the state given to set_state, and with it the gradient "
@@ -346,7 +402,7 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
             self._traced_start = False
         with torch.no_grad():
             init = self.physics.initial_state(self.params, self.rng, mask)
-        self._check_type(init)
+        self.guard.start_type(init)
         if self.starts is not None:
             init = self._from_start_set()
         # in differentiable mode the members that go on keep their graph through a
@@ -359,7 +415,7 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
                 self._state = where_members(mask, init, self._state)
                 self._count = torch.where(mask, torch.zeros_like(self._count), self._count)
             obs = self.physics.observe(self.params, self._state)
-        self._check_start(self._state, obs)
+        self.guard.start(self._state, obs, self.params, self._observation_shape())
         self._state, self._obs = step_inputs(self._state, obs)
         with graph_mode(self.differentiable):
             self._diagnostics = self.physics.diagnose(self.params, self._state)
@@ -389,9 +445,9 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
         self._check_open("step")
         if self._state is None:
             raise RuntimeError(f"{self.env_id}: call reset() before step()")
-        self._warn_dropped_gradient(action)
-        action = self._action_form(action)
-        stepping = self._members_mask(stepping, "_step")
+        self.guard.dropped_gradient(action)
+        action = self.guard.action(action)
+        stepping = self.guard.members_mask(stepping, "_step")
         with torch.no_grad():
             noise = self.physics.noise(self.params, self.rng)
         inputs = (self.physics, self.params, self._state, action, noise, self._count, self._obs, stepping)
@@ -403,7 +459,7 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
                 # blow-up bookkeeping and the counters
                 out = self._whole_step(*inputs)
         if self.check_actions and not bool(out.valid):
-            self._refuse_values(action)
+            self.guard.refuse_values(action)
         self._state, self._obs, self._count, self._diagnostics = out.state, out.observation, out.count, out.diagnostics
         self._traced_start = False
         self.history.append(out.state)
@@ -469,6 +525,36 @@ class FlowEnv(Checks, Saving, Rendering, EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
+
+    # ------------------------------------------------------------------ rendering
+    @property
+    def render_index(self) -> int:
+        """The batch member that :meth:`render` draws (0 by default)."""
+        return self.history.index
+
+    @render_index.setter
+    def render_index(self, index: int) -> None:
+        if (
+            isinstance(index, (bool, np.bool_))
+            or not isinstance(index, (int, np.integer))
+            or not 0 <= index < self.num_envs
+        ):
+            raise ValueError(
+                f"{self.env_id}: render_index must be a member's index in [0, {self.num_envs}), got {index!r}"
+            )
+        self.history.index = int(index)
+
+    def render(self) -> np.ndarray:
+        """An RGB frame (``H x W x 3`` uint8) of member ``render_index``.
+
+        With ``record_history=True`` the frame shows the episode so far (trajectories,
+        space-time diagrams); without it, only the current state. The clock is the
+        member's own either way: its actions since its last reset.
+        """
+        if self._state is None:
+            raise RuntimeError(f"{self.env_id}: call reset() before render()")
+        step = int(self._count[self.history.index])
+        return self.render_frame(self.history.frames(self._state), step)
 
     def render_frame(self, states: list[State], step: int) -> np.ndarray:
         """The card's frame of member :attr:`render_index`, drawn from ``states``

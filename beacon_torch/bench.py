@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 import torch.utils.benchmark as benchmark
 
+from beacon_torch import seeds
 from beacon_torch.base import make
 from beacon_torch.files import create_file, machine, refuse_existing, save_figure
 from beacon_torch.files import save_rows as save_rows  # where the benchmark scripts found it
@@ -147,7 +148,7 @@ def measure(
     base = _resident_mb()
     start = time.perf_counter()
     env = make(env_id, batch, dtype=dtype, device=device, seed=seed, compile=mode == "compiled", check_actions=False)
-    g = torch.Generator(device=dev).manual_seed(seed)
+    g = seeds.generator(seed, dev)
     box = {"td": env.reset()}
 
     def step() -> None:

@@ -2,7 +2,8 @@
 
 A state is a NamedTuple of tensors (an env's state type, or part of one), stored as a
 dict of its fields and identified by a name and a key of the parameters that determine
-it. It is looked up in memory, then in the package data (the states of the
+it. It is looked up in memory (the library's one memo of starts: :func:`memo`, once per
+process, and a copy per device and dtype asked for), then in the package data (the states of the
 default parameters ship with the package), then in the user cache directory
 (``$BEACON_TORCH_CACHE``, default ``~/.cache/beacon-torch``); on a miss it is computed by
 the env's public generator function and written to the user cache.
@@ -22,6 +23,7 @@ import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -30,7 +32,18 @@ from beacon_torch.core.state import State
 from beacon_torch.files import save_tensors
 
 PACKAGE_DATA = Path(__file__).parent / "data"
-_memory: dict[str, State] = {}
+# every start read or computed in this process, by its file's name (and the device and
+# dtype of a copy), and the published tables by their file
+_memory: dict[tuple, Any] = {}
+
+
+def memo(key: tuple, compute: Callable[[], Any]) -> Any:
+    """``compute()`` the first time ``key`` is asked for in this process, what it gave
+    after. ``key`` must name everything the value depends on (a file's name does: it
+    hashes the parameters that determine the state)."""
+    if key not in _memory:
+        _memory[key] = compute()
+    return _memory[key]
 
 
 def cache_dir() -> Path:
@@ -103,17 +116,34 @@ def save(state: State, path: Path) -> None:
 
 
 def cached(
-    name: str, version: int, key: dict, compute: Callable[[], State], like: State, bounds: Bounds | None = None
+    name: str,
+    version: int,
+    key: dict,
+    compute: Callable[[], State],
+    like: State,
+    bounds: Bounds | None = None,
+    *,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float64,
 ) -> State:
-    """The state ``compute()`` returns, computed at most once per key and machine.
-    ``version`` is the case's declared generation of its starts (its module's
-    ``START_VERSION``, raised whenever a change of the scheme changes them, so that no
-    stale file is read). ``like`` is a cheap state of the same type and shapes (at
-    rest, say): a stored file must have its fields and shapes, and its fields named in
-    ``bounds`` their values within them."""
+    """The state ``compute()`` returns (float64, on the CPU), computed at most once per
+    key and machine, read at most once per process, and given on ``device`` in
+    ``dtype`` (a copy made once per process). ``version`` is the case's declared
+    generation of its starts (its module's ``START_VERSION``, raised whenever a change
+    of the scheme changes them, so that no stale file is read). ``like`` is a cheap
+    state of the same type and shapes (at rest, say): a stored file must have its
+    fields and shapes, and its fields named in ``bounds`` their values within them."""
     fname = file_name(name, version, key)
-    if fname in _memory:
-        return _memory[fname]
+    state = memo((fname,), lambda: _stored_or_computed(fname, name, key, compute, like, bounds))
+    device = torch.device(device)
+    if (device.type, dtype) == ("cpu", torch.float64):
+        return state
+    return memo((fname, str(device), dtype), lambda: type(state)(*(v.to(device=device, dtype=dtype) for v in state)))
+
+
+def _stored_or_computed(
+    fname: str, name: str, key: dict, compute: Callable[[], State], like: State, bounds: Bounds | None
+) -> State:
     state = None
     for folder in (PACKAGE_DATA, cache_dir()):
         if (folder / fname).is_file():
@@ -138,5 +168,4 @@ def cached(
             save(state, cache_dir() / fname)
         except OSError:
             pass  # a read-only home only costs the recomputation next time
-    _memory[fname] = state
     return state

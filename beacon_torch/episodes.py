@@ -7,6 +7,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
+from beacon_torch import seeds
 from beacon_torch.base import FlowEnv
 
 Policy = Callable[[TensorDictBase], TensorDictBase]
@@ -19,8 +20,7 @@ def null_policy(env: FlowEnv) -> Policy:
 
 def random_policy(env: FlowEnv, seed: int = 0) -> Policy:
     """Uniformly random actions from a generator of its own, seeded by ``seed``."""
-    g = torch.Generator(device=env.device)
-    g.manual_seed(seed)
+    g = seeds.generator(seed, env.device)
     return lambda td: td.set(env.action_key, env.random_action(g))
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
+from beacon_torch import seeds
 from beacon_torch.base import FlowEnv
 from beacon_torch.base import make as make_env
 from beacon_torch.core.card import GradCheck
@@ -51,7 +52,7 @@ def summed_reward(env: FlowEnv, start: State, actions: torch.Tensor, seed: int =
 
 def generic_start(env: FlowEnv, n: int, seed: int = 5) -> State:
     """The state after a reset and ``n`` random actions of amplitude 0.5."""
-    gen = torch.Generator().manual_seed(seed)
+    gen = seeds.generator(seed)
     env.reset()
     with torch.no_grad():
         for _ in range(n):
@@ -73,7 +74,7 @@ def check(
     if env.dtype != torch.float64:
         raise ValueError(f"{env.env_id}: check gradients in float64, got {env.dtype}")
     start = generic_start(env, warmup)
-    gen = torch.Generator().manual_seed(seed)
+    gen = seeds.generator(seed)
     shape = (steps, *env.full_action_spec[env.action_key].shape)
     actions = (0.6 * torch.rand(shape, generator=gen, dtype=torch.float64) - 0.3).to(env.device).requires_grad_()
     total = summed_reward(env, start, actions)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 
 if TYPE_CHECKING:
@@ -65,43 +64,3 @@ class History:
         i = self.index
         states = self.states[int(self.start[i]) :] if self.enabled and self.states else [state]
         return [type(s)(*(v[i].detach().cpu() for v in s)) for s in states]
-
-
-class Rendering:
-    """The rendering of :class:`~beacon_torch.base.FlowEnv` (a part of it): which
-    member is drawn, and the frame of its states that an env class draws."""
-
-    @property
-    def render_index(self) -> int:
-        """The batch member that :meth:`render` draws (0 by default)."""
-        return self.history.index
-
-    @render_index.setter
-    def render_index(self, index: int) -> None:
-        if (
-            isinstance(index, (bool, np.bool_))
-            or not isinstance(index, (int, np.integer))
-            or not 0 <= index < self.num_envs
-        ):
-            raise ValueError(
-                f"{self.env_id}: render_index must be a member's index in [0, {self.num_envs}), got {index!r}"
-            )
-        self.history.index = int(index)
-
-    def render(self) -> np.ndarray:
-        """An RGB frame (``H x W x 3`` uint8) of member ``render_index``.
-
-        With ``record_history=True`` the frame shows the episode so far (trajectories,
-        space-time diagrams); without it, only the current state. The clock is the
-        member's own either way: its actions since its last reset.
-        """
-        if self._state is None:
-            raise RuntimeError(f"{self.env_id}: call reset() before render()")
-        step = int(self._count[self.history.index])
-        return self.render_frame(self.history.frames(self._state), step)
-
-    def render_frame(self, history: list[State], step: int) -> np.ndarray:
-        """The frame of the render member: ``history`` its states to draw (the episode
-        so far with ``record_history=True``, else the current one), ``step`` the number
-        of actions it has taken since its last reset (the clock of the last state)."""
-        raise NotImplementedError

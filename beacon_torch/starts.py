@@ -34,14 +34,13 @@ by its members), and kept for the process.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import fields
 
 import numpy as np
 import torch
 
-from beacon_torch import received
+from beacon_torch import cache, received, seeds
 from beacon_torch.cache import PACKAGE_DATA
 from beacon_torch.params import number, param
 
@@ -111,7 +110,6 @@ def published_members(params, shaping: tuple[str, ...]) -> torch.Tensor | None:
 LINE_BYTES = 64 * 16
 
 
-@functools.cache
 def _table(env: str, rows: int, columns: int) -> np.ndarray:
     path = PACKAGE_DATA / f"{env}-published-start.dat"
     # bounded by what the table holds before the text is parsed
@@ -132,8 +130,9 @@ def _table(env: str, rows: int, columns: int) -> np.ndarray:
 def published_table(env: str, rows: int, columns: int) -> torch.Tensor:
     """The stored start of ``env`` (sloshing, shkadov, rayleigh) as a float64 tensor of
     ``rows`` rows and ``columns`` columns, the shape the env's grid gives it (another
-    shape is a damaged file, refused); the text is parsed at the first call only."""
-    return torch.from_numpy(_table(env, rows, columns).copy())
+    shape is a damaged file, refused); the text is parsed once per process."""
+    table = cache.memo((f"{env}-published-start.dat", rows, columns), lambda: _table(env, rows, columns))
+    return torch.from_numpy(table.copy())
 
 
 # ---------------------------------------------------------------- start sets
@@ -156,7 +155,7 @@ def offsets(name: str, episode_length: int) -> torch.Tensor:
     """The actions after which each state of the set ``name`` is taken."""
     seed, size, residue = SETS[name]
     slots = max(1, (episode_length - residue + 2) // 3)  # values residue, residue + 3, ... below the length
-    drawn = torch.randint(slots, (size,), generator=torch.Generator().manual_seed(seed))
+    drawn = torch.randint(slots, (size,), generator=seeds.generator(seed))
     return torch.clamp(residue + 3 * drawn, max=episode_length - 1)
 
 
@@ -183,8 +182,14 @@ def states(env, name: str):
     return _computed(type(env), env.env_spec, name, str(env.dtype).removeprefix("torch."), str(env.device), params)
 
 
-@functools.lru_cache(maxsize=32)
 def _computed(shell, spec, name: str, dtype: str, device: str, params: tuple):
+    # the set is computed once per process, in the one memo of starts
+    return cache.memo(
+        ("start set", spec, name, dtype, device, params), lambda: _run(shell, spec, name, dtype, device, params)
+    )
+
+
+def _run(shell, spec, name: str, dtype: str, device: str, params: tuple):
     seed, size, _ = SETS[name]
     env = shell(spec, size, device=device, dtype=getattr(torch, dtype), seed=seed, **dict(params))
     at = offsets(name, env.episode_length).to(env.device)

@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from beacon_torch import seeds
 from beacon_torch.base import FlowEnv, make
 from beacon_torch.core.state import map_state
 from beacon_torch.registry import ENVS, EnvSpec, env_spec
@@ -139,7 +140,7 @@ def _rollout(env: FlowEnv, actions: list[torch.Tensor]) -> tuple[torch.Tensor, t
 
 
 def _actions(env: FlowEnv, n: int, seed: int = 0) -> list[torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
+    g = seeds.generator(seed)
     return [env.random_action(g) for _ in range(n)]
 
 

@@ -69,3 +69,24 @@ def test_generating_a_start_says_so_before_and_after(tmp_path, monkeypatch, caps
     monkeypatch.setattr(cache, "_memory", {})
     beacon_torch.make("sloshing-v0", 1, L=L).reset()
     assert "generating" not in capsys.readouterr().err
+
+
+def test_a_start_is_read_once_per_process_and_copied_once_per_dtype(monkeypatch):
+    """The one memo of starts: envs of a case share its developed start, read from its
+    file once and copied once per device and dtype; none keeps a copy of its own."""
+    monkeypatch.setattr(cache, "_memory", {})
+    reads = []
+    load = cache._load
+    monkeypatch.setattr(cache, "_load", lambda *args: reads.append(args[0].name) or load(*args))
+    first, second = beacon_torch.make("ks-v0", 2), beacon_torch.make("ks-v0", 3)
+    first.reset(), second.reset()
+    assert len(reads) == 1 and reads[0].startswith("ks-attractor-")
+    assert first.physics.starts().data_ptr() == second.physics.starts().data_ptr()
+    double = beacon_torch.make("ks-v0", 2, dtype="float64")
+    double.reset()
+    assert len(reads) == 1 and double.physics.starts().dtype == torch.float64
+    # the process's copies: the file's float64 bank (which float64 envs share) and one in float32
+    assert sorted(str(key[-1]) for key in cache._memory if key[0].startswith("ks-attractor-")) == [
+        "ks-attractor-" + reads[0].removeprefix("ks-attractor-"),
+        "torch.float32",
+    ]

@@ -84,3 +84,66 @@ def test_a_name_moved_to_another_layer_says_where_it_went():
     with pytest.raises(AttributeError, match="import it from beacon_torch.training.env"):
         beacon_torch.autograd.horizon_bytes  # noqa: B018
     assert callable(horizon_bytes)
+
+
+def _foreign_reads(source: str) -> list[str]:
+    """``Class.attribute`` for each attribute of ``self`` a class's methods use that
+    neither the class nor its bases in the same module set or define."""
+    import ast
+
+    classes = [n for n in ast.walk(ast.parse(source)) if isinstance(n, ast.ClassDef)]
+    used = {
+        c.name: [n for n in ast.walk(c) if isinstance(n, ast.Attribute) and getattr(n.value, "id", None) == "self"]
+        for c in classes
+    }
+    own = {
+        c.name: {n.attr for n in used[c.name] if isinstance(n.ctx, ast.Store)}
+        | {n.name for n in c.body if isinstance(n, ast.FunctionDef)}
+        | {t.id for n in c.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+        | {n.target.id for n in c.body if isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name)}
+        for c in classes
+    }
+    out = []
+    for c in classes:
+        known = own[c.name].union(*(own.get(getattr(b, "id", None), set()) for b in c.bases))
+        out += [f"{c.name}.{n.attr}" for n in used[c.name] if n.attr not in known]
+    return out
+
+
+def test_the_env_is_one_class_and_its_parts_read_only_their_own_state():
+    """The shell is one class on TorchRL's EnvBase, not a class cut into mixins; its
+    parts (the layout, the guard, the history, the saving functions) are objects or
+    functions of their own: no method of theirs uses an attribute its own class does
+    not set."""
+    from torchrl.envs import EnvBase
+
+    from beacon_torch.base import FlowEnv
+
+    ours = [c for c in FlowEnv.__mro__ if c.__module__.startswith("beacon_torch")]
+    assert ours == [FlowEnv] and FlowEnv.__bases__ == (EnvBase,)
+    parts = ("layout.py", "core/checks.py", "core/saving.py", "history.py")
+    strays = {name: _foreign_reads((house.PACKAGE / name).read_text()) for name in parts}
+    assert not any(strays.values()), f"parts using what their class does not set: {strays}"
+    # a mixin's use of the env's state is what the check finds
+    mixin = "class Saving:\n    def state_dict(self):\n        return self._state, self.rng\n"
+    assert _foreign_reads(mixin) == ["Saving._state", "Saving.rng"]
+
+
+def test_seeds_are_drawn_and_derived_in_one_place():
+    """Every seeded generator, a seed drawn for an env made without one and the seeds
+    derived from an env's come from ``beacon_torch.seeds``; the env only re-seeds its
+    two generators in place there."""
+    import re
+
+    pattern = re.compile(r"manual_seed\(|\.random_\(|7919|0x9E3779B97F4A7C15")
+    found = [
+        f"{path.relative_to(house.PACKAGE)}: {line.strip()}"
+        for path in sorted(house.PACKAGE.rglob("*.py"))
+        if path.name != "seeds.py"
+        for line in path.read_text().splitlines()
+        if pattern.search(line)
+    ]
+    assert found == [
+        "base.py: self.rng.manual_seed(seed)",
+        "base.py: self.action_rng.manual_seed(seeds.actions(seed))",
+    ]

@@ -26,7 +26,7 @@ BEGIN, END = "<!-- the house: tools/house.py -->", "<!-- end of the house -->"
 LAYERS = [
     # what needs nothing of the library: files, checks of received data, parameters,
     # the compiled-call helpers, figures, argument types, the numerics
-    ("foundations", {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "numerics"}),
+    ("foundations", {"files", "received", "params", "compiled", "render", "arguments", "gym_ids", "seeds", "numerics"}),
     # the core: the physics' interface, the step function, the card, the state's
     # vocabulary, the checks and saved state of an env, cached starts, the history
     ("core", {"cache", "starts", "history", "autograd", "core"}),

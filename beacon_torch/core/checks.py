@@ -107,50 +107,34 @@ def check_memory(name: str, batch) -> None:
         )
 
 
-class Checks:
-    """The checks of :class:`~beacon_torch.base.FlowEnv` (a part of it)."""
+class Guard:
+    """What an env checks of what it is given while it runs, as one object of its own:
+    built from the env's name, its physics (the batch, device, dtype, state type and
+    actions it takes) and whether it keeps a graph; it reads nothing else of the env.
+    Each check returns what it was given in the env's form, or raises one line naming
+    the problem; the warnings point at the user's call."""
 
-    def _check_memory(self) -> None:
-        """Refuse a batch whose states would not fit in the device's free memory, before
-        anything of its size is allocated."""
-        check_memory(self.env_id, self.physics)
+    def __init__(self, name: str, physics, differentiable: bool) -> None:
+        self.name, self.physics, self.differentiable = name, physics, differentiable
+        self.batch_size = torch.Size(physics.batch_size)
+        self.num_envs = physics.num_envs
+        self.device, self.dtype = physics.device, physics.dtype
+        # the dropped gradient of an action is said once per env
+        self.warned_grad = False
 
-    def to(self, *args, **kwargs) -> Checks:
-        """The env itself: its state, generator and kernels live on the device it was
-        made on and in its dtype, so moving or converting it is refused
-        (``make(..., device=..., dtype=...)`` builds one there)."""
-        device, dtype = torch._C._nn._parse_to(*args, **kwargs)[:2]
-        if device is not None and as_device(device) != self.device:
-            raise ValueError(
-                f"{self.env_id}: an env stays on the device it was made on ({self.device}); "
-                f"make(..., device={str(device)!r}) builds one on {device}"
-            )
-        if dtype is not None and dtype != self.dtype:
-            name = str(dtype).removeprefix("torch.")
-            raise ValueError(
-                f"{self.env_id}: an env keeps the dtype it was made with ({self.dtype}); "
-                f"make(..., dtype={name!r}) builds one in {name}"
-            )
-        return self
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise RuntimeError(f"{self.env_id}: {what}() on a closed env; make a new one")
-
-    def _refuse_values(self, action: torch.Tensor) -> None:
-        name = self.env_id or type(self).__name__
-        if self.discrete:
-            raise ValueError(f"{name}: action values must be in [0, {self.n_actions - 1}], got {action.tolist()}")
+    def refuse_values(self, action: torch.Tensor) -> None:
+        p = self.physics
+        if p.discrete:
+            raise ValueError(f"{self.name}: action values must be in [0, {p.n_actions - 1}], got {action.tolist()}")
         raise ValueError(
-            f"{name}: action contains NaN or inf; expected shape "
-            f"{(*self.batch_size, *self.action_shape)} with values in [-1, 1]"
+            f"{self.name}: action contains NaN or inf; expected shape "
+            f"{(*self.batch_size, *p.action_shape)} with values in [-1, 1]"
         )
 
-    def _action_form(self, action: Any) -> torch.Tensor:
+    def action(self, action: Any) -> torch.Tensor:
         """The action batch as a tensor of the env's device and dtype, its type and
-        shape checked (its values are checked by :meth:`_action_values`)."""
-        B = tuple(self.batch_size)
-        name = self.env_id or type(self).__name__
+        shape checked (its values are checked by the step, which reads them anyway)."""
+        name, p = self.name, self.physics
         if action is None:
             raise KeyError(f"{name}: the input tensordict has no 'action' entry")
         if not isinstance(action, (torch.Tensor, np.ndarray, list, tuple, int, float, np.number)):
@@ -164,9 +148,9 @@ class Checks:
                 raise TypeError(
                     f"{name}: the action must be a tensor (or an array of numbers), got {type(action).__name__} ({err})"
                 ) from None
-        shape = (*B, *self.action_shape)
-        if self.discrete:
-            expected = f"shape {shape} with integer values in [0, {self.n_actions - 1}]"
+        shape = (*self.batch_size, *p.action_shape)
+        if p.discrete:
+            expected = f"shape {shape} with integer values in [0, {p.n_actions - 1}]"
             if action.dtype == torch.bool or action.is_floating_point() or action.is_complex():
                 raise TypeError(f"{name}: action must be an integer tensor of {expected}, got dtype {action.dtype}")
             if tuple(action.shape) != shape:
@@ -179,73 +163,71 @@ class Checks:
             raise ValueError(f"{name}: action must have {expected}, got shape {tuple(action.shape)}")
         return action.to(device=self.device, dtype=self.dtype)
 
-    def _check_observation(self, obs: torch.Tensor) -> None:
-        """Refuse an observation of another shape than the spec's (a physics whose
-        ``observe`` disagrees with its ``sizes``)."""
-        spec = self.observation_spec[self.observation_key].shape
-        if obs.shape != spec:
+    def observation(self, obs: torch.Tensor, shape: torch.Size) -> None:
+        """Refuse an observation of another shape than the spec's ``shape`` (a physics
+        whose ``observe`` disagrees with its ``sizes``)."""
+        if obs.shape != shape:
             raise ValueError(
-                f"{self.env_id}: observe() returned shape {tuple(obs.shape)}, the observation spec says "
-                f"{tuple(spec)} (sizes() gives {self.n_obs} observations)"
+                f"{self.name}: observe() returned shape {tuple(obs.shape)}, the observation spec says "
+                f"{tuple(shape)} (sizes() gives {self.physics.n_obs} observations)"
             )
 
-    def _members_mask(self, mask: Any, key: str) -> torch.Tensor | None:
+    def members_mask(self, mask: Any, key: str) -> torch.Tensor | None:
         """A ``_reset`` or ``_step`` entry as ``[batch]`` bool on the env's device (None:
         every member)."""
         if mask is None:
             return None
         if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
             raise TypeError(
-                f"{self.env_id}: the {key!r} mask must be a bool tensor, got "
+                f"{self.name}: the {key!r} mask must be a bool tensor, got "
                 f"{getattr(mask, 'dtype', type(mask).__name__)}"
             )
         if mask.numel() != self.num_envs:
             raise ValueError(
-                f"{self.env_id}: the {key!r} mask must have one entry per member "
+                f"{self.name}: the {key!r} mask must have one entry per member "
                 f"({self.num_envs}), got shape {tuple(mask.shape)}"
             )
         return mask.reshape(self.batch_size).to(self.device)
 
-    def _warn_traced_params(self) -> None:
+    def traced_params(self, params) -> None:
         """Say so where parameters require grad and the env keeps no graph."""
         if self.differentiable:
             return
         traced = [
-            name for name, value in vars(self.params).items() if isinstance(value, torch.Tensor) and value.requires_grad
+            name for name, value in vars(params).items() if isinstance(value, torch.Tensor) and value.requires_grad
         ]
         if traced:
             why = "their gradients are dropped (make(..., differentiable=True) keeps them)"
             warnings.warn(
-                f"{self.env_id}: parameter(s) {traced} require grad but the env is not differentiable; {why}",
+                f"{self.name}: parameter(s) {traced} require grad but the env is not differentiable; {why}",
                 stacklevel=4,
             )
 
-    def _warn_dropped_gradient(self, action: Any) -> None:
-        """Say so, once per env, where an action requires grad and the env keeps no graph."""
+    def dropped_gradient(self, action: Any) -> None:
+        """Say so, once, where an action requires grad and the env keeps no graph."""
         if isinstance(action, torch.Tensor) and action.requires_grad and not self.differentiable:
-            if not self._warned_grad:
-                self._warned_grad = True
+            if not self.warned_grad:
+                self.warned_grad = True
                 warnings.warn(
-                    f"{self.env_id}: the action requires grad but the env is not differentiable; its "
+                    f"{self.name}: the action requires grad but the env is not differentiable; its "
                     f"gradient is dropped (make(..., differentiable=True) keeps it)",
                     stacklevel=4,
                 )
 
-    def _checked_state(self, state: Any) -> tuple[Any, list[str]]:
+    def state(self, state: Any, shapes: dict[str, torch.Size]) -> tuple[Any, list[str]]:
         """A state given to ``set_state`` (the env's state type, or a dict of its
         fields) as the env's state type in its dtype and on its device, its fields,
-        shapes and values checked; and the fields that require grad."""
-        name = self.env_id or type(self).__name__
-        fields = self.physics.state_type._fields
-        if isinstance(state, self.physics.state_type):
+        ``shapes`` and values checked; and the fields that require grad."""
+        name, state_type = self.name, self.physics.state_type
+        fields = state_type._fields
+        if isinstance(state, state_type):
             state = state._asdict()
         if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-            raise TypeError(f"{name}: set_state needs a {self.physics.state_type.__name__} of tensors like env.state")
+            raise TypeError(f"{name}: set_state needs a {state_type.__name__} of tensors like env.state")
         missing = sorted(set(fields) - set(state))
         extra = sorted(set(state) - set(fields))
         if missing or extra:
             raise KeyError(f"{name}: set_state needs the fields {list(fields)}; missing {missing}, unknown {extra}")
-        shapes = self._field_shapes()
         for key, value in state.items():
             if value.shape != shapes[key]:
                 raise ValueError(
@@ -263,16 +245,16 @@ class Checks:
             )
         # every state is of the env's dtype (integers given are cast), as its specs say;
         # its values are checked after the cast (1e39 is finite in float64 only)
-        state = self.physics.state_type(*(state[k].to(self.device, self.dtype) for k in fields))
+        state = state_type(*(state[k].to(self.device, self.dtype) for k in fields))
         for key, value in state._asdict().items():
             if not bool(torch.isfinite(value.detach()).all()):
                 raise ValueError(f"{name}: state.{key} has values that are not finite in {self.dtype}")
         return state, traced
 
-    def _checked_count(self, count: Any) -> torch.Tensor:
+    def count(self, count: Any) -> torch.Tensor:
         """The actions already taken given to ``set_state``: an integer, or one per
         member, each in ``[0, episode_length)``."""
-        name = self.env_id or type(self).__name__
+        name, length = self.name, self.physics.episode_length
         integer = isinstance(count, (int, np.integer)) and not isinstance(count, (bool, np.bool_))
         if isinstance(count, torch.Tensor):
             integer = not (count.is_floating_point() or count.is_complex() or count.dtype == torch.bool)
@@ -283,45 +265,27 @@ class Checks:
                 f"{name}: count must be an integer, or an integer tensor of one per member ({self.num_envs}), "
                 f"got {shown}"
             )
-        if not isinstance(count, torch.Tensor) and not 0 <= count < self.episode_length:
-            raise ValueError(
-                f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count}"
-            )
+        if not isinstance(count, torch.Tensor) and not 0 <= count < length:
+            raise ValueError(f"{name}: count must be in [0, {length}) (actions already taken), got {count}")
         count = torch.as_tensor(count, dtype=torch.int64, device=self.device)
-        if bool(((count < 0) | (count >= self.episode_length)).any()):
-            raise ValueError(
-                f"{name}: count must be in [0, {self.episode_length}) (actions already taken), got {count.tolist()}"
-            )
+        if bool(((count < 0) | (count >= length)).any()):
+            raise ValueError(f"{name}: count must be in [0, {length}) (actions already taken), got {count.tolist()}")
         return count
 
-    def _field_shapes(self) -> dict[str, torch.Size]:
-        """The shape of each field of the state (the batch first): the current state's,
-        or, before the first reset, that of a start computed once without drawing from
-        the env's generator."""
-        if self._state is not None:
-            return {key: value.shape for key, value in self._state._asdict().items()}
-        if self._shapes is None:
-            rng = self.rng.get_state()
-            try:
-                with torch.no_grad():
-                    start = self.physics.initial_state(self.params, self.rng)
-            finally:
-                self.rng.set_state(rng)
-            self._shapes = {key: value.shape for key, value in start._asdict().items()}
-        return self._shapes
-
-    def _check_type(self, state: Any) -> None:
+    def start_type(self, state: Any) -> None:
         """Refuse a start that is not of the env's state type (a physics whose
         ``initial_state`` returns a dict or a tuple)."""
-        if type(state) is not self.physics.state_type:
+        state_type = self.physics.state_type
+        if type(state) is not state_type:
             raise TypeError(
-                f"{self.env_id}: initial_state returned a {type(state).__name__}, not the env's "
-                f"state type {self.physics.state_type.__name__}"
+                f"{self.name}: initial_state returned a {type(state).__name__}, not the env's "
+                f"state type {state_type.__name__}"
             )
 
-    def _check_start(self, state: Any, obs: torch.Tensor) -> None:
+    def start(self, state: Any, obs: torch.Tensor, params, shape: torch.Size) -> None:
         """Refuse a start with values that are not finite (parameters out of the
-        physics' range), naming the members, and an observation of the wrong shape."""
+        physics' range), naming the members, and an observation of another shape than
+        the spec's ``shape``."""
         with torch.no_grad():
             started = finite_members(obs)
             for value in state:
@@ -330,7 +294,7 @@ class Checks:
         if not bool(started.all()):
             bad = (~started).nonzero()[:, 0].tolist()
             raise ValueError(
-                f"{self.env_id}: the initial state of batch member(s) {bad} is not finite; "
-                f"check their parameters ({self.params})"
+                f"{self.name}: the initial state of batch member(s) {bad} is not finite; "
+                f"check their parameters ({params})"
             )
-        self._check_observation(obs)
+        self.observation(obs, shape)

@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from beacon_torch import seeds
 from beacon_torch.core.physics import Physics
 from beacon_torch.core.state import Noise, State
 from beacon_torch.core.step import Step, step
@@ -60,7 +61,7 @@ def _noise_signature(physics, params) -> dict[str, tuple[tuple, torch.dtype]] | 
         return physics.recalled("noise signature")
 
     def draw():
-        generator = torch.Generator(device=physics.device).manual_seed(0)
+        generator = seeds.generator(0, physics.device)
         with torch.no_grad():
             noise = physics.noise(params, generator)
         return {k: (tuple(v.shape), v.dtype) for k, v in noise.items()}

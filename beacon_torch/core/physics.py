@@ -166,9 +166,12 @@ class Physics(abc.ABC):
 
     # ------------------------------------------------------------------ helpers
     def remembered(self, key: Any, compute: Callable[[], Any]) -> Any:
-        """``compute()`` the first time ``key`` is asked for, what it gave after: a start
-        developed for some parameters (a physics' hooks may be called with other
-        parameters than the first ones, e.g. mapped by ``torch.func``)."""
+        """``compute()`` the first time ``key`` is asked for, what it gave after: what
+        this physics derives once from its set-up (the loads of its start, the shapes of
+        its noise); ``key`` names the parameters it depends on, as a physics' hooks may
+        be called with other parameters than the first ones (e.g. mapped by
+        ``torch.func``). Starts themselves are kept once per process by
+        :func:`beacon_torch.cache.cached`, the one memo of starts."""
         kept = self.__dict__.setdefault("_remembered", {})
         if key not in kept:
             kept[key] = compute()

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from beacon_torch import seeds
 from beacon_torch.cache import cached
 from beacon_torch.core.card import PHYSICAL_LIMIT, Card, FrameInputs, GradCheck, Reference
 from beacon_torch.core.physics import Physics
@@ -196,7 +197,7 @@ def attractor_bank(L: float, n: int, sigma: float) -> KSState:
     """Start states on the uncontrolled chaotic attractor, float64: the fields of
     :data:`BANK_TRAJECTORIES` trajectories from small random fields (a fixed seed),
     after :data:`BANK_TRANSIENT` time units, every :data:`BANK_SPACING`."""
-    generator = torch.Generator().manual_seed(0)
+    generator = seeds.generator(0)
     u = 0.1 * torch.randn(BANK_TRAJECTORIES, n, dtype=torch.float64, generator=generator)
     u = u - u.mean(-1, keepdim=True)  # the equilibria's mean: the flow keeps it
     weights = torch.as_tensor(stage_matrices(L, n, sigma))
@@ -242,20 +243,17 @@ class KSPhysics(Physics):
         self._weights = self.tensor(stage_matrices(self.L, self.n, self.sigma))
         self.target = self.tensor(equilibrium(p.target, self.L, self.n))
         self._sensors = slice(0, self.n, self.n // N_SENSORS)
-        self._starts = None
         self._step = self.kernels(ks_step)
 
     def starts(self) -> torch.Tensor:
         """``[1024, n]``: the start fields, in the physics' dtype and on its device (the
         bank is computed once per L, n and sigma in float64, and cached)."""
-        if self._starts is None:
-            key = dict(L=self.L, n=self.n, sigma=self.sigma)
-            size = BANK_TRAJECTORIES * BANK_STATES
-            zeros = torch.zeros(size, self.n + len(ACTUATORS), dtype=torch.float64)
-            like = KSState(u=zeros[:, : self.n], a=zeros[:, self.n :])
-            bank = cached("ks-attractor", START_VERSION, key, lambda: attractor_bank(self.L, self.n, self.sigma), like)
-            self._starts = bank.u.to(device=self.device, dtype=self.dtype)
-        return self._starts
+        key = dict(L=self.L, n=self.n, sigma=self.sigma)
+        size = BANK_TRAJECTORIES * BANK_STATES
+        zeros = torch.zeros(size, self.n + len(ACTUATORS), dtype=torch.float64)
+        like = KSState(u=zeros[:, : self.n], a=zeros[:, self.n :])
+        bank = lambda: attractor_bank(self.L, self.n, self.sigma)
+        return cached("ks-attractor", START_VERSION, key, bank, like, device=self.device, dtype=self.dtype).u
 
     def initial_state(self, p, generator, mask=None) -> KSState:
         starts = self.starts()

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
+from beacon_torch import seeds
 from beacon_torch.cache import cached
 from beacon_torch.core.card import PUBLISHED_RESULT, Card, GradCheck, Reference
 from beacon_torch.core.state import Noise, map_state
@@ -196,7 +197,7 @@ def developed_convection(
     cpu, f64 = torch.device("cpu"), torch.float64
     p = resolve_params(type(p), given, batch_size=1, device=cpu, dtype=f64, env_id="rayleigh-v0")
     physics = RayleighPhysics(p, 1, dtype=f64, device=cpu)
-    g = torch.Generator().manual_seed(seed)
+    g = seeds.generator(seed)
     flow = Flow(*rest_state(1, physics.nx, physics.ny, torch.float64, "cpu"))
     theta = PERTURBATION * (2.0 * torch.rand(flow.scalar.shape, generator=g, dtype=torch.float64) - 1.0)
     bottom = torch.full((1, physics.nx), T_HOT, dtype=torch.float64)
@@ -273,23 +274,21 @@ class RayleighPhysics(CavityPhysics):
 
     def _start(self, p) -> Convection:
         # loaded at the first reset: an env started by set_state never develops its roll
-        return self.remembered(("convection", p.start, number(p.ra), number(p.pr)), lambda: self._developed(p))
-
-    def _developed(self, p) -> Convection:
         if p.start == PUBLISHED:
             start = published_convection(self.nx, self.ny)
-        else:
-            p = dataclasses.replace(p, ra=number(p.ra), pr=number(p.pr))
-            key = dict(L=p.L, H=p.H, ra=p.ra)
-            if (p.sides, p.pr, p.resolution) != (WALLS, PR, CELLS_PER_UNIT):  # the shipped cavity's key unchanged
-                key.update(sides=p.sides, pr=p.pr, resolution=p.resolution)
-                key.update(n_sgts=p.n_sgts if p.sides == CHANNEL else None)
-            like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
-            # between the walls' temperatures, the ghost cells' reflections of them included
-            span = T_HOT - T_COLD
-            bounds = {"theta": (T_COLD - span, T_HOT + span)}
-            start = cached("rayleigh-convection", START_VERSION, key, lambda: developed_convection(p), like, bounds)
-        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
+            return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
+        p = dataclasses.replace(p, ra=number(p.ra), pr=number(p.pr))
+        key = dict(L=p.L, H=p.H, ra=p.ra)
+        if (p.sides, p.pr, p.resolution) != (WALLS, PR, CELLS_PER_UNIT):  # the shipped cavity's key unchanged
+            key.update(sides=p.sides, pr=p.pr, resolution=p.resolution)
+            key.update(n_sgts=p.n_sgts if p.sides == CHANNEL else None)
+        like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
+        # between the walls' temperatures, the ghost cells' reflections of them included
+        span = T_HOT - T_COLD
+        bounds = {"theta": (T_COLD - span, T_HOT + span)}
+        develop = lambda: developed_convection(p)
+        where = dict(device=self.device, dtype=self.dtype)
+        return cached("rayleigh-convection", START_VERSION, key, develop, like, bounds, **where)
 
     def initial_state(self, p, generator, mask=None) -> RayleighState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from beacon_torch import seeds
 from beacon_torch.cache import cached
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.core.card import Card, FrameInputs, GradCheck
@@ -241,8 +242,7 @@ def developed_film(delta: float = 0.1, *, seed: int = DEVELOP_SEED, time: float 
     with the package; others are cached by :func:`beacon_torch.cache.cached`.
     """
     n = int(round(DEVELOP_LENGTH / DX))
-    g = torch.Generator(device=device)
-    g.manual_seed(seed)
+    g = seeds.generator(seed, device)
     state = flat_state(1, n, 1, torch.float64, device)
     profiles = torch.zeros((1, n - 2), dtype=torch.float64, device=device)
     zero = torch.zeros((1, 1), dtype=torch.float64, device=device)
@@ -294,21 +294,19 @@ class ShkadovPhysics(Physics):
 
     def _film(self, p) -> Film:
         # loaded at the first reset: an env started by set_state never develops its film
-        return self.remembered(("film", p.start, number(p.delta)), lambda: self._developed_film(p))
-
-    def _developed_film(self, p) -> Film:
         if p.start == PUBLISHED:
             table = published_table(
                 "shkadov", int(round(DEVELOP_LENGTH / DX)), 3
             )  # rows: x, h, q on the development domain
-            film = Film(h=table[:, 1], q=table[:, 2])
+            film = map_state(lambda v: v.to(device=self.device, dtype=self.dtype), Film(h=table[:, 1], q=table[:, 2]))
         else:
             delta = number(p.delta)
             n = int(round(DEVELOP_LENGTH / DX))
             like = Film(h=torch.ones(n, dtype=torch.float64), q=torch.ones(n, dtype=torch.float64))
             develop = lambda: developed_film(delta)
-            film = cached("shkadov-film", START_VERSION, dict(delta=delta), develop, like, {"h": (-H_MAX, H_MAX)})
-        return map_state(lambda v: v[: self.n_cells].to(device=self.device, dtype=self.dtype), film)
+            bounds, where = {"h": (-H_MAX, H_MAX)}, dict(device=self.device, dtype=self.dtype)
+            film = cached("shkadov-film", START_VERSION, dict(delta=delta), develop, like, bounds, **where)
+        return map_state(lambda v: v[: self.n_cells], film)
 
     def noise(self, p, generator) -> Noise:
         return {"inlet": inlet_noise(generator, self.num_envs, self.dtype, self.device)}

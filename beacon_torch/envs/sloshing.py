@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from beacon_torch.cache import cached
+from beacon_torch.cache import cached, memo
 from beacon_torch.compiled import Kernels, at
 from beacon_torch.core.card import Card, FrameInputs, GradCheck
 from beacon_torch.core.physics import Physics
@@ -171,9 +171,6 @@ class SloshingPhysics(Physics):
         self.n_cells = int(round(p.L * CELLS_PER_UNIT))
         self.dx = p.L / self.n_cells
         self._substeps = self.kernels.loop(sloshing_substep)
-        # made at the first reset, after the env has checked that the batch fits, for
-        # the parameters it was made for
-        self._start: tuple[object, SloshingState] | None = None
 
     def _start_state(self, p) -> SloshingState:
 
@@ -187,7 +184,9 @@ class SloshingPhysics(Physics):
             start = published()
         elif bool((p.g != p.g[0]).any()):  # one start per member
             g = p.g.detach().to(torch.float64)[:, None]
-            start = excited_state(p.L, g, self.num_envs, torch.float64, self.device)
+            # excited once per process for these members' g, in the one memo of starts
+            key = ("sloshing-excited members", START_VERSION, p.L, tuple(g[:, 0].tolist()), str(self.device))
+            start = memo(key, lambda: excited_state(p.L, g, self.num_envs, torch.float64, self.device))
             # a member at the published g (and length) starts as it would alone
             chosen = published_members(p, ("L", "g"))
             if chosen is not None:
@@ -205,9 +204,7 @@ class SloshingPhysics(Physics):
         return map_state(lambda v: v.to(device=self.device, dtype=self.dtype).clone(), start)
 
     def initial_state(self, p, generator, mask=None) -> SloshingState:
-        if self._start is None or self._start[0] is not p:
-            self._start = p, self._start_state(p)
-        start = self._start[1]
+        start = self._start_state(p)
         zero = torch.zeros_like(start.h)
         # the published reset reloads h and q only: the AB2 history and the previous
         # action start from zero

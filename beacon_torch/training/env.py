@@ -10,6 +10,7 @@ import torch
 from torchrl.envs import ClipTransform, Compose, ObservationNorm, RewardSum, TransformedEnv
 
 import beacon_torch
+from beacon_torch import seeds
 from beacon_torch.autograd import saved_storages
 from beacon_torch.registry import qualified_id
 
@@ -136,7 +137,7 @@ def make_collector(
             qualified_id(env_id),  # a worker process imports what registered it
             members,
             device=device,
-            seed=seed + 7919 * (k + 1),
+            seed=seeds.worker(seed, k),
             norm=env.transform[0].state_dict(),
             dtype=base.dtype,
             compile=base.physics.kernels.options or False,

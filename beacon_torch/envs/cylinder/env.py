@@ -122,16 +122,14 @@ class CylinderPhysics(Physics):
     def _start(self, p) -> Flow:
         # loaded at the first reset: an env started by set_state never develops its wake
         cells, nu = int(p.cells_per_diameter), number(p.nu)
-        return self.remembered(("shedding", cells, nu), lambda: self._developed(cells, nu))
-
-    def _developed(self, cells: int, nu: float) -> Flow:
         key = dict(cells=cells, nu=nu, time=DEVELOP_TIME)
         at_rest = rest(1, Channel(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu")
         like = map_state(lambda v: v[0], at_rest)
         bounds = {"u": (-10.0 * U_MAX, 10.0 * U_MAX)}  # what out_of_bounds ends an episode beyond
         develop = lambda: developed_shedding(cells, nu=nu)[0]
-        start = cached("cylinder-shedding", START_VERSION, key, develop, like, bounds)
-        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), start)
+        return cached(
+            "cylinder-shedding", START_VERSION, key, develop, like, bounds, device=self.device, dtype=self.dtype
+        )
 
     def _start_loads(self, p) -> tuple[torch.Tensor, torch.Tensor]:
         """The drag and lift forces on the cylinder in the start's flow, over one time

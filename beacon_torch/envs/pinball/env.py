@@ -45,15 +45,16 @@ KICK = 0.5
 MAX_ROTATION = 0.5 * math.pi
 
 
-def developed_start(cells: int, re: float) -> Flow:
+def developed_start(cells: int, re: float, device: str | torch.device = "cpu", dtype=torch.float64) -> Flow:
     """The levels' start at ``re`` on a grid of ``cells`` per diameter: the developed
-    uncontrolled flow (float64, CPU, without batch dimension), shipped, cached or
-    computed once."""
+    uncontrolled flow (without batch dimension; float64 on the CPU unless told),
+    shipped, cached or computed once."""
     key = dict(cells=cells, re=re, time=DEVELOP_TIME, kick=KICK)
     like = map_state(lambda v: v[0], rest(1, Box(cells, dtype=torch.float64, device="cpu"), torch.float64, "cpu"))
     compute = lambda: developed(cells, 1.0 / re, time=DEVELOP_TIME, kick=KICK)[0]
     # what out_of_bounds ends an episode beyond
-    return cached("pinball-developed", START_VERSION, key, compute, like, {"u": (-10.0 * U_INF, 10.0 * U_INF)})
+    bounds = {"u": (-10.0 * U_INF, 10.0 * U_INF)}
+    return cached("pinball-developed", START_VERSION, key, compute, like, bounds, device=device, dtype=dtype)
 
 
 class PinballState(NamedTuple):
@@ -155,10 +156,7 @@ class PinballPhysics(Physics):
         # One start per thousandth of Re: a derivative's neighbouring Re (a relative
         # step of 1e-6) starts from the same developed flow rather than computing two
         cells, re = int(p.cells_per_diameter), round(number(p.re), 3)
-        return self.remembered(("developed", cells, re), lambda: self._developed(cells, re))
-
-    def _developed(self, cells: int, re: float) -> Flow:
-        return map_state(lambda v: v.to(device=self.device, dtype=self.dtype), developed_start(cells, re))
+        return developed_start(cells, re, self.device, self.dtype)
 
     def _start_loads(self, p) -> torch.Tensor:
         """The cylinders' loads in the start's flow, over one time step of it without
