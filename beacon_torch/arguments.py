@@ -23,11 +23,10 @@ def find_user_modules() -> None:
 
 
 def load_script(path: str | Path, name: str | None = None):
-    """The script at ``path`` (a recipe, a page writer, a worked example) loaded from its
-    file as a module of its own and registered in ``sys.modules`` as an import would
-    register it (dataclasses look their module up there). Scripts are run and edited, not
-    imported: their folders stay off the import path, where a name such as
-    ``benchmarks`` is already taken (TorchRL's wheel installs a package of that name)."""
+    """The script at ``path`` (a recipe, a page writer) loaded from its file as a module
+    of its own and registered in ``sys.modules`` as an import would register it
+    (dataclasses look their module up there): how a script runs another (the driver its
+    recipes), as a script's own folder is not on its import path."""
     path = Path(path)
     name = name or f"script_{path.parent.name}_{path.stem}"
     spec = importlib.util.spec_from_file_location(name, path)

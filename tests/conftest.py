@@ -1,5 +1,4 @@
 import contextlib
-import functools
 import os
 from pathlib import Path
 
@@ -7,7 +6,6 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch.arguments import load_script
 
 # the adapters compile by default; the behaviour tests run them eagerly (compiled and
 # eager steps are compared per env in test_compile.py, and the default is tested there)
@@ -35,18 +33,6 @@ FAST = {e: ENVS[e].card.test_settings for e in ALL_ENVS}
 
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@functools.cache
-def script(path: str):
-    """A script of the repository (a recipe, the campaign driver) loaded from its file
-    as a module of its own: scripts are run and edited, not imported from the path."""
-    return load_script(ROOT / path)
-
-
-def recipe(algo: str):
-    """``recipes/ALGO.py``, the recipe of an algorithm."""
-    return script(f"recipes/{algo}.py")
 
 
 def make(env_id, num_envs=1, **kwargs):
@@ -112,7 +98,9 @@ def ppo_run(tmp_path_factory):
     from beacon_torch.training.config import PPOConfig, configure
 
     run = tmp_path_factory.mktemp("ppo") / "run"
-    recipe("ppo").main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
+    from recipes import ppo
+
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(run), **PPO))
     return run
 
 
@@ -122,7 +110,9 @@ def td3_run(tmp_path_factory):
     from beacon_torch.training.config import TD3Config, configure
 
     run = tmp_path_factory.mktemp("td3") / "run"
-    recipe("td3").main(configure(TD3Config, "vortex-v0", out=str(run), **TD3))
+    from recipes import td3
+
+    td3.main(configure(TD3Config, "vortex-v0", out=str(run), **TD3))
     return run
 
 

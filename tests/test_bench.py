@@ -121,6 +121,40 @@ def test_bench_command_reports_bad_input(capsys):
     assert "--num-envs" in capsys.readouterr().err
 
 
+@pytest.mark.slow(40)
+def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
+    """validation/same_steps.py: a tree against itself steps alike, bit for bit; against
+    a copy whose lorenz starts elsewhere, every case of lorenz differs from its first
+    observation, and the record says which."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    other = tmp_path / "other"
+    shutil.copytree(root / "beacon_torch", other / "beacon_torch", ignore=shutil.ignore_patterns("pretrained"))
+    lorenz = other / "beacon_torch" / "envs" / "lorenz.py"
+    lorenz.write_text(lorenz.read_text().replace("START = (10.0, 10.0, 10.0)", "START = (10.0, 10.0, 10.5)"))
+    command = [sys.executable, str(root / "validation" / "same_steps.py"), "--envs", "lorenz-v0"]
+    for trees, name in (([root, root], "same"), ([root, other], "other")):
+        out = subprocess.run(
+            [*command, *map(str, trees), "--out", str(tmp_path / f"{name}.json")],
+            capture_output=True,
+            text=True,
+            check=False,
+            cwd=tmp_path,
+            timeout=600,
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+    same, other = (json.loads((tmp_path / f"{name}.json").read_text()) for name in ("same", "other"))
+    assert same["cases"] == other["cases"] == 4 and same["tensors"] > 20 and same["differ"] == []
+    assert "lorenz-v0 eager float64: observation 0" in other["differ"]
+    assert {line.split(":")[0] for line in other["differ"]} == {
+        f"lorenz-v0 {mode} {dtype}" for mode in ("eager", "compiled") for dtype in ("float32", "float64")
+    }
+
+
 @pytest.mark.slow(20)
 def test_two_trees_timed_block_by_block_give_a_ratio_per_case(tmp_path):
     """benchmarks/revisions.py --interleaved: the two processes' blocks of each case
@@ -180,9 +214,8 @@ def test_every_horizon_of_a_record_starts_from_the_same_states_as_a_fresh_env():
     """The env and policy are built once per env and every horizon restarts from their
     saved starts: a horizon measured after others equals one measured first on an env
     built anew, on a stochastic env (burgers' inflow noise) with its generator."""
-    from conftest import script
+    from experiments import gradient_horizons as horizons
 
-    horizons = script("experiments/gradient_horizons.py")
     shared = horizons.Start("burgers-v0", 2, seed=3)
     after = [shared.norm(h)["norm"] for h in (2, 5, 5)]
     fresh = horizons.Start("burgers-v0", 2, seed=3).norm(5)["norm"]
@@ -193,9 +226,8 @@ def test_every_horizon_of_a_record_starts_from_the_same_states_as_a_fresh_env():
 def test_a_time_budget_leaves_out_the_longer_horizons_and_says_which(capsys):
     """With a budget, a horizon whose time predicted from the last measured one would
     overrun it is not started, nor any longer one, and the record keeps what was measured."""
-    from conftest import script
+    from experiments import gradient_horizons as horizons
 
-    horizons = script("experiments/gradient_horizons.py")
     started = []
 
     def measure(h):
@@ -217,9 +249,8 @@ def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentia
     the newest records and the actor-critic never differentiates past the knee."""
     from pathlib import Path
 
-    from conftest import script
+    from experiments import gradient_horizons as horizons
 
-    horizons = script("experiments/gradient_horizons.py")
     rows = lambda norms: [
         dict(env="x", horizon=h, norm=n, finite=n == n and n != float("inf"), members=8) for h, n in norms.items()
     ]
@@ -251,14 +282,15 @@ def test_the_knee_of_the_gradient_norm_sets_the_horizons_the_recipes_differentia
 def test_the_performance_page_shows_the_recorded_cost_of_differentiated_transitions():
     from pathlib import Path
 
-    from conftest import script
-
     root = Path(__file__).resolve().parents[1]
-    cost = script("benchmarks/grad_cost.py")
+    from benchmarks import grad_cost as cost
+
     table = cost.page_table(root / "benchmarks" / "results" / "grad_cost")
     assert "| burgers-v0 | 64 |" in table and "| shkadov-v0 | 16 |" in table
     assert table in (root / "docs" / "measurements.md").read_text()
-    profiles = script("benchmarks/grad_profile.py").page_table(root / "benchmarks" / "results" / "grad_profile")
+    from benchmarks import grad_profile
+
+    profiles = grad_profile.page_table(root / "benchmarks" / "results" / "grad_profile")
     assert "| burgers-v0 | 64 |" in profiles and "backward graphs" in profiles
     assert profiles in (root / "docs" / "measurements.md").read_text()
 
@@ -325,9 +357,8 @@ def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_cu
     or more; the gradients page shows the table of the recorded pairs."""
     from pathlib import Path
 
-    from conftest import script
+    from experiments import comparison
 
-    comparison = script("experiments/comparison.py")
     # burgers: 0 at -3.378 (no control), 1 at the paper's -1.75
     frames = list(range(0, 10_000, 100))
     rising = [-3.378 + 1.628 * min(1.0, f / 5000) * 1.05 for f in frames]
@@ -392,10 +423,8 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     import torch
 
     from beacon_torch.files import save_rows
+    from experiments import shac_ablation as ablation
 
-    from conftest import script
-
-    ablation = script("experiments/shac_ablation.py")
     runs, out = tmp_path / "runs", tmp_path / "records"
     rows = [ablation.run("burgers-v0", v, 0, runs, frames=2048) for v in ("defaults", "sapo")]
     for row in rows:
@@ -415,10 +444,9 @@ def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_setti
     budget, and the page's table is the one its script writes from the records."""
     from pathlib import Path
 
-    from conftest import script
-
     root = Path(__file__).resolve().parents[1]
-    ablation = script("experiments/shac_ablation.py")
+    from experiments import shac_ablation as ablation
+
     folder = root / "experiments" / "results" / "shac_ablation"
     table = ablation.page_table(folder)
     assert table in (root / "docs" / "gradients.md").read_text()

@@ -2,6 +2,7 @@
 check, a new env registered from outside the package gets the library's entry points,
 and the worked example of docs/adding-an-env.md passes the kit."""
 
+import importlib
 import json
 import sys
 from pathlib import Path
@@ -11,7 +12,6 @@ import pytest
 import torch
 
 import beacon_torch
-from beacon_torch.arguments import load_script
 from beacon_torch.envs import burgers
 from beacon_torch.envs.burgers import BurgersPhysics
 from beacon_torch.registry import ENVS
@@ -47,10 +47,12 @@ def unregister(env_id):
 @pytest.fixture
 def example():
     try:
-        yield load_script(EXAMPLE, "heat_example")
+        # imported afresh, so that it registers its env again
+        sys.modules.pop("docs.examples.heat", None)
+        yield importlib.import_module("docs.examples.heat")
     finally:
         unregister("heat-v0")
-        sys.modules.pop("heat_example", None)
+        sys.modules.pop("docs.examples.heat", None)
 
 
 @pytest.mark.slow(seconds=30)

@@ -18,7 +18,7 @@ from beacon_torch.envs.cylinder import CARD, Channel, CylinderParams, jet_target
 from beacon_torch.numerics.grid import NEUMANN, ZERO_FACE
 from beacon_torch.numerics.poisson import PoissonSolver, laplacian_1d
 
-from conftest import random_policy_file, script
+from conftest import random_policy_file
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = dict(dtype=torch.float64, device="cpu")
@@ -205,7 +205,9 @@ def test_the_normalised_scores_one_is_the_recorded_base_flow_after_the_recorded_
     inputs = [
         json.loads(next(r / name for r in rooms if (r / name).is_file()).read_text()) for name in record["records"]
     ]
-    again = script("validation/wake_reference.py").reference(*inputs)
+    from validation import wake_reference
+
+    again = wake_reference.reference(*inputs)
     assert again.pop("env") == "cylinder-v0" and again == {k: v for k, v in record.items() if k != "records"}
     assert 0 < record["transient_actions"] < cylinder.EPISODE_LENGTH
     held = cylinder.DRAG_OFFSET - cylinder.coefficient(torch.tensor(1.0)).item() ** -1 * record["cd_base"]
@@ -240,7 +242,8 @@ def test_control_benchmark_runs_a_policy_past_its_episode_beside_no_control(tmp_
     """experiments/wake_control.py: a policy file acts for two episodes' worth of
     actions on the grid it was trained on; the flow goes on across the episode's end,
     and the member without control is the uncontrolled flow itself."""
-    control = script("experiments/wake_control.py")
+    from experiments import wake_control as control
+
     params = {"cells_per_diameter": 10}
     policy = random_policy_file(tmp_path / "policy.pt", "cylinder-v0", params)
     row = control.control(str(policy), 2, compile=False)
@@ -282,8 +285,9 @@ def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted
     """experiments/wake_control.py --plot and experiments/learning.py
     --figure refuse a figure's name that is taken, by a file or a link (dangling
     included), before any work, and leave it as it was."""
-    control = script("experiments/wake_control.py")
-    learning = script("experiments/learning.py")
+    from experiments import learning
+    from experiments import wake_control as control
+
     figure, target = tmp_path / "figure.png", tmp_path / "elsewhere.png"
     if planted == "file":
         figure.write_bytes(b"mine")
@@ -306,7 +310,8 @@ def test_the_control_and_learning_figures_never_replace_a_file(tmp_path, planted
 def test_the_learning_comparison_refuses_runs_of_different_envs(tmp_path, monkeypatch):
     """experiments/learning.py compares runs on one env: runs trained on different envs
     or parameters get one line naming both, before any episode is stepped."""
-    learning = script("experiments/learning.py")
+    from experiments import learning
+
     trained = {"a": ("cylinder-v0", {}), "b": ("pinball-v0", {"re": 100.0})}
     monkeypatch.setattr(learning, "curve", lambda run: {"env": trained[run.name][0], "params": trained[run.name][1]})
     monkeypatch.setattr("sys.argv", ["learning.py", "a", "b", "--figure", str(tmp_path / "f.png")])
@@ -321,8 +326,7 @@ def test_the_learning_comparison_carries_an_earlier_records_curves(tmp_path, mon
     a record whose curves are not series of finite numbers is one line, before any
     episode is stepped."""
     import beacon_torch.episodes
-
-    learning = script("experiments/learning.py")
+    from experiments import learning
 
     def curve(algo, scores):
         n = len(scores)

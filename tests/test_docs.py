@@ -5,14 +5,13 @@ into one session), in a fresh working folder. A block that shows part of a modul
 text, word for word, and the module runs. Training budgets are cut to a few
 transitions: what is checked is that each call works, not what it learns."""
 
+import importlib
 import re
 import sys
 import textwrap
 from pathlib import Path
 
 import pytest
-
-from beacon_torch.arguments import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md"))]
@@ -62,9 +61,9 @@ def test_the_docs_code_runs_as_written(page, tmp_path, monkeypatch, registry_kep
     module = EXCERPTS.get(page)
     if module is not None:
         source = module.read_text()
-        name = f"docs_example_{module.stem}"
-        monkeypatch.setitem(sys.modules, name, None)  # gone again after the test
-        namespace = vars(load_script(module, name))
+        name = ".".join(module.relative_to(ROOT).with_suffix("").parts)
+        sys.modules.pop(name, None)  # imported afresh, so that it registers its env again
+        namespace = vars(importlib.import_module(name))
     for k, block in enumerate(blocks(page)):
         if module is not None and excerpt(block, source):
             continue  # an excerpt of the module, run with it

@@ -21,11 +21,12 @@ from beacon_torch.cli import main as cli
 from beacon_torch.training import config, report
 from beacon_torch.training.config import GradConfig, MPCConfig, PPOConfig, SACConfig, TD3Config, configure
 from beacon_torch.training.run import LOG_BYTES, BadRun, load_checkpoint, read_log
+from recipes import mpc, ppo
 
-from conftest import PPO, copy_run, lock_held_elsewhere, random_policy_file, recipe
+from conftest import PPO, copy_run, lock_held_elsewhere, random_policy_file
 
 ROOT = Path(__file__).resolve().parents[1]
-mpc, ppo = recipe("mpc"), recipe("ppo")
+
 CORES = threads.cores()
 
 

@@ -3,6 +3,7 @@ checkpoint and never corrupts the run: killed in a subprocess at several points,
 resumed, the run reaches its total with whole logs and a whole replay buffer."""
 
 import csv
+import os
 import signal
 import subprocess
 import sys
@@ -14,10 +15,12 @@ import torch
 
 from beacon_torch.training.config import PPOConfig, TD3Config, configure
 from beacon_torch.training.run import buffer_folder, buffer_folders, load_checkpoint
-
-from conftest import recipe
+from recipes import ppo, td3
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# the driver imports the recipes as the tests do, from the repository's root
+REPOSITORY = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
 
 # the subprocess: a short training that kills itself at the n-th time it passes `point`
 DRIVER = textwrap.dedent(
@@ -25,13 +28,8 @@ DRIVER = textwrap.dedent(
     import json, os, signal, sys
     import torch
     from torchrl.data import ReplayBuffer
-    from beacon_torch.arguments import load_script
     from beacon_torch.training import config
-
-    def load(algo):
-        return load_script({recipes!r} + "/" + algo + ".py", "recipe_" + algo)
-
-    ppo, td3 = load("ppo"), load("td3")
+    from recipes import ppo, td3
     algo, point, nth, out = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
     seen = [0]
 
@@ -96,16 +94,20 @@ def steps(run: Path, algo: str) -> list[float]:
 def test_a_killed_training_resumes_whole(algo, point, nth, tmp_path):
     settings = PPO if algo == "ppo" else TD3
     driver = tmp_path / "driver.py"
-    driver.write_text(DRIVER.format(recipes=str(ROOT / "recipes"), settings=settings))
+    driver.write_text(DRIVER.format(settings=settings))
     run = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, str(driver), algo, point, str(nth), str(run)], cwd=ROOT, capture_output=True, text=True
+        [sys.executable, str(driver), algo, point, str(nth), str(run)],
+        cwd=ROOT,
+        env=REPOSITORY,
+        capture_output=True,
+        text=True,
     )
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
     saved = load_checkpoint(run)
     assert 0 < saved["frames"] < settings["frames"]
     # the resume: from the checkpoint to the total, logs continued, the buffer whole
-    cls, script = (PPOConfig, recipe("ppo")) if algo == "ppo" else (TD3Config, recipe("td3"))
+    cls, script = (PPOConfig, ppo) if algo == "ppo" else (TD3Config, td3)
     last = script.main(
         configure(
             cls, "vortex-v0", out=str(run), resume=True, progress=False, logger="csv", checkpoint_every=1, **settings
@@ -133,7 +135,7 @@ def resume_whole(run: Path, frames: int) -> None:
     from torchrl.data import LazyTensorStorage, ReplayBuffer
 
     settings = {**TD3, "frames": frames}
-    last = recipe("td3").main(
+    last = td3.main(
         configure(TD3Config, "vortex-v0", out=str(run), resume=True, progress=False, logger="csv", **settings)
     )
     saved = load_checkpoint(run)
@@ -150,7 +152,7 @@ def td3_256(tmp_path_factory):
     """A finished TD3 run of 256 transitions, checkpointed each round."""
     run = tmp_path_factory.mktemp("td3") / "run"
     settings = {**TD3, "frames": 256}
-    recipe("td3").main(
+    td3.main(
         configure(TD3Config, "vortex-v0", out=str(run), progress=False, logger="csv", checkpoint_every=1, **settings)
     )
     return run
@@ -167,9 +169,9 @@ def test_a_resume_to_more_frames_killed_at_any_moment_of_its_commit_stays_resuma
     run = tmp_path / "run"
     shutil.copytree(td3_256, run)
     driver = tmp_path / "driver.py"
-    driver.write_text(DRIVER.format(recipes=str(ROOT / "recipes"), settings=TD3))
+    driver.write_text(DRIVER.format(settings=TD3))
     args = [sys.executable, str(driver), "td3", point, "1", str(run), "frames=384", "resume=true"]
-    proc = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
+    proc = subprocess.run(args, cwd=ROOT, env=REPOSITORY, capture_output=True, text=True)
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
     resume_whole(run, 384)
 
@@ -203,7 +205,7 @@ def test_a_resume_to_more_frames_on_a_full_disk_stays_resumable(td3_256, tmp_pat
 
 
 def test_a_truncated_replay_buffer_is_reported_not_trained_on(tmp_path):
-    td3 = recipe("td3")
+    from recipes import td3
 
     cfg = dict(TD3, frames=128)
     td3.main(configure(TD3Config, "vortex-v0", out=str(tmp_path), progress=False, logger="csv", **cfg))

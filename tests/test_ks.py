@@ -22,10 +22,7 @@ from beacon_torch.envs.ks import (
     ks_step,
     stage_matrices,
 )
-
-from conftest import script
-
-validation = script("validation/ks.py")
+from validation import ks as validation
 
 
 def test_the_equilibria_have_the_published_energies_and_leading_eigenvalues():
@@ -139,4 +136,6 @@ def test_the_page_shows_the_recorded_validation_and_trials():
     # the recorded exponent is within a tenth of the published one, the energies within 1 %
     (lyapunov,) = [r for r in rows if r["kind"] == "lyapunov"]
     assert lyapunov["members"] == 256 and abs(lyapunov["exponent"] / PUBLISHED_LYAPUNOV - 1) < 0.1
-    assert script("experiments/ks_trials.py").table() in page
+    from experiments import ks_trials
+
+    assert ks_trials.table() in page

@@ -10,10 +10,7 @@ import pytest
 import torch
 
 from beacon_torch.training.env import make_env
-
-from conftest import recipe, script
-
-mpc = recipe("mpc")
+from recipes import mpc
 
 # lorenz's reward counts x < 0, whose gradient is zero: the planner's model has the
 # smooth stand-in
@@ -153,8 +150,8 @@ def test_the_gradients_page_shows_a_recorded_plan_of_every_continuous_env():
     """Every single-agent env with continuous actions has a record of the planner (an
     evaluation, or the cost of planned actions where an episode takes more than an
     hour), and the page's table is the one its script writes from them."""
-    table = script("experiments/mpc_table.py")
     from beacon_torch.registry import continuous_envs, env_spec
+    from experiments import mpc_table as table
 
     rows = table.records()
     assert {r["env"] for r in rows} == set(continuous_envs())

@@ -49,9 +49,8 @@ def test_env_pages_list_the_parameters_and_diagnostics_as_declared():
     """Each env page's parameter and diagnostics tables are written from
     ``param(doc=...)`` and ``diagnostics`` (docs/make_env_tables.py): a parameter or a
     diagnostic added, renamed or re-ranged in the code shows on the page, or this fails."""
-    from conftest import script
+    from docs import make_env_tables as tables
 
-    tables = script("docs/make_env_tables.py")
     for env_id in tables.paged_envs():
         text = tables.page(env_id).read_text()
         block = f"{tables.BEGIN}\n{tables.block(env_id)}\n{tables.END}"
@@ -61,9 +60,10 @@ def test_env_pages_list_the_parameters_and_diagnostics_as_declared():
 def test_recipes_and_tools_are_scripts_on_the_library_alone():
     """The library is what users import; the recipes and the campaign driver are scripts
     that import only the library and its dependencies (no module of their own folder),
-    and nothing puts their folders on the import path. One script reads another: the
-    gradient recipe is the actor-critic's loop without its critic, and loads that
-    script from its file (as the driver loads every recipe), not as a module."""
+    and nothing puts their folders on the import path: the tests import the scripts'
+    folders as packages from the repository's root, the one path pytest adds. One script
+    reads another: the gradient recipe is the actor-critic's loop without its critic,
+    and loads that script from its file (as the driver loads every recipe)."""
     import ast
 
     allowed = {"__future__", "argparse", "importlib", "json", "math", "os", "shutil", "pathlib", "torch", "torchrl"}
@@ -79,7 +79,15 @@ def test_recipes_and_tools_are_scripts_on_the_library_alone():
                 assert name.split(".")[0] in allowed, f"{script.name} imports {name}"
     readers = {p.name for p in (ROOT / "recipes").glob("*.py") if "load_script" in p.read_text()}
     assert readers == {"grad.py"} and 'with_name("shac.py")' in (ROOT / "recipes" / "grad.py").read_text()
-    assert "pythonpath" not in (ROOT / "pyproject.toml").read_text()
+    import tomllib
+
+    assert tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["pythonpath"] == ["."]
+    scripts = [
+        p
+        for folder in ("recipes", "tools", "validation", "experiments", "benchmarks", "docs")
+        for p in (ROOT / folder).rglob("*.py")
+    ]
+    assert not [p.name for p in scripts if "sys.path." in p.read_text()]
     assert not (ROOT / "recipes" / "config.py").exists()
 
 

@@ -13,11 +13,12 @@ import torch
 import beacon_torch
 from beacon_torch.envs import pinball
 from beacon_torch.registry import env_spec
+from validation import pinball as steady
 
-from conftest import random_policy_file, script
+from conftest import random_policy_file
 
 ROOT = Path(__file__).resolve().parents[1]
-steady = script("validation/pinball.py")
+
 F64 = dict(dtype=torch.float64, device="cpu")
 
 
@@ -211,7 +212,8 @@ def test_the_wake_control_benchmark_runs_a_pinball_policy_beside_no_control(tmp_
 
     monkeypatch.setattr(pinball.PinballPhysics, "episode_length", 6)  # short episodes: the test's time
 
-    control = script("experiments/wake_control.py")
+    from experiments import wake_control as control
+
     params = {"cells_per_diameter": 10}
     policy = random_policy_file(tmp_path / "policy.pt", "pinball-v0", params, hidden=8)
     row = control.control(str(policy), 2, compile=False)
@@ -245,7 +247,8 @@ def test_a_control_record_carries_an_earlier_records_rows_ahead_of_the_new_ones(
     naming the record and machine they were measured on; a record of another env or run
     length, a policy carried already or rows that are not a record's are one line,
     before any policy runs."""
-    control = script("experiments/wake_control.py")
+    from experiments import wake_control as control
+
     n = 4
     keys = ("drag", "power", "lift", "reward", "omega_front", "omega_top", "omega_bottom")
 
@@ -293,7 +296,8 @@ def test_a_pinball_levels_reference_holds_its_recorded_base_flow_after_the_measu
     record lacks is one line."""
     import numpy as np
 
-    reference = script("validation/wake_reference.py")
+    from validation import wake_reference as reference
+
     base = latest("pinball_base-*.json")
     (level,) = [lv for row in base["rows"] if row["cells_per_diameter"] == 20 for lv in row["levels"] if lv["re"] == 30]
     cd_base, n = sum(level["drag_base"]), pinball.EPISODE_LENGTH
@@ -328,7 +332,9 @@ def test_the_recorded_policies_boat_tail_past_the_base_flows_reference_as_the_pa
     scores above the base flow's reference, which is no "= 1" at Re 30, 100 or 130."""
     import numpy as np
 
-    control, reference = script("experiments/wake_control.py"), script("validation/wake_reference.py")
+    from experiments import wake_control as control
+    from validation import wake_reference as reference
+
     rows = latest(f"{record}_control-*.json")["rows"]
     page = (ROOT / "docs" / "envs" / "pinball.md").read_text()
     for name, make in (("control", control.table), ("rotations", control.rotation_table)):

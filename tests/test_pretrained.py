@@ -12,10 +12,9 @@ from beacon_torch.cli import main as cli
 from beacon_torch.training import config
 from beacon_torch.training.env import make_env
 from beacon_torch.training.run import load_checkpoint
+from recipes import ppo
 
-from conftest import FAST, recipe, script
-
-ppo = recipe("ppo")
+from conftest import FAST
 
 
 @pytest.mark.parametrize("name", pretrained.available())
@@ -122,8 +121,8 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     import json
 
     from beacon_torch.training.evaluation import evaluate_run
+    from experiments import pretrained as bench
 
-    bench = script("experiments/pretrained.py")
     page = tmp_path / "results.md"
     page.write_text(f"# Results\n\nby hand\n\n{bench.BEGIN}\nold\n{bench.END}\n\nnotes\n")
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json")])

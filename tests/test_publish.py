@@ -15,11 +15,8 @@ from hypothesis import strategies as st
 import beacon_torch
 from beacon_torch.training.config import PPOConfig, configure
 from beacon_torch.training.evaluation import summarise
-
-from conftest import recipe, script
-
-ppo = recipe("ppo")
-reproduce = script("tools/reproduce.py")
+from recipes import ppo
+from tools import reproduce
 
 SETTINGS = dict(frames=400, n_rollout=200, num_envs=1, epochs=1, progress=False, logger="csv")
 

@@ -101,10 +101,8 @@ def test_the_page_shows_the_recorded_validation_within_two_percent():
     from pathlib import Path
 
     from beacon_torch import received
+    from validation import rayleigh_channel as validation
 
-    from conftest import script
-
-    validation = script("validation/rayleigh_channel.py")
     page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "rayleigh-separable.md").read_text()
     newest = sorted(validation.RECORDS.glob("channel_validation-*.json"))[-1]
     rows = received.json_file(newest, "a channel validation record")["rows"]
@@ -119,7 +117,7 @@ def test_the_page_shows_the_recorded_validation_within_two_percent():
 def test_the_page_shows_the_recorded_trials():
     from pathlib import Path
 
-    from conftest import script
-
     page = (Path(__file__).resolve().parents[1] / "docs" / "envs" / "rayleigh-separable.md").read_text()
-    assert script("experiments/rayleigh_separable_trials.py").table() in page
+    from experiments import rayleigh_separable_trials
+
+    assert rayleigh_separable_trials.table() in page

@@ -23,10 +23,9 @@ from beacon_torch.envs import shkadov
 from beacon_torch.training import report
 from beacon_torch.training.config import GradConfig, TD3Config, configure
 from beacon_torch.training.run import BadRun, buffer_folder, load_checkpoint
+from recipes import grad, td3
 
-from conftest import TD3, copy_run, recipe
-
-td3, grad = recipe("td3"), recipe("grad")
+from conftest import TD3, copy_run
 
 POLICY = pretrained.shipped("ppo/lorenz-v0")
 

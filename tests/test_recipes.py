@@ -2,6 +2,7 @@
 driver) and the training layer they share: short runs on small batches."""
 
 import functools
+import importlib
 import subprocess
 import sys
 from dataclasses import replace
@@ -31,11 +32,9 @@ from beacon_torch.training.config import (
 from beacon_torch.training.env import make_collector, make_env
 from beacon_torch.training.evaluation import evaluate_run, read_scalar
 from beacon_torch.training.run import BadRun, buffer_folder
+from recipes import dqn, grad, ppo, shac, td3
 
-from conftest import TD3, recipe
-from conftest import script as load_script
-
-dqn, grad, ppo, shac, td3 = (recipe(algo) for algo in ("dqn", "grad", "ppo", "shac", "td3"))
+from conftest import TD3
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -341,7 +340,7 @@ TINY = {k: v for k, v in TD3.items() if k != "logger"}
 @pytest.mark.parametrize("algo, env_id", [("td3", "vortex-v0"), ("dqn", "lorenz-v0")])
 def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, env_id, tmp_path, capsys):
     cls = CONFIGS[algo]
-    recipe(algo).main(configure(cls, env_id, out=str(tmp_path), **TINY))
+    importlib.import_module(f"recipes.{algo}").main(configure(cls, env_id, out=str(tmp_path), **TINY))
     state = checkpoint(tmp_path)
     assert state["algo"] == algo and state["frames"] == 256
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
@@ -350,7 +349,8 @@ def test_off_policy_recipes_train_resume_with_their_buffer_and_evaluate(algo, en
     # go on across a resume: 3 rounds of 4 updates after the warm-up round, then 2 more
     counter = {"td3": "updates", "dqn": "target_counter"}[algo]
     assert state["counters"][counter] == 12
-    recipe(algo).main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
+    recipe = importlib.import_module(f"recipes.{algo}")
+    recipe.main(configure(cls, env_id, out=str(tmp_path), resume=True, **{**TINY, "frames": 384}))
     state = checkpoint(tmp_path)
     assert state["frames"] == 384 and state["counters"][counter] == 20
     assert any(not torch.equal(first[k], state["modules"]["actor"][k]) for k in first), (
@@ -672,8 +672,8 @@ def test_campaign_trains_inside_its_out_and_publishes_only_when_asked(tmp_path, 
     import json
 
     from beacon_torch import pretrained
+    from tools import reproduce
 
-    reproduce = load_script("tools/reproduce.py")
     shipped = tmp_path / "shipped"
     shipped.mkdir()
     monkeypatch.setattr(pretrained, "HERE", shipped)
@@ -1240,7 +1240,8 @@ def test_the_env_parameters_a_run_trains_on_are_settings_recorded_with_it(tmp_pa
 
 
 def test_sac_trains_resumes_with_its_buffer_and_evaluates_deterministically(tmp_path, capsys):
-    sac = recipe("sac")
+    from recipes import sac
+
     cfg = dict(TINY, hidden=32)
     last = sac.main(configure(SACConfig, "vortex-v0", out=str(tmp_path), **cfg))
     state = checkpoint(tmp_path)

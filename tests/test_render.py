@@ -120,9 +120,8 @@ def test_the_docs_images_replace_their_own_files_and_never_write_through_a_link(
     """docs/make_images.py regenerates its frames and animation: what stands at their
     names, its own earlier file or a link planted there, is removed and a new file
     written; the link's target is never created."""
-    from conftest import script
+    from docs import make_images as images
 
-    images = script("docs/make_images.py")
     out = tmp_path / "img"
     out.mkdir()
     (out / "lorenz-v0.png").write_bytes(b"an earlier frame")

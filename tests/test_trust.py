@@ -35,11 +35,10 @@ from beacon_torch.training.run import (
     load_checkpoint,
     read_log,
 )
+from recipes import dqn, ppo, td3
+from tools import reproduce
 
-from conftest import PPO, TD3, copy_run, lock_held_elsewhere, recipe, script
-
-dqn, ppo, td3 = recipe("dqn"), recipe("ppo"), recipe("td3")
-reproduce = script("tools/reproduce.py")
+from conftest import PPO, TD3, copy_run, lock_held_elsewhere
 
 ROOT = Path(__file__).resolve().parents[1]
 

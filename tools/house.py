@@ -213,7 +213,7 @@ def floors_table() -> str:
 def scripts_table() -> str:
     rows = ["| room above the package | scripts | lines |", "|---|---|---|"]
     for folder in SCRIPTS:
-        paths = sorted((ROOT / folder).glob("*.py"))
+        paths = sorted(p for p in (ROOT / folder).glob("*.py") if p.name != "__init__.py")
         rows.append(f"| `{folder}/` | {len(paths)} | {sum(lines(p) for p in paths):,} |")
     return "\n".join(rows)
 

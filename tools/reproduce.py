@@ -45,8 +45,8 @@ BEGIN, END = "<!-- results table: tools/reproduce.py page -->", "<!-- end of res
 
 
 def load_recipe(algo: str):
-    """The recipe script ``recipes/ALGO.py`` as a module of its own (not through
-    ``sys.path``: the recipes are scripts, not a package)."""
+    """The recipe script ``recipes/ALGO.py`` as a module of its own, loaded from its file:
+    the driver is a script, and the repository's root is not on its import path."""
     return load_script(RECIPES / f"{algo}.py", f"recipe_{algo}")
 
 
