@@ -11,7 +11,10 @@ up: ``env.physics.n_cells``) and takes the parameters as an argument; what the l
 knows of it beyond them (family, cost, the published code's speed, the paper's PPO
 score, its gradient check, cheap settings for tests, its frame) is its card
 (``env.card``), which benchmarks, reports and tests read instead of keeping lists of
-envs.
+envs. What is a concern of its own is a part the env calls with its inputs named:
+where the entries of a TensorDict sit (``env.layout``), what it refuses of what it is
+given (``env.guard``), a state dict's entries (:mod:`beacon_torch.core.saving`), the
+states kept for rendering (``env.history``).
 
 With ``differentiable=True`` the steps keep the autograd graph through the state, so the
 rewards can be differentiated with respect to the actions, to parameters given as
