@@ -71,6 +71,17 @@ def scores(rollout: TensorDictBase) -> torch.Tensor:
     """Episode score (sum of rewards up to the end of the first episode) of each member,
     in float64. Steps after a member's end repeat its last entry in TorchRL's rollout
     and are not counted."""
+    return (step_rewards(rollout) * _in_episode(rollout)).sum(-1)
+
+
+def episode_means(values: torch.Tensor, rollout: TensorDictBase) -> torch.Tensor:
+    """The mean of ``[batch, steps]`` per-step ``values`` (a diagnostic of ``rollout``)
+    over each member's first episode, in float64."""
+    in_episode = _in_episode(rollout)
+    return (values.to(torch.float64) * in_episode).sum(-1) / in_episode.sum(-1)
+
+
+def _in_episode(rollout: TensorDictBase) -> torch.Tensor:
+    """``[batch, steps]``: True up to and with each member's first end."""
     done = rollout["next", "done"][..., 0].to(torch.int64)
-    in_episode = (done.cumsum(-1) - done) == 0
-    return (step_rewards(rollout) * in_episode).sum(-1)
+    return (done.cumsum(-1) - done) == 0

@@ -124,16 +124,18 @@ class Planner:
         return td.set(self.base.action_key, action)
 
 
-def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> torch.Tensor:
+def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> tuple[torch.Tensor, dict]:
     """The score of each member's planned episode of ``env`` (float64; of its first
     ``args.actions`` actions where given), as the recipes' evaluation scores an episode:
-    the rewards up to its end. Every ``args.checkpoint_every`` actions, where the
-    episodes are (the env's state and generators, the plans, the scores so far) is
-    saved to ``path``; with ``args.resume`` they go on from there, the same episodes as
-    without the stop."""
+    the rewards up to its end; and each of the env's diagnostics (a wake's drag) summed
+    over the same actions, with their count under ``"actions"``. Every
+    ``args.checkpoint_every`` actions, where the episodes are (the env's state and
+    generators, the plans, the sums so far) is saved to ``path``; with ``args.resume``
+    they go on from there, the same episodes as without the stop."""
     base = env.base_env
     length = args.actions or base.episode_length
     scores = torch.zeros(base.num_envs, dtype=torch.float64, device=base.device)
+    sums = {name: torch.zeros_like(scores) for name in (*base.physics.diagnostics, "actions")}
     going = torch.ones(base.num_envs, dtype=torch.bool, device=base.device)
     done = 0
     env.reset()
@@ -143,6 +145,7 @@ def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> torc
         planner.plan, planner.stats = saved["plan"], saved["stats"]
         planner.generator.set_state(saved["generator"])
         scores, going, done = saved["scores"], saved["going"], saved["actions_done"]
+        sums = saved["diagnostics"]
         print(f"resuming {path}: {done} of {length} actions planned")
     td = base.current()
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
@@ -155,6 +158,9 @@ def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> torc
                     td.set("_step", going.unsqueeze(-1))
                 step = env.step(td)["next"]
                 scores += torch.where(going, step["reward"][..., 0].to(torch.float64), 0.0)
+                for name in sums:
+                    seen = 1.0 if name == "actions" else step["diagnostics", name].reshape(-1).to(torch.float64)
+                    sums[name] += torch.where(going, seen, 0.0)
                 going &= ~step["done"][..., 0]
                 td, done = step, done + 1
                 bar.update()
@@ -164,6 +170,7 @@ def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> torc
                         "settings": dataclasses.asdict(args),
                         "actions_done": done,
                         "scores": scores,
+                        "diagnostics": sums,
                         "going": going,
                         "env": base.state_dict(),
                         "plan": planner.plan,
@@ -171,7 +178,7 @@ def planned_episodes(env, planner: Planner, args: MPCConfig, path: Path) -> torc
                         "stats": planner.stats,
                     }
                     files.save_tensors(saved, path)
-    return scores
+    return scores, sums
 
 
 # how a planning run is carried out, free to change when it is resumed
@@ -206,6 +213,9 @@ def read_checkpoint(path: Path, base, planner: Planner, args: MPCConfig, length:
             "settings": dataclasses.asdict(args),
             "actions_done": 0,
             "scores": torch.zeros(members, dtype=torch.float64),
+            "diagnostics": {
+                name: torch.zeros(members, dtype=torch.float64) for name in (*base.physics.diagnostics, "actions")
+            },
             "going": torch.zeros(members, dtype=torch.bool),
             "env": base.state_dict(),
             "plan": planner.plan,
@@ -224,12 +234,29 @@ def read_checkpoint(path: Path, base, planner: Planner, args: MPCConfig, length:
                     f"{path}: setting '{name}' = {value!r} differs from the planned episodes' "
                     f"{saved['settings'].get(name)!r}; resumed episodes keep the settings they were started with"
                 )
-        for key in ("actions_done", "scores", "going", "env", "plan", "generator", "stats"):
+        for key in ("actions_done", "scores", "diagnostics", "going", "env", "plan", "generator", "stats"):
             same_layout(saved[key], own[key], key)
         if not 0 < saved["actions_done"] < length or min(saved["stats"].values()) < 0:
             raise bad(f"'actions_done' must lie in [1, {length - 1}] and the counts be non-negative")
 
     return received.torch_file(path, "checkpoint of planned episodes", check)
+
+
+def diagnostic_means(sums: dict, free) -> dict:
+    """Each of the env's diagnostics averaged over each member's episode and then over
+    the members, planned (from ``sums``) and without control (from the rollout
+    ``free`` of the same starts), with the relative change (a wake's drag reduction is
+    minus it)."""
+    means = {}
+    for name, total in sums.items():
+        if name == "actions":
+            continue
+        planned = (total / sums["actions"]).mean().item()
+        values = free["next", "diagnostics", name].reshape(*free.batch_size).to(torch.float64)
+        uncontrolled = episodes.episode_means(values, free).mean().item()
+        change = planned / uncontrolled - 1.0 if uncontrolled else None
+        means[name] = {"planned": planned, "uncontrolled": uncontrolled, "relative_change": change}
+    return means
 
 
 def main(args: MPCConfig) -> dict:
@@ -259,7 +286,7 @@ def main(args: MPCConfig) -> dict:
             device=args.device, **sets,
         )  # fmt: skip
         planner = Planner(env.base_env, args)
-        scores = planned_episodes(env, planner, args, checkpoint)
+        scores, sums = planned_episodes(env, planner, args, checkpoint)
         record = {
             "env": args.env,
             "params": args.params,
@@ -275,6 +302,7 @@ def main(args: MPCConfig) -> dict:
                 score_mean=scores.mean().item(),
                 score_std=scores.std(unbiased=False).item(),
                 uncontrolled=episodes.scores(free).mean().item(),
+                diagnostics=diagnostic_means(sums, free),
             )
             if normalisable(args.env):  # else no reference score to scale by
                 record["normalised"] = float(normalised(record["score_mean"], record["uncontrolled"], args.env))
@@ -285,7 +313,11 @@ def main(args: MPCConfig) -> dict:
             dropped_iterations=stats["dropped"],
             threads=torch.get_num_threads(),
         )
-        for key, value in record.items():
+        numbers = {
+            **record,
+            **{f"{n} {k}": v for n, means in record.get("diagnostics", {}).items() for k, v in means.items()},
+        }
+        for key, value in numbers.items():
             if isinstance(value, float) and not math.isfinite(value):
                 raise ValueError(f"{args.env}: the planned episodes' {key} is {value}; nothing is recorded")
         text = json.dumps(record, indent=1, allow_nan=False)

@@ -183,7 +183,8 @@ def test_the_planner_on_a_full_disk_or_a_held_folder_says_so_in_one_line(tmp_pat
 
 def test_a_planner_record_is_never_written_with_nan(tmp_path, monkeypatch):
     cfg = mpc.parse([*PLANNER[:2], "--horizon", "1", "--iterations", "1", "--num-envs", "1", "--out", str(tmp_path)])
-    monkeypatch.setattr(mpc, "planned_episodes", lambda *a, **k: torch.tensor([float("nan")], dtype=torch.float64))
+    nan = torch.tensor([float("nan")], dtype=torch.float64)
+    monkeypatch.setattr(mpc, "planned_episodes", lambda *a, **k: (nan, {"actions": torch.ones(1)}))
     with pytest.raises(ValueError, match="the planned episodes' score_mean is nan; nothing is recorded"):
         mpc.main(cfg)
     assert not (tmp_path / "mpc.json").exists()

@@ -6,9 +6,11 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from beacon_torch.training import evaluation
 from beacon_torch.training.env import make_env
 from recipes import mpc
 
@@ -52,7 +54,9 @@ def test_a_plan_predicts_the_envs_own_rewards_and_its_iterations_improve_it():
 def test_planned_episodes_beat_no_control_and_are_recorded_once(tmp_path, capsys):
     """Two lorenz episodes from the test set's starts, planned 8 actions ahead with 3
     iterations each (the default 20 and 10 reach further): more time with x < 0 than no
-    control from the same starts, the record written once and then refused."""
+    control from the same starts, the record written once and then refused. The
+    record gives the env's diagnostics averaged over the episodes, the uncontrolled
+    ones those of the evaluation's own rollout."""
     out = tmp_path / "lorenz"
     argv = ["--env", "lorenz-continuous-v0", *SMOOTH, "--horizon", "8", "--iterations", "3"]
     argv += ["--num-envs", "2", "--threads", "1", "--no-progress", "--out", str(out)]
@@ -60,6 +64,13 @@ def test_planned_episodes_beat_no_control_and_are_recorded_once(tmp_path, capsys
     assert record["score_mean"] > record["uncontrolled"] and record["normalised"] > 0, record
     assert record["planned_actions"] == 500 and record["dropped_iterations"] == 0
     assert json.loads((out / "mpc.json").read_text())["normalised"] == record["normalised"]
+    free, _ = evaluation.uncontrolled_episodes("lorenz-continuous-v0", 2, starts="test")
+    assert set(record["diagnostics"]) == {"x", "y", "z"}
+    for name, means in record["diagnostics"].items():
+        expected = np.nanmean(evaluation._per_action(free, name), -1).mean()
+        assert means["uncontrolled"] == pytest.approx(expected, rel=1e-12), name
+        assert np.isfinite(means["planned"]) and means["planned"] != means["uncontrolled"], name
+        assert means["relative_change"] == pytest.approx(means["planned"] / means["uncontrolled"] - 1.0), name
     with pytest.raises(SystemExit):
         mpc.parse(argv)
     assert "mpc.json exists and is not overwritten" in capsys.readouterr().err
@@ -104,7 +115,15 @@ def test_planned_episodes_stopped_and_resumed_are_those_of_one_run(tmp_path, mon
 
     resumed = mpc.main(mpc.parse([*argv, "--out", str(out), "--resume"]))
     assert "resuming" in capsys.readouterr().out and not checkpoint.exists()
-    for key in ("score_mean", "score_std", "uncontrolled", "normalised", "planned_actions", "dropped_iterations"):
+    for key in (
+        "score_mean",
+        "score_std",
+        "uncontrolled",
+        "normalised",
+        "planned_actions",
+        "dropped_iterations",
+        "diagnostics",
+    ):
         assert resumed[key] == whole[key], key
     assert resumed["planned_actions"] == 500
 
