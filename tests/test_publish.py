@@ -9,6 +9,7 @@ import json
 import math
 
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -254,4 +255,13 @@ def test_the_kept_campaigns_are_unpublished_run_folders_a_resume_reads_as_their_
         assert logs["episode_score"] and logs["episode_score"][-1][0] <= state["frames"], folder
         assert not (reproduce.RECORDED / algo / f"{env_id}.json").exists(), f"{algo}/{env_id} is published"
         kept.add((f"{algo}/{env_id}", seed, f"{state['frames']:,}", f"{state['config']['frames']:,}"))
+    # planned episodes under way (recipes/mpc.py's checkpoint, read within bounds on resume)
+    for checkpoint in sorted(root.glob("mpc/*/mpc-checkpoint.pt")):
+        saved = torch.load(checkpoint, weights_only=True)
+        env_id = checkpoint.parent.name
+        assert saved["env_id"] == env_id and saved["settings"]["env"] == env_id
+        length = saved["settings"]["actions"] or beacon_torch.registry.env_spec(env_id).physics.episode_length
+        assert 0 < saved["actions_done"] < length and saved["stats"]["actions"] == saved["actions_done"]
+        assert not (checkpoint.parent / "mpc.json").exists(), "a finished planner's record is kept as a result"
+        kept.add((f"mpc/{env_id}", saved["settings"]["starts"], f"{saved['actions_done']:,}", f"{length:,}"))
     assert listed == kept
