@@ -99,8 +99,7 @@ def tvd_adjoint_tensors(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod_l
     return pad(faces, (0, 1)) - pad(differences, (0, 1)) + pad(differences, (1, 0))
 
 
-@torch.library.custom_op("beacon_torch::tvd_adjoint", mutates_args=())
-def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod_limiter: bool) -> torch.Tensor:
+def _tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod_limiter: bool) -> torch.Tensor:
     """The gradient of ``f`` (``[..., n]``) of :func:`tvd_derivative` with van Leer's
     limiter (or minmod's) from the gradient ``grad`` (``[..., n - 2]``) of its result:
     the C loop on the CPU (one pass a row), :func:`tvd_adjoint_tensors` elsewhere. An
@@ -110,18 +109,19 @@ def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod_limiter: 
     return tvd_adjoint_tensors(f, grad, dx, minmod_limiter)
 
 
-@tvd_adjoint.register_fake
-def _(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod_limiter: bool) -> torch.Tensor:
-    return torch.empty_like(f, memory_format=torch.contiguous_format)
-
-
 def _rows_vmap(info, in_dims, f, grad, dx, minmod_limiter):
     # every leading dimension is a row: the mapped one joins them at the front
     front = lambda t, dim: t.unsqueeze(0).expand(info.batch_size, *t.shape) if dim is None else t.movedim(dim, 0)
     return tvd_adjoint(front(f, in_dims[0]), front(grad, in_dims[1]), dx, minmod_limiter), 0
 
 
-tvd_adjoint.register_vmap(_rows_vmap)
+tvd_adjoint = native.operator(
+    "tvd_adjoint(Tensor f, Tensor grad, float dx, bool minmod_limiter) -> Tensor",
+    _tvd_adjoint,
+    lambda f, grad, dx, minmod_limiter: torch.empty_like(f, memory_format=torch.contiguous_format),
+    _rows_vmap,
+    key="CompositeExplicitAutograd",
+)
 
 
 class _TVDDerivative(torch.autograd.Function):

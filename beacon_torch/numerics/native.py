@@ -20,8 +20,8 @@ file that someone else could have written is ever loaded), and called through
 tensors are not on the CPU, or ``BEACON_TORCH_NATIVE=0``, :func:`applies` says no and
 the caller keeps its tensor path.
 
-Both kernels are differentiable: each is a custom operator with its adjoint written
-beside it. The sweep's adjoint is the reverse sweep (a C kernel of the same loop run
+Both kernels are differentiable: each is an operator of torch's dispatcher with its
+adjoint written beside it. The sweep's adjoint is the reverse sweep (a C kernel of the same loop run
 backwards), the tridiagonal solve's is the same solve (its matrix is symmetric, or
 similar to its transpose through the cells' widths), so that a gradient through a
 cavity step keeps the fast loops instead of a graph of thousands of small operations.
@@ -256,8 +256,10 @@ def _build() -> ctypes.CDLL | None:
     finally:
         # the loaded library stays mapped after its file is gone
         shutil.rmtree(folder, ignore_errors=True)
+    # the arrays go as their addresses (an integer each): a typed pointer's cast costs
+    # microseconds a call, and the caller has chosen the kernel of the tensors' dtype
+    pointer, size = ctypes.c_void_p, ctypes.c_long
     for suffix, ctype in (("f32", ctypes.c_float), ("f64", ctypes.c_double)):
-        pointer, size = ctypes.POINTER(ctype), ctypes.c_long
         for name, arrays in (("sweep", 4), ("lines", 5), ("sweep_adjoint", 7)):
             fn = getattr(lib, f"{name}_{suffix}")
             fn.argtypes = (*(pointer,) * arrays, size, size, size)
@@ -312,11 +314,9 @@ def _call(name: str, first: torch.Tensor, *rest: torch.Tensor, sizes: tuple[int,
     lib = _library if _tried else library()
     if first.device.type != "cpu" or first.dtype not in _KERNELS or lib is None:
         raise RuntimeError(f"{name}: the C kernel does not apply here (see native.applies)")
-    suffix, ctype = _KERNELS[first.dtype]
     arrays = [t.contiguous() for t in (first, *rest)]
     results = [torch.empty(like.shape, dtype=first.dtype) for like in (outs or (arrays[0],))]
-    pointer = ctypes.POINTER(ctype)
-    getattr(lib, f"{name}_{suffix}")(*(ctypes.cast(t.data_ptr(), pointer) for t in (*results, *arrays)), *sizes)
+    getattr(lib, f"{name}_{_KERNELS[first.dtype][0]}")(*(t.data_ptr() for t in (*results, *arrays)), *sizes)
     return tuple(results) if outs else results[0]
 
 
@@ -331,17 +331,15 @@ def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod: bool) ->
     n = f.shape[-1]
     if n < 4 or grad.shape != (*f.shape[:-1], n - 2):
         raise ValueError(f"tvd_adjoint: rows {tuple(f.shape)} and their gradient {tuple(grad.shape)} do not fit")
-    suffix, ctype = _KERNELS[f.dtype]
     f, grad = f.contiguous(), grad.contiguous()
     out, work = torch.empty_like(f), torch.empty(2 * n, dtype=f.dtype)
-    pointer = ctypes.POINTER(ctype)
-    arrays = (ctypes.cast(t.data_ptr(), pointer) for t in (out, work, f, grad))
-    getattr(lib, f"tvd_adjoint_{suffix}")(*arrays, f.numel() // n, n, dx, int(minmod))
+    arrays = (t.data_ptr() for t in (out, work, f, grad))
+    getattr(lib, f"tvd_adjoint_{_KERNELS[f.dtype][0]}")(*arrays, f.numel() // n, n, dx, int(minmod))
     return out
 
 
-def _members_vmap(op, member_args: tuple[int, ...], outputs: int = 1):
-    """A vmap rule for a kernel whose arrays ``member_args`` (their positions) end with
+def _members_vmap(name: str, member_args: tuple[int, ...], outputs: int = 1):
+    """A vmap rule for the operator ``beacon_torch::name`` whose arrays ``member_args`` (their positions) end with
     the members' axis and whose others are the same for every member: the mapped
     dimension joins the members (``[..., B, V]`` as ``[..., B * V]``), the kernel runs
     once, and its results are split again. A mapped array of the second kind (a
@@ -353,12 +351,12 @@ def _members_vmap(op, member_args: tuple[int, ...], outputs: int = 1):
         for k, (t, dim) in enumerate(zip(args, in_dims, strict=True)):
             if k not in member_args:
                 if dim is not None:
-                    raise NotImplementedError(f"{op.__name__}: vmap over an argument shared by the members")
+                    raise NotImplementedError(f"{name}: vmap over an argument shared by the members")
                 given.append(t)
                 continue
             t = t.unsqueeze(-1).expand(*t.shape, size) if dim is None else t.movedim(dim, -1)
             given.append(t.reshape(*t.shape[:-2], -1))
-        out = op(*given)
+        out = getattr(torch.ops.beacon_torch, name).default(*given)
         split = lambda o: o.reshape(*o.shape[:-1], -1, size)
         if outputs == 1:
             out = split(out)
@@ -369,10 +367,32 @@ def _members_vmap(op, member_args: tuple[int, ...], outputs: int = 1):
     return rule
 
 
-# A custom operator, so that a compiled substep calls the loop inside its graph (no
-# graph break): out of place, as the graph's functional form wants.
-@torch.library.custom_op("beacon_torch::sweep", mutates_args=())
-def sweep_kernel(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+# The kernels are operators of torch's dispatcher, so that a compiled substep calls a
+# loop inside its graph (no graph break), out of place as the graph's functional form
+# wants. They are registered with torch.library's own calls rather than its
+# ``custom_op`` wrapper, whose layers (an autograd kernel, an aliasing check, a
+# redispatch) took more time a call than the tridiagonal solve of a cavity's step at 8
+# members: their autograd is the autograd.Function around each (its forward runs with
+# autograd off), and the dispatcher calls the kernel below directly.
+_OPERATORS = torch.library.Library("beacon_torch", "FRAGMENT")
+
+
+def operator(schema: str, kernel, fake, vmap, key: str = "CPU"):
+    """The dispatcher's operator ``beacon_torch::NAME`` of ``schema`` (``NAME(Tensor x,
+    ...) -> Tensor``): ``kernel`` runs it on ``key``'s tensors (the CPU's, or every
+    device's with ``"CompositeExplicitAutograd"``), ``fake`` gives the shapes of its
+    results to a compiler, and ``vmap``, the rule ``(info, in_dims, *args)``, maps it
+    under ``torch.func.vmap``. Returns the operator, to call as a function."""
+    name = schema.split("(", 1)[0]
+    _OPERATORS.define(schema)
+    _OPERATORS.impl(name, kernel, key)
+    qualified = f"beacon_torch::{name}"
+    torch.library.register_fake(qualified, fake, lib=_OPERATORS)
+    torch.library.register_vmap(qualified, vmap, lib=_OPERATORS)
+    return getattr(torch.ops.beacon_torch, name).default
+
+
+def _sweep_kernel(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The published in-place sweep of ``s`` (ghosted, ``[nx + 2, ny + 2, B]``, the
     interior holding each cell's part from old values), written to a new tensor with
     the same ghosts: cell ``(i, j)`` becomes
@@ -387,13 +407,19 @@ def sweep_kernel(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Ten
     return _call("sweep", s, a, b, sizes=(nx, ny, members))
 
 
-@sweep_kernel.register_fake
-def _(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return torch.empty_like(s, memory_format=torch.contiguous_format)
+def _new(t: torch.Tensor) -> torch.Tensor:
+    return torch.empty_like(t, memory_format=torch.contiguous_format)
 
 
-@torch.library.custom_op("beacon_torch::sweep_adjoint", mutates_args=())
-def sweep_adjoint(
+sweep_kernel = operator(
+    "sweep(Tensor s, Tensor a, Tensor b) -> Tensor",
+    _sweep_kernel,
+    lambda s, a, b: _new(s),
+    _members_vmap("sweep", (0, 1, 2)),
+)
+
+
+def _sweep_adjoint(
     grad: torch.Tensor, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The gradients of :func:`sweep`'s ``(s, a, b)`` from the gradient ``grad`` of its
@@ -402,14 +428,12 @@ def sweep_adjoint(
     return _call("sweep_adjoint", grad, x, a, b, sizes=(nx, ny, members), outs=(grad, a, a))
 
 
-@sweep_adjoint.register_fake
-def _(grad: torch.Tensor, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor):
-    new = lambda t: torch.empty_like(t, memory_format=torch.contiguous_format)
-    return new(grad), new(a), new(a)
-
-
-sweep_kernel.register_vmap(_members_vmap(sweep_kernel, (0, 1, 2)))
-sweep_adjoint.register_vmap(_members_vmap(sweep_adjoint, (0, 1, 2, 3), outputs=3))
+sweep_adjoint = operator(
+    "sweep_adjoint(Tensor grad, Tensor x, Tensor a, Tensor b) -> (Tensor, Tensor, Tensor)",
+    _sweep_adjoint,
+    lambda grad, x, a, b: (_new(grad), _new(a), _new(a)),
+    _members_vmap("sweep_adjoint", (0, 1, 2, 3), outputs=3),
+)
 
 
 class _Sweep(torch.autograd.Function):
@@ -439,8 +463,7 @@ def sweep(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return _Sweep.apply(s, a, b)
 
 
-@torch.library.custom_op("beacon_torch::lines", mutates_args=())
-def lines_kernel(
+def _lines_kernel(
     f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor, width: torch.Tensor
 ) -> torch.Tensor:
     """Solves, into a new tensor shaped like ``f`` (``[modes, n, B]``), one tridiagonal system along the
@@ -466,12 +489,12 @@ def lines_kernel(
     return _call("lines", f, lower, inv, upper, sizes=(modes, n, members))
 
 
-@lines_kernel.register_fake
-def _(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.Tensor, width: torch.Tensor):
-    return torch.empty_like(f, memory_format=torch.contiguous_format)
-
-
-lines_kernel.register_vmap(_members_vmap(lines_kernel, (0,)))
+lines_kernel = operator(
+    "lines(Tensor f, Tensor lower, Tensor inv, Tensor upper, Tensor width) -> Tensor",
+    _lines_kernel,
+    lambda f, lower, inv, upper, width: _new(f),
+    _members_vmap("lines", (0,)),
+)
 
 
 class _Lines(torch.autograd.Function):
