@@ -21,8 +21,8 @@ tensors are not on the CPU, or ``BEACON_TORCH_NATIVE=0``, :func:`applies` says n
 the caller keeps its tensor path.
 
 Both kernels are differentiable: each is an operator of torch's dispatcher with its
-adjoint written beside it. The sweep's adjoint is the reverse sweep (a C kernel of the same loop run
-backwards), the tridiagonal solve's is the same solve (its matrix is symmetric, or
+adjoint written beside it. The sweep's adjoint is the reverse sweep (a C kernel of the
+same loop run backwards), the tridiagonal solve's is the same solve (its matrix is symmetric, or
 similar to its transpose through the cells' widths), so that a gradient through a
 cavity step keeps the fast loops instead of a graph of thousands of small operations.
 Under ``torch.func.vmap`` the mapped dimension joins the members (the loops treat every
@@ -339,8 +339,9 @@ def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod: bool) ->
 
 
 def _members_vmap(name: str, member_args: tuple[int, ...], outputs: int = 1):
-    """A vmap rule for the operator ``beacon_torch::name`` whose arrays ``member_args`` (their positions) end with
-    the members' axis and whose others are the same for every member: the mapped
+    """A vmap rule for the operator ``beacon_torch::name`` whose arrays ``member_args``
+    (their positions) end with the members' axis and whose others are the same for
+    every member: the mapped
     dimension joins the members (``[..., B, V]`` as ``[..., B * V]``), the kernel runs
     once, and its results are split again. A mapped array of the second kind (a
     coefficient that would differ per mapped value) is not supported."""
