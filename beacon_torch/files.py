@@ -254,6 +254,27 @@ def machine() -> str:
     return text
 
 
+def revision(tree: str | Path) -> str | None:
+    """The commit a source tree is checked out at, with ``+changes`` where its tracked
+    files differ from it; None where it is no git checkout (or git is missing). A record
+    that compares two trees names their commits, which outlive the folders."""
+    import subprocess
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(
+                ["git", "-C", str(tree), *args], capture_output=True, text=True, timeout=30, check=False
+            )
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if commit is None:
+        return None
+    return commit + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
 def save_rows(rows: list[dict], out: str | Path, name: str) -> Path:
     """``rows`` with the machine they were measured on, as a new dated file
     ``out/name-YYYYmmdd-HHMMSS.json`` (an earlier record is never replaced)."""

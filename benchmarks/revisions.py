@@ -18,8 +18,8 @@ machine whose speed drifts over seconds (a shared host: this project's machines
 change speed by up to two times between processes and within one) then slows the two
 blocks of a pair alike, and the ratio of the trees is the median over every pair of
 adjacent blocks, rounds pooled. The table gives, per case, the median block time of
-each side and that ratio. Writes a new ``revisions-DATE-TIME.json`` (machine, trees,
-every round's blocks) to ``--out``.
+each side and that ratio. Writes a new ``revisions-DATE-TIME.json`` (machine, trees and
+their commits, every round's blocks) to ``--out``.
 """
 
 from __future__ import annotations
@@ -177,7 +177,7 @@ def main() -> None:
         return
     if len(args.trees) != 2 or not all((t / "beacon_torch").is_dir() for t in args.trees):
         parser.error("give two source trees of the package, BEFORE and AFTER")
-    from beacon_torch.files import save_rows
+    from beacon_torch.files import revision, save_rows
 
     rounds = {"before": [], "after": []}
     for r in range(args.rounds):
@@ -224,8 +224,10 @@ def main() -> None:
             f"| {row['env']} | {row['mode']} | {row['batch']} | {row['before_ms']:.3f} | {row['after_ms']:.3f} "
             f"| {row['ratio']:.3f} |"
         )
+    commits = [revision(t) for t in args.trees]
     for row in rows:
         row["trees"] = [str(t.resolve()) for t in args.trees]
+        row["commits"] = commits
     path = save_rows(rows, args.out, "revisions")
     print(f"written to {path}", file=sys.stderr)
 

@@ -121,6 +121,24 @@ def test_bench_command_reports_bad_input(capsys):
     assert "--num-envs" in capsys.readouterr().err
 
 
+def test_a_tree_is_named_by_its_commit_and_whether_it_was_changed(tmp_path):
+    import subprocess
+
+    from beacon_torch.files import revision
+
+    assert revision(tmp_path) is None
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (tmp_path / "a.py").write_text("x = 1\n")
+    subprocess.run([*git, "add", "a.py"], check=True)
+    subprocess.run([*git, "commit", "-qm", "a"], check=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    (tmp_path / "untracked.txt").write_text("not the tree's")
+    assert revision(tmp_path) == head
+    (tmp_path / "a.py").write_text("x = 2\n")
+    assert revision(tmp_path) == head + "+changes"
+
+
 @pytest.mark.slow(60)
 def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
     """validation/same_steps.py: a tree against itself steps alike, bit for bit; against
@@ -150,6 +168,8 @@ def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
     same, other = (json.loads((tmp_path / f"{name}.json").read_text()) for name in ("same", "other"))
     assert same["cases"] == other["cases"] == 4 and same["tensors"] > 20 and same["differ"] == []
     assert "lorenz-v0 eager float64: observation 0" in other["differ"]
+    # the copy is no git checkout: its commit is not known
+    assert same["commits"][0] == same["commits"][1] and other["commits"][1] is None
     assert {line.split(":")[0] for line in other["differ"]} == {
         f"lorenz-v0 {mode} {dtype}" for mode in ("eager", "compiled") for dtype in ("float32", "float64")
     }

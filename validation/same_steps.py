@@ -8,7 +8,7 @@ in float32 and float64, eagerly and, for the envs whose actions are cheap, compi
 resets it and takes two random actions at half amplitude (a fixed seed). Every
 observation, reward, flag, state field and diagnostic is compared with ``torch.equal``
 between the trees. Prints the cases that differ and writes a JSON summary (machine,
-trees, cases, tensors compared, differences) to ``--out``.
+trees and their commits, cases, tensors compared, differences) to ``--out``.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def main() -> None:
         parser.error("give two source trees, BEFORE and AFTER")
     import torch
 
-    from beacon_torch.files import machine
+    from beacon_torch.files import machine, revision
 
     with tempfile.TemporaryDirectory() as folder:
         files = [Path(folder) / f"{name}.pt" for name in ("before", "after")]
@@ -94,6 +94,7 @@ def main() -> None:
     summary = dict(
         machine=machine(),
         trees=[str(t) for t in args.trees],
+        commits=[revision(t) for t in args.trees],
         cases=len(cases),
         only_in_one=sorted(set(before) ^ set(after)),
         tensors=sum(len(before[case]) for case in cases),
