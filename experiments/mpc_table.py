@@ -26,7 +26,7 @@ def table(rows: list[dict]) -> str:
     """The records as a markdown table. A planned action costs ``horizon x iterations``
     differentiated steps: the cost at FluidGym's 20 x 10 is the recorded one scaled."""
     from beacon_torch.registry import env_spec
-    from beacon_torch.training.report import scaled
+    from beacon_torch.training.report import normalisable, normalised, scaled
 
     lines = [
         "| env | starts (episodes) | horizon x iterations | planner's model | score (std over episodes) "
@@ -41,14 +41,18 @@ def table(rows: list[dict]) -> str:
         hours = default * env_spec(r["env"]).physics.episode_length / 3600
         episode = f"{hours:.1f} h" if hours >= 1 else f"{60 * hours:.0f} min"
         if "score_mean" in r:
-            if "normalised" not in r:
-                normalised = "- (b)"
+            # a record written before its env's card had a reference is scored by it now
+            share = r.get("normalised")
+            if share is None and normalisable(r["env"]):
+                share = float(normalised(r["score_mean"], r["uncontrolled"], r["env"]))
+            if share is None:
+                cell = "- (b)"
             # no control above the paper's score from these starts: the scale runs backwards
             elif scaled(r["uncontrolled"], r["env"]):
-                normalised = f"**{r['normalised']:.2f}**"
+                cell = f"**{share:.2f}**"
             else:
-                normalised = "- (a)"
-            scores = f"{r['score_mean']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {normalised}"
+                cell = "- (a)"
+            scores = f"{r['score_mean']:.4g} ({r['score_std']:.2g}) | {r['uncontrolled']:.4g} | {cell}"
         else:
             scores = f"not run ({r['planned_actions']} actions planned for their cost) | | "
         lines.append(
