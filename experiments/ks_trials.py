@@ -1,7 +1,8 @@
-"""ks-v0's first training trials as a table of its page: one row per recorded run in
-``experiments/results/ks/trials/RUN/`` (a recipe's ``episode_score.csv`` and
+"""ks-v0's training as two tables of its page: its first trials, one row per recorded
+run in ``experiments/results/ks/trials/RUN/`` (a recipe's ``episode_score.csv`` and
 ``wall_time.csv`` copied from its run directory, with ``settings.json``: the recipe and
-what it was given).
+what it was given); and the three-seed results published by ``tools/reproduce.py``
+(``docs/results/ALGO/ks-v0.json``), as distances to the target.
 
     .venv/bin/python experiments/ks_trials.py [--page docs/envs/ks.md]
 """
@@ -14,7 +15,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 TRIALS = ROOT / "experiments" / "results" / "ks" / "trials"
+RECORDED = ROOT / "docs" / "results"
 BEGIN, END = "<!-- trials: experiments/ks_trials.py -->", "<!-- end of the trials -->"
+RESULTS = "<!-- results: experiments/ks_trials.py -->", "<!-- end of the results -->"
+ENV = "ks-v0"
+ACTIONS = 3000  # an episode's actions: a score over them is minus the summed distance
 
 
 def table(folder: Path = TRIALS) -> str:
@@ -33,7 +38,29 @@ def table(folder: Path = TRIALS) -> str:
         last = scores[-1][1]
         lines.append(
             f"| {run.name} | {settings['recipe']} ({given}) | {int(frames):,} | {seconds / 60:.1f} "
-            f"| {scores[0][1]:,.0f} | {last:,.0f} | {-last / 3000:.2f} |"
+            f"| {scores[0][1]:,.0f} | {last:,.0f} | {-last / ACTIONS:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def results(recorded: Path = RECORDED) -> str:
+    """The published pairs on ks-v0, on the test set's starts: the normalised score
+    (0 no control, 1 the target held from the first action) and the mean distance to
+    the target per action of each seed's deterministic policy."""
+    from beacon_torch.training import report
+
+    lines = [
+        "| recipe | seeds | transitions | minutes per seed | normalised score, IQM [95 % CI] | "
+        "mean distance per action, per seed | no control's |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for file in sorted(recorded.glob(f"*/{ENV}.json")):
+        row = report.row(report.read(file))
+        per_seed = ", ".join(f"{-score / ACTIONS:.2f}" for score in row["scores"])
+        lines.append(
+            f"| {row['algo']} | {row['seeds']} | {row['frames']:,} | {row['wall_s_per_seed'] / 60:.1f} "
+            f"| **{row['iqm']:.2f}** [{row['ci'][0]:.2f}, {row['ci'][1]:.2f}] | {per_seed} "
+            f"| {-row['uncontrolled'] / ACTIONS:.2f} |"
         )
     return "\n".join(lines)
 
@@ -44,8 +71,9 @@ def main() -> None:
     args = parser.parse_args()
     from beacon_torch.training.report import write_block
 
-    print(table())
-    print(write_block(args.page, BEGIN, END, table()))
+    for begin_end, block in (((BEGIN, END), table()), (RESULTS, results())):
+        print(block)
+        print(write_block(args.page, *begin_end, block))
 
 
 if __name__ == "__main__":

@@ -124,7 +124,7 @@ def test_the_sensors_and_actuators_are_the_papers():
     assert psi[63, 0] == pytest.approx(psi[1, 0])
 
 
-def test_the_page_shows_the_recorded_validation_and_trials():
+def test_the_page_shows_the_recorded_validation_trials_and_results():
     from pathlib import Path
 
     from beacon_torch import received
@@ -139,3 +139,7 @@ def test_the_page_shows_the_recorded_validation_and_trials():
     from experiments import ks_trials
 
     assert ks_trials.table() in page
+    # the published three-seed results, each recipe's row as the recorded summaries give it
+    results = ks_trials.results()
+    assert results in page
+    assert {line.split("|")[1].strip() for line in results.splitlines()[2:]} == {"ppo", "td3", "shac"}
