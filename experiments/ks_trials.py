@@ -19,11 +19,12 @@ RECORDED = ROOT / "docs" / "results"
 BEGIN, END = "<!-- trials: experiments/ks_trials.py -->", "<!-- end of the trials -->"
 RESULTS = "<!-- results: experiments/ks_trials.py -->", "<!-- end of the results -->"
 ENV = "ks-v0"
-ACTIONS = 3000  # an episode's actions: a score over them is minus the summed distance
 
 
 def table(folder: Path = TRIALS) -> str:
     from beacon_torch.training.run import read_log
+
+    actions = episode_actions()
 
     lines = [
         "| run | recipe and settings | transitions | minutes | first episodes' score | last episodes' score | "
@@ -38,9 +39,16 @@ def table(folder: Path = TRIALS) -> str:
         last = scores[-1][1]
         lines.append(
             f"| {run.name} | {settings['recipe']} ({given}) | {int(frames):,} | {seconds / 60:.1f} "
-            f"| {scores[0][1]:,.0f} | {last:,.0f} | {-last / ACTIONS:.2f} |"
+            f"| {scores[0][1]:,.0f} | {last:,.0f} | {-last / actions:.2f} |"
         )
     return "\n".join(lines)
+
+
+def episode_actions() -> int:
+    """An episode's actions: a score over them is minus the summed distance."""
+    from beacon_torch.registry import env_spec
+
+    return env_spec(ENV).physics.episode_length
 
 
 def results(recorded: Path = RECORDED) -> str:
@@ -49,6 +57,7 @@ def results(recorded: Path = RECORDED) -> str:
     the target per action of each seed's deterministic policy."""
     from beacon_torch.training import report
 
+    actions = episode_actions()
     lines = [
         "| recipe | seeds | transitions | minutes per seed | normalised score, IQM [95 % CI] | "
         "mean distance per action, per seed | no control's |",
@@ -56,11 +65,11 @@ def results(recorded: Path = RECORDED) -> str:
     ]
     for file in sorted(recorded.glob(f"*/{ENV}.json")):
         row = report.row(report.read(file))
-        per_seed = ", ".join(f"{-score / ACTIONS:.2f}" for score in row["scores"])
+        per_seed = ", ".join(f"{-score / actions:.2f}" for score in row["scores"])
         lines.append(
             f"| {row['algo']} | {row['seeds']} | {row['frames']:,} | {row['wall_s_per_seed'] / 60:.1f} "
             f"| **{row['iqm']:.2f}** [{row['ci'][0]:.2f}, {row['ci'][1]:.2f}] | {per_seed} "
-            f"| {-row['uncontrolled'] / ACTIONS:.2f} |"
+            f"| {-row['uncontrolled'] / actions:.2f} |"
         )
     return "\n".join(lines)
 
