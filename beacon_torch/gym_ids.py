@@ -33,6 +33,12 @@ BUILT_IN = {
     "pinball-v0": 100,
     "pinball-periodic-v0": 100,
     "pinball-chaotic-v0": 100,
+    "rbc2d-easy-v0": 200,
+    "rbc2d-easy-ma-v0": 200,
+    "rbc2d-medium-v0": 200,
+    "rbc2d-medium-ma-v0": 200,
+    "rbc2d-hard-v0": 200,
+    "rbc2d-hard-ma-v0": 200,
 }
 
 

@@ -327,6 +327,7 @@ from beacon_torch.envs import (  # noqa: E402 (the registry exists before the ca
     mixing,
     pinball,
     rayleigh,
+    rbc2d,
     shkadov,
     sloshing,
     vortex,
@@ -354,3 +355,16 @@ register("ks-v0", ks.KSPhysics, ks.CARD)
 register("pinball-v0", pinball.PinballPhysics, pinball.CARD)
 register("pinball-periodic-v0", ENVS["pinball-v0"], pinball.PERIODIC_CARD, **pinball.PERIODIC)
 register("pinball-chaotic-v0", ENVS["pinball-v0"], pinball.CHAOTIC_CARD, **pinball.CHAOTIC)
+# FluidGym's three levels, each single- and multi-agent; the harder ones are the easy
+# level's variants (one page, one parameter table)
+_easy = register("rbc2d-easy-v0", rbc2d.Rbc2dPhysics, rbc2d.CARD, **rbc2d.LEVELS["easy"])
+for _level, _settings in rbc2d.LEVELS.items():
+    _single = _easy if _level == "easy" else register(f"rbc2d-{_level}-v0", _easy, **_settings)
+    register(
+        f"rbc2d-{_level}-ma-v0",
+        rbc2d.Rbc2dSeparablePhysics,
+        rbc2d.CARD,
+        base=_single.env_id,
+        agents="heater",
+        **_settings,
+    )

@@ -101,7 +101,7 @@ SOLVERS = {
 def stretched(length: float, low: str, high: str) -> tuple[torch.Tensor, torch.Tensor]:
     """A 1-D operator ``diag(1 / w) S`` of a stretched axis (cells growing away from a
     refined middle, as the wakes' grids), and its cells' widths."""
-    from beacon_torch.numerics.bodies import Axis
+    from beacon_torch.numerics.staggered import Axis
 
     axis = Axis(length, 0.4 * length, 0.6 * length, 0.1, 1.3, 0.5)
     return axis.laplacian(low, high), axis.widths

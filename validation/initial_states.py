@@ -5,8 +5,9 @@
 shkadov: the film developed for 200 time units (default delta), about 50 s here;
 rayleigh: the convection roll developed for 200 time units, about 20 s; cylinder and
 cylinder-coarse: the wake shedding 8 time units after the inflow starts, at the default
-40 cells per diameter (about 70 s) and at the tests' 10. Without --write, compares the
-regenerated states with the shipped ones.
+40 cells per diameter (about 70 s) and at the tests' 10; rbc2d-easy, -medium, -hard:
+FluidGym's initial domains, 283 time units each (1 to 4 minutes). Without --write,
+compares the regenerated states with the shipped ones.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import time
 import torch
 
 from beacon_torch import cache
-from beacon_torch.envs import cylinder, rayleigh, shkadov
+from beacon_torch.envs import cylinder, rayleigh, rbc2d, shkadov
 
 STATES = {
     "shkadov": ("shkadov-film", shkadov.START_VERSION, dict(delta=0.1), lambda: shkadov.developed_film(0.1)),
@@ -35,6 +36,15 @@ STATES = {
             lambda cells=cells: cylinder.developed_shedding(cells)[0],
         )
         for name, cells in (("cylinder", 40), ("cylinder-coarse", 10))
+    },
+    **{
+        f"rbc2d-{level}": (
+            "rbc2d-developed",
+            rbc2d.START_VERSION,
+            rbc2d.start_key(rbc2d.Rbc2dParams(**settings)),
+            lambda settings=settings: rbc2d.developed_flow(rbc2d.Rbc2dParams(**settings)),
+        )
+        for level, settings in rbc2d.LEVELS.items()
     },
 }
 

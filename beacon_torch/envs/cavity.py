@@ -172,24 +172,27 @@ def cavity_frame(
     actuation: Callable[[Any, State], np.ndarray],
     scalar_range: Callable[[Any, int], tuple[float, float]],
     action_labels: Sequence[str] | None = None,
+    size: Callable[[Any, Any], tuple[float, float]] = lambda physics, params: (params.L, params.H),
 ) -> Callable[..., np.ndarray]:
     """The frame function of a cavity env (its card's ``frame``): the scalar's field and
     the velocity of the last state, titled ``name``, with the bars ``actuation(physics,
-    state)`` (named ``action_labels``, else numbered) and the colour range
-    ``scalar_range(params, member)``."""
+    state)`` (named ``action_labels``, else numbered), the colour range
+    ``scalar_range(params, member)`` and the flow's length and height ``size(physics,
+    params)``."""
 
     def frame(f: FrameInputs) -> np.ndarray:
         from beacon_torch.render import cavity_frame
 
         last, physics = f.states[-1], f.physics
         vmin, vmax = scalar_range(f.params, f.member)
+        length, height = size(physics, f.params)
         return cavity_frame(
             name,
             getattr(last, physics.scalar)[1:-1, 1:-1].double().numpy(),
             last.u.double().numpy(),
             last.v.double().numpy(),
-            f.params.L,
-            f.params.H,
+            length,
+            height,
             actuation(physics, last),
             t=physics.dt * physics.substeps * f.step,
             scalar_label=physics.scalar,

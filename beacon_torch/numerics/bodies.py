@@ -10,7 +10,6 @@ rates), passed to the forcing as ``[C, B]``."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -19,7 +18,7 @@ import torch
 
 from beacon_torch.numerics.grid import NEUMANN, VALUE, ZERO_FACE, Ghosts
 from beacon_torch.numerics.poisson import PoissonSolver
-from beacon_torch.numerics.staggered import Stretched, divergence, tendency
+from beacon_torch.numerics.staggered import Axis, Stretched, divergence, tendency
 
 # Adams-Bashforth 2 is stable on the negative real axis up to 1 (forward Euler: 2); the
 # grid-scale diffusion mode of a square cell sits at -8 nu dt / h^2. A margin for the
@@ -42,58 +41,6 @@ class Circle(NamedTuple):
     x: float
     y: float
     radius: float
-
-
-class Axis:
-    """One axis of the stretched grid (float64): the faces, the cells' centres and
-    widths, and the distances between neighbouring centres, the mirrored ghost centres
-    beyond the ends included (``gaps[0]`` and ``gaps[-1]``: a cell's width). Cells of
-    size ``h`` fill ``[low, high]``; outside, they grow by ``growth`` a cell up to
-    ``widest``, as few as fit the ends at 0 and ``length``."""
-
-    def __init__(self, length: float, low: float, high: float, h: float, growth: float, widest: float) -> None:
-        def outwards(extent: float) -> np.ndarray:
-            # the ends of cells growing by a common ratio up to ``widest`` from the box
-            # outwards, as few as ``growth`` allows, the ratio then lowered to end there
-            def ends(ratio: float, n: int) -> np.ndarray:
-                return np.concatenate(([0.0], np.cumsum(np.minimum(h * ratio ** np.arange(1, n + 1), widest))))
-
-            n = 1
-            while ends(growth, n)[-1] < extent:
-                n += 1
-            if n * h >= extent:  # too short to grow: equal cells
-                return np.linspace(0.0, extent, round(extent / h) + 1)
-            low_ratio, high_ratio = 1.0, growth
-            for _ in range(80):
-                mid = 0.5 * (low_ratio + high_ratio)
-                low_ratio, high_ratio = (mid, high_ratio) if ends(mid, n)[-1] < extent else (low_ratio, mid)
-            e = ends(high_ratio, n)
-            return e * (extent / e[-1])
-
-        left, right = np.diff(outwards(low))[::-1], np.diff(outwards(length - high))
-        if math.isclose(low, length - high):
-            right = left[::-1]  # exactly mirror-symmetric, so that the solve folds
-        widths = torch.from_numpy(np.concatenate((left, np.full(round((high - low) / h), h), right)))
-        self.widths = widths
-        self.faces = torch.cat((widths.new_zeros(1), widths.cumsum(0)))
-        self.centres = self.faces[:-1] + 0.5 * widths
-        self.gaps = torch.cat((widths[:1], 0.5 * (widths[1:] + widths[:-1]), widths[-1:]))
-        self.n = len(self.widths)
-
-    def laplacian(self, low: str, high: str) -> torch.Tensor:
-        """The cells' ``[n, n]`` divergence of the gradient with zero gradient
-        (``NEUMANN``) or a zero value on the end face (``ZERO_FACE``) at each end."""
-        n, g = self.n, self.gaps
-        a = torch.zeros((n, n), dtype=torch.float64)
-        i = torch.arange(n - 1)
-        a[i, i + 1] = 1.0 / g[1:-1]
-        a[i + 1, i] = 1.0 / g[1:-1]
-        a[i, i] -= 1.0 / g[1:-1]
-        a[i + 1, i + 1] -= 1.0 / g[1:-1]
-        for end, kind in ((0, low), (n - 1, high)):
-            if kind == ZERO_FACE:
-                a[end, end] -= 2.0 / self.widths[end]
-        return a / self.widths[:, None]
 
 
 def inside(circles: Sequence[Circle], x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

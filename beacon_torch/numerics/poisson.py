@@ -130,6 +130,13 @@ def _eliminate(ly: torch.Tensor, shifts: torch.Tensor, tol: float) -> tuple[torc
     return lower, inv, singular
 
 
+def _increment_ghosts(nx: int, ny: int, bc: Sequence[str], dtype, device) -> Ghosts:
+    """The ghost map of an increment solved with the conditions ``bc`` (left, right,
+    bottom, top)."""
+    factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO, ZERO_FACE: VALUE, PERIODIC: PERIODIC}
+    return Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
+
+
 class PoissonSolver:
     """Direct solver of the 5-point Poisson equation on an ``nx x ny`` cell grid, for
     batch-last fields ``[nx, ny, B]``.
@@ -172,22 +179,38 @@ class PoissonSolver:
         self.periodic = left == PERIODIC
         self._build(lx, ly, None, None, left == right and not self.periodic, min(dx, dy), dtype, device)
         self.bc = tuple(bc)
-        factor = {NEUMANN: GRADIENT, ZERO_GHOST: ZERO, ZERO_FACE: VALUE, PERIODIC: PERIODIC}
         # the increment's ghost values, for its gradient on the wall faces
-        self.ghosts = Ghosts.cells(nx, ny, *(factor[kind] for kind in bc), dtype=dtype, device=device)
+        self.ghosts = _increment_ghosts(nx, ny, bc, dtype, device)
 
     @classmethod
     def stretched(
-        cls, lx: torch.Tensor, wx: torch.Tensor, ly: torch.Tensor, wy: torch.Tensor, *, dtype, device
+        cls,
+        lx: torch.Tensor,
+        wx: torch.Tensor | None,
+        ly: torch.Tensor,
+        wy: torch.Tensor,
+        *,
+        bc: Sequence[str] | None = None,
+        dtype,
+        device,
     ) -> PoissonSolver:
         """The solver of a stretched tensor-product grid, from its float64 1-D operators
         ``lx`` (``[nx, nx]``) and ``ly``: each is ``diag(1 / w) S`` with ``S`` symmetric
-        and ``w`` the cells' widths ``wx``, ``wy`` (a divergence of a gradient). The x
-        products are folded when the x grid and its conditions are mirror images."""
+        and ``w`` the cells' widths ``wx``, ``wy`` (a divergence of a gradient; ``wx``
+        None: ``lx`` is symmetric itself, equal cells, periodic if it couples its two
+        ends). The x products are folded when the x grid and its conditions are mirror
+        images. ``bc`` (left, right, bottom, top) gives the increment's ghosts, for
+        :func:`~beacon_torch.numerics.staggered.project`."""
         solver = cls.__new__(cls)
-        solver.periodic = False
-        symmetric = torch.equal(lx, lx.flip(0, 1)) and torch.equal(wx, wx.flip(0))
-        solver._build(lx, ly, wx, wy, symmetric, float(min(wx.min(), wy.min())), dtype, device)
+        solver.periodic = lx.shape[0] > 2 and bool(lx[0, -1] != 0)
+        mirrored = wx is None or torch.equal(wx, wx.flip(0))
+        symmetric = not solver.periodic and torch.equal(lx, lx.flip(0, 1)) and mirrored
+        # the narrowest cell, the scale of the singular mode's threshold
+        hx = float((2.0 / lx.diagonal().abs().max()) ** 0.5) if wx is None else float(wx.min())
+        solver._build(lx, ly, wx, wy, symmetric, min(hx, float(wy.min())), dtype, device)
+        if bc is not None:
+            solver.bc = tuple(bc)
+            solver.ghosts = _increment_ghosts(lx.shape[0], ly.shape[0], bc, dtype, device)
         return solver
 
     @staticmethod

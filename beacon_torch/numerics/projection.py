@@ -47,7 +47,7 @@ from beacon_torch.numerics.grid import (
     edge_offset,
 )
 from beacon_torch.numerics.poisson import FEW_MEMBERS, JacobiSolver, PoissonSolver, laplacian_1d
-from beacon_torch.numerics.staggered import divergence, predict, project, tendency
+from beacon_torch.numerics.staggered import Axis, Stretched, divergence, predict, project, tendency
 from beacon_torch.numerics.transport import Explicit, Sweep
 
 __all__ = [
@@ -96,6 +96,9 @@ class Cavity:
     the scalar transport sweep. ``jacobi_tol`` None solves for the increment directly;
     a number runs the published Jacobi iterations to that tolerance instead.
 
+    ``dy`` is the rows' height, or an :class:`~beacon_torch.numerics.staggered.Axis`
+    of rows of unequal heights (a wall-refined channel); ``dx`` is a number.
+
     A ``poisson_bc`` of PERIODIC on the left and right makes the x axis wrap around (a
     channel between the bottom and top walls): faces 0 and nx are then one face, carried
     twice with one value, and the predictor works on the grid widened by one wrapped
@@ -116,7 +119,16 @@ class Cavity:
         device,
     ) -> None:
         self.nx, self.ny, self.dx, self.dy = nx, ny, dx, dy
-        if jacobi_tol is None:
+        if isinstance(dy, Axis):
+            if jacobi_tol is not None:
+                raise ValueError("the published Jacobi solve is for equal cells; a stretched y axis is solved directly")
+            # rows of unequal heights: the operators' spacing and the solve's from the axis
+            along_y = lambda t: t.to(dtype=dtype, device=device, copy=True)[None, :, None]
+            self.dy = Stretched(along_y(dy.widths), along_y(dy.gaps), 1)
+            lx = laplacian_1d(nx, dx, *poisson_bc[:2])
+            ly = dy.laplacian(*poisson_bc[2:])
+            self.solver = PoissonSolver.stretched(lx, None, ly, dy.widths, bc=poisson_bc, dtype=dtype, device=device)
+        elif jacobi_tol is None:
             self.solver = PoissonSolver(nx, ny, dx, dy, poisson_bc, dtype=dtype, device=device)
         else:
             self.solver = JacobiSolver(nx, ny, dx, dy, poisson_bc, jacobi_tol, dtype=dtype, device=device)

@@ -9,8 +9,13 @@ the stencils are the same, and each difference is taken over its own distance.""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from beacon_torch.numerics.grid import ZERO_FACE
 
 
 class Uniform:
@@ -50,6 +55,67 @@ class Stretched:
         # between faces, the nodes are a cell apart; between cells, a gap apart
         inner, outer = (self.widths, self._part(self.gaps, 1, -1)) if faces else (self.gaps, self.widths)
         return ((plus - mid) / self._part(inner, 1, 0) - (mid - minus) / self._part(inner, 0, -1)) / outer
+
+
+class Axis:
+    """One axis of the stretched grid (float64): the faces, the cells' centres and
+    widths, and the distances between neighbouring centres, the mirrored ghost centres
+    beyond the ends included (``gaps[0]`` and ``gaps[-1]``: a cell's width). Cells of
+    size ``h`` fill ``[low, high]``; outside, they grow by ``growth`` a cell up to
+    ``widest``, as few as fit the ends at 0 and ``length``."""
+
+    def __init__(self, length: float, low: float, high: float, h: float, growth: float, widest: float) -> None:
+        def outwards(extent: float) -> np.ndarray:
+            # the ends of cells growing by a common ratio up to ``widest`` from the box
+            # outwards, as few as ``growth`` allows, the ratio then lowered to end there
+            def ends(ratio: float, n: int) -> np.ndarray:
+                return np.concatenate(([0.0], np.cumsum(np.minimum(h * ratio ** np.arange(1, n + 1), widest))))
+
+            n = 1
+            while ends(growth, n)[-1] < extent:
+                n += 1
+            if n * h >= extent:  # too short to grow: equal cells
+                return np.linspace(0.0, extent, round(extent / h) + 1)
+            low_ratio, high_ratio = 1.0, growth
+            for _ in range(80):
+                mid = 0.5 * (low_ratio + high_ratio)
+                low_ratio, high_ratio = (mid, high_ratio) if ends(mid, n)[-1] < extent else (low_ratio, mid)
+            e = ends(high_ratio, n)
+            return e * (extent / e[-1])
+
+        left, right = np.diff(outwards(low))[::-1], np.diff(outwards(length - high))
+        if math.isclose(low, length - high):
+            right = left[::-1]  # exactly mirror-symmetric, so that the solve folds
+        self._set(torch.from_numpy(np.concatenate((left, np.full(round((high - low) / h), h), right))))
+
+    @classmethod
+    def of_widths(cls, widths: torch.Tensor) -> Axis:
+        """The axis of the cells ``widths`` (float64), from 0."""
+        axis = cls.__new__(cls)
+        axis._set(widths.double())
+        return axis
+
+    def _set(self, widths: torch.Tensor) -> None:
+        self.widths = widths
+        self.faces = torch.cat((widths.new_zeros(1), widths.cumsum(0)))
+        self.centres = self.faces[:-1] + 0.5 * widths
+        self.gaps = torch.cat((widths[:1], 0.5 * (widths[1:] + widths[:-1]), widths[-1:]))
+        self.n = len(self.widths)
+
+    def laplacian(self, low: str, high: str) -> torch.Tensor:
+        """The cells' ``[n, n]`` divergence of the gradient with zero gradient
+        (``NEUMANN``) or a zero value on the end face (``ZERO_FACE``) at each end."""
+        n, g = self.n, self.gaps
+        a = torch.zeros((n, n), dtype=torch.float64)
+        i = torch.arange(n - 1)
+        a[i, i + 1] = 1.0 / g[1:-1]
+        a[i + 1, i] = 1.0 / g[1:-1]
+        a[i, i] -= 1.0 / g[1:-1]
+        a[i + 1, i + 1] -= 1.0 / g[1:-1]
+        for end, kind in ((0, low), (n - 1, high)):
+            if kind == ZERO_FACE:
+                a[end, end] -= 2.0 / self.widths[end]
+        return a / self.widths[:, None]
 
 
 def spacing(h) -> Uniform | Stretched:
@@ -123,9 +189,10 @@ def predict(
     pass, is slower compiled: the wider ghosted inputs cost more than the pad;
     docs/performance.md.)"""
     hu, hv = tendency(u, v, nu, dx, dy)
-    gpx = (p[1:] - p[:-1]) / dx
+    x, y = spacing(dx), spacing(dy)
+    gpx = x.difference(p[1:] - p[:-1], faces=True)
     u_star = u[1:-1, 1:-1] + dt * (hu - gpx)
-    gpy = (p[:, 1:] - p[:, :-1]) / dy
+    gpy = y.difference(p[:, 1:] - p[:, :-1], faces=True)
     dv = hv - gpy
     if v_source is not None:
         dv = dv + v_source
@@ -133,14 +200,15 @@ def predict(
     return F.pad(u_star, (0, 0, 0, 0, 1, 1)), F.pad(v_star, (0, 0, 1, 1))
 
 
-def divergence(u: torch.Tensor, v: torch.Tensor, dx: float, dy: float) -> torch.Tensor:
+def divergence(u: torch.Tensor, v: torch.Tensor, dx, dy) -> torch.Tensor:
     """Discrete divergence in the cells, ``[nx, ny, B]``, of face velocities
-    ``[nx + 1, ny, B]`` and ``[nx, ny + 1, B]``."""
-    return (u[1:] - u[:-1]) / dx + (v[:, 1:] - v[:, :-1]) / dy
+    ``[nx + 1, ny, B]`` and ``[nx, ny + 1, B]`` (spacings as :func:`tendency`'s)."""
+    x, y = spacing(dx), spacing(dy)
+    return x.difference(u[1:] - u[:-1], faces=False) + y.difference(v[:, 1:] - v[:, :-1], faces=False)
 
 
 def project(
-    u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver, dt: float, dx: float, dy: float
+    u: torch.Tensor, v: torch.Tensor, p: torch.Tensor, solver, dt: float, dx, dy
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Incremental projection: L phi = div(u*) / dt, u = u* - dt grad phi on the interior
     faces, p += phi (``solver``: :class:`PoissonSolver` or :class:`JacobiSolver`).
@@ -149,13 +217,14 @@ def project(
     axis has none: its first and last faces, one face, are corrected alike). Where the
     increment has zero normal gradient that is also what the correction would give;
     on a zero-ghost wall (mixing's top) the cells next to it keep the divergence the
-    increment's condition leaves there, as published."""
+    increment's condition leaves there, as published. A periodic x axis has equal
+    cells (``dx`` a number); ``dy`` may be :class:`Stretched`."""
     phi = solver.solve(divergence(u, v, dx, dy) / dt)
     ext = solver.ghosts(phi)
     if solver.periodic:
         # no side walls: every x-face is corrected, the first and the last alike
         gx = (ext[1:, 1:-1] - ext[:-1, 1:-1]) / dx
     else:
-        gx = F.pad((ext[2:-1, 1:-1] - ext[1:-2, 1:-1]) / dx, (0, 0, 0, 0, 1, 1))
-    gy = F.pad((ext[1:-1, 2:-1] - ext[1:-1, 1:-2]) / dy, (0, 0, 1, 1))
+        gx = F.pad(spacing(dx).difference(ext[2:-1, 1:-1] - ext[1:-2, 1:-1], faces=True), (0, 0, 0, 0, 1, 1))
+    gy = F.pad(spacing(dy).difference(ext[1:-1, 2:-1] - ext[1:-1, 1:-2], faces=True), (0, 0, 1, 1))
     return u - dt * gx, v - dt * gy, p + phi

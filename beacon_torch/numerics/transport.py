@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from beacon_torch.numerics import native
+from beacon_torch.numerics.staggered import Stretched
 
 
 class Sweep:
@@ -76,12 +77,26 @@ class Sweep:
         return rows[self.unskew_k, self.unskew_i]
 
 
-def _coefficients(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float):
+def _coefficients(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy):
     """The explicit centred update of the cells written as ``c + a * west + b * south``:
     ``c`` holds every term but the west and south neighbours', ``a`` and ``b`` their
-    weights, each ``[nx, ny, B]``."""
+    weights, each ``[nx, ny, B]``. ``dy`` is a number (equal cells) or a
+    :class:`~beacon_torch.numerics.staggered.Stretched` axis."""
     sc, se, sn = s[1:-1, 1:-1], s[2:, 1:-1], s[1:-1, 2:]
     uw, ue, vs, vn = u[:-1], u[1:], v[:, :-1], v[:, 1:]
+    if isinstance(dy, Stretched):
+        # conservative on unequal rows: each face's flux over its cell's width, the
+        # diffusive ones over the distance between the centres beside the face
+        width = dy.widths
+        kx, ks, kn = kappa / dx**2, kappa / (dy.gaps[:, :-1] * width), kappa / (dy.gaps[:, 1:] * width)
+        c = sc + dt * (
+            kx * (se - 2.0 * sc)
+            + kn * (sn - sc)
+            - ks * sc
+            - (ue * 0.5 * (se + sc) - uw * 0.5 * sc) / dx
+            - (vn * 0.5 * (sn + sc) - vs * 0.5 * sc) / width
+        )
+        return c, dt * (kx + 0.5 * uw / dx), dt * (ks + 0.5 * vs / width)
     kx, ky = kappa / dx**2, kappa / dy**2
     c = sc + dt * (
         kx * (se - 2.0 * sc)

@@ -93,7 +93,8 @@ from beacon_torch.envs.cylinder.channel import (
 )
 from beacon_torch.envs.cylinder.env import CARD, CylinderParams, CylinderPhysics, CylinderState, jet_target
 from beacon_torch.envs.cylinder.validation import SCHAEFER_TUREK, shedding_figures
-from beacon_torch.numerics.bodies import DIFFUSION_LIMIT, Axis, ImmersedBoundary, probe_stencil, stable
+from beacon_torch.numerics.bodies import DIFFUSION_LIMIT, ImmersedBoundary, probe_stencil, stable
+from beacon_torch.numerics.staggered import Axis
 
 __all__ = [
     "LENGTH",

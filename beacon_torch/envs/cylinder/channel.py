@@ -12,8 +12,9 @@ import torch
 
 from beacon_torch.core.state import map_state
 from beacon_torch.numerics import bodies
-from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, advance, stable
+from beacon_torch.numerics.bodies import Circle, StretchedBox, advance, stable
 from beacon_torch.numerics.grid import VALUE
+from beacon_torch.numerics.staggered import Axis
 
 LENGTH, HEIGHT = 2.2, 0.41
 

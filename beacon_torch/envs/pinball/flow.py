@@ -11,8 +11,9 @@ import numpy as np
 import torch
 
 from beacon_torch.core.state import map_state
-from beacon_torch.numerics.bodies import Axis, Circle, StretchedBox, advance, stable
+from beacon_torch.numerics.bodies import Circle, StretchedBox, advance, stable
 from beacon_torch.numerics.grid import GRADIENT
+from beacon_torch.numerics.staggered import Axis
 
 DIAMETER = 1.0
 RADIUS = 0.5 * DIAMETER

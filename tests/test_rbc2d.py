@@ -1,0 +1,161 @@
+"""FluidGym's RBC2D levels: the grid, the heaters, the stretched channel's numerics and
+the env's layouts, as FluidGym's code defines them."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import beacon_torch
+from beacon_torch.envs import rbc2d
+from beacon_torch.numerics.grid import NEUMANN, PERIODIC
+from beacon_torch.numerics.projection import Cavity
+from beacon_torch.numerics.staggered import Axis, Stretched, divergence
+from beacon_torch.numerics.transport import _coefficients
+from beacon_torch.params import resolve_params
+
+F64 = torch.float64
+
+
+def test_the_rows_are_fluidgyms_wall_refined_grid():
+    # make_weights_exp(n, base, "BOTH"): exponents 0..n//2-1 from the bottom, then down
+    # from n//2 to 0 at the top; heights base**e normalised
+    heights = rbc2d.wall_refined(5, 1.5)
+    expected = torch.tensor([1.0, 1.5, 2.25, 1.5, 1.0], dtype=F64)
+    torch.testing.assert_close(heights, expected / expected.sum())
+    rows = rbc2d.wall_refined(61, rbc2d.BASE)
+    assert float(rows.sum()) == pytest.approx(1.0, abs=1e-15)
+    torch.testing.assert_close(rows, rows.flip(0))
+    torch.testing.assert_close(rows[1:31] / rows[:30], torch.full((30,), 1.02, dtype=F64))
+    assert float(rows.min()) == pytest.approx(0.01206, abs=1e-5)  # the plates' rows
+    physics, _ = make_physics("easy", num_envs=1)
+    assert (physics.nx, physics.ny) == (96, 61)
+
+
+def test_the_heaters_follow_fluidgyms_action_to_control():
+    blend = rbc2d.blend_matrix(12, 8)
+    torch.testing.assert_close(blend.sum(1), torch.ones(96, dtype=F64))
+    # at 8 cells a heater's first cell is half its left neighbour's (round(0.8) = 1)
+    assert blend[8, 0] == 0.5 and blend[8, 1] == 0.5 and blend[0, 11] == 0.5
+    assert blend[9:16, 1].eq(1.0).all() and blend[15, 2] == 0.0
+    # at 16 cells the blend is two cells wide, the last one half the right neighbour's
+    wide = rbc2d.blend_matrix(12, 16)
+    assert wide[16, 0] == 0.5 and wide[17, 1] == 1.0 and wide[31, 2] == 0.5 and wide[30, 1] == 1.0
+    # the mean removed and scaled by 0.75: within the limit, the plate's mean stays T_HOT
+    action = torch.tensor([[0.9, -0.5, 0.3, -0.1] * 3], dtype=F64)
+    bottom = rbc2d.heater_temperatures(action, blend)
+    assert float(bottom.mean()) == pytest.approx(rbc2d.T_HOT, abs=1e-12)
+    # each heater clipped to 0.75 on its own (FluidGym's element-wise form of the limit)
+    action = torch.tensor([[1.0, -1.0, 1.0, 0.2] * 3], dtype=F64)
+    bottom = rbc2d.heater_temperatures(action, blend)
+    expected = torch.tensor([0.525, -0.75, 0.525, -0.075] * 3, dtype=F64)
+    torch.testing.assert_close(bottom[0, 3::8], rbc2d.T_HOT + expected)
+
+
+def make_physics(level: str, num_envs: int = 2, dtype=F64, **given):
+    settings = {**rbc2d.LEVELS[level], **given}
+    p = resolve_params(rbc2d.Rbc2dParams, settings, batch_size=num_envs, device="cpu", dtype=dtype, env_id="t")
+    return rbc2d.Rbc2dPhysics(p, num_envs, dtype=dtype), p
+
+
+def test_a_stretched_channels_pressure_solve_is_exact_and_its_projection_divergence_free():
+    axis = Axis.of_widths(rbc2d.wall_refined(21, 1.05))
+    nx, dx = 16, 0.2
+    cavity = Cavity(nx, 21, dx, axis, (PERIODIC, PERIODIC, NEUMANN, NEUMANN), dtype=F64, device="cpu")
+    g = torch.Generator().manual_seed(0)
+    rhs = torch.randn((nx, 21, 3), generator=g, dtype=F64)
+    # a compatible source: zero volume-weighted mean
+    weights = axis.widths[None, :, None]
+    rhs = rhs - (rhs * weights).sum((0, 1)) / (nx * weights.sum())
+    phi = cavity.solver.solve(rhs)
+    torch.testing.assert_close(cavity.solver.apply(phi), rhs, atol=1e-10, rtol=0)
+    u = torch.randn((nx + 1, 21, 3), generator=g, dtype=F64)
+    u[-1] = u[0]  # the periodic face carried twice
+    v = torch.randn((nx, 22, 3), generator=g, dtype=F64)
+    v[:, 0], v[:, -1] = 0.0, 0.0
+    from beacon_torch.numerics.staggered import project
+
+    u, v, _ = project(u, v, torch.zeros((nx, 21, 3), dtype=F64), cavity.solver, 0.1, dx, cavity.dy)
+    assert float(divergence(u, v, dx, cavity.dy).abs().max()) < 1e-10
+    torch.testing.assert_close(u[-1], u[0])
+
+
+def test_the_stretched_transport_on_equal_rows_is_the_uniform_one():
+    g = torch.Generator().manual_seed(1)
+    s = torch.randn((10, 8, 2), generator=g, dtype=F64)
+    u, v = torch.randn((9, 6, 2), generator=g, dtype=F64), torch.randn((8, 7, 2), generator=g, dtype=F64)
+    h = 0.125
+    axis = Axis.of_widths(torch.full((6,), h, dtype=F64))
+    stretched = Stretched(axis.widths[None, :, None], axis.gaps[None, :, None], 1)
+    uniform, rows = _coefficients(s, u, v, 0.01, 0.02, 0.1, h), _coefficients(s, u, v, 0.01, 0.02, 0.1, stretched)
+    for a, b in zip(uniform, rows, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-13, atol=1e-13)
+
+
+def test_the_channel_steps_alike_when_shifted_by_a_heater():
+    physics, p = make_physics("easy", period=0.05, num_envs=1)
+    flow = physics._start(p)  # the developed start, shipped
+    state = rbc2d.Rbc2dState(*(f[None] for f in flow), bottom=torch.ones(1, physics.nx, dtype=F64))
+    shift = p.heater_cells
+    rolled = lambda f: torch.cat((f[:, :1], f[:, 1:-1].roll(shift, 1), f[:, -1:]), 1)
+    # the faces of a state are ghosted as the cells: positions 1..nx+1 hold faces 0..nx
+    u = state.u.clone()
+    u[:, 1:-1] = state.u[:, 1:-1].roll(shift, 1)
+    u[:, -1] = u[:, 1]
+    shifted = rbc2d.Rbc2dState(
+        u=u, v=rolled(state.v), p=state.p.roll(shift, 1), theta=rolled(state.theta), bottom=state.bottom
+    )
+    action = torch.linspace(-1, 1, 12, dtype=F64)[None]
+    a, _ = physics.advance(p, state, action, None, {})
+    b, _ = physics.advance(p, shifted, action.roll(1, 1), None, {})
+    torch.testing.assert_close(b.theta[:, 1:-1, 1:-1], a.theta[:, 1:-1, 1:-1].roll(shift, 1), atol=1e-10, rtol=0)
+    torch.testing.assert_close(physics.nusselt(p, b), physics.nusselt(p, a), atol=1e-10, rtol=0)
+
+
+def test_the_multi_agent_reward_mixes_the_windows_and_the_whole_flow():
+    physics, p = make_physics("easy", period=0.02, num_envs=1)
+    agents = rbc2d.Rbc2dSeparablePhysics(p, 1, dtype=F64)
+    flow = physics._start(p)  # the developed start, shipped
+    state = rbc2d.Rbc2dState(*(f[None] for f in flow), bottom=torch.ones(1, physics.nx, dtype=F64))
+    action = torch.linspace(-1, 1, 12, dtype=F64)[None]
+    new, whole = physics.advance(p, state, action, None, {})
+    _, mixed = agents.advance(p, state, action[..., None], None, {})
+    flux = physics.column_flux(p, new).reshape(12, 8).mean(-1)
+    kappa = physics.kappa(p)
+    for agent in (0, 5, 11):
+        seen = [(agent + k) % 12 for k in range(-5, 6)]
+        local = p.nu_ref - (1.0 + flux[seen].mean() / kappa)
+        assert float(mixed[0, agent]) == pytest.approx(float(0.2 * local + 0.8 * whole[0]), rel=1e-12)
+    # each agent sees its window of 11 heaters' sensors, its own in the middle
+    obs = agents.observe(p, new)
+    assert obs.shape == (1, 12, 4 * 8 * 4 * 11)
+    sensors = physics.sensors(new)  # [1, 4, 8, 48]
+    window = obs[0, 3].reshape(4, 8, 11, 4)
+    torch.testing.assert_close(window[:, :, 5], sensors[0][:, :, 12:16])
+    torch.testing.assert_close(window[:, :, 0], sensors[0][:, :, 40:44])  # agent 3 sees heater 10 first
+
+
+def test_the_levels_are_registered_with_fluidgyms_settings():
+    for level, ra, nu_ref in (("easy", 8e4, 4.841), ("medium", 4e5, 6.856), ("hard", 8e5, 7.854)):
+        for env_id in (f"rbc2d-{level}-v0", f"rbc2d-{level}-ma-v0"):
+            spec = beacon_torch.registry.ENVS[env_id]
+            assert spec.defaults["ra"] == ra and spec.defaults["nu_ref"] == nu_ref
+            assert spec.physics.episode_length == 200
+            params = spec.physics.Params(**spec.physical_defaults())
+            assert (params.pr, params.heaters, params.heater_cells, params.period) == (0.7, 12, 8, 1.0)
+    assert beacon_torch.registry.ENVS["rbc2d-hard-ma-v0"].agents == "heater"
+
+
+def test_each_start_is_its_own_randomised_copy_of_the_developed_flow():
+    physics, p = make_physics("easy", num_envs=4, period=0.02)
+    state = physics.initial_state(p, torch.Generator().manual_seed(3))
+    theta = state.theta[:, 1:-1, 1:-1]
+    assert float(theta.min()) >= rbc2d.T_COLD - 1e-9 and float(theta.max()) <= rbc2d.T_HOT + 1e-9
+    # four members, four flows; each a solution of the channel: one face carried twice,
+    # no divergence, and the developed flow's Nusselt number after 1 to 2 time units
+    assert len({round(float(n), 6) for n in physics.nusselt(p, state)}) == 4
+    torch.testing.assert_close(state.u[:, 1], state.u[:, -1])
+    u, v = state.u[:, 1:, 1:-1].movedim(0, -1), state.v[:, 1:-1, 1:].movedim(0, -1)
+    assert float(divergence(u, v, physics.dx, physics.dy).abs().max()) < 1e-8
+    developed = physics.nusselt(p, rbc2d.Rbc2dState(*(f[None] for f in physics._start(p)), bottom=state.bottom[:1]))
+    assert (physics.nusselt(p, state) - developed).abs().max() < 1.0

@@ -1,0 +1,151 @@
+"""FluidGym's RBC2D levels uncontrolled, in float64: the Nusselt number of each level
+against FluidGym's, on the env's grid and refined ones.
+
+    .venv/bin/python validation/rbc2d.py [--levels easy medium hard] [--cells 8 12 16]
+                                         [--average 100] [--out DIR] [--page FILE]
+
+For each level and grid (``heater_cells`` cells along x per heater; the env's is 8,
+FluidGym's grid) the flow starts from FluidGym's conduction profile with noise and
+runs 283 time units without control (the env's developed start), then ``--average``
+more, the Nusselt number 1 + sqrt(Ra Pr) <v T> read after each time unit (and the one of the
+plates' temperature gradients, first order in the plates' rows: in a steady mean the
+two agree to the discretisation's error). A refined
+grid keeps the rows' ratio (1.02) and halves the time step where the cells shrink by
+more than a third. Recorded: the mean and its spread over the averaging window, the
+largest CFL number met, the convection cells (sign changes of v at mid-height), beside
+FluidGym's 4.841 / 6.856 / 7.854 and the scaling Nu = 0.138 Ra^0.285 (Johnston &
+Doering 2009, two-dimensional convection between fixed-temperature plates).
+
+Records a dated ``nusselt-DATE.json`` in ``validation/results/rbc2d/`` (each level and
+grid as soon as it is done) and writes the table of the newest record on the page.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "validation" / "results" / "rbc2d"
+BEGIN, END = "<!-- validation: validation/rbc2d.py -->", "<!-- end of the validation -->"
+GRIDS = (8, 12, 16)
+
+
+def scaling(ra: float) -> float:
+    """Johnston & Doering (2009)'s fit of two-dimensional convection."""
+    return 0.138 * ra**0.285
+
+
+def time_step(level: dict, cells: int) -> float:
+    """The level's time step, halved for a grid finer by more than a third."""
+    return level["dt"] / 2 if cells > 8 * 4 / 3 else level["dt"]
+
+
+def measure(name: str, cells: int, average: int, compile: bool = True) -> dict:
+    from beacon_torch.envs import rbc2d
+    from beacon_torch.params import resolve_params
+
+    level = rbc2d.LEVELS[name]
+    given = dict(level, heater_cells=cells, dt=time_step(level, cells))
+    f64 = torch.float64
+    p = resolve_params(rbc2d.Rbc2dParams, given, batch_size=1, device="cpu", dtype=f64, env_id=f"rbc2d-{name}-v0")
+    physics = rbc2d.Rbc2dPhysics(p, 1, dtype=f64)
+    if compile:
+        physics.kernels.compile()
+    per_unit = int(round(1.0 / p.dt))
+    start = time.perf_counter()
+    flow = rbc2d.uncontrolled(physics, p, rbc2d.conduction(physics, rbc2d.DEVELOP_SEED), 0)
+    for _ in range(int(rbc2d.DEVELOP_TIME)):
+        flow = rbc2d.uncontrolled(physics, p, flow, per_unit)
+    samples, walls, cfl = [], [], 0.0
+    half = 0.5 * physics.axis.widths
+    for _ in range(average):
+        flow = rbc2d.uncontrolled(physics, p, flow, per_unit)
+        state = rbc2d.Rbc2dState(*flow, bottom=torch.ones(1, physics.nx, dtype=f64))
+        samples.append(float(physics.nusselt(p, state)))
+        theta = flow.scalar[0, 1:-1, 1:-1]
+        bottom = (rbc2d.T_HOT - theta[:, 0]) / half[0]
+        top = (theta[:, -1] - rbc2d.T_COLD) / half[-1]
+        walls.append(float(0.5 * (bottom + top).mean()))
+        cfl = max(cfl, float(physics.cfl(p, state)))
+    seconds = time.perf_counter() - start
+    mean = sum(samples) / len(samples)
+    spread = (sum((s - mean) ** 2 for s in samples) / len(samples)) ** 0.5
+    v = flow.v[0, 1:-1, 1 + physics.ny // 2]
+    cells_count = int(((v * v.roll(1)) < 0).sum())
+    return {
+        "level": name,
+        "ra": level["ra"],
+        "heater_cells": cells,
+        "nx": physics.nx,
+        "ny": physics.ny,
+        "dt": p.dt,
+        "average": average,
+        "nusselt": mean,
+        "spread": spread,
+        "wall_nusselt": sum(walls) / len(walls),
+        "fluidgym": level["nu_ref"],
+        "error": mean / level["nu_ref"] - 1.0,
+        "scaling": scaling(level["ra"]),
+        "cfl": cfl,
+        "convection_cells": cells_count,
+        "seconds": seconds,
+        "samples": samples,
+    }
+
+
+def table(rows: list[dict]) -> str:
+    lines = [
+        "| level | Ra | grid | dt | Nu (mean over the window, +- std) | FluidGym | against it | "
+        "Nu at the plates | 0.138 Ra^0.285 | largest CFL | convection cells |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['level']} | {r['ra']:.0e} | {r['nx']} x {r['ny']} | {r['dt']:g} | {r['nusselt']:.3f} +- "
+            f"{r['spread']:.3f} | {r['fluidgym']:.3f} | {100 * r['error']:+.1f} % | {r['wall_nusselt']:.3f} | "
+            f"{r['scaling']:.2f} | "
+            f"{r['cfl']:.2f} | {r['convection_cells']} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--levels", nargs="+", default=["easy", "medium", "hard"])
+    parser.add_argument("--cells", nargs="+", type=int, default=list(GRIDS))
+    parser.add_argument("--average", type=int, default=100, help="time units averaged after the development")
+    parser.add_argument("--no-compile", action="store_true")
+    parser.add_argument("--out", type=Path, default=RECORDS)
+    parser.add_argument("--page", type=Path, default=ROOT / "docs" / "envs" / "rbc2d.md")
+    parser.add_argument("--page-only", action="store_true", help="write the newest record's table, compute nothing")
+    args = parser.parse_args()
+    from beacon_torch import received
+    from beacon_torch.files import save_rows
+    from beacon_torch.training.report import write_block
+
+    torch.set_num_threads(1)
+    if not args.page_only:
+        rows, record = [], None
+        # every level on the env's grid first, then the refined grids
+        for cells in args.cells:
+            for name in args.levels:
+                rows.append(measure(name, cells, args.average, compile=not args.no_compile))
+                print(table(rows[-1:]).splitlines()[-1], f"({rows[-1]['seconds']:.0f} s)", flush=True)
+                # a record after each measurement: a run stopped midway keeps what it measured
+                previous, record = record, save_rows(rows, args.out, "nusselt")
+                if previous is not None:
+                    previous.unlink()
+        print("recorded:", record)
+    newest = sorted(args.out.glob("nusselt-*.json"))[-1]
+    rows = received.json_file(newest, "an RBC2D validation record")["rows"]
+    print(table(rows))
+    if args.page.exists():
+        print(write_block(args.page, BEGIN, END, table(rows)))
+
+
+if __name__ == "__main__":
+    main()
