@@ -246,6 +246,7 @@ REACH = {
     "pinball-v0": (0, 1, ENVS["pinball-v0"].card.test_settings),
     "pinball-periodic-v0": (0, 1, ENVS["pinball-periodic-v0"].card.test_settings),
     "pinball-chaotic-v0": (0, 1, ENVS["pinball-chaotic-v0"].card.test_settings),
+    **{e: (0, 1, ENVS[e].card.test_settings) for e in ENVS if e.startswith("rbc2d-")},
 }
 DIFFERENTIABLE = [
     (env_id, f.name)

@@ -26,17 +26,20 @@ heater (:func:`blend_matrix`). An action lasts one time unit; 200 make an episod
 Observation: the temperature, the two velocities and the pressure at 8 x 48 sensors
 (rows at the heights (j + 1/2) / 8, four columns per heater at (k + 1/2) L / 48), read
 bilinearly from the cells. Reward: ``nu_ref - Nu`` with Nu = 1 + sqrt(Ra Pr) <v T>, the
-volume mean, and ``nu_ref`` FluidGym's uncontrolled Nusselt number of the level.
+volume mean, and ``nu_ref`` the reference of FluidGym's reward at the level.
 
 Multi-agent (``rbc2d-*-ma-v0``): each heater an agent; it observes the sensors above
 the 11 heaters centred on its own (the channel wraps) and earns 0.2 of its window's
 Nusselt reward plus 0.8 of the whole flow's.
 
-Starts: FluidGym's. The developed flow (:func:`developed_flow`: the conduction profile
-with noise, 283 time units without control) and, at each reset, a member's own copy of
-it flipped in x with probability 1/2, shifted by a random number of cells, with noise of
-0.05 on the temperature (clipped to [0, 1]) and the velocities, then 1 to 2 time units
-without control.
+Starts: FluidGym's. Ten developed flows (:func:`developed_bank`: the conduction profile
+with noise of each one's own seed, 283 time units without control; FluidGym develops ten
+training domains so) and, at each reset, a member's own copy of one of them drawn at
+random, flipped in x with probability 1/2, shifted by a random number of cells, with
+noise of 0.05 on the temperature (clipped to [0, 1]) and the velocities, then 1 to 2
+time units without control. At the medium level two of ten seeds settle into one pair
+of rolls instead of two, with a lower Nusselt number: a bank keeps that mix, as
+FluidGym's domains do.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ import torch
 from beacon_torch import seeds
 from beacon_torch.cache import cached
 from beacon_torch.core.card import Card, GradCheck
-from beacon_torch.core.state import Noise, map_state
+from beacon_torch.core.state import Noise
 from beacon_torch.envs.cavity import CavityPhysics, _any_substep, cavity_frame, transport
 from beacon_torch.numerics.bodies import probe_stencil
 from beacon_torch.numerics.grid import NEUMANN, PERIODIC, VALUE, Ghosts, edge_offset
@@ -71,21 +74,25 @@ SENSOR_ROWS, SENSORS_PER_HEATER = 8, 4
 FIELDS = ("temperature", "u", "v", "pressure")  # the observed fields, in this order
 EPISODE_LENGTH = 200
 DEVELOP_TIME = 283.0  # FluidGym's initial domain: 283 actions without control
-DEVELOP_SEED = 0
-START_VERSION = 1
+BANK_SEEDS = tuple(range(100, 110))  # FluidGym's training domains: seeds 100 to 109 (ours: our generator's)
+START_VERSION = 2
 # FluidGym's randomisation of a start
 START_NOISE = 0.05
 START_RUN = (1.0, 2.0)  # time units without control, drawn uniformly
 # the conduction start's noise, as FluidGym's initial domain
 CONDUCTION_T_NOISE, CONDUCTION_U_NOISE = 0.1, 0.05
 
-# FluidGym's levels: Rayleigh number, its uncontrolled Nusselt number (its reward's
-# reference and table), and this solver's time step
+# FluidGym's levels: Rayleigh number, its reward's reference Nusselt number (the median
+# of its uncontrolled statistics; its results table gives it as reward + Nusselt number,
+# alike in every row), and this solver's time step
 LEVELS = {
-    "easy": dict(ra=8e4, nu_ref=4.841, dt=0.01),
-    "medium": dict(ra=4e5, nu_ref=6.856, dt=0.005),
-    "hard": dict(ra=8e5, nu_ref=7.854, dt=0.004),
+    "easy": dict(ra=8e4, nu_ref=4.896, dt=0.01),
+    "medium": dict(ra=4e5, nu_ref=6.429, dt=0.005),
+    "hard": dict(ra=8e5, nu_ref=7.243, dt=0.004),
 }
+# the uncontrolled Nusselt numbers of FluidGym's table (its "Baseflow" rows: the mean
+# over its test episodes)
+FLUIDGYM_NUSSELT = {"easy": 4.841, "medium": 6.856, "hard": 7.854}
 
 
 class Rbc2dState(NamedTuple):
@@ -111,7 +118,7 @@ class Rbc2dParams:
     base: float = param(BASE, low=1.0, high=1.1, per_member=False, doc="height ratio of neighbouring rows")
     dt: float = param(0.01, low=1e-4, high=0.05, per_member=False, doc="time step")
     period: float = param(1.0, low=1e-4, high=10.0, per_member=False, doc="time between two actions")
-    nu_ref: float = param(4.841, low=0.0, high=100.0, per_member=False, doc="the reward's reference Nusselt number")
+    nu_ref: float = param(4.896, low=0.0, high=100.0, per_member=False, doc="the reward's reference Nusselt number")
     local_weight: float = param(
         0.2, low=0.0, high=1.0, per_member=False, doc="multi-agent: the share of an agent's own window in its reward"
     )
@@ -220,6 +227,7 @@ class Rbc2dPhysics(CavityPhysics):
         self.ghosts = Ghosts.cells(
             self.nx, self.ny, PERIODIC, PERIODIC, VALUE, VALUE, dtype=self.dtype, device=self.device
         )
+        self.dt = p.dt
         self.substeps = int(round(p.period / p.dt))
         self._substeps = self.kernels.loop(functools.partial(_any_substep, functools.partial(substep, dt=p.dt)))
         self.blend = blend_matrix(p.heaters, p.heater_cells).to(dtype=self.dtype, device=self.device)
@@ -257,17 +265,20 @@ class Rbc2dPhysics(CavityPhysics):
     def _start(self, p) -> Flow:
         p = dataclasses.replace(p, ra=number(p.ra), pr=number(p.pr))
         key = start_key(p)
-        like = map_state(lambda v: v[0], rest_state(1, self.nx, self.ny, torch.float64, "cpu"))
+        like = rest_state(len(BANK_SEEDS), self.nx, self.ny, torch.float64, "cpu")
         span = T_HOT - T_COLD
         bounds = {"scalar": (T_COLD - span, T_HOT + span)}
-        develop = lambda: developed_flow(p)
+        # compiled where the env is: minutes of substeps
+        develop = lambda: developed_bank(p, compile=self.kernels.compiled)
         return cached(
             "rbc2d-developed", START_VERSION, key, develop, like, bounds, device=self.device, dtype=self.dtype
         )
 
     def initial_state(self, p, generator, mask=None) -> Rbc2dState:
         b, nx = self.num_envs, self.nx
-        flow = Flow(*(f.expand(b, *f.shape).clone() for f in self._start(p)))
+        bank = self._start(p)
+        pick = torch.randint(len(BANK_SEEDS), (b,), generator=generator).to(self.device)
+        flow = Flow(*(f[pick] for f in bank))
         bottom = torch.full((b, nx), T_HOT, dtype=self.dtype, device=self.device)
         offset = self.offset(bottom)
         s = self.cavity.to_solver(flow, self.ghosts, offset)
@@ -366,16 +377,29 @@ def start_key(p: Rbc2dParams) -> dict:
     return dict(ra=p.ra, pr=p.pr, heaters=p.heaters, heater_cells=p.heater_cells, aspect=p.aspect, base=p.base, dt=p.dt)
 
 
-def developed_flow(p: Rbc2dParams = Rbc2dParams(), *, time: float = DEVELOP_TIME, seed: int = DEVELOP_SEED) -> Flow:
-    """FluidGym's initial domain in float64 (:func:`conduction`, then ``time`` time
-    units without control). Returns ``u``, ``v``, ``p``, ``theta`` without batch
-    dimension, ghosted as a state."""
+def developed_bank(
+    p: Rbc2dParams = Rbc2dParams(), *, time: float = DEVELOP_TIME, seeds=BANK_SEEDS, compile: bool = False
+) -> Flow:
+    """FluidGym's initial domains, one per seed of ``seeds``: :func:`develop` in float64,
+    kept in float32 (``[len(seeds), ...]``, ghosted as a state; a start is randomised
+    before use). ``compile`` runs the substeps compiled."""
     given = {**dataclasses.asdict(p)}
     cpu, f64 = torch.device("cpu"), torch.float64
-    p = resolve_params(Rbc2dParams, given, batch_size=1, device=cpu, dtype=f64, env_id="rbc2d-easy-v0")
-    physics = Rbc2dPhysics(p, 1, dtype=f64, device=cpu)
-    flow = uncontrolled(physics, p, conduction(physics, seed), int(round(time / p.dt)))
-    return Flow(*(f[0] for f in flow))
+    p = resolve_params(Rbc2dParams, given, batch_size=len(seeds), device=cpu, dtype=f64, env_id="rbc2d-easy-v0")
+    physics = Rbc2dPhysics(p, len(seeds), dtype=f64, device=cpu)
+    if compile:
+        physics.kernels.compile()
+    return Flow(*(f.float() for f in develop(physics, p, seeds, time)))
+
+
+def develop(physics: Rbc2dPhysics, p, seeds, time: float = DEVELOP_TIME) -> Flow:
+    """The flows from :func:`conduction` of each seed of ``seeds`` (side by side, a
+    member each) after ``time`` time units without control, a time unit a call."""
+    flow = Flow(*(torch.cat(parts) for parts in zip(*(conduction(physics, s) for s in seeds), strict=True)))
+    per_unit = int(round(1.0 / p.dt))
+    for _ in range(int(round(time))):
+        flow = uncontrolled(physics, p, flow, per_unit)
+    return flow
 
 
 def conduction(physics: Rbc2dPhysics, seed: int) -> Flow:
