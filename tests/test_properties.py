@@ -13,9 +13,9 @@ from hypothesis import strategies as st
 
 import beacon_torch
 
-from conftest import EXPENSIVE_ENVS, FAST
+from conftest import ALL_ENVS, EXPENSIVE_ENVS, FAST
 
-ENVS = beacon_torch.list_envs()
+ENVS = ALL_ENVS
 MEMBERS, STEPS = 3, 4
 CHECK = settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 # the cavities' steps cost a tenth of a second or more: fewer examples and steps there

@@ -162,3 +162,15 @@ def test_each_start_is_its_own_randomised_copy_of_the_developed_flow():
     assert bank.u.shape[0] == len(rbc2d.BANK_SEEDS) == 10
     developed = physics.nusselt(p, rbc2d.Rbc2dState(*bank, bottom=torch.ones(10, physics.nx, dtype=F64)))
     assert (physics.nusselt(p, state) - developed.mean()).abs().max() < 1.0
+
+
+@pytest.mark.parametrize("level", ["medium", "hard"])
+def test_the_harder_levels_pass_torchrls_spec_check_in_both_layouts(level):
+    from torchrl.envs.utils import check_env_specs
+
+    dt = rbc2d.LEVELS[level]["dt"]
+    for env_id in (f"rbc2d-{level}-v0", f"rbc2d-{level}-ma-v0"):
+        env = beacon_torch.make(env_id, 2, period=2 * dt, seed=0)
+        check_env_specs(env)
+        td = env.rollout(2)
+        assert torch.isfinite(td["next", "diagnostics", "nusselt"]).all()
