@@ -126,7 +126,8 @@ def cached(
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float64,
 ) -> State:
-    """The state ``compute()`` returns (float64, on the CPU), computed at most once per
+    """The state ``compute()`` returns (float64, or float32 where a bank of starts is kept
+    so; on the CPU), computed at most once per
     key and machine, read at most once per process, and given on ``device`` in
     ``dtype`` (a copy made once per process). ``version`` is the case's declared
     generation of its starts (its module's ``START_VERSION``, raised whenever a change
@@ -136,7 +137,8 @@ def cached(
     fname = file_name(name, version, key)
     state = memo((fname,), lambda: _stored_or_computed(fname, name, key, compute, like, bounds))
     device = torch.device(device)
-    if (device.type, dtype) == ("cpu", torch.float64):
+    # a state kept in float32 (a bank of starts) is given in float64 too
+    if all(v.device == device and v.dtype == dtype for v in state):
         return state
     return memo((fname, str(device), dtype), lambda: type(state)(*(v.to(device=device, dtype=dtype) for v in state)))
 

@@ -55,7 +55,13 @@ def test_an_episode_ends_for_every_agent_at_its_length():
 
 
 def test_single_agent_envs_and_missing_actions_are_refused():
-    assert multi_agent_envs() == ["rayleigh-separable-v0", "shkadov-separable-v0"]
+    assert multi_agent_envs() == [
+        "rayleigh-separable-v0",
+        "rbc2d-easy-ma-v0",
+        "rbc2d-hard-ma-v0",
+        "rbc2d-medium-ma-v0",
+        "shkadov-separable-v0",
+    ]
     with pytest.raises(ValueError, match="one agent"):
         BeaconParallelEnv("shkadov-v0")
     env = parallel_env("shkadov-separable-v0", n_jets=2, compile=False)
