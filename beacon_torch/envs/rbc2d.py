@@ -78,7 +78,7 @@ BANK_SEEDS = tuple(range(100, 110))  # FluidGym's training domains: seeds 100 to
 START_VERSION = 2
 # FluidGym's randomisation of a start
 START_NOISE = 0.05
-START_RUN = (1.0, 2.0)  # time units without control, drawn uniformly
+START_RUN = (1.0, 2.0)  # time units without control, drawn uniformly (the start_run default)
 # the conduction start's noise, as FluidGym's initial domain
 CONDUCTION_T_NOISE, CONDUCTION_U_NOISE = 0.1, 0.05
 
@@ -118,6 +118,13 @@ class Rbc2dParams:
     base: float = param(BASE, low=1.0, high=1.1, per_member=False, doc="height ratio of neighbouring rows")
     dt: float = param(0.01, low=1e-4, high=0.05, per_member=False, doc="time step")
     period: float = param(1.0, low=1e-4, high=10.0, per_member=False, doc="time between two actions")
+    start_run: float = param(
+        START_RUN[0],
+        low=0.0,
+        high=10.0,
+        per_member=False,
+        doc="a start runs uncontrolled for between this and twice this time after its randomisation (FluidGym: 1)",
+    )
     nu_ref: float = param(4.896, low=0.0, high=100.0, per_member=False, doc="the reward's reference Nusselt number")
     local_weight: float = param(
         0.2, low=0.0, high=1.0, per_member=False, doc="multi-agent: the share of an agent's own window in its reward"
@@ -285,7 +292,7 @@ class Rbc2dPhysics(CavityPhysics):
         draw = lambda *shape: torch.rand(shape, generator=generator, dtype=torch.float64).to(self.device)
         flip = draw(b) > 0.5
         shift = (draw(b) * nx).long().clamp(max=nx - 1)
-        run = (START_RUN[0] + (START_RUN[1] - START_RUN[0]) * draw(b)) / p.dt
+        run = p.start_run * (1.0 + draw(b)) / p.dt
         # in x, cells and the periodic faces (face nx is face 0) flipped and shifted
         cells = torch.arange(nx, device=self.device)[:, None]
         source = torch.where(flip, nx - 1 - cells, cells)  # [nx, B]
@@ -459,8 +466,8 @@ class Rbc2dSeparablePhysics(Rbc2dPhysics):
 CARD = Card(
     family="2-D",
     costly=True,  # an action is a hundred or more substeps of a 2-D projection
-    gradcheck=GradCheck("ra", 8e4, warmup=0, steps=2, params={"period": 0.02}),
-    test_settings={"period": 0.02},  # two substeps an action
+    gradcheck=GradCheck("ra", 8e4, warmup=0, steps=2, params={"period": 0.02, "start_run": 0.02}),
+    test_settings={"period": 0.02, "start_run": 0.02},  # two substeps an action, two to four a start
     frame=cavity_frame(
         "rbc2d",
         lambda physics, state: (
