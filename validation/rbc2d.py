@@ -7,26 +7,26 @@ against FluidGym's, on the env's grid and refined ones.
 For each level and grid (``heater_cells`` cells along x per heater; the env's is 8,
 FluidGym's grid) ten initial domains (``--seeds``; FluidGym develops ten per split)
 start from FluidGym's conduction profile with noise of their own seed, side by side as
-one batch, and run 283 time units without control (as the env's developed start),
-then ``--average`` more, the Nusselt number 1 + sqrt(Ra Pr) <v T> read after each time
-unit (and the one of the
-plates' temperature gradients, first order in the plates' rows: in a steady mean the
-two agree to the discretisation's error). A refined
-grid keeps the rows' ratio (1.02) and halves the time step where the cells shrink by
-more than a third. Recorded: each seed's mean, their interquartile mean (FluidGym's table is the IQM
-over its seeds and test episodes) and mean, the median of every sample, the largest CFL number met, each seed's
-convection cells (sign changes of v at mid-height: a flow may settle into more or
-fewer rolls, each with its own Nusselt number), beside
-FluidGym's 4.841 / 6.856 / 7.854 and the scaling Nu = 0.138 Ra^0.285 (Johnston &
-Doering 2009, two-dimensional convection between fixed-temperature plates).
+one batch, and run 283 time units without control (as the env's developed start), then
+``--average`` more, the Nusselt number 1 + sqrt(Ra Pr) <v T> read after each time unit
+(and the one of the plates' temperature gradients, first order in the plates' rows: in a
+steady mean the two agree to the discretisation's error). A refined grid keeps the rows'
+ratio (1.02), so its rows near the plates shrink faster than its columns, and takes the
+step of :func:`time_step`. Recorded: each seed's mean, their interquartile mean
+(FluidGym's table is the IQM over its seeds and test episodes) and mean, the median of
+every sample, the largest CFL number met, each seed's convection cells (sign changes of
+v at mid-height: a flow may settle into more or fewer rolls, each with its own Nusselt
+number), beside FluidGym's 4.841 / 6.856 / 7.854 and the scaling Nu = 0.138 Ra^0.285
+(Johnston & Doering 2009, two-dimensional convection between fixed-temperature plates).
 
 Records a dated ``nusselt-DATE.json`` in ``validation/results/rbc2d/`` (each level and
-grid as soon as it is done) and writes the table of the newest record on the page.
+grid as soon as it is done) and writes on the page the newest row of each level and grid over the records.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "validation" / "results" / "rbc2d"
 BEGIN, END = "<!-- validation: validation/rbc2d.py -->", "<!-- end of the validation -->"
 GRIDS = (8, 12, 16)
+HEATERS, PR = 12, 0.7  # FluidGym's heaters and Prandtl number
 FIRST_SEED = 300  # FluidGym's test domains are seeds 300 to 309 (ours: our generator's)
 
 
@@ -53,8 +54,19 @@ def iqm(values: list[float]) -> float:
 
 
 def time_step(level: dict, cells: int) -> float:
-    """The level's time step, halved for a grid finer by more than a third."""
-    return level["dt"] / 2 if cells > 8 * 4 / 3 else level["dt"]
+    """The level's time step on a grid of ``cells`` columns a heater: shrunk with the
+    columns' width (the CFL number of the env's grid kept) and, where the explicit
+    diffusion of the finest rows asks for less, to 0.8 of that bound; a whole number
+    of steps a time unit. The env's grid keeps the level's step."""
+    from beacon_torch.envs import rbc2d
+
+    nx = HEATERS * cells
+    ny = round(rbc2d.Y_SCALE * nx / math.pi)
+    dx, dy = math.pi / nx, float(rbc2d.wall_refined(ny, rbc2d.BASE).min()) * rbc2d.HEIGHT
+    diffusivity = max(math.sqrt(PR / level["ra"]), 1.0 / math.sqrt(PR * level["ra"]))
+    bound = 1.0 / (2.0 * diffusivity * (1.0 / dx**2 + 1.0 / dy**2))
+    dt = min(level["dt"] * 8 / cells, 0.8 * bound) if cells > 8 else level["dt"]
+    return 1.0 / math.ceil(round(1.0 / dt, 9))
 
 
 def measure(name: str, cells: int, seeds: list[int], average: int, compile: bool = True) -> dict:
@@ -111,8 +123,8 @@ def measure(name: str, cells: int, seeds: list[int], average: int, compile: bool
 def table(rows: list[dict]) -> str:
     lines = [
         "| level | Ra | grid | dt | Nu: IQM of the seeds | their mean | FluidGym | IQM against it | Nu at the plates | "
-        "0.138 Ra^0.285 | each seed's Nu (convection cells) | largest CFL |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "0.138 Ra^0.285 | seeds | each seed's Nu (convection cells) | largest CFL |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     from beacon_torch.envs.rbc2d import FLUIDGYM_NUSSELT
 
@@ -123,9 +135,20 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['level']} | {r['ra']:.0e} | {r['nx']} x {r['ny']} | {r['dt']:g} | {ours:.3f} | "
             f"{r['nusselt']:.3f} | {theirs:.3f} | {100 * (ours / theirs - 1.0):+.1f} % | {r['wall_nusselt']:.3f} | "
-            f"{r['scaling']:.2f} | {each} | {r['cfl']:.2f} |"
+            f"{r['scaling']:.2f} | {len(r['seed_nusselt'])} | {each} | {r['cfl']:.2f} |"
         )
     return "\n".join(lines)
+
+
+def latest_rows(records: list[Path], received) -> list[dict]:
+    """The newest measurement of each level and grid over ``records`` (oldest first):
+    the refined grids are run apart from the env's, each record keeps what it ran."""
+    found = {}
+    for record in records:
+        for row in received.json_file(record, "an RBC2D validation record")["rows"]:
+            found[row["level"], row["heater_cells"]] = row
+    order = {name: k for k, name in enumerate(("easy", "medium", "hard"))}
+    return [found[key] for key in sorted(found, key=lambda key: (order[key[0]], key[1]))]
 
 
 def main() -> None:
@@ -137,7 +160,7 @@ def main() -> None:
     parser.add_argument("--no-compile", action="store_true")
     parser.add_argument("--out", type=Path, default=RECORDS)
     parser.add_argument("--page", type=Path, default=ROOT / "docs" / "envs" / "rbc2d.md")
-    parser.add_argument("--page-only", action="store_true", help="write the newest record's table, compute nothing")
+    parser.add_argument("--page-only", action="store_true", help="write the records' table, compute nothing")
     args = parser.parse_args()
     from beacon_torch import received
     from beacon_torch.files import save_rows
@@ -157,8 +180,7 @@ def main() -> None:
                 if previous is not None:
                     previous.unlink()
         print("recorded:", record)
-    newest = sorted(args.out.glob("nusselt-*.json"))[-1]
-    rows = received.json_file(newest, "an RBC2D validation record")["rows"]
+    rows = latest_rows(sorted(args.out.glob("nusselt-*.json")), received)
     print(table(rows))
     if args.page.exists():
         print(write_block(args.page, BEGIN, END, table(rows)))
