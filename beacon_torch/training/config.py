@@ -68,6 +68,19 @@ PPO = {
     "pinball-v0": RABAULT,
     # beyond the paper: its trials levelled off by 2 million transitions (670 episodes)
     "ks-v0": dict(frames=2_000_000),
+    # beyond the paper: FluidGym's runs on its RBC2D levels (Stable-Baselines3's PPO and
+    # its 64-wide networks: 2,048 transitions a rollout in minibatches of 64, 10 epochs,
+    # both rates 3e-4, GAE's lambda 0.95, gradient norm 0.5, 50,000 transitions a run)
+    "rbc2d-easy-v0": dict(
+        frames=50_000,
+        n_rollout=2048,
+        minibatches=32,
+        epochs=10,
+        actor_lr=3e-4,
+        critic_lr=3e-4,
+        gae_lambda=0.95,
+        grad_clip=0.5,
+    ),
 }
 # TD3, where its settings differ from the paper's agent
 TD3 = {
@@ -89,6 +102,9 @@ SAC = {
     "sloshing-v0": dict(frames=100_000),
     "rayleigh-v0": dict(frames=19_200),
     "mixing-v0": dict(frames=8_192),
+    # FluidGym's runs on its RBC2D levels (Stable-Baselines3's SAC: a buffer of the whole
+    # run, batches of 256, a gradient step a transition, 100 random transitions first)
+    "rbc2d-easy-v0": dict(frames=50_000, batch_size=256, init_random_frames=100),
     # beyond TD3's table: the gradient recipe's budget on the cylinder
     "cylinder-v0": dict(frames=16_000),
 }
@@ -517,9 +533,18 @@ def paper_algorithms(env_id: str) -> tuple[str, ...]:
     return tuple(cls.algo for cls in (PPOConfig, TD3Config, DQNConfig) if unfit(cls, env) is None)
 
 
+def table_entry(table: dict[str, dict], env_id: str) -> dict:
+    """``env_id``'s entry of a settings table: its own, else that of the env it is a
+    variant of, and so on (a level's multi-agent layout trains like the level)."""
+    spec = env_spec(env_id)
+    while spec.env_id not in table and spec.base_id() != spec.env_id:
+        spec = env_spec(spec.base_id())
+    return table.get(spec.env_id, {})
+
+
 def paper_frames(env_id: str) -> int:
     """The paper's PPO budget of ``env_id``, the default budget of every algorithm."""
-    return PPO.get(env_spec(env_id).base_id(), {}).get("frames", Config.frames)
+    return table_entry(PPO, env_id).get("frames", Config.frames)
 
 
 def defaults(cls: type[Settings], env_id: str) -> dict:
@@ -528,7 +553,7 @@ def defaults(cls: type[Settings], env_id: str) -> dict:
     # BEACON_TORCH_COMPILE=0 turns a table's compilation off too
     off = {} if compiles_by_default() else {"compile": False}
     budget = {"frames": int(paper_frames(env_id) * cls.budget_share)} if issubclass(cls, Config) else {}
-    return {**budget, **cls.table.get(env_spec(env_id).base_id(), {}), **off}
+    return {**budget, **table_entry(cls.table, env_id), **off}
 
 
 def _typed(name: str, kind: str, value):
