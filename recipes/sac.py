@@ -2,6 +2,9 @@
 (twin critics, their targets updated by ``SoftUpdate``, the entropy's weight tuned to
 the target entropy -dim(action)), a squashed Gaussian actor that explores by sampling,
 a ``Collector`` over the batched env and a ``ReplayBuffer`` saved with each checkpoint.
+In a multi-agent layout (rbc2d-easy-ma-v0) the agents share the actor and the critics,
+each agent's value is learnt from its own reward, and a stored transition holds every
+agent's.
 
     .venv/bin/python recipes/sac.py --env cylinder-v0
 """
@@ -25,11 +28,19 @@ def main(cfg: SACConfig) -> dict:
 
     # the env, with the saved normalisation when resuming
     env = recipe_env(cfg, run.obs_norm)
+    keys = networks.Keys.of(env)
 
     # the actor, the twin critics (inside the loss), the entropy's weight, their optimisers
     actor = networks.squashed_gaussian_actor(env, cfg.hidden).to(cfg.device)
     qvalue = networks.action_value(env, cfg.hidden).to(cfg.device)
     loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=cfg.alpha_init)
+    loss.set_keys(
+        action=keys.action,
+        state_action_value=qvalue.out_keys[0],
+        reward=keys.reward,
+        done=keys.done,
+        terminated=keys.terminated,
+    )
     loss.make_value_estimator(gamma=cfg.gamma)
     target = SoftUpdate(loss, tau=cfg.tau)
     actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.lr)
@@ -63,8 +74,11 @@ def main(cfg: SACConfig) -> dict:
     )
 
     for data in collector:
+        if keys.agents:  # the shared end of an episode, as each agent's
+            for flag, key in (("done", keys.done), ("terminated", keys.terminated)):
+                data[("next", *key)] = data["next", flag].unsqueeze(-2).expand(data[("next", *keys.reward)].shape)
         buffer.extend(data.reshape(-1))
-        values = episode_values(data)
+        values = episode_values(data, keys.reward)
         if run.frames + data.numel() > cfg.init_random_frames:
             for _ in range(cfg.updates_per_batch):
                 losses = loss(buffer.sample())

@@ -1259,6 +1259,48 @@ def test_sac_trains_resumes_with_its_buffer_and_evaluates_deterministically(tmp_
     assert cli(["eval", str(tmp_path), "--num-envs", "2", "--no-gif"]) == 0
 
 
+@pytest.mark.slow(seconds=15)
+def test_multi_agent_sac_shares_its_networks_and_learns_each_agents_value_from_its_reward(tmp_path, monkeypatch):
+    """FluidGym's multi-agent SAC: one actor and one pair of critics for every agent,
+    each agent's critic target from its own reward (a stored transition holds every
+    agent's), the episode's end shared."""
+    from torchrl.objectives import SACLoss
+
+    from recipes import sac
+
+    made = {}
+
+    class Kept(SACLoss):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made["loss"] = self
+
+    monkeypatch.setattr(sac, "SACLoss", Kept)
+    fast = beacon_torch.registry.ENVS["rbc2d-easy-ma-v0"].card.test_settings
+    cfg = dict(TINY, hidden=16, frames=256, batch_size=8, params=fast)
+    sac.main(configure(SACConfig, "rbc2d-easy-ma-v0", out=str(tmp_path), **cfg))
+    state = checkpoint(tmp_path)
+    assert state["policy"] == {"network": "squashed_gaussian_actor", "hidden": 16}
+    assert state["modules"]["actor"]["module.0.module.0.0.weight"].shape == (16, 11 * 4 * 8 * 4)  # one agent's window
+    env = training_env.make_env("rbc2d-easy-ma-v0", 2, seed=0, norm_steps=0, **fast)
+    data = env.rollout(3, break_when_any_done=False)
+    for flag in ("done", "terminated"):
+        data["next", "agents", flag] = data["next", flag].unsqueeze(-2).expand(data["next", "agents", "reward"].shape)
+    batch = data.reshape(-1)
+    loss = made["loss"]
+    torch.manual_seed(0)
+    loss(batch)
+    before = batch["td_error"].clone()
+    assert before.shape == (6, 12)  # a TD error for each agent
+    batch["next", "agents", "reward"][:, 2] += 10.0
+    torch.manual_seed(0)
+    loss(batch)
+    changed = (batch["td_error"] - before).abs() > 1.0
+    assert changed[:, 2].all() and not changed[:, [0, 1, *range(3, 12)]].any()
+    result = evaluate_run(tmp_path, num_envs=1)
+    assert result["env"] == "rbc2d-easy-ma-v0" and torch.isfinite(torch.tensor(result["score_mean"]))
+
+
 @pytest.mark.parametrize("tracker", ["wandb", "mlflow"])
 def test_experiment_trackers_log_beside_the_csv_logs(tracker, tmp_path, monkeypatch):
     """TorchRL's W&B and MLflow loggers in their offline modes: the run's scalars reach

@@ -45,6 +45,19 @@ RABAULT = dict(
     minibatches=5,
     gae_lambda=0.97,
 )
+# beyond the paper: FluidGym's runs on its RBC2D levels (Stable-Baselines3's PPO and
+# its 64-wide networks: 2,048 transitions a rollout in minibatches of 64, 10 epochs,
+# both rates 3e-4, GAE's lambda 0.95, gradient norm 0.5, 50,000 flow steps a run)
+FLUIDGYM_PPO = dict(
+    frames=50_000,
+    n_rollout=2048,
+    minibatches=32,
+    epochs=10,
+    actor_lr=3e-4,
+    critic_lr=3e-4,
+    gae_lambda=0.95,
+    grad_clip=0.5,
+)
 # the paper's PPO settings per env: its table, and what its runs used beyond the table
 # (the critic's rate and optimiser, GAE's lambda, rayleigh's wider networks)
 PPO = {
@@ -68,19 +81,12 @@ PPO = {
     "pinball-v0": RABAULT,
     # beyond the paper: its trials levelled off by 2 million transitions (670 episodes)
     "ks-v0": dict(frames=2_000_000),
-    # beyond the paper: FluidGym's runs on its RBC2D levels (Stable-Baselines3's PPO and
-    # its 64-wide networks: 2,048 transitions a rollout in minibatches of 64, 10 epochs,
-    # both rates 3e-4, GAE's lambda 0.95, gradient norm 0.5, 50,000 transitions a run)
-    "rbc2d-easy-v0": dict(
-        frames=50_000,
-        n_rollout=2048,
-        minibatches=32,
-        epochs=10,
-        actor_lr=3e-4,
-        critic_lr=3e-4,
-        gae_lambda=0.95,
-        grad_clip=0.5,
-    ),
+    # beyond the paper: FluidGym's runs on its RBC2D levels
+    "rbc2d-easy-v0": FLUIDGYM_PPO,
+    # its multi-agent runs: each agent a member of Stable-Baselines3's vector env, so a
+    # rollout of 2,048 flow steps holds 2,048 transitions of each agent, in minibatches
+    # of 64 agent transitions; here a minibatch is 8 flow steps of the 12 agents (96)
+    **{f"rbc2d-{level}-ma-v0": dict(FLUIDGYM_PPO, minibatches=256) for level in ("easy", "medium", "hard")},
 }
 # TD3, where its settings differ from the paper's agent
 TD3 = {
@@ -105,6 +111,12 @@ SAC = {
     # FluidGym's runs on its RBC2D levels (Stable-Baselines3's SAC: a buffer of the whole
     # run, batches of 256, a gradient step a transition, 100 random transitions first)
     "rbc2d-easy-v0": dict(frames=50_000, batch_size=256, init_random_frames=100),
+    # multi-agent, a gradient step per agent transition, each of 21 flow steps of the 12
+    # agents (252 agent transitions; Stable-Baselines3's vector env of agents: 256)
+    **{
+        f"rbc2d-{level}-ma-v0": dict(frames=50_000, batch_size=21, updates_per_batch=12 * 64, init_random_frames=100)
+        for level in ("easy", "medium", "hard")
+    },
     # beyond TD3's table: the gradient recipe's budget on the cylinder
     "cylinder-v0": dict(frames=16_000),
 }
@@ -342,6 +354,7 @@ class SACConfig(OffPolicyConfig):
     actor, the entropy's weight tuned to a target entropy."""
 
     algo: ClassVar[str] = "sac"
+    multi_agent: ClassVar[bool] = True
     action_kind: ClassVar[str] = "continuous"
     table: ClassVar[dict[str, dict]] = SAC
 
@@ -521,7 +534,8 @@ def unfit(cls: type[Settings], env: EnvSpec) -> str | None:
         return f"{cls.algo} needs discrete actions; {env.env_id} has continuous ones (use ppo or td3)"
     if env.agents is not None and not cls.multi_agent:
         single = env.base_id() if env.base_id() != env.env_id else "its single-agent layout"
-        use = f"use ppo, or {single}" if trainer else f"use {single}"
+        capable = " or ".join(c.algo for c in CONFIGS.values() if c.multi_agent)
+        use = f"use {capable}, or {single}" if trainer else f"use {single}"
         return f"{cls.algo} controls single-agent layouts; {env.env_id} has one agent per {env.agents} ({use})"
     return None
 

@@ -198,8 +198,10 @@ def each_value(critics: ValueOperator, obs: torch.Tensor) -> torch.Tensor:
 
 
 def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
-    """The action box of one member (the env's spec carries the batch dimension)."""
-    space, n_act = env.action_spec.space, env.action_spec.shape[-1]
+    """The action box of one member (the env's spec carries the batch dimension), or of
+    one agent (the same for each)."""
+    spec = env.full_action_spec[Keys.of(env).action]
+    space, n_act = spec.space, spec.shape[-1]
     return space.low.reshape(-1, n_act)[0], space.high.reshape(-1, n_act)[0]
 
 
@@ -231,39 +233,47 @@ def deterministic_actor(
 def squashed_gaussian_actor(env: TransformedEnv, hidden: int, normed: bool = False) -> ProbabilisticActor:
     """SAC's actor: an MLP giving the location and scale of a normal distribution
     squashed by tanh into the action box (deterministic: the squashed location);
-    ``normed``: the hidden layers of :func:`normed_mlp`."""
+    ``normed``: the hidden layers of :func:`normed_mlp`. In a multi-agent layout one
+    actor is shared by the agents (:class:`Keys`)."""
     from tensordict.nn.distributions import NormalParamExtractor
     from torchrl.modules import TanhNormal
 
+    keys = Keys.of(env)
     low, high = action_bounds(env)
+    n_act = env.full_action_spec[keys.action].shape[-1]
     if normed:
-        net = normed_mlp(n_observations(env), 2 * env.action_spec.shape[-1], hidden)
+        net = normed_mlp(n_observations(env), 2 * n_act, hidden)
     else:
         net = MLP(
             in_features=n_observations(env),
-            out_features=2 * env.action_spec.shape[-1],
+            out_features=2 * n_act,
             num_cells=[hidden, hidden],
             activation_class=nn.ReLU,
         )
-    module = TensorDictModule(
-        nn.Sequential(net, NormalParamExtractor()), in_keys=["observation"], out_keys=["loc", "scale"]
-    )
+    params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
+    module = TensorDictModule(nn.Sequential(net, NormalParamExtractor()), in_keys=[keys.obs], out_keys=params)
     return ProbabilisticActor(
         module,
-        in_keys=["loc", "scale"],
-        out_keys=["action"],
+        in_keys=dict(zip(("loc", "scale"), params, strict=True)),
+        out_keys=[keys.action],
         distribution_class=TanhNormal,
         distribution_kwargs={"low": low, "high": high},
         return_log_prob=False,
-        spec=env.action_spec,
+        spec=env.full_action_spec,
     )
 
 
 def action_value(env: TransformedEnv, hidden: int) -> ValueOperator:
-    """TD3's critic: the value of an (observation, action) pair."""
-    n_in = n_observations(env) + env.action_spec.shape[-1]
+    """TD3's and SAC's critic: the value of an (observation, action) pair; shared by
+    the agents in a multi-agent layout."""
+    keys = Keys.of(env)
+    n_in = n_observations(env) + env.full_action_spec[keys.action].shape[-1]
     net = MLP(in_features=n_in, out_features=1, num_cells=[hidden, hidden], activation_class=nn.ReLU)
-    return ValueOperator(initialised(net, last_linear(net)), in_keys=["observation", "action"])
+    return ValueOperator(
+        initialised(net, last_linear(net)),
+        in_keys=[keys.obs, keys.action],
+        out_keys=[sibling(keys.obs, "state_action_value")],
+    )
 
 
 def qvalue_actor(env: TransformedEnv, hidden: int) -> QValueActor:
