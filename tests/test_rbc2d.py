@@ -174,3 +174,18 @@ def test_the_harder_levels_pass_torchrls_spec_check_in_both_layouts(level):
         check_env_specs(env)
         td = env.rollout(2)
         assert torch.isfinite(td["next", "diagnostics", "nusselt"]).all()
+
+
+def test_the_results_table_sets_each_cell_beside_fluidgyms(tmp_path):
+    from experiments import rbc2d_table
+
+    (tmp_path / "ppo" / "rbc2d-medium-ma-v0").mkdir(parents=True)
+    (tmp_path / "sac" / "burgers-v0").mkdir(parents=True)
+    assert rbc2d_table.pairs(tmp_path) == [("ppo", "rbc2d-medium-ma-v0", tmp_path / "ppo" / "rbc2d-medium-ma-v0")]
+    assert rbc2d_table.cell("sac", "rbc2d-hard-ma-v0") == ("hard", "MA-SAC")
+    seed = {"frames": 51_200, "cpu_hours": 0.25, "nusselt": [4.0] * 7 + [9.0], "uncontrolled_nusselt": [5.0] * 8}
+    rows = [{"level": "easy", "algorithm": "PPO", "env": "rbc2d-easy-v0", "seeds": [seed, seed]}]
+    lines = rbc2d_table.table(rows).splitlines()[2:]
+    assert len(lines) == 12 and sum("not run" in line for line in lines) == 11
+    # the IQM over the seeds' episodes leaves the outlying episodes out, as FluidGym's
+    assert lines[0] == "| easy | PPO | 4.008 | 17.2 % | 17.6 | **4.000** | 20.0 % | 5.000 | 2 x 8 | 51,200, 51,200 | 0.25 |"

@@ -45,14 +45,6 @@ def scaling(ra: float) -> float:
     return 0.138 * ra**0.285
 
 
-def iqm(values: list[float]) -> float:
-    """The interquartile mean (a quarter of the values, rounded down, dropped at each
-    end): FluidGym's statistic over its seeds and test episodes."""
-    cut = len(values) // 4
-    kept = sorted(values)[cut : len(values) - cut]
-    return sum(kept) / len(kept)
-
-
 def time_step(level: dict, cells: int) -> float:
     """The level's time step on a grid of ``cells`` columns a heater: shrunk with the
     columns' width (the CFL number of the env's grid kept) and, where the explicit
@@ -127,6 +119,7 @@ def table(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     from beacon_torch.envs.rbc2d import FLUIDGYM_NUSSELT
+    from beacon_torch.training.report import iqm
 
     for r in rows:
         each = ", ".join(f"{nu:.2f} ({c})" for nu, c in zip(r["seed_nusselt"], r["convection_cells"], strict=True))

@@ -46,6 +46,16 @@ def _episode(env, policy, *, frames: bool, title: str | None):
     return rollout, shots
 
 
+def episode_record(rollout) -> dict[str, list[float]]:
+    """Each episode's score and the mean of each of the env's diagnostics over it (the
+    Nusselt number of a convection episode, a wake's drag), member by member."""
+    record = {"score": episodes.scores(rollout).tolist()}
+    if "diagnostics" in rollout["next"].keys():
+        for name, values in rollout["next", "diagnostics"].items():
+            record[name] = episodes.episode_means(values, rollout).tolist()
+    return record
+
+
 def evaluate_policy(
     env_id: str,
     policy,
@@ -75,7 +85,8 @@ def evaluate_policy(
     these episodes where it is already known (the same env, parameters, seed, members
     and starts: they are the same episodes), which are then not run again (with no
     side-by-side animation nor figure, which draw them); ``compile``: the controlled
-    env's compiled physics (None: the env's default)."""
+    env's compiled physics (None: the env's default). Returns the scores' mean and
+    spread, no control's mean score and each episode's record (:func:`episode_record`)."""
     if uncontrolled is not None and (side_by_side is not None or figure is not None):
         raise ValueError(
             "a known uncontrolled score draws no side-by-side animation nor figure: they need its episodes"
@@ -110,6 +121,7 @@ def evaluate_policy(
         "score_mean": controlled.mean().item(),
         "score_std": controlled.std(unbiased=False).item(),
         "uncontrolled": uncontrolled,
+        "episodes": episode_record(rollout),
     }
     from beacon_torch.render import save_animation, side_by_side_frames
 
