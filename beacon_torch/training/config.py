@@ -81,6 +81,10 @@ PPO = {
     "pinball-v0": RABAULT,
     # beyond the paper: its trials levelled off by 2 million transitions (670 episodes)
     "ks-v0": dict(frames=2_000_000),
+    # beyond the paper: Vignon et al.'s budget on their channel, 350 episodes of the flow
+    # (200 actions each, every action a transition of each of the 10 agents), with
+    # rayleigh-v0's settings of the paper otherwise
+    "rayleigh-separable-v0": dict(n_rollout=1000, frames=70_000, entropy=0.001, hidden=128),
     # beyond the paper: FluidGym's runs on its RBC2D levels
     "rbc2d-easy-v0": FLUIDGYM_PPO,
     # its multi-agent runs: each agent a member of Stable-Baselines3's vector env, so a
