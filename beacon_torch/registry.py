@@ -357,13 +357,14 @@ register("pinball-periodic-v0", ENVS["pinball-v0"], pinball.PERIODIC_CARD, **pin
 register("pinball-chaotic-v0", ENVS["pinball-v0"], pinball.CHAOTIC_CARD, **pinball.CHAOTIC)
 # FluidGym's three levels, each single- and multi-agent; the harder ones are the easy
 # level's variants (one page, one parameter table)
-_easy = register("rbc2d-easy-v0", rbc2d.Rbc2dPhysics, rbc2d.CARD, **rbc2d.LEVELS["easy"])
+_easy = register("rbc2d-easy-v0", rbc2d.Rbc2dPhysics, rbc2d.level_card("easy"), **rbc2d.LEVELS["easy"])
 for _level, _settings in rbc2d.LEVELS.items():
-    _single = _easy if _level == "easy" else register(f"rbc2d-{_level}-v0", _easy, **_settings)
+    _card = rbc2d.level_card(_level)
+    _single = _easy if _level == "easy" else register(f"rbc2d-{_level}-v0", _easy, _card, **_settings)
     register(
         f"rbc2d-{_level}-ma-v0",
         rbc2d.Rbc2dSeparablePhysics,
-        rbc2d.CARD,
+        _card,
         base=_single.env_id,
         agents="heater",
         **_settings,

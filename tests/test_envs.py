@@ -249,8 +249,8 @@ SOURCES = {
     "pinball-periodic-v0": PUBLISHED_RESULT,
     "pinball-v0": None,
     "pinball-chaotic-v0": None,
-    # FluidGym's levels: their "= 1" waits for the results table rebuilt here
-    **{f"rbc2d-{level}{layout}-v0": None for level in ("easy", "medium", "hard") for layout in ("", "-ma")},
+    # FluidGym's levels: its best result at each level
+    **{f"rbc2d-{level}{layout}-v0": PUBLISHED_RESULT for level in ("easy", "medium", "hard") for layout in ("", "-ma")},
 }
 
 

@@ -190,3 +190,18 @@ def test_the_results_table_sets_each_cell_beside_fluidgyms(tmp_path):
     # the IQM over the seeds' episodes leaves the outlying episodes out, as FluidGym's
     ours = "**4.000** | 20.0 % | 5.000 | 2 x 8 | 51,200, 51,200 | 0.25 |"
     assert lines[0] == f"| easy | PPO | 4.008 | 17.2 % | 17.6 | {ours}"
+
+
+def test_a_levels_one_is_fluidgyms_best_nusselt_number_as_a_share_of_no_controls():
+    from beacon_torch.training import report
+
+    for env_id in ("rbc2d-medium-v0", "rbc2d-medium-ma-v0"):
+        reference = beacon_torch.registry.ENVS[env_id].card.scale_reference()
+        assert (
+            reference.source == "a published result" and "SAC's Nusselt number 5.639 against 6.856" in reference.where
+        )
+    # no control at Nu 7.0 a step scores 200 (6.429 - 7.0); FluidGym's SAC lowers Nu by
+    # 17.75 %: "= 1" is 200 (6.429 - 7.0 x 5.639 / 6.856)
+    uncontrolled = 200 * (6.429 - 7.0)
+    assert report.reference("rbc2d-medium-v0", uncontrolled) == pytest.approx(200 * (6.429 - 7.0 * 5.639 / 6.856))
+    assert report.normalised(uncontrolled, uncontrolled, "rbc2d-medium-v0") == 0.0

@@ -39,12 +39,15 @@ class Reference:
     starts): an episode's ``score``, or a ``ratio`` to no control's score from the same
     starts (a published reduction measured on another grid, whose absolute level differs
     from this one's, carries over as a share), with its ``source`` (one of
-    :data:`SOURCES`) and ``where`` it is read or computed."""
+    :data:`SOURCES`) and ``where`` it is read or computed. Where the score is a quantity
+    measured from an ``origin`` (a reward ``nu_ref - Nu`` summed: the origin is the score
+    of Nu = 0), the ratio scales the quantity, not the score."""
 
     source: str
     where: str
     score: float | None = None
     ratio: float | None = None
+    origin: float = 0.0
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
@@ -54,11 +57,15 @@ class Reference:
 
     def value(self, uncontrolled: float) -> float:
         """The reference score beside no control scoring ``uncontrolled``."""
-        return self.score if self.score is not None else self.ratio * uncontrolled
+        if self.score is not None:
+            return self.score
+        return self.origin + self.ratio * (uncontrolled - self.origin)
 
     def label(self) -> str:
         """How a table shows it: the number and its source."""
         number = f"{self.score:g}" if self.score is not None else f"{self.ratio:.4g} x no control"
+        if self.score is None and self.origin:
+            number = f"{self.origin:g} - {self.ratio:.4g} x ({self.origin:g} - no control)"
         return f"{number} ({self.source})"
 
 

@@ -55,7 +55,7 @@ import torch
 
 from beacon_torch import seeds
 from beacon_torch.cache import cached
-from beacon_torch.core.card import Card, GradCheck
+from beacon_torch.core.card import PUBLISHED_RESULT, Card, GradCheck, Reference
 from beacon_torch.core.state import Noise
 from beacon_torch.envs.cavity import CavityPhysics, _any_substep, cavity_frame, transport
 from beacon_torch.numerics.bodies import probe_stencil
@@ -93,6 +93,8 @@ LEVELS = {
 # the uncontrolled Nusselt numbers of FluidGym's table (its "Baseflow" rows: the mean
 # over its test episodes)
 FLUIDGYM_NUSSELT = {"easy": 4.841, "medium": 6.856, "hard": 7.854}
+# the lowest controlled Nusselt number of FluidGym's table at each level, and whose
+FLUIDGYM_BEST = {"easy": (3.872, "MA-PPO"), "medium": (5.639, "SAC"), "hard": (6.717, "SAC")}
 
 
 class Rbc2dState(NamedTuple):
@@ -477,3 +479,20 @@ CARD = Card(
         size=lambda physics, params: (physics.L, HEIGHT),
     ),
 )
+
+
+def level_card(level: str) -> Card:
+    """The card of a level: the easy level's, with FluidGym's best result at the level
+    as its normalised scores' "= 1". A score is EPISODE_LENGTH x nu_ref less the summed
+    Nusselt numbers, so FluidGym's fall of the Nusselt number carries over as a share of
+    no control's from the same starts (on its grid their uncontrolled level differs a
+    little from ours: the page's validation)."""
+    best, algorithm = FLUIDGYM_BEST[level]
+    reference = Reference(
+        PUBLISHED_RESULT,
+        f"FluidGym's results table (Becktepe et al. 2026): {algorithm}'s Nusselt number {best} against "
+        f"{FLUIDGYM_NUSSELT[level]} uncontrolled, the lowest of its four algorithms at the {level} level",
+        ratio=best / FLUIDGYM_NUSSELT[level],
+        origin=EPISODE_LENGTH * LEVELS[level]["nu_ref"],
+    )
+    return dataclasses.replace(CARD, reference=reference)
