@@ -4,28 +4,25 @@ the Nusselt number averaged over each episode, the interquartile mean over the s
 episodes), beside no control from the same starts, FluidGym's own rows and the compute
 of each.
 
-    .venv/bin/python experiments/rbc2d_table.py [--runs runs/results] [--page docs/envs/rbc2d.md]
+    .venv/bin/python experiments/rbc2d_table.py [--results docs/results] [--page docs/envs/rbc2d.md]
 
-Reads the seeds that ``tools/reproduce.py train`` leaves in ``RUNS/ALGO/ENV/seedK`` for
-``ENV`` among the six RBC2D ids, evaluates each seed's policy on the env's test set of
-starts (eight developed states, one episode each; FluidGym's test set is ten), records
-every episode's Nusselt number in a dated ``table-DATE.json`` in
-``experiments/results/rbc2d/`` and writes the newest record's table on the page. The
+Reads the pairs that ``tools/reproduce.py publish`` recorded in ``RESULTS/ALGO/ENV.json``
+for the six RBC2D ids: each seed's episodes from the env's test set of starts (eight
+developed states, one episode each; FluidGym's test set is ten) with their Nusselt
+numbers, and no control's from the same starts; and writes the table on the page. The
 improvement is the one FluidGym's table gives: the Nusselt number's fall against no
 control, in per cent of no control's (ours: no control from the same starts). Compute:
 FluidGym's A100-hours a run are its 50,000 environment steps at the seconds a step its
 paper gives; ours are the CPU-hours of a seed's training (its wall time times its
-threads), on the machine the record names.
+threads, on the machine of the campaign).
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RECORDS = ROOT / "experiments" / "results" / "rbc2d"
 BEGIN, END = "<!-- results: experiments/rbc2d_table.py -->", "<!-- end of the results -->"
 LEVELS = ("easy", "medium", "hard")
 # FluidGym's rows (paper/tables/RBC_results_table.tex, branch experiments): the IQM of
@@ -54,49 +51,31 @@ def cell(algo: str, env_id: str) -> tuple[str, str]:
     return level, ("MA-" if env_id.endswith("-ma-v0") else "") + algo.upper()
 
 
-def pairs(runs: Path) -> list[tuple[str, str, Path]]:
-    """The (algorithm, env, folder) of every RBC2D pair trained under ``runs``."""
-    found = []
+def recorded(results: Path, received) -> list[dict]:
+    """The table's rows from the recorded summaries of the RBC2D pairs in ``results``."""
+    rows = []
     for algo in ("ppo", "sac"):
         for level in LEVELS:
             for layout in ("", "-ma"):
                 env_id = f"rbc2d-{level}{layout}-v0"
-                folder = runs / algo / env_id
-                if folder.is_dir():
-                    found.append((algo, env_id, folder))
-    return found
-
-
-def evaluate(algo: str, env_id: str, folder: Path, free: dict) -> dict:
-    """Each seed's test episodes under its policy, beside no control from the same
-    starts (``free``: those of each env id and parameters, run once)."""
-    import json
-
-    from beacon_torch.starts import SETS
-    from beacon_torch.training.evaluation import EVAL_SEED, episode_record, evaluate_run, uncontrolled_episodes
-    from beacon_torch.training.run import load_checkpoint, seed_dirs
-
-    seeds = []
-    for run in seed_dirs(folder):
-        state = load_checkpoint(run)
-        params = state["config"].get("params", {})
-        count = SETS["test"][1]
-        key = (env_id, json.dumps(params, sort_keys=True))
-        if key not in free:
-            rollout, _ = uncontrolled_episodes(env_id, count, seed=EVAL_SEED, params=params, starts="test")
-            free[key] = episode_record(rollout)
-        result = evaluate_run(run, num_envs=count, starts="test", uncontrolled=sum(free[key]["score"]) / count)
-        seeds.append(
-            {
-                "seed": run.name,
-                "frames": state["frames"],
-                "cpu_hours": state.get("elapsed", 0.0) * max(1, state["config"].get("threads", 1)) / 3600,
-                "nusselt": result["episodes"]["nusselt"],
-                "uncontrolled_nusselt": free[key]["nusselt"],
-            }
-        )
-    level, name = cell(algo, env_id)
-    return {"level": level, "algorithm": name, "env": env_id, "seeds": seeds}
+                file = results / algo / f"{env_id}.json"
+                if not file.is_file():
+                    continue
+                summary = received.json_file(file, "a recorded summary")
+                threads = max(1, int(summary["config"].get("threads") or 1))
+                seeds = [
+                    {
+                        "seed": s["seed"],
+                        "frames": s["frames"],
+                        "cpu_hours": s["wall_s"] * threads / 3600,
+                        "nusselt": s["test_episodes"]["nusselt"],
+                        "uncontrolled_nusselt": s["test_uncontrolled_episodes"]["nusselt"],
+                    }
+                    for s in summary["seeds"]
+                ]
+                level_name, name = cell(algo, env_id)
+                rows.append({"level": level_name, "algorithm": name, "env": env_id, "seeds": seeds})
+    return rows
 
 
 def table(rows: list[dict]) -> str:
@@ -131,31 +110,13 @@ def table(rows: list[dict]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "results")
-    parser.add_argument("--out", type=Path, default=RECORDS)
+    parser.add_argument("--results", type=Path, default=ROOT / "docs" / "results")
     parser.add_argument("--page", type=Path, default=ROOT / "docs" / "envs" / "rbc2d.md")
-    parser.add_argument("--page-only", action="store_true", help="write the newest record's table, evaluate nothing")
     args = parser.parse_args()
-    import torch
-
     from beacon_torch import received
-    from beacon_torch.files import save_rows
     from beacon_torch.training.report import write_block
 
-    torch.set_num_threads(1)
-    if not args.page_only:
-        free, rows = {}, []
-        for algo, env_id, folder in pairs(args.runs):
-            start = time.perf_counter()
-            rows.append(evaluate(algo, env_id, folder, free))
-            print(f"{algo}/{env_id}: {len(rows[-1]['seeds'])} seeds ({time.perf_counter() - start:.0f} s)", flush=True)
-        if not rows:
-            parser.exit(2, f"rbc2d_table: no RBC2D runs under {args.runs}\n")
-        print("recorded:", save_rows(rows, args.out, "table"))
-    records = sorted(args.out.glob("table-*.json"))
-    if not records:
-        parser.exit(2, f"rbc2d_table: no record in {args.out}\n")
-    rows = received.json_file(records[-1], "an RBC2D results record")["rows"]
+    rows = recorded(args.results, received)
     print(table(rows))
     if args.page.exists():
         print(write_block(args.page, BEGIN, END, table(rows)))

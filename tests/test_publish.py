@@ -223,6 +223,12 @@ def test_a_pairs_uncontrolled_episodes_run_once_for_all_its_seeds(pair, monkeypa
     held = evaluation.evaluate_run(pair / "seed1", num_envs=8, starts="test")
     assert [s["uncontrolled"] for s in summary["seeds"]] == [alone["uncontrolled"]] * 2
     assert [s["test_uncontrolled"] for s in summary["seeds"]] == [held["uncontrolled"]] * 2
+    # each test episode recorded, under control and without, with the env's diagnostics
+    for s in summary["seeds"]:
+        assert s["test_uncontrolled_episodes"] == held["uncontrolled_episodes"]
+        assert sum(s["test_episodes"]["score"]) / 8 == pytest.approx(s["test"])
+        assert len(s["test_episodes"]["score"]) == 8 and set(s["test_episodes"]) > {"score"}
+    assert summary["seeds"][1]["test_episodes"] == held["episodes"]
     with pytest.raises(ValueError, match="a known uncontrolled score draws no side-by-side"):
         evaluation.evaluate_run(pair / "seed1", num_envs=1, figure="f.png", uncontrolled=1.0)
 

@@ -177,14 +177,22 @@ def test_the_harder_levels_pass_torchrls_spec_check_in_both_layouts(level):
 
 
 def test_the_results_table_sets_each_cell_beside_fluidgyms(tmp_path):
+    import json
+
+    from beacon_torch import received
     from experiments import rbc2d_table
 
-    (tmp_path / "ppo" / "rbc2d-medium-ma-v0").mkdir(parents=True)
-    (tmp_path / "sac" / "burgers-v0").mkdir(parents=True)
-    assert rbc2d_table.pairs(tmp_path) == [("ppo", "rbc2d-medium-ma-v0", tmp_path / "ppo" / "rbc2d-medium-ma-v0")]
+    # what tools/reproduce.py records of a pair: each seed's test episodes and no control's
+    episodes = {"score": [0.0] * 8, "nusselt": [4.0] * 7 + [9.0]}
+    free = {"score": [0.0] * 8, "nusselt": [5.0] * 8}
+    seed = {"seed": "seed0", "frames": 51_200, "wall_s": 900.0, "test_episodes": episodes}
+    seeds = [dict(seed, test_uncontrolled_episodes=free), dict(seed, seed="seed1", test_uncontrolled_episodes=free)]
+    (tmp_path / "ppo").mkdir()
+    (tmp_path / "ppo" / "rbc2d-easy-v0.json").write_text(json.dumps({"config": {"threads": 1}, "seeds": seeds}))
+    (tmp_path / "ppo" / "burgers-v0.json").write_text("{}")
+    rows = rbc2d_table.recorded(tmp_path, received)
+    assert [(r["level"], r["algorithm"]) for r in rows] == [("easy", "PPO")]
     assert rbc2d_table.cell("sac", "rbc2d-hard-ma-v0") == ("hard", "MA-SAC")
-    seed = {"frames": 51_200, "cpu_hours": 0.25, "nusselt": [4.0] * 7 + [9.0], "uncontrolled_nusselt": [5.0] * 8}
-    rows = [{"level": "easy", "algorithm": "PPO", "env": "rbc2d-easy-v0", "seeds": [seed, seed]}]
     lines = rbc2d_table.table(rows).splitlines()[2:]
     assert len(lines) == 12 and sum("not run" in line for line in lines) == 11
     # the IQM over the seeds' episodes leaves the outlying episodes out, as FluidGym's

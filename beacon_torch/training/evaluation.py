@@ -86,7 +86,8 @@ def evaluate_policy(
     and starts: they are the same episodes), which are then not run again (with no
     side-by-side animation nor figure, which draw them); ``compile``: the controlled
     env's compiled physics (None: the env's default). Returns the scores' mean and
-    spread, no control's mean score and each episode's record (:func:`episode_record`)."""
+    spread, no control's mean score and each episode's record (:func:`episode_record`),
+    and no control's where they were run."""
     if uncontrolled is not None and (side_by_side is not None or figure is not None):
         raise ValueError(
             "a known uncontrolled score draws no side-by-side animation nor figure: they need its episodes"
@@ -109,6 +110,7 @@ def evaluate_policy(
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
     controlled = episodes.scores(rollout)
+    free = None
     if uncontrolled is None:
         free, free_frames = uncontrolled_episodes(
             env_id, num_envs, device=device, seed=seed, params=params, starts=starts,
@@ -123,6 +125,8 @@ def evaluate_policy(
         "uncontrolled": uncontrolled,
         "episodes": episode_record(rollout),
     }
+    if free is not None:
+        out["uncontrolled_episodes"] = episode_record(free)
     from beacon_torch.render import save_animation, side_by_side_frames
 
     if gif is not None:
@@ -377,7 +381,8 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
     deterministic policy's score on ``num_envs`` episodes from the env's own start (the
     paper's episodes, ``eval``), on the held-out test set's developed starts (``test``,
     one episode per state) and the mean score of the training episodes that ended in
-    the last tenth of the transitions, each beside no control on the same episodes;
+    the last tenth of the transitions, each beside no control on the same episodes (the
+    test episodes' records too: each one's score and diagnostics, :func:`episode_record`);
     their mean and spread over the seeds; transitions and wall time (what the
     checkpoints record); each seed's training curve (:func:`curve_of`). Every seed
     must be a run of the same algorithm on the same env."""
@@ -387,6 +392,7 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
     # the uncontrolled episodes of a seed's evaluation are every seed's that trained on
     # the same physics: run once per parameters
     known: dict[tuple[str, str], tuple[float, float]] = {}
+    free_test: dict[tuple[str, str], dict] = {}  # no control's test episodes, by physics
     for run in seeds:
         state = load_checkpoint(run)
         pairs.add((state["algo"], state["env"]))
@@ -395,6 +401,7 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
         ev = evaluate_run(run, num_envs=num_envs, gif=None, progress=progress, uncontrolled=own)
         held = evaluate_run(run, num_envs=SETS[HELD_OUT][1], starts=HELD_OUT, progress=progress, uncontrolled=test)
         known[physics] = (ev["uncontrolled"], held["uncontrolled"])
+        free_test.setdefault(physics, held.get("uncontrolled_episodes"))
         steps, values = read_scalar(run, "episode_score")
         tail = values[steps >= 0.9 * steps[-1]] if len(steps) else values
         per_seed.append(
@@ -407,6 +414,8 @@ def summary_of(root: str | Path, *, num_envs: int = 8, progress: bool = False) -
                 "uncontrolled": ev["uncontrolled"],
                 "test": held["score_mean"],
                 "test_uncontrolled": held["uncontrolled"],
+                "test_episodes": held["episodes"],
+                "test_uncontrolled_episodes": free_test[physics],
                 "curve": curve_of(run),
             }
         )
