@@ -17,6 +17,7 @@ import beacon_torch
 from beacon_torch import episodes, received
 from beacon_torch.core.checks import as_device
 from beacon_torch.files import save_figure, write_text
+from beacon_torch.registry import compiles_by_default
 from beacon_torch.starts import SETS
 from beacon_torch.training import networks
 from beacon_torch.training.env import make_env
@@ -56,6 +57,14 @@ def episode_record(rollout) -> dict[str, list[float]]:
     return record
 
 
+def evaluation_compiles(env_id: str) -> bool:
+    """Whether an evaluation compiles its envs when not told: the 2-D flows, whose action
+    is a hundred or more substeps, where the recipes compile by default
+    (:func:`~beacon_torch.registry.compiles_by_default`); the cheaper envs' episodes take
+    less than their compilation."""
+    return compiles_by_default() and beacon_torch.registry.env_spec(env_id).card.costly
+
+
 def evaluate_policy(
     env_id: str,
     policy,
@@ -84,8 +93,8 @@ def evaluate_policy(
     bars of the two episodes on stderr; ``uncontrolled``: the uncontrolled score of
     these episodes where it is already known (the same env, parameters, seed, members
     and starts: they are the same episodes), which are then not run again (with no
-    side-by-side animation nor figure, which draw them); ``compile``: the controlled
-    env's compiled physics (None: the env's default). Returns the scores' mean and
+    side-by-side animation nor figure, which draw them); ``compile``: the envs'
+    compiled physics (None: :func:`evaluation_compiles`). Returns the scores' mean and
     spread, no control's mean score and each episode's record (:func:`episode_record`),
     and no control's where they were run."""
     if uncontrolled is not None and (side_by_side is not None or figure is not None):
@@ -93,6 +102,8 @@ def evaluate_policy(
             "a known uncontrolled score draws no side-by-side animation nor figure: they need its episodes"
         )
     params = params or {}
+    if compile is None:
+        compile = evaluation_compiles(env_id)
     animate = gif is not None or side_by_side is not None
     sets = {} if starts is None else {"starts": starts}
     env = make_env(
@@ -105,7 +116,7 @@ def evaluate_policy(
         record_history=animate,
         params=params,
         **sets,
-        **({} if compile is None else {"compile": compile}),
+        compile=compile,
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         rollout, frames = _episode(env, policy, frames=animate, title=f"{env_id} controlled" if progress else None)
@@ -114,7 +125,7 @@ def evaluate_policy(
     if uncontrolled is None:
         free, free_frames = uncontrolled_episodes(
             env_id, num_envs, device=device, seed=seed, params=params, starts=starts,
-            frames=side_by_side is not None, progress=progress,
+            frames=side_by_side is not None, progress=progress, compile=compile,
         )  # fmt: skip
         uncontrolled = episodes.scores(free).mean().item()
     out = {
@@ -148,13 +159,15 @@ def uncontrolled_episodes(
     starts: str | None = None,
     frames: bool = False,
     progress: bool = False,
+    compile: bool | None = None,
 ):
     """The evaluation episodes of :func:`evaluate_policy` without control (the same
     seed gives the same starts and noise as the controlled ones): their rollout and,
-    with ``frames``, member 0's frames."""
+    with ``frames``, member 0's frames; ``compile`` as there."""
     sets = {} if starts is None else {"starts": starts}
+    compile = evaluation_compiles(env_id) if compile is None else compile
     ref = beacon_torch.make(
-        env_id, num_envs, device=device, seed=seed, params=params or {}, record_history=frames, **sets
+        env_id, num_envs, device=device, seed=seed, params=params or {}, record_history=frames, compile=compile, **sets
     )
     title = f"{env_id} uncontrolled" if progress else None
     return _episode(ref, episodes.null_policy(ref), frames=frames, title=title)
