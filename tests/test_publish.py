@@ -271,3 +271,13 @@ def test_the_kept_campaigns_are_unpublished_run_folders_a_resume_reads_as_their_
         assert not (checkpoint.parent / "mpc.json").exists(), "a finished planner's record is kept as a result"
         kept.add((f"mpc/{env_id}", saved["settings"]["starts"], f"{saved['actions_done']:,}", f"{length:,}"))
     assert listed == kept
+
+
+def test_an_evaluation_compiles_the_2d_flows_unless_told_not_to(monkeypatch):
+    from beacon_torch.training.evaluation import evaluation_compiles
+
+    monkeypatch.delenv("BEACON_TORCH_COMPILE", raising=False)
+    assert evaluation_compiles("rbc2d-easy-v0") and evaluation_compiles("cylinder-v0")
+    assert not evaluation_compiles("lorenz-v0") and not evaluation_compiles("burgers-v0")
+    monkeypatch.setenv("BEACON_TORCH_COMPILE", "0")
+    assert not evaluation_compiles("rbc2d-easy-v0")
