@@ -361,7 +361,7 @@ def _uncontrolled(env_id: str, progress: bool = True) -> float:
     lorenz-v0 scores 238 there, 207 in float64); one episode where the physics is
     deterministic, else the mean of 16."""
     num_envs = 1 if beacon_torch.registry.ENVS[env_id].physics.deterministic else 16
-    ref = beacon_torch.make(env_id, num_envs, seed=0)
+    ref = beacon_torch.make(env_id, num_envs, seed=0, compile=evaluation_compiles(env_id))
     title = f"{env_id} uncontrolled" if progress else None
     rollout = episodes.episode(ref, episodes.null_policy(ref), progress=title)
     return episodes.scores(rollout).mean().item()
