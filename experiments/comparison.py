@@ -205,7 +205,8 @@ def draw(path: Path, recorded: Path = RECORDED) -> None:
         left.set_xlabel("transitions")
         right.set_xlabel("minutes of training per seed")
         left.set_title(env_id, fontsize=9, loc="left")
-        left.legend(fontsize=6, loc="lower right")
+        if left.get_legend_handles_labels()[0]:  # an env without a recorded pair yet has none
+            left.legend(fontsize=6, loc="lower right")
     fig.tight_layout()
     save_figure(fig, path, new=False)
 

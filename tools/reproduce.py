@@ -1,7 +1,8 @@
 """Reproduce the paper's training results: train, evaluate and plot each (algorithm,
 env) over several seeds, then publish what was reached: the summary recorded in
 ``docs/results/``, the curve in ``docs/img/results/``, the best seed's policy shipped
-with the package and ``docs/results.md`` written from every recorded summary.
+with the package, and ``docs/results.md`` and the comparison of ``docs/gradients.md``
+written from every recorded summary.
 
     python tools/reproduce.py train --algo ppo --envs lorenz-v0 vortex-v0 --seeds 3
     python tools/reproduce.py summarise runs/results/ppo/lorenz-v0   # evaluate again
@@ -292,6 +293,15 @@ def write_results_page(recorded: Path, page: Path, images: Path) -> Path:
     return report.write_block(page, BEGIN, END, results_block(recorded, page, images))
 
 
+def write_comparison() -> Path:
+    """Redraw the model-free against gradient-based comparison of docs/gradients.md,
+    which reads the same recorded summaries as the results page."""
+    comparison = load_script(ROOT / "experiments" / "comparison.py", "experiments_comparison")
+    page = ROOT / "docs" / "gradients.md"
+    comparison.draw(page.parent / "img" / "comparison.png")
+    return report.write_block(page, comparison.BEGIN, comparison.END, comparison.table())
+
+
 def evaluation_threads(given: int | None, root: str | Path, batch: int) -> None:
     """Torch's threads for evaluating the pair ``root``: ``given``, else the count
     measured fastest for its env at the evaluation's batch."""
@@ -369,6 +379,8 @@ def main(argv: list[str] | None = None) -> None:
                 evaluation_threads(args.threads, root, 8)
                 print(f"published {root}: {publish(Path(root))}")
         print(write_results_page(RECORDED, Path(args.doc), IMAGES))
+        if Path(args.doc).resolve() == (ROOT / "docs" / "results.md").resolve():
+            print(write_comparison())
     except (ValueError, OSError) as err:
         parser.exit(2, f"reproduce: error: {err}\n")
 
