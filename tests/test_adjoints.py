@@ -243,3 +243,93 @@ def test_the_tvd_adjoint_maps_and_compiles():
     torch.testing.assert_close(torch.autograd.grad(compiled(x, flat_weight), x)[0], want, rtol=1e-12, atol=1e-12)
     adjoint = torch.compile(lambda t, w: 2.0 * fluxes.tvd_adjoint(t, w, 0.01, True), fullgraph=True)
     torch.testing.assert_close(adjoint(rows, flat_weight), 2.0 * want, rtol=1e-12, atol=1e-12)
+
+
+def burgers_inputs(members: int, seed: int, dtype=torch.float64):
+    """A real burgers-v0 state 50 actions in (its kinks: the flat inlet stretch, the
+    actuator's jump) and random inlet values and forcing."""
+    env = beacon_torch.make("burgers-v0", members, dtype=dtype, seed=seed)
+    env.reset()
+    for _ in range(50):
+        env.step_members(torch.full((members, 1), 0.3, dtype=dtype))
+    u, u_prev = env.state.u, env.state.u_prev
+    generator = torch.Generator().manual_seed(seed)
+    inlet = (0.5 + 0.1 * torch.rand((members, 1), generator=generator, dtype=torch.float64)).to(dtype)
+    forcing = torch.zeros_like(u[:, 1:-1])
+    forcing[:, env.physics.ctrl - 1] = torch.randn(members, generator=generator, dtype=torch.float64).to(dtype)
+    return u, u_prev, inlet, forcing
+
+
+def burgers_loop(u, u_prev, inlet, forcing):
+    """An action of burgers-v0 as the tensor loop of its substeps."""
+    from beacon_torch.envs import burgers
+
+    for i in range(burgers.SUBSTEPS):
+        u, u_prev = burgers.burgers_substep(i, (u, u_prev), inlet, forcing)
+    return u, u_prev
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_burgers_action_in_c_is_the_tensor_loop_and_its_adjoint_autograds_gradient(dtype):
+    """A whole action of burgers-v0 as one C loop a member gives the tensor loop's values
+    bit for bit; its reverse loop gives autograd's gradient of that loop with respect to
+    the state, the previous state, the inlet values and the forcing, to round-off (float64:
+    1e-13 of the largest; float32: 1e-5), on a real state and on random rows."""
+    from beacon_torch.envs import burgers
+
+    real = burgers_inputs(3, 0, dtype)
+    noisy = [t + 0.05 * rand(t.shape, 7 + k).to(dtype) * (k < 2) for k, t in enumerate(real)]
+    weights = [rand(real[0].shape, 11).to(dtype), rand(real[0].shape, 12).to(dtype)]
+    tol = 1e-13 if dtype == torch.float64 else 1e-5
+
+    def gradient(fn, inputs):
+        x = [t.clone().requires_grad_() for t in inputs]
+        return torch.autograd.grad(sum((out * w).sum() for out, w in zip(fn(*x), weights, strict=True)), x)
+
+    for inputs in (real, noisy):
+        for a, b in zip(burgers.burgers_action(*inputs), burgers_loop(*inputs), strict=True):
+            assert torch.equal(a, b)
+        for got, want in zip(gradient(burgers.burgers_action, inputs), gradient(burgers_loop, inputs), strict=True):
+            assert want.abs().max() > 0
+            torch.testing.assert_close(got, want, rtol=0, atol=tol * want.abs().max().item())
+
+
+def test_the_burgers_action_maps_compiles_and_carries_the_envs_gradient():
+    """``vmap`` of ``grad`` through the action, a compiled differentiated action and the
+    env's gradient of five actions' rewards with respect to its amplitude (eager and
+    compiled) are those of the tensor loop; the recording env takes the C action."""
+    from tensordict import TensorDict
+
+    from beacon_torch.envs import burgers
+
+    u, u_prev, inlet, forcing = burgers_inputs(2, 1)
+    row = lambda fn: lambda *x: fn(*(t[None] for t in x))[0][0].pow(2).sum()
+    want = vmap(grad(row(burgers_loop)))(u, u_prev, inlet, forcing)
+    torch.testing.assert_close(vmap(grad(row(burgers.burgers_action)))(u, u_prev, inlet, forcing), want)
+    loss = lambda fn: lambda x: fn(x, u_prev, inlet, forcing)[0].pow(2).sum()
+    x = u.clone().requires_grad_()
+    compiled = torch.compile(loss(burgers.burgers_action), fullgraph=True)
+    torch.testing.assert_close(torch.autograd.grad(compiled(x), x)[0], torch.autograd.grad(loss(burgers_loop)(x), x)[0])
+
+    def amp_gradient(compile: bool, monkeypatch=None):
+        amp = torch.tensor(10.0, dtype=torch.float64, requires_grad=True)
+        env = beacon_torch.make("burgers-v0", 2, dtype="float64", differentiable=True, amp=amp, seed=1, compile=compile)
+        env.reset()
+        total = 0.0
+        for k in range(5):
+            action = torch.full((2, 1), 0.1 * k, dtype=torch.float64)
+            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
+        return torch.autograd.grad(total, amp)[0], env
+
+    calls = []
+    original = burgers._Action.apply
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(burgers._Action, "apply", lambda *a: calls.append(1) or original(*a))
+        (eager, _), (compiled_env, _) = amp_gradient(False), amp_gradient(True)
+    assert len(calls) == 10
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BEACON_TORCH_NATIVE", "0")
+        slices, env = amp_gradient(False)
+    assert not env.physics._native and eager != 0
+    torch.testing.assert_close(eager, slices, rtol=1e-12, atol=0)
+    torch.testing.assert_close(compiled_env, slices, rtol=1e-12, atol=0)

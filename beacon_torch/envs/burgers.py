@@ -20,7 +20,7 @@ import torch
 from beacon_torch.core.card import Card, FrameInputs, GradCheck
 from beacon_torch.core.physics import Physics
 from beacon_torch.core.state import Noise
-from beacon_torch.numerics import bdf2_explicit_step, tvd_derivative, van_leer
+from beacon_torch.numerics import bdf2_explicit_step, native, tvd_derivative, van_leer
 from beacon_torch.params import param
 
 DX = 0.004
@@ -75,6 +75,87 @@ def burgers_substep(
     return torch.cat((inlet, interior, interior[:, -1:]), -1), u
 
 
+def _rows_vmap(name: str):
+    """A vmap rule for an operator whose arrays are rows (every leading dimension a
+    row): the mapped dimension joins them at the front, and leaves again."""
+
+    def rule(info, in_dims, *args):
+        size, arrays = info.batch_size, [a for a in args if isinstance(a, torch.Tensor)]
+        front = [
+            t.unsqueeze(0).expand(size, *t.shape) if dim is None else t.movedim(dim, 0)
+            for t, dim in zip(arrays, in_dims, strict=False)
+        ]
+        rows = front[0].shape[1]
+        out = getattr(torch.ops.beacon_torch, name).default(
+            *(t.reshape(size * rows, *t.shape[2:]) for t in front), *args[len(arrays) :]
+        )
+        return tuple(o.reshape(size, rows, *o.shape[1:]) for o in out), (0,) * len(out)
+
+    return rule
+
+
+_action = native.operator(
+    "burgers_action(Tensor u, Tensor u_prev, Tensor inlet, Tensor forcing, int substeps, float dx, float c)"
+    " -> (Tensor, Tensor, Tensor)",
+    native.burgers_action,
+    lambda u, u_prev, inlet, forcing, substeps, dx, c: (
+        torch.empty_like(u),
+        torch.empty_like(u),
+        u.new_empty((u.shape[0], substeps, u.shape[1])),
+    ),
+    _rows_vmap("burgers_action"),
+)
+_adjoint = native.operator(
+    "burgers_adjoint(Tensor states, Tensor grad_u, Tensor grad_u_prev, float dx, float c)"
+    " -> (Tensor, Tensor, Tensor, Tensor)",
+    native.burgers_adjoint,
+    lambda states, grad_u, grad_u_prev, dx, c: (
+        torch.empty_like(grad_u),
+        torch.empty_like(grad_u),
+        grad_u.new_empty((grad_u.shape[0], 1)),
+        grad_u.new_empty((grad_u.shape[0], grad_u.shape[1] - 2)),
+    ),
+    _rows_vmap("burgers_adjoint"),
+)
+
+
+class _Action(torch.autograd.Function):
+    """A whole action of :func:`burgers_substep` as one C loop a member, its backward
+    pass the same loop's adjoint run through the substeps in reverse."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(u, u_prev, inlet, forcing, substeps: int):
+        return _action(u, u_prev, inlet, forcing, substeps, DX, 2.0 * DT)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.mark_non_differentiable(output[2])
+        ctx.save_for_backward(output[2])
+
+    @staticmethod
+    def backward(ctx, grad_u, grad_u_prev, _):
+        (states,) = ctx.saved_tensors
+        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
+            return (*_adjoint(states, grad_u, grad_u_prev, DX, 2.0 * DT), None)
+
+
+def burgers_action(
+    u: torch.Tensor, u_prev: torch.Tensor, inlet: torch.Tensor, forcing: torch.Tensor, substeps: int = SUBSTEPS
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``substeps`` of :func:`burgers_substep` from ``(u, u_prev)`` (``[B, n]``) where
+    autograd records, on the CPU: the tensor loop's values bit for bit, and its gradient
+    to round-off from a reverse loop in C that reads each substep's stored state, instead
+    of a graph of a dozen slices a substep (a differentiated action measured about 3
+    times the forward one, against 8 to 9 times compiled and 22 eagerly with the
+    slices' graph)."""
+    rows, n = u.shape
+    inlet, forcing = inlet.expand(rows, 1), forcing.expand(rows, n - 2)
+    new_u, new_prev, _ = _Action.apply(u, u_prev, inlet, forcing, substeps)
+    return new_u, new_prev
+
+
 class BurgersPhysics(Physics):
     """The noisy inviscid Burgers flow with a point actuator."""
 
@@ -101,6 +182,7 @@ class BurgersPhysics(Physics):
         source[self.ctrl - 1] = 1.0  # interior cells start at index 1
         self._source = source
         self._substeps = self.kernels.loop(burgers_substep)
+        self._native = native.applies(self.device, self.dtype)
 
     def initial_state(self, p, generator, mask=None) -> BurgersState:
         u = torch.ones((self.num_envs, self.n_cells), dtype=self.dtype, device=self.device)
@@ -114,7 +196,10 @@ class BurgersPhysics(Physics):
     def advance(self, p, state: BurgersState, action: torch.Tensor, count: torch.Tensor, noise: Noise):
         inlet = (p.u_target + p.sigma * (2.0 * noise["inlet"] - 1.0))[:, None]
         forcing = (self.member(p.amp) * action) * self._source  # [B, n-2]
-        u, u_prev = self._substeps(SUBSTEPS, (state.u, state.u_prev), inlet, forcing)
+        if self._native and native.recording(state.u, state.u_prev, inlet, forcing):
+            u, u_prev = burgers_action(state.u, state.u_prev, inlet, forcing)
+        else:
+            u, u_prev = self._substeps(SUBSTEPS, (state.u, state.u_prev), inlet, forcing)
         reward = -DX * (u[:, self.ctrl :] - self.member(p.u_target)).abs().sum(-1)
         return BurgersState(u=u, u_prev=u_prev, a=action[:, 0]), reward
 

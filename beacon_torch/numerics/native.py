@@ -215,6 +215,105 @@ void NAME(T *restrict out, T *restrict work, const T *restrict f, const T *restr
 }
 TVD_ADJOINT(tvd_adjoint_f32, float)
 TVD_ADJOINT(tvd_adjoint_f64, double)
+
+/* A whole action of the inviscid Burgers flow (burgers-v0), one row (member) at a time,
+   every substep of that row while it sits in the cache: the TVD derivative D (van Leer)
+   of u, then u_i <- ((4 u_i - p_i) + c ((-u_i) D_i - s_i)) / 3 at the interior cells
+   (p: u one substep before, c = 2 dt, s the held forcing), the inlet value at the first
+   cell, the last interior value at the outlet. The operations and their order are
+   autograd's slices' own, so a row comes out bit for bit as the tensor loop leaves it.
+   states [rows, substeps, n] keeps u at the start of each substep for the adjoint;
+   work holds 4 n values. */
+#define VAN_LEER_FACES(T, x)                                                        \
+        faces[0] = x[0] + ((T)0.5 * (T)0) * d[0];                                   \
+        for (long j = 1; j <= n - 2; ++j) {                                         \
+            T r = d[j - 1] / (d[j] + (T)1e-8), a = r < 0 ? -r : r;                  \
+            faces[j] = x[j] + ((T)0.5 * ((r + a) / ((T)1 + a))) * d[j];             \
+        }
+#define BURGERS_ACTION(NAME, T)                                                     \
+void NAME(T *restrict u_out, T *restrict p_out, T *restrict states, T *restrict work, \
+          const T *restrict u0, const T *restrict p0, const T *restrict inlet,      \
+          const T *restrict s, long rows, long n, long substeps, T dx, T c) {       \
+    T *restrict d = work, *restrict faces = work + n;                              \
+    for (long b = 0; b < rows; ++b) {                                               \
+        T *x = states + b * substeps * n, *restrict stored = x;                     \
+        const T *restrict sb = s + b * (n - 2), *restrict prev = p0 + b * n;        \
+        for (long j = 0; j < n; ++j) stored[j] = u0[b * n + j];                     \
+        for (long k = 0; k < substeps; ++k) {                                       \
+            x = states + (b * substeps + k) * n;                                    \
+            T *restrict next = k + 1 < substeps ? x + n : u_out + b * n;            \
+            for (long j = 0; j < n - 1; ++j) d[j] = x[j + 1] - x[j];                \
+            VAN_LEER_FACES(T, x)                                                    \
+            for (long i = 0; i < n - 2; ++i) {                                      \
+                T D = (faces[i + 1] - faces[i]) / dx;                               \
+                T f = (-x[i + 1]) * D - sb[i];                                      \
+                next[i + 1] = (((T)4 * x[i + 1] - prev[i + 1]) + c * f) / (T)3;     \
+            }                                                                       \
+            next[0] = inlet[b];                                                     \
+            next[n - 1] = next[n - 2];                                              \
+            prev = x;                                                               \
+        }                                                                           \
+        for (long j = 0; j < n; ++j) p_out[b * n + j] = prev[j];                    \
+    }                                                                               \
+}
+BURGERS_ACTION(burgers_action_f32, float)
+BURGERS_ACTION(burgers_action_f64, double)
+
+/* Its adjoint, a row at a time from the last substep back: from the gradients gu, gp of
+   the action's (u, p), those of its (u, p), of the inlet value and of the forcing. Per
+   substep, with t = g_interior / 3 (the outlet's share added to the last interior
+   cell's): the forcing collects -c t, u_i collects 4 t - c t D_i, the TVD derivative
+   the gradient -c t u_i (its adjoint as in TVD_ADJOINT), p_i -t, and u's gradient the
+   previous p's. work holds 7 n values. */
+#define BURGERS_ADJOINT(NAME, T)                                                    \
+void NAME(T *restrict gu_out, T *restrict gp_out, T *restrict g_inlet, T *restrict g_s, \
+          T *restrict work, const T *restrict states, const T *restrict gu,         \
+          const T *restrict gp, long rows, long n, long substeps, T dx, T c) {      \
+    FLUSH_BEGIN                                                                     \
+    T *restrict d = work, *restrict faces = work + n, *restrict A = work + 2 * n;  \
+    T *restrict W = work + 3 * n, *restrict gD = work + 4 * n, *restrict t = work + 5 * n; \
+    T *restrict o = work + 6 * n, idx = (T)1 / dx;                                 \
+    for (long b = 0; b < rows; ++b) {                                               \
+        T *restrict Gu = gu_out + b * n, *restrict Gp = gp_out + b * n, *restrict gs = g_s + b * (n - 2); \
+        T inlet_sum = 0;                                                            \
+        for (long j = 0; j < n; ++j) { Gu[j] = gu[b * n + j]; Gp[j] = gp[b * n + j]; } \
+        for (long i = 0; i < n - 2; ++i) gs[i] = 0;                                 \
+        for (long k = substeps - 1; k >= 0; --k) {                                  \
+            const T *restrict x = states + (b * substeps + k) * n;                  \
+            inlet_sum += Gu[0];                                                     \
+            for (long i = 0; i < n - 2; ++i) t[i] = Gu[i + 1] / (T)3;               \
+            t[n - 3] = (Gu[n - 2] + Gu[n - 1]) / (T)3;                              \
+            for (long j = 0; j < n - 1; ++j) d[j] = x[j + 1] - x[j];                \
+            VAN_LEER_FACES(T, x)                                                    \
+            for (long i = 0; i < n - 2; ++i) {                                      \
+                T gf = c * t[i], D = (faces[i + 1] - faces[i]) / dx;                \
+                gs[i] -= gf;                                                        \
+                gD[i] = gf * (-x[i + 1]);                                           \
+                A[i] = (T)4 * t[i] - gf * D;  /* u_i's own share, for now */        \
+            }                                                                       \
+            o[0] = -(gD[0] * idx);                                                  \
+            for (long j = 1; j <= n - 3; ++j) o[j] = gD[j - 1] * idx - gD[j] * idx; \
+            o[n - 2] = gD[n - 3] * idx;                                             \
+            for (long i = 0; i < n - 2; ++i) {  /* the new u's gradient, before the TVD part */ \
+                Gu[i + 1] = Gp[i + 1] + A[i];                                       \
+                Gp[i + 1] = -t[i];                                                  \
+            }                                                                       \
+            Gu[0] = Gp[0]; Gu[n - 1] = Gp[n - 1];                                   \
+            Gp[0] = 0; Gp[n - 1] = 0;                                               \
+            A[0] = 0; W[0] = 0; A[n - 1] = 0; W[n - 1] = 0;                         \
+            const T *restrict fr = x;                                               \
+            TVD_FACES(T, VAN_LEER_SLOPE)                                            \
+            for (long j = 0; j <= n - 2; ++j) A[j] = A[j] + W[j + 1];               \
+            Gu[n - 1] += A[n - 2];                                                  \
+            for (long j = n - 2; j >= 1; --j) Gu[j] += (o[j] - A[j]) + A[j - 1];    \
+            Gu[0] += o[0] - A[0];                                                   \
+        }                                                                           \
+        g_inlet[b] = inlet_sum;                                                     \
+    }                                                                               \
+    FLUSH_END                                                                       \
+}
+BURGERS_ADJOINT(burgers_adjoint_f32, float)
+BURGERS_ADJOINT(burgers_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
@@ -267,6 +366,10 @@ def _build() -> ctypes.CDLL | None:
         fn = getattr(lib, f"tvd_adjoint_{suffix}")
         fn.argtypes = (*(pointer,) * 4, size, size, ctype, size)
         fn.restype = None
+        for name, arrays in (("burgers_action", 8), ("burgers_adjoint", 8)):
+            fn = getattr(lib, f"{name}_{suffix}")
+            fn.argtypes = (*(pointer,) * arrays, size, size, size, ctype, ctype)
+            fn.restype = None
     return lib
 
 
@@ -336,6 +439,63 @@ def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod: bool) ->
     arrays = (t.data_ptr() for t in (out, work, f, grad))
     getattr(lib, f"tvd_adjoint_{_KERNELS[f.dtype][0]}")(*arrays, f.numel() // n, n, dx, int(minmod))
     return out
+
+
+def _rows(name: str, *tensors: torch.Tensor) -> ctypes.CDLL:
+    lib = _library if _tried else library()
+    if lib is None or not takes(*tensors):
+        raise RuntimeError(f"{name}: the C kernel does not apply here (see native.applies)")
+    return lib
+
+
+def burgers_action(
+    u: torch.Tensor,
+    u_prev: torch.Tensor,
+    inlet: torch.Tensor,
+    forcing: torch.Tensor,
+    substeps: int,
+    dx: float,
+    c: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``substeps`` substeps of the inviscid Burgers flow from the rows ``(u, u_prev)``
+    (``[rows, n]``) with the inlet values ``inlet`` (``[rows, 1]``) and the forcing
+    ``forcing`` (``[rows, n - 2]``) held: the new ``(u, u_prev)`` and the states
+    ``[rows, substeps, n]`` (u at the start of each substep) that :func:`burgers_adjoint`
+    reads. The C kernel (see its source); only where :func:`applies` and :func:`takes`."""
+    lib = _rows("burgers_action", u, u_prev, inlet, forcing)
+    rows, n = u.shape
+    if n < 4 or substeps < 1 or u_prev.shape != u.shape or inlet.shape != (rows, 1) or forcing.shape != (rows, n - 2):
+        raise ValueError(
+            f"burgers_action: rows {tuple(u.shape)}, {tuple(u_prev.shape)}, inlet {tuple(inlet.shape)} and forcing "
+            f"{tuple(forcing.shape)} do not fit, or {substeps} substeps"
+        )
+    arrays = [t.contiguous() for t in (u, u_prev, inlet, forcing)]
+    u_out, p_out = torch.empty_like(arrays[0]), torch.empty_like(arrays[0])
+    states, work = u.new_empty((rows, substeps, n)), u.new_empty(4 * n)
+    pointers = (t.data_ptr() for t in (u_out, p_out, states, work, *arrays))
+    getattr(lib, f"burgers_action_{_KERNELS[u.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
+    return u_out, p_out, states
+
+
+def burgers_adjoint(
+    states: torch.Tensor, grad_u: torch.Tensor, grad_u_prev: torch.Tensor, dx: float, c: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The gradients of :func:`burgers_action`'s ``(u, u_prev, inlet, forcing)`` from
+    those of its new ``(u, u_prev)`` and its ``states``: the C kernel, the substeps
+    in reverse."""
+    lib = _rows("burgers_adjoint", states, grad_u, grad_u_prev)
+    rows, substeps, n = states.shape
+    if grad_u.shape != (rows, n) or grad_u_prev.shape != (rows, n):
+        raise ValueError(
+            f"burgers_adjoint: states {tuple(states.shape)} and gradients {tuple(grad_u.shape)}, "
+            f"{tuple(grad_u_prev.shape)} do not fit"
+        )
+    arrays = [t.contiguous() for t in (states, grad_u, grad_u_prev)]
+    gu, gp = torch.empty_like(arrays[1]), torch.empty_like(arrays[1])
+    g_inlet, g_forcing, work = states.new_empty((rows, 1)), states.new_empty((rows, n - 2)), states.new_empty(7 * n)
+    pointers = (t.data_ptr() for t in (gu, gp, g_inlet, g_forcing, work, *arrays))
+    getattr(lib, f"burgers_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
+    return gu, gp, g_inlet, g_forcing
 
 
 def _members_vmap(name: str, member_args: tuple[int, ...], outputs: int = 1):
