@@ -333,3 +333,117 @@ def test_the_burgers_action_maps_compiles_and_carries_the_envs_gradient():
     assert not env.physics._native and eager != 0
     torch.testing.assert_close(eager, slices, rtol=1e-12, atol=0)
     torch.testing.assert_close(compiled_env, slices, rtol=1e-12, atol=0)
+
+
+def shkadov_inputs(members: int, seed: int, dtype=torch.float64):
+    """A developed shkadov-v0 film a few actions in, random forcings (both ways) and
+    inlet values, the interpolation's weights, and delta one value a member."""
+    from beacon_torch.envs import shkadov
+
+    env = beacon_torch.make("shkadov-v0", members, dtype=dtype, seed=seed)
+    env.reset()
+    for _ in range(5):
+        env.step_members(torch.full((members, 5), 0.3, dtype=dtype))
+    s, n = env.state, env.state.h.shape[-1]
+    forcing = [0.1 * rand((members, n - 2), seed + k).to(dtype) for k in (1, 2)]
+    inlet = (1.0 + 1e-3 * rand((shkadov.SUBSTEPS, members, 1), seed + 3)).to(dtype)
+    alpha = shkadov.interpolation_weights(shkadov.SUBSTEPS, shkadov.N_INTERP, dtype)
+    delta = torch.full((members, 1), 0.1, dtype=dtype)
+    return (s.h, s.q, s.dh_prev, s.dq_prev, *forcing, inlet, delta), alpha
+
+
+def shkadov_loop(alpha):
+    """An action of shkadov-v0 as the tensor loop of its substeps."""
+    from beacon_torch.envs import shkadov
+
+    def loop(h, q, dh, dq, forcing_prev, forcing_new, inlet, delta):
+        fields = h, q, dh, dq
+        for i in range(shkadov.SUBSTEPS):
+            fields = shkadov.action_substep(i, fields, forcing_prev, forcing_new, alpha, inlet, delta, shkadov.DX)
+        return fields
+
+    return loop
+
+
+def shkadov_c(alpha):
+    from beacon_torch.envs import shkadov
+
+    return lambda h, q, dh, dq, fp, fn, inlet, delta: shkadov.shkadov_action(
+        (h, q, dh, dq), fp, fn, alpha, inlet, delta
+    )
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_shkadov_action_in_c_is_the_tensor_loop_and_its_adjoint_autograds_gradient(dtype):
+    """A whole action of shkadov-v0 as one C loop a member gives the tensor loop's four
+    fields bit for bit; its reverse loop gives autograd's gradient of that loop with
+    respect to every input (the fields, both forcings, each substep's inlet value and
+    each member's delta) to round-off, on a developed film and on a perturbed one."""
+    inputs, alpha = shkadov_inputs(3, 0, dtype)
+    perturbed = [t + 0.02 * rand(t.shape, 20 + k).to(dtype) * (k < 2) for k, t in enumerate(inputs)]
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+
+    def gradient(fn, given):
+        x = [t.clone().requires_grad_() for t in given]
+        out = fn(*x)
+        weights = [rand(o.shape, 30 + k).to(dtype) for k, o in enumerate(out)]
+        return torch.autograd.grad(sum((o * w).sum() for o, w in zip(out, weights, strict=True)), x)
+
+    for given in (inputs, perturbed):
+        for a, b in zip(shkadov_c(alpha)(*given), shkadov_loop(alpha)(*given), strict=True):
+            assert torch.equal(a, b)
+        for got, want in zip(gradient(shkadov_c(alpha), given), gradient(shkadov_loop(alpha), given), strict=True):
+            assert want.abs().max() > 0
+            torch.testing.assert_close(got, want, rtol=0, atol=tol * want.abs().max().item())
+
+
+def test_the_shkadov_action_maps_compiles_and_carries_the_envs_gradient():
+    """``vmap`` of ``grad`` through the action, a compiled differentiated action, and the
+    env's gradient of three actions' rewards with respect to delta and the jets'
+    amplitude are the tensor loop's; the recording env takes the C action."""
+    from tensordict import TensorDict
+
+    from beacon_torch.envs import shkadov
+
+    inputs, alpha = shkadov_inputs(2, 1)
+
+    def row(fn):  # one member's action: its inlet values [substeps, 1], its delta [1]
+        def member(*x):
+            *fields, inlet, delta = x
+            return fn(*(t[None] for t in fields), inlet[:, None], delta[None])[0].pow(2).sum()
+
+        return member
+
+    batched = [*inputs[:6], inputs[6].movedim(1, 0), inputs[7]]
+    want = vmap(grad(row(shkadov_loop(alpha))))(*batched)
+    torch.testing.assert_close(vmap(grad(row(shkadov_c(alpha))))(*batched), want)
+    loss = lambda fn: lambda x: fn(x, *inputs[1:])[1].pow(2).sum()
+    x = inputs[0].clone().requires_grad_()
+    compiled = torch.compile(loss(shkadov_c(alpha)), fullgraph=True)
+    torch.testing.assert_close(
+        torch.autograd.grad(compiled(x), x)[0], torch.autograd.grad(loss(shkadov_loop(alpha))(x), x)[0]
+    )
+
+    def env_gradient():
+        delta = torch.tensor(0.1, dtype=torch.float64, requires_grad=True)
+        amp = torch.tensor(5.0, dtype=torch.float64, requires_grad=True)
+        env = beacon_torch.make("shkadov-v0", 2, dtype="float64", differentiable=True, delta=delta, amp=amp, seed=1)
+        env.reset()
+        total = 0.0
+        for k in range(3):
+            action = torch.full((2, 5), 0.1 * k, dtype=torch.float64)
+            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
+        return torch.autograd.grad(total, (delta, amp)), env
+
+    calls = []
+    original = shkadov._Action.apply
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(shkadov._Action, "apply", lambda *a: calls.append(1) or original(*a))
+        got, _ = env_gradient()
+    assert len(calls) == 3
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BEACON_TORCH_NATIVE", "0")
+        slices, env = env_gradient()
+    for g, w in zip(got, slices, strict=True):
+        assert w != 0
+        torch.testing.assert_close(g, w, rtol=1e-10, atol=0)

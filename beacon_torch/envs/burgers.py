@@ -75,25 +75,6 @@ def burgers_substep(
     return torch.cat((inlet, interior, interior[:, -1:]), -1), u
 
 
-def _rows_vmap(name: str):
-    """A vmap rule for an operator whose arrays are rows (every leading dimension a
-    row): the mapped dimension joins them at the front, and leaves again."""
-
-    def rule(info, in_dims, *args):
-        size, arrays = info.batch_size, [a for a in args if isinstance(a, torch.Tensor)]
-        front = [
-            t.unsqueeze(0).expand(size, *t.shape) if dim is None else t.movedim(dim, 0)
-            for t, dim in zip(arrays, in_dims, strict=False)
-        ]
-        rows = front[0].shape[1]
-        out = getattr(torch.ops.beacon_torch, name).default(
-            *(t.reshape(size * rows, *t.shape[2:]) for t in front), *args[len(arrays) :]
-        )
-        return tuple(o.reshape(size, rows, *o.shape[1:]) for o in out), (0,) * len(out)
-
-    return rule
-
-
 _action = native.operator(
     "burgers_action(Tensor u, Tensor u_prev, Tensor inlet, Tensor forcing, int substeps, float dx, float c)"
     " -> (Tensor, Tensor, Tensor)",
@@ -103,7 +84,7 @@ _action = native.operator(
         torch.empty_like(u),
         u.new_empty((u.shape[0], substeps, u.shape[1])),
     ),
-    _rows_vmap("burgers_action"),
+    native.rows_vmap("burgers_action", (0, 0, 0, 0), (0, 0, 0)),
 )
 _adjoint = native.operator(
     "burgers_adjoint(Tensor states, Tensor grad_u, Tensor grad_u_prev, float dx, float c)"
@@ -115,7 +96,7 @@ _adjoint = native.operator(
         grad_u.new_empty((grad_u.shape[0], 1)),
         grad_u.new_empty((grad_u.shape[0], grad_u.shape[1] - 2)),
     ),
-    _rows_vmap("burgers_adjoint"),
+    native.rows_vmap("burgers_adjoint", (0, 0, 0), (0, 0, 0, 0)),
 )
 
 

@@ -40,6 +40,7 @@ from beacon_torch.numerics import (
     interpolated_action,
     interpolation_weights,
     minmod,
+    native,
     third_derivative,
     tvd_derivative,
 )
@@ -201,6 +202,82 @@ def inlet_noise(generator: torch.Generator | None, members: int, dtype: torch.dt
     return torch.rand((SUBSTEPS, members, 1), generator=generator, dtype=dtype, device=device)
 
 
+_CONSTANTS = (DX, 0.5 * DT, 2.0 * DX**3, DX**3)  # dx, AB2's dt / 2, the third derivative's divisors
+_action = native.operator(
+    "shkadov_action(Tensor h, Tensor q, Tensor dh_prev, Tensor dq_prev, Tensor forcing_prev, Tensor forcing_new,"
+    " Tensor alpha, Tensor inlet, Tensor scale, float dx, float c, float third_a, float third_b)"
+    " -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+    native.shkadov_action,
+    lambda h, q, dh, dq, fp, fn, alpha, inlet, scale, *numbers: (
+        *(torch.empty_like(t) for t in (h, q, dh, dq)),
+        h.new_empty((h.shape[0], alpha.shape[0], 2, h.shape[1])),
+    ),
+    native.rows_vmap("shkadov_action", (0, 0, 0, 0, 0, 0, None, 1, 0), (0, 0, 0, 0, 0)),
+)
+
+
+def _adjoint_kernel(states, alpha, scale, gh, gq, gdh, gdq, dx, c, third_a, third_b):
+    return native.shkadov_adjoint(states, alpha, scale, (gh, gq, gdh, gdq), dx, c, third_a, third_b)
+
+
+_adjoint = native.operator(
+    "shkadov_adjoint(Tensor states, Tensor alpha, Tensor scale, Tensor gh, Tensor gq, Tensor gdh, Tensor gdq,"
+    " float dx, float c, float third_a, float third_b)"
+    " -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+    _adjoint_kernel,
+    lambda states, alpha, scale, gh, gq, gdh, gdq, *numbers: (
+        *(torch.empty_like(t) for t in (gh, gq, gdh, gdq, gdh, gdh)),
+        gh.new_empty((alpha.shape[0], gh.shape[0], 1)),
+        gh.new_empty(gh.shape[0]),
+    ),
+    native.rows_vmap("shkadov_adjoint", (0, None, 0, 0, 0, 0, 0), (0, 0, 0, 0, 0, 0, 1, 0)),
+)
+
+
+class _Action(torch.autograd.Function):
+    """An action of :func:`action_substep` as one C loop a member, its backward pass the
+    same loop's adjoint run through the substeps in reverse."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(h, q, dh_prev, dq_prev, forcing_prev, forcing_new, alpha, inlet, scale):
+        return _action(h, q, dh_prev, dq_prev, forcing_prev, forcing_new, alpha, inlet, scale, *_CONSTANTS)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.mark_non_differentiable(output[4])
+        ctx.save_for_backward(output[4], inputs[6], inputs[8])
+
+    @staticmethod
+    def backward(ctx, gh, gq, gdh, gdq, _):
+        states, alpha, scale = ctx.saved_tensors
+        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
+            gh, gq, gdh, gdq, g_prev, g_new, g_inlet, g_scale = _adjoint(
+                states, alpha, scale, gh, gq, gdh, gdq, *_CONSTANTS
+            )
+        return gh, gq, gdh, gdq, g_prev, g_new, None, g_inlet, g_scale
+
+
+def shkadov_action(
+    fields: tuple[torch.Tensor, ...],
+    forcing_prev: torch.Tensor,
+    forcing_new: torch.Tensor,
+    alpha: torch.Tensor,
+    inlet: torch.Tensor,
+    delta,
+) -> tuple[torch.Tensor, ...]:
+    """The substeps of :func:`action_substep` over an action (``alpha``'s length) where
+    autograd records, on the CPU: the tensor loop's values bit for bit, and its gradient
+    to round-off from a reverse loop in C over the stored substeps, instead of a graph
+    of some forty slices a substep."""
+    h = fields[0]
+    rows = h.shape[0]
+    scale = 5.0 * (delta if isinstance(delta, torch.Tensor) else torch.tensor(delta, dtype=torch.float64))
+    scale = scale.to(h.dtype).reshape(-1).expand(rows)
+    return _Action.apply(*fields, forcing_prev, forcing_new, alpha, inlet.expand(-1, rows, 1), scale)[:4]
+
+
 def run_action(
     state: ShkadovState,
     action: torch.Tensor,
@@ -220,9 +297,13 @@ def run_action(
     # so that the profiles are summed twice per action instead of at every substep
     forcing_prev, forcing_new = amp * (state.u_prev @ profiles), amp * (action @ profiles)
     alpha = interpolation_weights(SUBSTEPS, N_INTERP, action.dtype, action.device)
-    substeps = Kernels().loop(action_substep) if substeps is None else substeps
     fields = state.h, state.q, state.dh_prev, state.dq_prev
-    h, q, dh_prev, dq_prev = substeps(SUBSTEPS, fields, forcing_prev, forcing_new, alpha, inlet, delta, dx)
+    given = (*fields, forcing_prev, forcing_new, inlet, *([delta] if isinstance(delta, torch.Tensor) else []))
+    if dx == DX and native.applies(state.h.device, state.h.dtype) and native.recording(*given):
+        h, q, dh_prev, dq_prev = shkadov_action(fields, forcing_prev, forcing_new, alpha, inlet, delta)
+    else:
+        substeps = Kernels().loop(action_substep) if substeps is None else substeps
+        h, q, dh_prev, dq_prev = substeps(SUBSTEPS, fields, forcing_prev, forcing_new, alpha, inlet, delta, dx)
     return ShkadovState(h=h, q=q, dh_prev=dh_prev, dq_prev=dq_prev, u_prev=action)
 
 

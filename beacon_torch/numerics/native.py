@@ -216,37 +216,63 @@ void NAME(T *restrict out, T *restrict work, const T *restrict f, const T *restr
 TVD_ADJOINT(tvd_adjoint_f32, float)
 TVD_ADJOINT(tvd_adjoint_f64, double)
 
-/* A whole action of the inviscid Burgers flow (burgers-v0), one row (member) at a time,
-   every substep of that row while it sits in the cache: the TVD derivative D (van Leer)
-   of u, then u_i <- ((4 u_i - p_i) + c ((-u_i) D_i - s_i)) / 3 at the interior cells
-   (p: u one substep before, c = 2 dt, s the held forcing), the inlet value at the first
-   cell, the last interior value at the outlet. The operations and their order are
-   autograd's slices' own, so a row comes out bit for bit as the tensor loop leaves it.
-   states [rows, substeps, n] keeps u at the start of each substep for the adjoint;
-   work holds 4 n values. */
-#define VAN_LEER_FACES(T, x)                                                        \
-        faces[0] = x[0] + ((T)0.5 * (T)0) * d[0];                                   \
+/* Whole actions of the 1-D flows, one row (member) at a time, every substep of that row
+   while it sits in the cache; their adjoints run the substeps of a row in reverse from
+   the states the action stored (its fields at the start of each substep). Each forward
+   operation, and its order, is the tensor loop's, so that a row comes out bit for bit as
+   that loop leaves it; the adjoints are autograd's gradient of that loop to round-off.
+   The row macros below read the row length n, the cell width dx (idx = 1 / dx) and the
+   work rows d, faces (forward) and o, A, W (adjoint). */
+#define VAN_LEER_PHI(T) T a = r < 0 ? -r : r, phi = (r + a) / ((T)1 + a);
+#define MINMOD_PHI(T) T phi = r < 0 ? (T)0 : (r > 1 ? (T)1 : r);
+/* D[i] (i < n - 2): the TVD derivative of the row X at the interior cells */
+#define TVD_DERIVATIVE(T, PHI, X, D)                                                \
+    {                                                                               \
+        const T *restrict x_ = (X);                                                 \
+        for (long j = 0; j < n - 1; ++j) d[j] = x_[j + 1] - x_[j];                  \
+        faces[0] = x_[0] + ((T)0.5 * (T)0) * d[0];                                  \
         for (long j = 1; j <= n - 2; ++j) {                                         \
-            T r = d[j - 1] / (d[j] + (T)1e-8), a = r < 0 ? -r : r;                  \
-            faces[j] = x[j] + ((T)0.5 * ((r + a) / ((T)1 + a))) * d[j];             \
-        }
+            T r = d[j - 1] / (d[j] + (T)1e-8);                                      \
+            PHI(T)                                                                  \
+            faces[j] = x_[j] + ((T)0.5 * phi) * d[j];                               \
+        }                                                                           \
+        for (long i = 0; i < n - 2; ++i) (D)[i] = (faces[i + 1] - faces[i]) / dx;   \
+    }
+/* OUT (n) += the gradient of the row X of its TVD derivative's gradient GD (n - 2),
+   as TVD_ADJOINT computes it */
+#define TVD_ADJOINT_ADD(T, SLOPE, X, GD, OUT)                                       \
+    {                                                                               \
+        const T *restrict fr = (X), *restrict gd_ = (GD);                           \
+        o[0] = -(gd_[0] * idx);                                                     \
+        for (long j = 1; j <= n - 3; ++j) o[j] = gd_[j - 1] * idx - gd_[j] * idx;   \
+        o[n - 2] = gd_[n - 3] * idx;                                                \
+        A[0] = 0; W[0] = 0; A[n - 1] = 0; W[n - 1] = 0;                             \
+        TVD_FACES(T, SLOPE)                                                         \
+        for (long j = 0; j <= n - 2; ++j) A[j] = A[j] + W[j + 1];                   \
+        (OUT)[n - 1] += A[n - 2];                                                   \
+        for (long j = n - 2; j >= 1; --j) (OUT)[j] += (o[j] - A[j]) + A[j - 1];     \
+        (OUT)[0] += o[0] - A[0];                                                    \
+    }
+
+/* burgers-v0: u_i <- ((4 u_i - p_i) + c ((-u_i) D_i - s_i)) / 3 at the interior cells
+   (D the TVD derivative of u, van Leer; p: u one substep before; c = 2 dt; s the held
+   forcing), the inlet value at the first cell, the last interior value at the outlet.
+   states [rows, substeps, n]; work 3 n values. */
 #define BURGERS_ACTION(NAME, T)                                                     \
 void NAME(T *restrict u_out, T *restrict p_out, T *restrict states, T *restrict work, \
           const T *restrict u0, const T *restrict p0, const T *restrict inlet,      \
           const T *restrict s, long rows, long n, long substeps, T dx, T c) {       \
-    T *restrict d = work, *restrict faces = work + n;                              \
+    T *restrict d = work, *restrict faces = work + n, *restrict D = work + 2 * n;  \
     for (long b = 0; b < rows; ++b) {                                               \
-        T *x = states + b * substeps * n, *restrict stored = x;                     \
         const T *restrict sb = s + b * (n - 2), *restrict prev = p0 + b * n;        \
-        for (long j = 0; j < n; ++j) stored[j] = u0[b * n + j];                     \
+        T *restrict first = states + b * substeps * n;                              \
+        for (long j = 0; j < n; ++j) first[j] = u0[b * n + j];                      \
         for (long k = 0; k < substeps; ++k) {                                       \
-            x = states + (b * substeps + k) * n;                                    \
-            T *restrict next = k + 1 < substeps ? x + n : u_out + b * n;            \
-            for (long j = 0; j < n - 1; ++j) d[j] = x[j + 1] - x[j];                \
-            VAN_LEER_FACES(T, x)                                                    \
+            const T *restrict x = states + (b * substeps + k) * n;                  \
+            T *restrict next = k + 1 < substeps ? states + (b * substeps + k + 1) * n : u_out + b * n; \
+            TVD_DERIVATIVE(T, VAN_LEER_PHI, x, D)                                   \
             for (long i = 0; i < n - 2; ++i) {                                      \
-                T D = (faces[i + 1] - faces[i]) / dx;                               \
-                T f = (-x[i + 1]) * D - sb[i];                                      \
+                T f = (-x[i + 1]) * D[i] - sb[i];                                   \
                 next[i + 1] = (((T)4 * x[i + 1] - prev[i + 1]) + c * f) / (T)3;     \
             }                                                                       \
             next[0] = inlet[b];                                                     \
@@ -259,12 +285,11 @@ void NAME(T *restrict u_out, T *restrict p_out, T *restrict states, T *restrict 
 BURGERS_ACTION(burgers_action_f32, float)
 BURGERS_ACTION(burgers_action_f64, double)
 
-/* Its adjoint, a row at a time from the last substep back: from the gradients gu, gp of
-   the action's (u, p), those of its (u, p), of the inlet value and of the forcing. Per
-   substep, with t = g_interior / 3 (the outlet's share added to the last interior
-   cell's): the forcing collects -c t, u_i collects 4 t - c t D_i, the TVD derivative
-   the gradient -c t u_i (its adjoint as in TVD_ADJOINT), p_i -t, and u's gradient the
-   previous p's. work holds 7 n values. */
+/* Its adjoint: from the gradients gu, gp of the action's new (u, p), those of its
+   (u, p), of the inlet value and of the forcing. Per substep, with t = g_interior / 3
+   (the outlet's share added to the last interior cell's): the forcing collects -c t,
+   u_i collects 4 t - c t D_i, the TVD derivative the gradient -c t u_i, p_i -t, and
+   u's gradient the previous p's. work 7 n values. */
 #define BURGERS_ADJOINT(NAME, T)                                                    \
 void NAME(T *restrict gu_out, T *restrict gp_out, T *restrict g_inlet, T *restrict g_s, \
           T *restrict work, const T *restrict states, const T *restrict gu,         \
@@ -283,30 +308,17 @@ void NAME(T *restrict gu_out, T *restrict gp_out, T *restrict g_inlet, T *restri
             inlet_sum += Gu[0];                                                     \
             for (long i = 0; i < n - 2; ++i) t[i] = Gu[i + 1] / (T)3;               \
             t[n - 3] = (Gu[n - 2] + Gu[n - 1]) / (T)3;                              \
-            for (long j = 0; j < n - 1; ++j) d[j] = x[j + 1] - x[j];                \
-            VAN_LEER_FACES(T, x)                                                    \
+            TVD_DERIVATIVE(T, VAN_LEER_PHI, x, gD)                                  \
             for (long i = 0; i < n - 2; ++i) {                                      \
-                T gf = c * t[i], D = (faces[i + 1] - faces[i]) / dx;                \
+                T gf = c * t[i];                                                    \
                 gs[i] -= gf;                                                        \
+                Gu[i + 1] = Gp[i + 1] + ((T)4 * t[i] - gf * gD[i]);                 \
                 gD[i] = gf * (-x[i + 1]);                                           \
-                A[i] = (T)4 * t[i] - gf * D;  /* u_i's own share, for now */        \
-            }                                                                       \
-            o[0] = -(gD[0] * idx);                                                  \
-            for (long j = 1; j <= n - 3; ++j) o[j] = gD[j - 1] * idx - gD[j] * idx; \
-            o[n - 2] = gD[n - 3] * idx;                                             \
-            for (long i = 0; i < n - 2; ++i) {  /* the new u's gradient, before the TVD part */ \
-                Gu[i + 1] = Gp[i + 1] + A[i];                                       \
                 Gp[i + 1] = -t[i];                                                  \
             }                                                                       \
             Gu[0] = Gp[0]; Gu[n - 1] = Gp[n - 1];                                   \
             Gp[0] = 0; Gp[n - 1] = 0;                                               \
-            A[0] = 0; W[0] = 0; A[n - 1] = 0; W[n - 1] = 0;                         \
-            const T *restrict fr = x;                                               \
-            TVD_FACES(T, VAN_LEER_SLOPE)                                            \
-            for (long j = 0; j <= n - 2; ++j) A[j] = A[j] + W[j + 1];               \
-            Gu[n - 1] += A[n - 2];                                                  \
-            for (long j = n - 2; j >= 1; --j) Gu[j] += (o[j] - A[j]) + A[j - 1];    \
-            Gu[0] += o[0] - A[0];                                                   \
+            TVD_ADJOINT_ADD(T, VAN_LEER_SLOPE, x, gD, Gu)                           \
         }                                                                           \
         g_inlet[b] = inlet_sum;                                                     \
     }                                                                               \
@@ -314,6 +326,142 @@ void NAME(T *restrict gu_out, T *restrict gp_out, T *restrict g_inlet, T *restri
 }
 BURGERS_ADJOINT(burgers_adjoint_f32, float)
 BURGERS_ADJOINT(burgers_adjoint_f64, double)
+
+/* shkadov-v0: per substep k, with the forcing F = fp + alpha_k (fn - fp) and S = 5 delta
+   (a row's own), Dq and Df the TVD derivatives (minmod) of q and of the flux
+   q q / (h + G), t3 the third derivative of h (the one-sided stencil, the backward one at
+   the last two interior cells):
+     dh = -Dq,  dq = (-1.2 Df + (h (t3 + 1) - q / (h h + G)) / S) - F,
+     h <- h + c (3 dh - dh_prev),  q <- q + c (3 dq - dq_prev)  (c = dt / 2)
+   at the interior cells, h = inlet_k and q = 1 at the first cell, the last interior
+   values at the outlet. states [rows, substeps, 2, n] (h, q); work 6 n values. */
+#define SHKADOV_FLUX_AND_THIRD(T)                                                   \
+            for (long j = 0; j < n; ++j) flux[j] = (xq[j] * xq[j]) / (xh[j] + (T)1e-8); \
+            for (long i = 0; i < n - 4; ++i)                                        \
+                t3[i] = ((((-xh[i + 4]) + (T)6 * xh[i + 3]) - (T)12 * xh[i + 2]) + (T)10 * xh[i + 1] \
+                         - (T)3 * xh[i]) / third_a;                                 \
+            for (long i = n - 4; i < n - 2; ++i)                                    \
+                t3[i] = (((xh[i + 1] - (T)3 * xh[i]) + (T)3 * xh[i - 1]) - xh[i - 2]) / third_b;
+#define SHKADOV_ACTION(NAME, T)                                                     \
+void NAME(T *restrict h_out, T *restrict q_out, T *restrict dh_out, T *restrict dq_out, \
+          T *restrict states, T *restrict work, const T *restrict h0, const T *restrict q0, \
+          const T *restrict dh0, const T *restrict dq0, const T *restrict fp,       \
+          const T *restrict fn, const T *restrict alpha, const T *restrict inlet,   \
+          const T *restrict scale, long rows, long n, long substeps, T dx, T c,     \
+          T third_a, T third_b) {                                                   \
+    T *restrict d = work, *restrict faces = work + n, *restrict flux = work + 2 * n; \
+    T *restrict Dq = work + 3 * n, *restrict Df = work + 4 * n, *restrict t3 = work + 5 * n; \
+    for (long b = 0; b < rows; ++b) {                                               \
+        const T *restrict fpb = fp + b * (n - 2), *restrict fnb = fn + b * (n - 2); \
+        T *restrict dhp = dh_out + b * (n - 2), *restrict dqp = dq_out + b * (n - 2); \
+        T *restrict first = states + b * substeps * 2 * n, S = scale[b];           \
+        for (long j = 0; j < n; ++j) { first[j] = h0[b * n + j]; first[n + j] = q0[b * n + j]; } \
+        for (long i = 0; i < n - 2; ++i) { dhp[i] = dh0[b * (n - 2) + i]; dqp[i] = dq0[b * (n - 2) + i]; } \
+        for (long k = 0; k < substeps; ++k) {                                       \
+            const T *restrict xh = states + (b * substeps + k) * 2 * n, *restrict xq = xh + n; \
+            T *restrict nh = k + 1 < substeps ? states + (b * substeps + k + 1) * 2 * n : h_out + b * n; \
+            T *restrict nq = k + 1 < substeps ? nh + n : q_out + b * n;            \
+            T al = alpha[k];                                                        \
+            SHKADOV_FLUX_AND_THIRD(T)                                               \
+            TVD_DERIVATIVE(T, MINMOD_PHI, xq, Dq)                                   \
+            TVD_DERIVATIVE(T, MINMOD_PHI, flux, Df)                                 \
+            for (long i = 0; i < n - 2; ++i) {                                      \
+                T hi = xh[i + 1], qi = xq[i + 1];                                   \
+                T dh = -Dq[i];                                                      \
+                T rest = (hi * (t3[i] + (T)1) - qi / (hi * hi + (T)1e-8)) / S;      \
+                T dq = ((T)-1.2 * Df[i] + rest) - (fpb[i] + al * (fnb[i] - fpb[i])); \
+                nh[i + 1] = hi + c * ((T)3 * dh - dhp[i]);                          \
+                nq[i + 1] = qi + c * ((T)3 * dq - dqp[i]);                          \
+                dhp[i] = dh;                                                        \
+                dqp[i] = dq;                                                        \
+            }                                                                       \
+            nh[0] = inlet[k * rows + b]; nq[0] = (T)1;                              \
+            nh[n - 1] = nh[n - 2]; nq[n - 1] = nq[n - 2];                           \
+        }                                                                           \
+    }                                                                               \
+}
+SHKADOV_ACTION(shkadov_action_f32, float)
+SHKADOV_ACTION(shkadov_action_f64, double)
+
+/* Its adjoint: from the gradients of the action's new (h, q, dh, dq), those of its
+   (h, q, dh_prev, dq_prev), of the two forcings, of each substep's inlet value
+   (g_inlet [substeps, rows]) and of each row's S. work 16 n values. */
+#define SHKADOV_ADJOINT(NAME, T)                                                    \
+void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restrict gdq_out, \
+          T *restrict g_fp, T *restrict g_fn, T *restrict g_inlet, T *restrict g_scale, \
+          T *restrict work, const T *restrict states, const T *restrict alpha,      \
+          const T *restrict scale, const T *restrict gh, const T *restrict gq,      \
+          const T *restrict gdh, const T *restrict gdq, long rows, long n, long substeps, \
+          T dx, T c, T third_a, T third_b) {                                        \
+    FLUSH_BEGIN                                                                     \
+    T *restrict flux = work + 2 * n;                                                \
+    T *restrict Dq = work + 3 * n, *restrict Df = work + 4 * n, *restrict t3 = work + 5 * n; \
+    T *restrict o = work + 6 * n, *restrict A = work + 7 * n, *restrict W = work + 8 * n; \
+    T *restrict Nh = work + 9 * n, *restrict Nq = work + 10 * n, *restrict gflux = work + 11 * n; \
+    T *restrict gdqt = work + 12 * n, *restrict e = work + 13 * n, idx = (T)1 / dx; \
+    for (long j = 0; j < n + 8; ++j) e[j] = 0;                                      \
+    for (long b = 0; b < rows; ++b) {                                               \
+        T *restrict Gh = gh_out + b * n, *restrict Gq = gq_out + b * n;             \
+        T *restrict Gdh = gdh_out + b * (n - 2), *restrict Gdq = gdq_out + b * (n - 2); \
+        T *restrict gfp = g_fp + b * (n - 2), *restrict gfn = g_fn + b * (n - 2);   \
+        T S = scale[b], gS = 0;                                                     \
+        for (long j = 0; j < n; ++j) { Gh[j] = gh[b * n + j]; Gq[j] = gq[b * n + j]; } \
+        for (long i = 0; i < n - 2; ++i) {                                          \
+            Gdh[i] = gdh[b * (n - 2) + i]; Gdq[i] = gdq[b * (n - 2) + i];           \
+            gfp[i] = 0; gfn[i] = 0;                                                 \
+        }                                                                           \
+        for (long k = substeps - 1; k >= 0; --k) {                                  \
+            const T *restrict xh = states + (b * substeps + k) * 2 * n, *restrict xq = xh + n; \
+            T al = alpha[k];                                                        \
+            g_inlet[k * rows + b] = Gh[0];                                          \
+            Gh[n - 2] += Gh[n - 1];                                                 \
+            Gq[n - 2] += Gq[n - 1];                                                 \
+            SHKADOV_FLUX_AND_THIRD(T)                                               \
+            for (long j = 0; j < n; ++j) { Nh[j] = 0; Nq[j] = 0; gflux[j] = 0; }    \
+            for (long i = 0; i < n - 2; ++i) {                                      \
+                T hi = xh[i + 1], qi = xq[i + 1], sh = c * Gh[i + 1], sq = c * Gq[i + 1]; \
+                T gdh_ = Gdh[i] + (T)3 * sh, gdq_ = Gdq[i] + (T)3 * sq;             \
+                T gF = -gdq_, den = hi * hi + (T)1e-8, gN = gdq_ / S;               \
+                T rest = (hi * (t3[i] + (T)1) - qi / den) / S;                      \
+                gfp[i] += gF - al * gF;                                             \
+                gfn[i] += al * gF;                                                  \
+                gS -= gdq_ * rest / S;                                              \
+                Nh[i + 1] = Gh[i + 1] + gN * (t3[i] + (T)1) + gN * qi * ((T)2 * hi) / (den * den); \
+                Nq[i + 1] = Gq[i + 1] - gN / den;                                   \
+                e[i + 4] = gN * hi;  /* the third derivative's gradient */          \
+                Dq[i] = -gdh_;  /* now the gradient of Dq */                        \
+                Df[i] = (T)-1.2 * gdq_;  /* and of Df */                            \
+                Gdh[i] = -sh;                                                       \
+                Gdq[i] = -sq;                                                       \
+            }                                                                       \
+            /* the third derivative's stencils, transposed: e[i + 4] weighs cell i's */ \
+            for (long m = 0; m < n; ++m) {                                          \
+                T w4 = m >= 4 && m - 4 < n - 4 ? e[m] : (T)0;                       \
+                T w3 = m >= 3 && m - 3 < n - 4 ? e[m + 1] : (T)0;                   \
+                T w2 = m >= 2 && m - 2 < n - 4 ? e[m + 2] : (T)0;                   \
+                T w1 = m >= 1 && m - 1 < n - 4 ? e[m + 3] : (T)0;                   \
+                T w0 = m < n - 4 ? e[m + 4] : (T)0;                                 \
+                Nh[m] += ((-w4 + (T)6 * w3) - (T)12 * w2 + (T)10 * w1 - (T)3 * w0) / third_a; \
+            }                                                                       \
+            for (long i = n - 4; i < n - 2; ++i) {                                  \
+                T w = e[i + 4] / third_b;                                           \
+                Nh[i + 1] += w; Nh[i] -= (T)3 * w; Nh[i - 1] += (T)3 * w; Nh[i - 2] -= w; \
+            }                                                                       \
+            TVD_ADJOINT_ADD(T, MINMOD_SLOPE, xq, Dq, Nq)                            \
+            TVD_ADJOINT_ADD(T, MINMOD_SLOPE, flux, Df, gflux)                       \
+            for (long j = 0; j < n; ++j) {                                          \
+                T den = xh[j] + (T)1e-8;                                            \
+                Nq[j] += (T)2 * xq[j] * gflux[j] / den;                             \
+                Nh[j] -= gflux[j] * flux[j] / den;                                  \
+            }                                                                       \
+            for (long j = 0; j < n; ++j) { Gh[j] = Nh[j]; Gq[j] = Nq[j]; }          \
+        }                                                                           \
+        g_scale[b] = gS;                                                            \
+    }                                                                               \
+    FLUSH_END                                                                       \
+}
+SHKADOV_ADJOINT(shkadov_adjoint_f32, float)
+SHKADOV_ADJOINT(shkadov_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
@@ -366,9 +514,14 @@ def _build() -> ctypes.CDLL | None:
         fn = getattr(lib, f"tvd_adjoint_{suffix}")
         fn.argtypes = (*(pointer,) * 4, size, size, ctype, size)
         fn.restype = None
-        for name, arrays in (("burgers_action", 8), ("burgers_adjoint", 8)):
+        for name, arrays, numbers in (
+            ("burgers_action", 8, 2),
+            ("burgers_adjoint", 8, 2),
+            ("shkadov_action", 15, 4),
+            ("shkadov_adjoint", 16, 4),
+        ):
             fn = getattr(lib, f"{name}_{suffix}")
-            fn.argtypes = (*(pointer,) * arrays, size, size, size, ctype, ctype)
+            fn.argtypes = (*(pointer,) * arrays, size, size, size, *(ctype,) * numbers)
             fn.restype = None
     return lib
 
@@ -471,7 +624,7 @@ def burgers_action(
         )
     arrays = [t.contiguous() for t in (u, u_prev, inlet, forcing)]
     u_out, p_out = torch.empty_like(arrays[0]), torch.empty_like(arrays[0])
-    states, work = u.new_empty((rows, substeps, n)), u.new_empty(4 * n)
+    states, work = u.new_empty((rows, substeps, n)), u.new_empty(3 * n)
     pointers = (t.data_ptr() for t in (u_out, p_out, states, work, *arrays))
     getattr(lib, f"burgers_action_{_KERNELS[u.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
     return u_out, p_out, states
@@ -496,6 +649,102 @@ def burgers_adjoint(
     pointers = (t.data_ptr() for t in (gu, gp, g_inlet, g_forcing, work, *arrays))
     getattr(lib, f"burgers_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
     return gu, gp, g_inlet, g_forcing
+
+
+def shkadov_action(
+    h: torch.Tensor,
+    q: torch.Tensor,
+    dh_prev: torch.Tensor,
+    dq_prev: torch.Tensor,
+    forcing_prev: torch.Tensor,
+    forcing_new: torch.Tensor,
+    alpha: torch.Tensor,
+    inlet: torch.Tensor,
+    scale: torch.Tensor,
+    dx: float,
+    c: float,
+    third_a: float,
+    third_b: float,
+) -> tuple[torch.Tensor, ...]:
+    """The substeps of shkadov-v0's action (one for each of ``alpha``'s weights) from the
+    rows ``(h, q)`` (``[rows, n]``) and ``(dh_prev, dq_prev)`` (``[rows, n - 2]``), with the
+    forcing interpolated from ``forcing_prev`` to ``forcing_new`` (``[rows, n - 2]``), the
+    inlet values ``inlet`` (``[substeps, rows, 1]``) and each row's ``scale`` = 5 delta
+    (``[rows]``): the new ``(h, q, dh_prev, dq_prev)`` and the states
+    ``[rows, substeps, 2, n]`` that :func:`shkadov_adjoint` reads. The C kernel."""
+    lib = _rows("shkadov_action", h, q, dh_prev, dq_prev, forcing_prev, forcing_new, alpha, inlet, scale)
+    rows, n = h.shape
+    substeps = alpha.shape[0]
+    inner = (rows, n - 2)
+    if (
+        n < 8
+        or q.shape != h.shape
+        or any(t.shape != inner for t in (dh_prev, dq_prev, forcing_prev, forcing_new))
+        or alpha.shape != (substeps,)
+        or inlet.shape != (substeps, rows, 1)
+        or scale.shape != (rows,)
+    ):
+        raise ValueError(f"shkadov_action: the rows {tuple(h.shape)} and the action's inputs do not fit")
+    arrays = [t.contiguous() for t in (h, q, dh_prev, dq_prev, forcing_prev, forcing_new, alpha, inlet, scale)]
+    outs = [torch.empty_like(t) for t in arrays[:4]]
+    states, work = h.new_empty((rows, substeps, 2, n)), h.new_empty(6 * n)
+    pointers = (t.data_ptr() for t in (*outs, states, work, *arrays))
+    getattr(lib, f"shkadov_action_{_KERNELS[h.dtype][0]}")(*pointers, rows, n, substeps, dx, c, third_a, third_b)
+    return (*outs, states)
+
+
+def shkadov_adjoint(
+    states: torch.Tensor,
+    alpha: torch.Tensor,
+    scale: torch.Tensor,
+    grads: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+    dx: float,
+    c: float,
+    third_a: float,
+    third_b: float,
+) -> tuple[torch.Tensor, ...]:
+    """The gradients of :func:`shkadov_action`'s ``(h, q, dh_prev, dq_prev,
+    forcing_prev, forcing_new, inlet, scale)`` from those of its new ``(h, q, dh_prev,
+    dq_prev)`` and its ``states``: the C kernel, the substeps in reverse."""
+    lib = _rows("shkadov_adjoint", states, alpha, scale, *grads)
+    rows, substeps, _, n = states.shape
+    if tuple(g.shape for g in grads) != ((rows, n), (rows, n), (rows, n - 2), (rows, n - 2)):
+        raise ValueError(f"shkadov_adjoint: states {tuple(states.shape)} and the gradients do not fit")
+    arrays = [t.contiguous() for t in (states, alpha, scale, *grads)]
+    outs = [torch.empty_like(g) for g in arrays[3:]] + [states.new_empty((rows, n - 2)) for _ in range(2)]
+    g_inlet, g_scale, work = states.new_empty((substeps, rows, 1)), states.new_empty(rows), states.new_empty(14 * n + 8)
+    pointers = (t.data_ptr() for t in (*outs, g_inlet, g_scale, work, *arrays))
+    getattr(lib, f"shkadov_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c, third_a, third_b)
+    return (*outs, g_inlet, g_scale)
+
+
+def rows_vmap(name: str, inputs: tuple[int | None, ...], outputs: tuple[int, ...]):
+    """A vmap rule for the operator ``beacon_torch::name`` whose tensors hold rows
+    (members) along the axis ``inputs[k]`` of its ``k``-th argument (None, and every
+    argument past ``inputs``: the same for every row) and ``outputs[k]`` of its
+    ``k``-th result: the mapped dimension joins the rows (as their outer part), the
+    kernel runs once, and its results are split again. A mapped argument of the second
+    kind is not supported."""
+
+    def rule(info, in_dims, *args):
+        size, given = info.batch_size, []
+        for k, (t, dim) in enumerate(zip(args, in_dims, strict=True)):
+            axis = inputs[k] if k < len(inputs) else None
+            if axis is None:
+                if dim is not None:
+                    raise NotImplementedError(f"{name}: vmap over an argument shared by the rows")
+                given.append(t)
+                continue
+            t = (
+                t.unsqueeze(axis).expand(*t.shape[:axis], size, *t.shape[axis:])
+                if dim is None
+                else t.movedim(dim, axis)
+            )
+            given.append(t.flatten(axis, axis + 1))
+        out = getattr(torch.ops.beacon_torch, name).default(*given)
+        return tuple(o.unflatten(axis, (size, -1)) for o, axis in zip(out, outputs, strict=True)), outputs
+
+    return rule
 
 
 def _members_vmap(name: str, member_args: tuple[int, ...], outputs: int = 1):
