@@ -447,3 +447,119 @@ def test_the_shkadov_action_maps_compiles_and_carries_the_envs_gradient():
     for g, w in zip(got, slices, strict=True):
         assert w != 0
         torch.testing.assert_close(g, w, rtol=1e-10, atol=0)
+
+
+def sloshing_inputs(members: int, seed: int, dtype=torch.float64):
+    """A sloshing-v0 tank a few actions in, random accelerations for each substep and
+    one gravity a member."""
+    from beacon_torch.envs import sloshing
+
+    env = beacon_torch.make("sloshing-v0", members, dtype=dtype, seed=seed)
+    env.reset()
+    for _ in range(5):
+        env.step_members(torch.full((members, 1), 0.3, dtype=dtype))
+    s = env.state
+    accel = rand((sloshing.SUBSTEPS, members), seed + 1).to(dtype)
+    g = (9.81 + rand((members,), seed + 2)).to(dtype)
+    return (s.h, s.q, s.fh_prev, s.fq_prev, accel, g), env.physics.dx
+
+
+def sloshing_loop(dx):
+    from beacon_torch.envs import sloshing
+
+    def loop(h, q, fh, fq, accel, g):
+        fields = h, q, fh, fq
+        for i in range(sloshing.SUBSTEPS):
+            fields = sloshing.sloshing_substep(i, fields, accel, g[:, None], dx)
+        return fields
+
+    return loop
+
+
+def sloshing_c(dx):
+    from beacon_torch.envs import sloshing
+
+    return lambda h, q, fh, fq, accel, g: sloshing.sloshing_action((h, q, fh, fq), accel, g, dx)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_sloshing_action_in_c_is_the_tensor_loop_and_its_adjoint_autograds_gradient(dtype):
+    """A whole action of sloshing-v0 as one C loop a member gives the tensor loop's four
+    fields to round-off (torch's CPU square root is not always correctly rounded, C's
+    is; one substep of the two is the same bit for bit); its reverse loop gives
+    autograd's gradient of that loop with respect to every input (the fields, each
+    substep's acceleration, each member's g) to round-off, on a sloshing state and on
+    a perturbed one."""
+    from beacon_torch.envs import sloshing
+
+    inputs, dx = sloshing_inputs(3, 0, dtype)
+    perturbed = [t + 0.01 * rand(t.shape, 40 + k).to(dtype) * (k < 2) for k, t in enumerate(inputs)]
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    one = [*inputs[:4], inputs[4][:1], inputs[5]]
+    for a, b in zip(
+        sloshing_c(dx)(*one), sloshing.sloshing_substep(0, one[:4], one[4], one[5][:, None], dx), strict=True
+    ):
+        assert torch.equal(a, b)
+
+    def gradient(fn, given):
+        x = [t.clone().requires_grad_() for t in given]
+        out = fn(*x)
+        weights = [rand(o.shape, 50 + k).to(dtype) for k, o in enumerate(out)]
+        return torch.autograd.grad(sum((o * w).sum() for o, w in zip(out, weights, strict=True)), x)
+
+    for given in (inputs, perturbed):
+        for a, b in zip(sloshing_c(dx)(*given), sloshing_loop(dx)(*given), strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=tol * b.abs().max().item())
+        for got, want in zip(gradient(sloshing_c(dx), given), gradient(sloshing_loop(dx), given), strict=True):
+            assert want.abs().max() > 0
+            torch.testing.assert_close(got, want, rtol=0, atol=tol * want.abs().max().item())
+
+
+def test_the_sloshing_action_maps_compiles_and_carries_the_envs_gradient():
+    """``vmap`` of ``grad`` through the action, a compiled differentiated action, and the
+    env's gradient of three actions' rewards with respect to g and the amplitude are the
+    tensor loop's; the recording env takes the C action."""
+    from tensordict import TensorDict
+
+    from beacon_torch.envs import sloshing
+
+    inputs, dx = sloshing_inputs(2, 1)
+
+    def row(fn):  # one member's action: its accelerations [substeps], its g
+        return lambda h, q, fh, fq, accel, g: (
+            fn(h[None], q[None], fh[None], fq[None], accel[:, None], g[None])[0].pow(2).sum()
+        )
+
+    batched = [*inputs[:4], inputs[4].movedim(1, 0), inputs[5]]
+    want = vmap(grad(row(sloshing_loop(dx))))(*batched)
+    torch.testing.assert_close(vmap(grad(row(sloshing_c(dx))))(*batched), want)
+    loss = lambda fn: lambda x: fn(x, *inputs[1:])[1].pow(2).sum()
+    x = inputs[0].clone().requires_grad_()
+    compiled = torch.compile(loss(sloshing_c(dx)), fullgraph=True)
+    torch.testing.assert_close(
+        torch.autograd.grad(compiled(x), x)[0], torch.autograd.grad(loss(sloshing_loop(dx))(x), x)[0]
+    )
+
+    def env_gradient():
+        g = torch.tensor([9.81, 10.0], dtype=torch.float64, requires_grad=True)
+        amp = torch.tensor(5.0, dtype=torch.float64, requires_grad=True)
+        env = beacon_torch.make("sloshing-v0", 2, dtype="float64", differentiable=True, g=g, amp=amp, seed=1)
+        env.reset()
+        total = 0.0
+        for k in range(3):
+            action = torch.full((2, 1), 0.1 * k, dtype=torch.float64)
+            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
+        return torch.autograd.grad(total, (g, amp))
+
+    calls = []
+    original = sloshing._Action.apply
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sloshing._Action, "apply", lambda *a: calls.append(1) or original(*a))
+        got = env_gradient()
+    assert len(calls) == 3
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BEACON_TORCH_NATIVE", "0")
+        slices = env_gradient()
+    for g, w in zip(got, slices, strict=True):
+        assert w.abs().min() > 0
+        torch.testing.assert_close(g, w, rtol=1e-10, atol=0)

@@ -28,7 +28,7 @@ from beacon_torch.compiled import Kernels, at
 from beacon_torch.core.card import Card, FrameInputs, GradCheck
 from beacon_torch.core.physics import Physics
 from beacon_torch.core.state import Noise, map_state, where_members
-from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, rusanov
+from beacon_torch.numerics import ab2_step, interpolated_action, interpolation_weights, native, rusanov
 from beacon_torch.params import param
 from beacon_torch.starts import PUBLISHED, choose_start, published_members, published_table, start_param
 
@@ -114,6 +114,71 @@ def sloshing_substep(
     return ab2_step(h, fh, fh_prev, DT), ab2_step(q, fq, fq_prev, DT), fh, fq
 
 
+_action = native.operator(
+    "sloshing_action(Tensor h, Tensor q, Tensor fh_prev, Tensor fq_prev, Tensor accel, Tensor g, float dx, float c)"
+    " -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+    native.sloshing_action,
+    lambda h, q, fh, fq, accel, g, dx, c: (
+        *(torch.empty_like(t) for t in (h, q, fh, fq)),
+        h.new_empty((h.shape[0], accel.shape[0], 2, h.shape[1])),
+    ),
+    native.rows_vmap("sloshing_action", (0, 0, 0, 0, 1, 0), (0, 0, 0, 0, 0)),
+)
+
+
+def _adjoint_kernel(states, g, gh, gq, gfh, gfq, dx, c):
+    return native.sloshing_adjoint(states, g, (gh, gq, gfh, gfq), dx, c)
+
+
+_adjoint = native.operator(
+    "sloshing_adjoint(Tensor states, Tensor g, Tensor gh, Tensor gq, Tensor gfh, Tensor gfq, float dx, float c)"
+    " -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+    _adjoint_kernel,
+    lambda states, g, gh, gq, gfh, gfq, dx, c: (
+        *(torch.empty_like(t) for t in (gh, gq, gfh, gfq)),
+        gh.new_empty((states.shape[1], gh.shape[0])),
+        gh.new_empty(gh.shape[0]),
+    ),
+    native.rows_vmap("sloshing_adjoint", (0, 0, 0, 0, 0, 0), (0, 0, 0, 0, 1, 0)),
+)
+
+
+class _Action(torch.autograd.Function):
+    """An action of :func:`sloshing_substep` as one C loop a member, its backward pass the
+    same loop's adjoint run through the substeps in reverse."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(h, q, fh_prev, fq_prev, accel, g, dx: float):
+        return _action(h, q, fh_prev, fq_prev, accel, g, dx, 0.5 * DT)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.mark_non_differentiable(output[4])
+        ctx.save_for_backward(output[4], inputs[5])
+        ctx.dx = inputs[6]
+
+    @staticmethod
+    def backward(ctx, gh, gq, gfh, gfq, _):
+        states, g = ctx.saved_tensors
+        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
+            return (*_adjoint(states, g, gh, gq, gfh, gfq, ctx.dx, 0.5 * DT), None)
+
+
+def sloshing_action(fields: tuple[torch.Tensor, ...], accel: torch.Tensor, g, dx: float) -> tuple[torch.Tensor, ...]:
+    """The substeps of :func:`sloshing_substep` over an action (``accel``'s rows) where
+    autograd records, on the CPU: the tensor loop's values to round-off (torch's square
+    root on the CPU is not always the correctly rounded one that C's is), and its
+    gradient to round-off from a reverse loop in C over the stored substeps, instead of
+    a graph of some forty operations a substep, whose calls cost more than their
+    arithmetic at sloshing's small rows."""
+    h = fields[0]
+    rows = h.shape[0]
+    g = (g if isinstance(g, torch.Tensor) else torch.tensor(g)).to(h.dtype).reshape(-1).expand(rows)
+    return _Action.apply(*fields, accel.expand(-1, rows), g, dx)[:4]
+
+
 def run_actions(state: SloshingState, actions: list[torch.Tensor], amp, g, dx: float, substeps=None) -> SloshingState:
     """Advance ``state`` through a sequence of action batches (each ``[B]``) scaled by
     ``amp`` (a number or ``[B]``), each interpolated from the one before; ``substeps``
@@ -123,7 +188,12 @@ def run_actions(state: SloshingState, actions: list[torch.Tensor], amp, g, dx: f
     u_prev = state.u_prev
     alpha = interpolation_weights(SUBSTEPS, N_INTERP, u_prev.dtype, u_prev.device)[:, None]
     for u in actions:
-        fields = substeps(SUBSTEPS, fields, amp * interpolated_action(u_prev, u, alpha), g, dx)
+        accel = amp * interpolated_action(u_prev, u, alpha)
+        given = (*fields, accel, *([g] if isinstance(g, torch.Tensor) else []))
+        if native.applies(u.device, u.dtype) and native.recording(*given):
+            fields = sloshing_action(fields, accel, g, dx)
+        else:
+            fields = substeps(SUBSTEPS, fields, accel, g, dx)
         u_prev = u
     h, q, fh_prev, fq_prev = fields
     return SloshingState(h=h, q=q, fh_prev=fh_prev, fq_prev=fq_prev, u_prev=u_prev)

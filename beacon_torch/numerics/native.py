@@ -462,9 +462,143 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restri
 }
 SHKADOV_ADJOINT(shkadov_adjoint_f32, float)
 SHKADOV_ADJOINT(shkadov_adjoint_f64, double)
+
+/* sloshing-v0: per substep k, on the fields ghosted at the walls (H = h mirrored, Q = 0
+   in the ghost cells; n + 2 cells), the flux F = Q Q / H + ((g / 2) H) H, the speed
+   s = |Q / H| + sqrt(g H), each face's c = max(s_left, s_right) (torch.maximum's: NaN
+   if either is) and the Rusanov fluxes of h and q, then
+     fh = -(Fh_right - Fh_left) / dx,  fq = -(Fq_right - Fq_left) / dx - accel_k,
+     h <- h + c (3 fh - fh_prev),  q <- q + c (3 fq - fq_prev)  (c = dt / 2)
+   with g a row's own. states [rows, substeps, 2, n] (h, q); work 6 (n + 2) values. */
+#define TORCH_MAX(a, b) ((a) != (a) || (b) != (b) ? (a) + (b) : ((a) > (b) ? (a) : (b)))
+#define SLOSHING_GHOSTS(T, SQRT)                                                    \
+            H[0] = xh[0]; H[n + 1] = xh[n - 1]; Q[0] = 0; Q[n + 1] = 0;             \
+            for (long i = 0; i < n; ++i) { H[i + 1] = xh[i]; Q[i + 1] = xq[i]; }    \
+            for (long j = 0; j < n + 2; ++j) {                                      \
+                T r = Q[j] / H[j];                                                  \
+                flux[j] = (Q[j] * Q[j]) / H[j] + (half_g * H[j]) * H[j];            \
+                speed[j] = (r < 0 ? -r : r) + SQRT(g * H[j]);                       \
+            }                                                                       \
+            for (long j = 0; j <= n; ++j) cf[j] = TORCH_MAX(speed[j], speed[j + 1]);
+#define SLOSHING_ACTION(NAME, T, SQRT)                                              \
+void NAME(T *restrict h_out, T *restrict q_out, T *restrict fh_out, T *restrict fq_out, \
+          T *restrict states, T *restrict work, const T *restrict h0, const T *restrict q0, \
+          const T *restrict fh0, const T *restrict fq0, const T *restrict accel,    \
+          const T *restrict gs, long rows, long n, long substeps, T dx, T c) {      \
+    const long m = n + 2;                                                           \
+    T *restrict H = work, *restrict Q = work + m, *restrict flux = work + 2 * m;   \
+    T *restrict speed = work + 3 * m, *restrict cf = work + 4 * m, *restrict FH = work + 5 * m; \
+    for (long b = 0; b < rows; ++b) {                                               \
+        T *restrict fhp = fh_out + b * n, *restrict fqp = fq_out + b * n;           \
+        T *restrict first = states + b * substeps * 2 * n, g = gs[b], half_g = (T)0.5 * g; \
+        for (long i = 0; i < n; ++i) {                                              \
+            first[i] = h0[b * n + i]; first[n + i] = q0[b * n + i];                 \
+            fhp[i] = fh0[b * n + i]; fqp[i] = fq0[b * n + i];                       \
+        }                                                                           \
+        for (long k = 0; k < substeps; ++k) {                                       \
+            const T *restrict xh = states + (b * substeps + k) * 2 * n, *restrict xq = xh + n; \
+            T *restrict nh = k + 1 < substeps ? states + (b * substeps + k + 1) * 2 * n : h_out + b * n; \
+            T *restrict nq = k + 1 < substeps ? nh + n : q_out + b * n;            \
+            T acc = accel[k * rows + b];                                            \
+            SLOSHING_GHOSTS(T, SQRT)                                                \
+            for (long j = 0; j <= n; ++j) {                                         \
+                FH[j] = (T)0.5 * (Q[j] + Q[j + 1]) - ((T)0.5 * cf[j]) * (H[j + 1] - H[j]); \
+                cf[j] = (T)0.5 * (flux[j] + flux[j + 1]) - ((T)0.5 * cf[j]) * (Q[j + 1] - Q[j]); \
+            }                                                                       \
+            for (long i = 0; i < n; ++i) {                                          \
+                T fh = (-(FH[i + 1] - FH[i])) / dx, fq = (-(cf[i + 1] - cf[i])) / dx - acc; \
+                nh[i] = xh[i] + c * ((T)3 * fh - fhp[i]);                           \
+                nq[i] = xq[i] + c * ((T)3 * fq - fqp[i]);                           \
+                fhp[i] = fh;                                                        \
+                fqp[i] = fq;                                                        \
+            }                                                                       \
+        }                                                                           \
+    }                                                                               \
+}
+SLOSHING_ACTION(sloshing_action_f32, float, __builtin_sqrtf)
+SLOSHING_ACTION(sloshing_action_f64, double, __builtin_sqrt)
+
+/* Its adjoint: from the gradients of the action's new (h, q, fh, fq), those of its
+   (h, q, fh_prev, fq_prev), of each substep's acceleration (g_accel [substeps, rows]) and
+   of each row's g. The faces' arrays sit one place in, between zeros, so that each ghost
+   cell gathers from the face on its left and the one on its right alike; a tie of the
+   speeds shares the face's gradient half and half, as torch.maximum's backward does.
+   work 16 (n + 2) values. */
+#define SLOSHING_ADJOINT(NAME, T, SQRT)                                             \
+void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gfh_out, T *restrict gfq_out, \
+          T *restrict g_accel, T *restrict g_g, T *restrict work, const T *restrict states, \
+          const T *restrict gs, const T *restrict gh, const T *restrict gq,         \
+          const T *restrict gfh, const T *restrict gfq, long rows, long n, long substeps, \
+          T dx, T c) {                                                              \
+    FLUSH_BEGIN                                                                     \
+    const long m = n + 2;                                                           \
+    T *restrict H = work, *restrict Q = work + m, *restrict flux = work + 2 * m;   \
+    T *restrict speed = work + 3 * m, *restrict cf = work + 4 * m;                 \
+    T *restrict ah = work + 5 * m, *restrict aq = work + 6 * m;                    \
+    T *restrict gFH = work + 7 * m + 1, *restrict gFQ = work + 8 * m + 2;          \
+    T *restrict gc = work + 9 * m + 3, *restrict hc = work + 10 * m + 4;           \
+    T *restrict GH = work + 11 * m + 5, *restrict GQ = work + 12 * m + 5;          \
+    for (long j = 0; j < 14 * m + 6; ++j) work[j] = 0;                              \
+    for (long b = 0; b < rows; ++b) {                                               \
+        T *restrict Gh = gh_out + b * n, *restrict Gq = gq_out + b * n;             \
+        T *restrict Gfh = gfh_out + b * n, *restrict Gfq = gfq_out + b * n;         \
+        T g = gs[b], half_g = (T)0.5 * g, gg = 0;                                   \
+        for (long i = 0; i < n; ++i) {                                              \
+            Gh[i] = gh[b * n + i]; Gq[i] = gq[b * n + i];                           \
+            Gfh[i] = gfh[b * n + i]; Gfq[i] = gfq[b * n + i];                       \
+        }                                                                           \
+        for (long k = substeps - 1; k >= 0; --k) {                                  \
+            const T *restrict xh = states + (b * substeps + k) * 2 * n, *restrict xq = xh + n; \
+            T gacc = 0;                                                             \
+            SLOSHING_GHOSTS(T, SQRT)                                                \
+            for (long i = 0; i < n; ++i) {                                          \
+                T sh = c * Gh[i], sq = c * Gq[i];                                   \
+                T dfh = Gfh[i] + (T)3 * sh, dfq = Gfq[i] + (T)3 * sq;               \
+                gacc -= dfq;                                                        \
+                ah[i + 1] = -(dfh / dx);                                            \
+                aq[i + 1] = -(dfq / dx);                                            \
+                Gfh[i] = -sh;                                                       \
+                Gfq[i] = -sq;                                                       \
+            }                                                                       \
+            g_accel[k * rows + b] = gacc;                                           \
+            for (long j = 0; j <= n; ++j) {  /* face j between ghost cells j, j + 1 */ \
+                T a = ah[j] - ah[j + 1], e = aq[j] - aq[j + 1];                     \
+                gFH[j] = a; gFQ[j] = e; hc[j] = (T)0.5 * cf[j];                     \
+                gc[j] = -(((T)0.5 * a) * (H[j + 1] - H[j])) - ((T)0.5 * e) * (Q[j + 1] - Q[j]); \
+            }                                                                       \
+            for (long j = 0; j < m; ++j) {  /* ghost cell j: faces j - 1 (its left) and j */ \
+                T s = speed[j], left = j > 0 ? speed[j - 1] : s, right = j <= n ? speed[j + 1] : s; \
+                T wl = s > left ? (T)1 : (s == left ? (T)0.5 : (T)0);               \
+                T wr = s > right ? (T)1 : (s == right ? (T)0.5 : (T)0);             \
+                T gsp = gc[j - 1] * wl + gc[j] * wr;                                \
+                T gfl = (T)0.5 * gFQ[j] + (T)0.5 * gFQ[j - 1];                      \
+                T gq_ = (T)0.5 * gFH[j] + (T)0.5 * gFH[j - 1] + hc[j] * gFQ[j] - hc[j - 1] * gFQ[j - 1]; \
+                T gh_ = hc[j] * gFH[j] - hc[j - 1] * gFH[j - 1];                    \
+                T r = Q[j] / H[j], root = SQRT(g * H[j]);                           \
+                T gr = gsp * (T)((r > 0) - (r < 0)), groot = gsp / ((T)2 * root);   \
+                gq_ += gr / H[j];                                                   \
+                gh_ -= gr * r / H[j];                                               \
+                gh_ += groot * g;                                                   \
+                gg += groot * H[j];                                                 \
+                gq_ += (T)2 * Q[j] * gfl / H[j];                                    \
+                gh_ -= gfl * (Q[j] * Q[j]) / (H[j] * H[j]);                         \
+                gh_ += gfl * (half_g * H[j]) + (gfl * H[j]) * half_g;               \
+                gg += (T)0.5 * ((gfl * H[j]) * H[j]);                               \
+                GH[j] = gh_; GQ[j] = gq_;                                           \
+            }                                                                       \
+            for (long i = 0; i < n; ++i) { Gh[i] += GH[i + 1]; Gq[i] += GQ[i + 1]; } \
+            Gh[0] += GH[0];                                                         \
+            Gh[n - 1] += GH[n + 1];                                                 \
+        }                                                                           \
+        g_g[b] = gg;                                                                \
+    }                                                                               \
+    FLUSH_END                                                                       \
+}
+SLOSHING_ADJOINT(sloshing_adjoint_f32, float, __builtin_sqrtf)
+SLOSHING_ADJOINT(sloshing_adjoint_f64, double, __builtin_sqrt)
 """
 
-_FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
+_FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno")
 # the vector instructions of the machine that builds (and so runs) the library, where
 # the compiler knows them: without contraction or reassociation (the flags above) a
 # vector lane computes what the scalar code does, bit for bit
@@ -519,6 +653,8 @@ def _build() -> ctypes.CDLL | None:
             ("burgers_adjoint", 8, 2),
             ("shkadov_action", 15, 4),
             ("shkadov_adjoint", 16, 4),
+            ("sloshing_action", 12, 2),
+            ("sloshing_adjoint", 13, 2),
         ):
             fn = getattr(lib, f"{name}_{suffix}")
             fn.argtypes = (*(pointer,) * arrays, size, size, size, *(ctype,) * numbers)
@@ -716,6 +852,57 @@ def shkadov_adjoint(
     pointers = (t.data_ptr() for t in (*outs, g_inlet, g_scale, work, *arrays))
     getattr(lib, f"shkadov_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c, third_a, third_b)
     return (*outs, g_inlet, g_scale)
+
+
+def sloshing_action(
+    h: torch.Tensor,
+    q: torch.Tensor,
+    fh_prev: torch.Tensor,
+    fq_prev: torch.Tensor,
+    accel: torch.Tensor,
+    g: torch.Tensor,
+    dx: float,
+    c: float,
+) -> tuple[torch.Tensor, ...]:
+    """The substeps of sloshing-v0's action (one for each row of ``accel``,
+    ``[substeps, rows]``, the tank's acceleration) from the rows ``(h, q, fh_prev,
+    fq_prev)`` (``[rows, n]``) with each row's gravity ``g`` (``[rows]``): the new
+    fields and the states ``[rows, substeps, 2, n]`` that :func:`sloshing_adjoint`
+    reads. The C kernel."""
+    lib = _rows("sloshing_action", h, q, fh_prev, fq_prev, accel, g)
+    rows, n = h.shape
+    substeps = accel.shape[0]
+    if (
+        n < 2
+        or any(t.shape != h.shape for t in (q, fh_prev, fq_prev))
+        or accel.shape != (substeps, rows)
+        or g.shape != (rows,)
+    ):
+        raise ValueError(f"sloshing_action: the rows {tuple(h.shape)} and the action's inputs do not fit")
+    arrays = [t.contiguous() for t in (h, q, fh_prev, fq_prev, accel, g)]
+    outs = [torch.empty_like(t) for t in arrays[:4]]
+    states, work = h.new_empty((rows, substeps, 2, n)), h.new_empty(6 * (n + 2))
+    pointers = (t.data_ptr() for t in (*outs, states, work, *arrays))
+    getattr(lib, f"sloshing_action_{_KERNELS[h.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
+    return (*outs, states)
+
+
+def sloshing_adjoint(
+    states: torch.Tensor, g: torch.Tensor, grads: tuple[torch.Tensor, ...], dx: float, c: float
+) -> tuple[torch.Tensor, ...]:
+    """The gradients of :func:`sloshing_action`'s ``(h, q, fh_prev, fq_prev, accel, g)``
+    from those of its new fields and its ``states``: the C kernel, the substeps in
+    reverse."""
+    lib = _rows("sloshing_adjoint", states, g, *grads)
+    rows, substeps, _, n = states.shape
+    if any(t.shape != (rows, n) for t in grads) or len(grads) != 4:
+        raise ValueError(f"sloshing_adjoint: states {tuple(states.shape)} and the gradients do not fit")
+    arrays = [t.contiguous() for t in (states, g, *grads)]
+    outs = [torch.empty_like(t) for t in arrays[2:]]
+    g_accel, g_g, work = states.new_empty((substeps, rows)), states.new_empty(rows), states.new_empty(14 * (n + 2) + 6)
+    pointers = (t.data_ptr() for t in (*outs, g_accel, g_g, work, *arrays))
+    getattr(lib, f"sloshing_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
+    return (*outs, g_accel, g_g)
 
 
 def rows_vmap(name: str, inputs: tuple[int | None, ...], outputs: tuple[int, ...]):
