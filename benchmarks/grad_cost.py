@@ -158,10 +158,13 @@ def page_table(folder: Path) -> str:
         ratio = lambda kind, r=r: f"{r[f'{kind}_ratio']:.1f} x" if f"{kind}_ratio" in r else "-"
         physics = env_spec(env_id).physics
         way = "one graph an action" if physics.grad_whole_action else f"chunks of {physics.grad_chunk}"
+        # an action in C leaves no compiled substeps to call one by one
+        substeps = "-" if physics.grad_action_in_c else ratio("compiled-1")
+        way = "the action in C" if physics.grad_action_in_c else way
         compiled = f"{ratio('compiled')} ({way})" if "compiled_ratio" in r else "-"
         lines.append(
             f"| {env_id} | {r['members']} | {r['grad_checkpoint']} | {1e3 * r['forward_s']:.3g} "
-            f"| {ratio('eager')} | {ratio('compiled-1')} | {compiled} | {r['measured']} |"
+            f"| {ratio('eager')} | {substeps} | {compiled} | {r['measured']} |"
         )
     return "\n".join(lines)
 

@@ -76,6 +76,10 @@ class Physics(abc.ABC):
     # grows with the substeps; the graph's partitioner, not ``grad_checkpoint``, decides
     # what the backward pass keeps)
     grad_whole_action: ClassVar[bool] = False
+    # where autograd records on the CPU (eager or compiled), the action runs as one C
+    # loop a member and its backward pass as that loop's adjoint (the 1-D flows): the
+    # two ways above then do not apply
+    grad_action_in_c: ClassVar[bool] = False
 
     def __init__(
         self,

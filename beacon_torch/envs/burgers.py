@@ -144,6 +144,7 @@ class BurgersPhysics(Physics):
     state_type = BurgersState
     episode_length = EPISODE_LENGTH
     deterministic = False
+    grad_action_in_c = True
     diagnostics = {
         "deviation": "dx sum |u - u_target| downstream of the actuator (minus the reward)",
         "max_deviation": "the largest |u - u_target| downstream of the actuator",

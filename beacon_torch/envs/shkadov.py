@@ -343,6 +343,7 @@ class ShkadovPhysics(Physics):
     # Below every completed episode of the policies tried (docs/envs/shkadov.md); every
     # reward is negative, so a blown-up episode scores below this whenever it happens
     blowup_reward = -100.0
+    grad_action_in_c = True
     deterministic = False
     diagnostics = {
         "film_deviation": "the mean over the jets of dx sum (h - 1)^2 / cells downstream of each (minus the reward)",

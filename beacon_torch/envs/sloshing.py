@@ -219,6 +219,7 @@ class SloshingPhysics(Physics):
     Params = SloshingParams
     state_type = SloshingState
     episode_length = EPISODE_LENGTH
+    grad_action_in_c = True
     diagnostics = {
         "surface_deviation": "dx ||h - 1||, the free surface's distance from rest (the reward without actuation)",
         "max_depth": "the largest depth h in the tank",
