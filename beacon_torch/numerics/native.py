@@ -434,19 +434,18 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restri
                 Gdh[i] = -sh;                                                       \
                 Gdq[i] = -sq;                                                       \
             }                                                                       \
-            /* the third derivative's stencils, transposed: e[i + 4] weighs cell i's */ \
-            for (long m = 0; m < n; ++m) {                                          \
-                T w4 = m >= 4 && m - 4 < n - 4 ? e[m] : (T)0;                       \
-                T w3 = m >= 3 && m - 3 < n - 4 ? e[m + 1] : (T)0;                   \
-                T w2 = m >= 2 && m - 2 < n - 4 ? e[m + 2] : (T)0;                   \
-                T w1 = m >= 1 && m - 1 < n - 4 ? e[m + 3] : (T)0;                   \
-                T w0 = m < n - 4 ? e[m + 4] : (T)0;                                 \
-                Nh[m] += ((-w4 + (T)6 * w3) - (T)12 * w2 + (T)10 * w1 - (T)3 * w0) / third_a; \
-            }                                                                       \
+            /* the third derivative's stencils, transposed: e[i + 4] weighs cell i's, and */ \
+            /* the one-sided stencil's weights stop at cell n - 5 (zeros around them) */ \
+            T last = e[n], next_to_last = e[n + 1];                                 \
+            e[n] = 0; e[n + 1] = 0;                                                 \
+            for (long m = 0; m < n; ++m)                                            \
+                Nh[m] += ((-e[m] + (T)6 * e[m + 1]) - (T)12 * e[m + 2] + (T)10 * e[m + 3] - (T)3 * e[m + 4]) / third_a; \
+            e[n] = last; e[n + 1] = next_to_last;                                   \
             for (long i = n - 4; i < n - 2; ++i) {                                  \
                 T w = e[i + 4] / third_b;                                           \
                 Nh[i + 1] += w; Nh[i] -= (T)3 * w; Nh[i - 1] += (T)3 * w; Nh[i - 2] -= w; \
             }                                                                       \
+            e[n] = 0; e[n + 1] = 0;                                                 \
             TVD_ADJOINT_ADD(T, MINMOD_SLOPE, xq, Dq, Nq)                            \
             TVD_ADJOINT_ADD(T, MINMOD_SLOPE, flux, Df, gflux)                       \
             for (long j = 0; j < n; ++j) {                                          \
