@@ -269,6 +269,37 @@ def burgers_loop(u, u_prev, inlet, forcing):
     return u, u_prev
 
 
+def assert_the_env_takes_the_c_action(module, env_id: str, parameters: dict, compile: bool = False):
+    """Three differentiated actions of ``env_id`` (2 members, float64) with the given
+    parameters as leaves: the env calls its C action (``module._Action``) once an action,
+    and the rewards' gradient with respect to the parameters is the one of the tensor
+    loop (the C kernels switched off)."""
+    from tensordict import TensorDict
+
+    def gradient():
+        leaves = {k: torch.tensor(v, dtype=torch.float64, requires_grad=True) for k, v in parameters.items()}
+        env = beacon_torch.make(env_id, 2, dtype="float64", differentiable=True, seed=1, compile=compile, **leaves)
+        env.reset()
+        total = 0.0
+        for k in range(3):
+            action = torch.full((2, *env.action_spec.shape[1:]), 0.1 * k, dtype=torch.float64)
+            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
+        return torch.autograd.grad(total, list(leaves.values()))
+
+    calls = []
+    original = module._Action.apply
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(module._Action, "apply", lambda *a: calls.append(1) or original(*a))
+        got = gradient()
+    assert len(calls) == 3
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BEACON_TORCH_NATIVE", "0")
+        slices = gradient()
+    for g, w in zip(got, slices, strict=True):
+        assert w.abs().min() > 0
+        torch.testing.assert_close(g, w, rtol=1e-10, atol=0)
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_the_burgers_action_in_c_is_the_tensor_loop_and_its_adjoint_autograds_gradient(dtype):
     """A whole action of burgers-v0 as one C loop a member gives the tensor loop's values
@@ -298,7 +329,6 @@ def test_the_burgers_action_maps_compiles_and_carries_the_envs_gradient():
     """``vmap`` of ``grad`` through the action, a compiled differentiated action and the
     env's gradient of five actions' rewards with respect to its amplitude (eager and
     compiled) are those of the tensor loop; the recording env takes the C action."""
-    from tensordict import TensorDict
 
     from beacon_torch.envs import burgers
 
@@ -311,28 +341,8 @@ def test_the_burgers_action_maps_compiles_and_carries_the_envs_gradient():
     compiled = torch.compile(loss(burgers.burgers_action), fullgraph=True)
     torch.testing.assert_close(torch.autograd.grad(compiled(x), x)[0], torch.autograd.grad(loss(burgers_loop)(x), x)[0])
 
-    def amp_gradient(compile: bool, monkeypatch=None):
-        amp = torch.tensor(10.0, dtype=torch.float64, requires_grad=True)
-        env = beacon_torch.make("burgers-v0", 2, dtype="float64", differentiable=True, amp=amp, seed=1, compile=compile)
-        env.reset()
-        total = 0.0
-        for k in range(5):
-            action = torch.full((2, 1), 0.1 * k, dtype=torch.float64)
-            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
-        return torch.autograd.grad(total, amp)[0], env
-
-    calls = []
-    original = burgers._Action.apply
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(burgers._Action, "apply", lambda *a: calls.append(1) or original(*a))
-        (eager, _), (compiled_env, _) = amp_gradient(False), amp_gradient(True)
-    assert len(calls) == 10
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("BEACON_TORCH_NATIVE", "0")
-        slices, env = amp_gradient(False)
-    assert not env.physics._native and eager != 0
-    torch.testing.assert_close(eager, slices, rtol=1e-12, atol=0)
-    torch.testing.assert_close(compiled_env, slices, rtol=1e-12, atol=0)
+    for compiled_env in (False, True):
+        assert_the_env_takes_the_c_action(burgers, "burgers-v0", {"amp": 10.0}, compile=compiled_env)
 
 
 def shkadov_inputs(members: int, seed: int, dtype=torch.float64):
@@ -401,7 +411,6 @@ def test_the_shkadov_action_maps_compiles_and_carries_the_envs_gradient():
     """``vmap`` of ``grad`` through the action, a compiled differentiated action, and the
     env's gradient of three actions' rewards with respect to delta and the jets'
     amplitude are the tensor loop's; the recording env takes the C action."""
-    from tensordict import TensorDict
 
     from beacon_torch.envs import shkadov
 
@@ -424,29 +433,7 @@ def test_the_shkadov_action_maps_compiles_and_carries_the_envs_gradient():
         torch.autograd.grad(compiled(x), x)[0], torch.autograd.grad(loss(shkadov_loop(alpha))(x), x)[0]
     )
 
-    def env_gradient():
-        delta = torch.tensor(0.1, dtype=torch.float64, requires_grad=True)
-        amp = torch.tensor(5.0, dtype=torch.float64, requires_grad=True)
-        env = beacon_torch.make("shkadov-v0", 2, dtype="float64", differentiable=True, delta=delta, amp=amp, seed=1)
-        env.reset()
-        total = 0.0
-        for k in range(3):
-            action = torch.full((2, 5), 0.1 * k, dtype=torch.float64)
-            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
-        return torch.autograd.grad(total, (delta, amp)), env
-
-    calls = []
-    original = shkadov._Action.apply
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(shkadov._Action, "apply", lambda *a: calls.append(1) or original(*a))
-        got, _ = env_gradient()
-    assert len(calls) == 3
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("BEACON_TORCH_NATIVE", "0")
-        slices, env = env_gradient()
-    for g, w in zip(got, slices, strict=True):
-        assert w != 0
-        torch.testing.assert_close(g, w, rtol=1e-10, atol=0)
+    assert_the_env_takes_the_c_action(shkadov, "shkadov-v0", {"delta": 0.1, "amp": 5.0})
 
 
 def sloshing_inputs(members: int, seed: int, dtype=torch.float64):
@@ -519,7 +506,6 @@ def test_the_sloshing_action_maps_compiles_and_carries_the_envs_gradient():
     """``vmap`` of ``grad`` through the action, a compiled differentiated action, and the
     env's gradient of three actions' rewards with respect to g and the amplitude are the
     tensor loop's; the recording env takes the C action."""
-    from tensordict import TensorDict
 
     from beacon_torch.envs import sloshing
 
@@ -540,26 +526,4 @@ def test_the_sloshing_action_maps_compiles_and_carries_the_envs_gradient():
         torch.autograd.grad(compiled(x), x)[0], torch.autograd.grad(loss(sloshing_loop(dx))(x), x)[0]
     )
 
-    def env_gradient():
-        g = torch.tensor([9.81, 10.0], dtype=torch.float64, requires_grad=True)
-        amp = torch.tensor(5.0, dtype=torch.float64, requires_grad=True)
-        env = beacon_torch.make("sloshing-v0", 2, dtype="float64", differentiable=True, g=g, amp=amp, seed=1)
-        env.reset()
-        total = 0.0
-        for k in range(3):
-            action = torch.full((2, 1), 0.1 * k, dtype=torch.float64)
-            total = total + env.step(TensorDict({"action": action}, batch_size=[2]))["next", "reward"].sum()
-        return torch.autograd.grad(total, (g, amp))
-
-    calls = []
-    original = sloshing._Action.apply
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(sloshing._Action, "apply", lambda *a: calls.append(1) or original(*a))
-        got = env_gradient()
-    assert len(calls) == 3
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("BEACON_TORCH_NATIVE", "0")
-        slices = env_gradient()
-    for g, w in zip(got, slices, strict=True):
-        assert w.abs().min() > 0
-        torch.testing.assert_close(g, w, rtol=1e-10, atol=0)
+    assert_the_env_takes_the_c_action(sloshing, "sloshing-v0", {"g": [9.81, 10.0], "amp": 5.0})
