@@ -439,7 +439,8 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restri
             T last = e[n], next_to_last = e[n + 1];                                 \
             e[n] = 0; e[n + 1] = 0;                                                 \
             for (long m = 0; m < n; ++m)                                            \
-                Nh[m] += ((-e[m] + (T)6 * e[m + 1]) - (T)12 * e[m + 2] + (T)10 * e[m + 3] - (T)3 * e[m + 4]) / third_a; \
+                Nh[m] += ((-e[m] + (T)6 * e[m + 1]) - (T)12 * e[m + 2] + (T)10 * e[m + 3] \
+                          - (T)3 * e[m + 4]) / third_a;                             \
             e[n] = last; e[n + 1] = next_to_last;                                   \
             for (long i = n - 4; i < n - 2; ++i) {                                  \
                 T w = e[i + 4] / third_b;                                           \
