@@ -345,6 +345,47 @@ def test_the_burgers_action_maps_compiles_and_carries_the_envs_gradient():
         assert_the_env_takes_the_c_action(burgers, "burgers-v0", {"amp": 10.0}, compile=compiled_env)
 
 
+def test_an_actions_stored_substeps_are_reused_only_once_nothing_holds_them(monkeypatch):
+    """The buffers of the stored substeps (kept between actions, so that their pages stay
+    mapped) go to a new action only once the graph that saved them is gone: a horizon of
+    three differentiated actions, whose stored substeps are all held at once, has the
+    tensor loop's gradient, twice in a row (the second horizon on the first's buffers),
+    and with room for one buffer only (the last action's new previous state has no
+    gradient: the backward pass takes zeros for it). A buffer held anywhere, a view
+    included, is never handed out; the cache keeps at most its bytes."""
+    from beacon_torch.envs import burgers
+
+    monkeypatch.setattr(native, "_kept", [])
+    like = torch.empty(0)
+    first = native.stored_substeps(like, (256, 1024))  # 1 MiB of float32: kept
+    second = native.stored_substeps(like, (256, 1024))
+    assert first.data_ptr() != second.data_ptr() and len(native._kept) == 2
+    view, address = first[3:], first.data_ptr()
+    del first
+    assert native.stored_substeps(like, (256, 1024)).data_ptr() != address  # the view holds it
+    del view
+    assert native.stored_substeps(like, (256, 1024)).data_ptr() == address
+    assert native.stored_substeps(like, (8, 8)).numel() == 64 and len(native._kept) == 3  # small: never kept
+
+    u, u_prev, inlet, forcing = burgers_inputs(12, 2)  # 12 members: 2.8 MB of stored substeps an action
+
+    def horizon(action):
+        x = u.clone().requires_grad_()
+        fields, total = (x, u_prev), 0.0
+        for k in range(3):
+            fields = action(*fields, inlet, forcing * (1 + k))
+            total = total + fields[0].pow(2).sum() + (fields[1].sum() if k < 2 else 0.0)
+        return torch.autograd.grad(total, x)[0]
+
+    want = horizon(burgers_loop)
+    for _ in range(2):
+        torch.testing.assert_close(horizon(burgers.burgers_action), want, rtol=1e-12, atol=0)
+    monkeypatch.setattr(native, "_KEPT_BYTES", 4 << 20)  # room for one action's buffer
+    monkeypatch.setattr(native, "_kept", [])
+    torch.testing.assert_close(horizon(burgers.burgers_action), want, rtol=1e-12, atol=0)
+    assert sum(b.numel() * b.element_size() for b in native._kept) <= 4 << 20
+
+
 def shkadov_inputs(members: int, seed: int, dtype=torch.float64):
     """A developed shkadov-v0 film a few actions in, random forcings (both ways) and
     inlet values, the interpolation's weights, and delta one value a member."""

@@ -113,11 +113,13 @@ class _Action(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.mark_non_differentiable(output[2])
+        ctx.set_materialize_grads(False)
         ctx.save_for_backward(output[2])
 
     @staticmethod
     def backward(ctx, grad_u, grad_u_prev, _):
         (states,) = ctx.saved_tensors
+        grad_u, grad_u_prev = native.output_grads((grad_u, grad_u_prev), (states[:, 0],) * 2)
         with torch.no_grad():  # differentiable once: the adjoint keeps no graph
             return (*_adjoint(states, grad_u, grad_u_prev, DX, 2.0 * DT), None)
 

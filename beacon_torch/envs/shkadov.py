@@ -247,11 +247,14 @@ class _Action(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.mark_non_differentiable(output[4])
+        ctx.set_materialize_grads(False)
         ctx.save_for_backward(output[4], inputs[6], inputs[8])
 
     @staticmethod
     def backward(ctx, gh, gq, gdh, gdq, _):
         states, alpha, scale = ctx.saved_tensors
+        field, inner = states[:, 0, 0], states[:, 0, 0, 1:-1]
+        gh, gq, gdh, gdq = native.output_grads((gh, gq, gdh, gdq), (field, field, inner, inner))
         with torch.no_grad():  # differentiable once: the adjoint keeps no graph
             gh, gq, gdh, gdq, g_prev, g_new, g_inlet, g_scale = _adjoint(
                 states, alpha, scale, gh, gq, gdh, gdq, *_CONSTANTS

@@ -156,12 +156,14 @@ class _Action(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.mark_non_differentiable(output[4])
+        ctx.set_materialize_grads(False)
         ctx.save_for_backward(output[4], inputs[5])
         ctx.dx = inputs[6]
 
     @staticmethod
     def backward(ctx, gh, gq, gfh, gfq, _):
         states, g = ctx.saved_tensors
+        gh, gq, gfh, gfq = native.output_grads((gh, gq, gfh, gfq), (states[:, 0, 0],) * 4)
         with torch.no_grad():  # differentiable once: the adjoint keeps no graph
             return (*_adjoint(states, g, gh, gq, gfh, gfq, ctx.dx, 0.5 * DT), None)
 

@@ -60,6 +60,16 @@ _SOURCE = r"""
 #define FLUSH_BEGIN
 #define FLUSH_END
 #endif
+/* A loop whose arrays the compiler cannot tell apart (pointers into one work buffer)
+   but which reads no element another iteration writes: vectorise it without the
+   run-time overlap checks it would otherwise give up on. */
+#if defined(__clang__)
+#define IVDEP _Pragma("clang loop vectorize(assume_safety)")
+#elif defined(__GNUC__)
+#define IVDEP _Pragma("GCC ivdep")
+#else
+#define IVDEP
+#endif
 
 #define SWEEP(NAME, T)                                                              \
 void NAME(T *out, const T *s, const T *a, const T *b, long nx, long ny, long members) { \
@@ -288,16 +298,22 @@ BURGERS_ACTION(burgers_action_f64, double)
 /* Its adjoint: from the gradients gu, gp of the action's new (u, p), those of its
    (u, p), of the inlet value and of the forcing. Per substep, with t = g_interior / 3
    (the outlet's share added to the last interior cell's): the forcing collects -c t,
-   u_i collects 4 t - c t D_i, the TVD derivative the gradient -c t u_i, p_i -t, and
-   u's gradient the previous p's. work 7 n values. */
+   u_i collects 4 t - c t D_i, the TVD derivative the gradient gD_i = -c t u_i, p_i -t,
+   and u's gradient the previous p's. Three loops a substep, each vectorised: t and
+   gD; the faces (the limiter once, with its slope, two divisions a face, the face
+   values for D and what each face hands the differences it read, A to its own, W to
+   the one before); the cells (D, and the shares of the differences next to each).
+   gD sits one place in, between zeros, so that every face reads it alike. work 6 n
+   values. */
 #define BURGERS_ADJOINT(NAME, T)                                                    \
 void NAME(T *restrict gu_out, T *restrict gp_out, T *restrict g_inlet, T *restrict g_s, \
           T *restrict work, const T *restrict states, const T *restrict gu,         \
           const T *restrict gp, long rows, long n, long substeps, T dx, T c) {      \
     FLUSH_BEGIN                                                                     \
-    T *restrict d = work, *restrict faces = work + n, *restrict A = work + 2 * n;  \
-    T *restrict W = work + 3 * n, *restrict gD = work + 4 * n, *restrict t = work + 5 * n; \
-    T *restrict o = work + 6 * n, idx = (T)1 / dx;                                 \
+    T *restrict gD = work, *restrict faces = work + n, *restrict A = work + 2 * n;  \
+    T *restrict W = work + 3 * n, *restrict G = work + 4 * n, *restrict t = work + 5 * n; \
+    T idx = (T)1 / dx, third = (T)1 / (T)3;                                         \
+    gD[0] = 0; gD[n - 1] = 0; A[0] = 0; W[0] = 0; W[n - 1] = 0;                     \
     for (long b = 0; b < rows; ++b) {                                               \
         T *restrict Gu = gu_out + b * n, *restrict Gp = gp_out + b * n, *restrict gs = g_s + b * (n - 2); \
         T inlet_sum = 0;                                                            \
@@ -306,19 +322,32 @@ void NAME(T *restrict gu_out, T *restrict gp_out, T *restrict g_inlet, T *restri
         for (long k = substeps - 1; k >= 0; --k) {                                  \
             const T *restrict x = states + (b * substeps + k) * n;                  \
             inlet_sum += Gu[0];                                                     \
-            for (long i = 0; i < n - 2; ++i) t[i] = Gu[i + 1] / (T)3;               \
-            t[n - 3] = (Gu[n - 2] + Gu[n - 1]) / (T)3;                              \
-            TVD_DERIVATIVE(T, VAN_LEER_PHI, x, gD)                                  \
+            Gu[n - 2] += Gu[n - 1];                                                 \
             for (long i = 0; i < n - 2; ++i) {                                      \
-                T gf = c * t[i];                                                    \
+                T ti = Gu[i + 1] * third, gf = c * ti;                              \
+                t[i] = ti;                                                          \
                 gs[i] -= gf;                                                        \
-                Gu[i + 1] = Gp[i + 1] + ((T)4 * t[i] - gf * gD[i]);                 \
-                gD[i] = gf * (-x[i + 1]);                                           \
-                Gp[i + 1] = -t[i];                                                  \
+                gD[i + 1] = gf * (-x[i + 1]);                                       \
             }                                                                       \
-            Gu[0] = Gp[0]; Gu[n - 1] = Gp[n - 1];                                   \
+            for (long j = 1; j <= n - 2; ++j) {                                     \
+                T dj = x[j + 1] - x[j], dm = x[j] - x[j - 1];                       \
+                T inv = (T)1 / (dj + (T)1e-8), r = dm * inv, phi, slope;            \
+                VAN_LEER_SLOPE(T)                                                   \
+                T Gj = (gD[j] - gD[j + 1]) * idx, w = (T)0.5 * Gj * dj * slope * inv; \
+                faces[j] = x[j] + ((T)0.5 * phi) * dj;                              \
+                G[j] = Gj;                                                          \
+                A[j] = (T)0.5 * Gj * phi - w * r;                                   \
+                W[j] = w;                                                           \
+            }                                                                       \
+            faces[0] = x[0];                                                        \
+            T first = Gp[0] - gD[1] * idx - W[1], last = Gp[n - 1] + A[n - 2];      \
+            for (long j = 1; j <= n - 2; ++j) {                                     \
+                T ti = t[j - 1], D = (faces[j] - faces[j - 1]) * idx;               \
+                Gu[j] = Gp[j] + ((T)4 * ti - (c * ti) * D) + G[j] - (A[j] + W[j + 1]) + (A[j - 1] + W[j]); \
+                Gp[j] = -ti;                                                        \
+            }                                                                       \
+            Gu[0] = first; Gu[n - 1] = last;                                        \
             Gp[0] = 0; Gp[n - 1] = 0;                                               \
-            TVD_ADJOINT_ADD(T, VAN_LEER_SLOPE, x, gD, Gu)                           \
         }                                                                           \
         g_inlet[b] = inlet_sum;                                                     \
     }                                                                               \
@@ -385,7 +414,10 @@ SHKADOV_ACTION(shkadov_action_f64, double)
 
 /* Its adjoint: from the gradients of the action's new (h, q, dh, dq), those of its
    (h, q, dh_prev, dq_prev), of the two forcings, of each substep's inlet value
-   (g_inlet [substeps, rows]) and of each row's S. work 16 n values. */
+   (g_inlet [substeps, rows]) and of each row's S. The flux is the forward's own (its
+   division), so that the limiter takes the forward's branches; elsewhere the loops
+   multiply by reciprocals, and S's gradient sums its terms after the loop that fills
+   them, which then vectorises. work 14 n + 8 values. */
 #define SHKADOV_ADJOINT(NAME, T)                                                    \
 void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restrict gdq_out, \
           T *restrict g_fp, T *restrict g_fn, T *restrict g_inlet, T *restrict g_scale, \
@@ -398,13 +430,14 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restri
     T *restrict Dq = work + 3 * n, *restrict Df = work + 4 * n, *restrict t3 = work + 5 * n; \
     T *restrict o = work + 6 * n, *restrict A = work + 7 * n, *restrict W = work + 8 * n; \
     T *restrict Nh = work + 9 * n, *restrict Nq = work + 10 * n, *restrict gflux = work + 11 * n; \
-    T *restrict gdqt = work + 12 * n, *restrict e = work + 13 * n, idx = (T)1 / dx; \
+    T *restrict terms = work + 12 * n, *restrict e = work + 13 * n, *restrict inv_h = work; \
+    T idx = (T)1 / dx, ita = (T)1 / third_a, itb = (T)1 / third_b;                 \
     for (long j = 0; j < n + 8; ++j) e[j] = 0;                                      \
     for (long b = 0; b < rows; ++b) {                                               \
         T *restrict Gh = gh_out + b * n, *restrict Gq = gq_out + b * n;             \
         T *restrict Gdh = gdh_out + b * (n - 2), *restrict Gdq = gdq_out + b * (n - 2); \
         T *restrict gfp = g_fp + b * (n - 2), *restrict gfn = g_fn + b * (n - 2);   \
-        T S = scale[b], gS = 0;                                                     \
+        T S = scale[b], iS = (T)1 / S, gS = 0;                                      \
         for (long j = 0; j < n; ++j) { Gh[j] = gh[b * n + j]; Gq[j] = gq[b * n + j]; } \
         for (long i = 0; i < n - 2; ++i) {                                          \
             Gdh[i] = gdh[b * (n - 2) + i]; Gdq[i] = gdq[b * (n - 2) + i];           \
@@ -416,43 +449,53 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gdh_out, T *restri
             g_inlet[k * rows + b] = Gh[0];                                          \
             Gh[n - 2] += Gh[n - 1];                                                 \
             Gq[n - 2] += Gq[n - 1];                                                 \
-            SHKADOV_FLUX_AND_THIRD(T)                                               \
+            /* the flux as the forward's, for the limiter's branches */            \
+            IVDEP for (long j = 0; j < n; ++j) {                                    \
+                T den = xh[j] + (T)1e-8;                                            \
+                flux[j] = (xq[j] * xq[j]) / den;                                    \
+                inv_h[j] = (T)1 / den;                                              \
+            }                                                                       \
+            for (long i = 0; i < n - 4; ++i)                                        \
+                t3[i] = ((((-xh[i + 4]) + (T)6 * xh[i + 3]) - (T)12 * xh[i + 2]) + (T)10 * xh[i + 1] \
+                         - (T)3 * xh[i]) * ita;                                     \
+            for (long i = n - 4; i < n - 2; ++i)                                    \
+                t3[i] = (((xh[i + 1] - (T)3 * xh[i]) + (T)3 * xh[i - 1]) - xh[i - 2]) * itb; \
             for (long j = 0; j < n; ++j) { Nh[j] = 0; Nq[j] = 0; gflux[j] = 0; }    \
-            for (long i = 0; i < n - 2; ++i) {                                      \
+            IVDEP for (long i = 0; i < n - 2; ++i) {                                \
                 T hi = xh[i + 1], qi = xq[i + 1], sh = c * Gh[i + 1], sq = c * Gq[i + 1]; \
                 T gdh_ = Gdh[i] + (T)3 * sh, gdq_ = Gdq[i] + (T)3 * sq;             \
-                T gF = -gdq_, den = hi * hi + (T)1e-8, gN = gdq_ / S;               \
-                T rest = (hi * (t3[i] + (T)1) - qi / den) / S;                      \
+                T gF = -gdq_, iden = (T)1 / (hi * hi + (T)1e-8), gN = gdq_ * iS;    \
+                T rest = (hi * (t3[i] + (T)1) - qi * iden) * iS;                    \
                 gfp[i] += gF - al * gF;                                             \
                 gfn[i] += al * gF;                                                  \
-                gS -= gdq_ * rest / S;                                              \
-                Nh[i + 1] = Gh[i + 1] + gN * (t3[i] + (T)1) + gN * qi * ((T)2 * hi) / (den * den); \
-                Nq[i + 1] = Gq[i + 1] - gN / den;                                   \
+                terms[i] = gdq_ * rest * iS;                                        \
+                Nh[i + 1] = Gh[i + 1] + gN * (t3[i] + (T)1) + gN * qi * ((T)2 * hi) * (iden * iden); \
+                Nq[i + 1] = Gq[i + 1] - gN * iden;                                  \
                 e[i + 4] = gN * hi;  /* the third derivative's gradient */          \
                 Dq[i] = -gdh_;  /* now the gradient of Dq */                        \
                 Df[i] = (T)-1.2 * gdq_;  /* and of Df */                            \
                 Gdh[i] = -sh;                                                       \
                 Gdq[i] = -sq;                                                       \
             }                                                                       \
+            for (long i = 0; i < n - 2; ++i) gS -= terms[i];                        \
             /* the third derivative's stencils, transposed: e[i + 4] weighs cell i's, and */ \
             /* the one-sided stencil's weights stop at cell n - 5 (zeros around them) */ \
             T last = e[n], next_to_last = e[n + 1];                                 \
             e[n] = 0; e[n + 1] = 0;                                                 \
-            for (long m = 0; m < n; ++m)                                            \
+            IVDEP for (long m = 0; m < n; ++m)                                      \
                 Nh[m] += ((-e[m] + (T)6 * e[m + 1]) - (T)12 * e[m + 2] + (T)10 * e[m + 3] \
-                          - (T)3 * e[m + 4]) / third_a;                             \
+                          - (T)3 * e[m + 4]) * ita;                                 \
             e[n] = last; e[n + 1] = next_to_last;                                   \
             for (long i = n - 4; i < n - 2; ++i) {                                  \
-                T w = e[i + 4] / third_b;                                           \
+                T w = e[i + 4] * itb;                                               \
                 Nh[i + 1] += w; Nh[i] -= (T)3 * w; Nh[i - 1] += (T)3 * w; Nh[i - 2] -= w; \
             }                                                                       \
             e[n] = 0; e[n + 1] = 0;                                                 \
             TVD_ADJOINT_ADD(T, MINMOD_SLOPE, xq, Dq, Nq)                            \
             TVD_ADJOINT_ADD(T, MINMOD_SLOPE, flux, Df, gflux)                       \
-            for (long j = 0; j < n; ++j) {                                          \
-                T den = xh[j] + (T)1e-8;                                            \
-                Nq[j] += (T)2 * xq[j] * gflux[j] / den;                             \
-                Nh[j] -= gflux[j] * flux[j] / den;                                  \
+            IVDEP for (long j = 0; j < n; ++j) {                                    \
+                Nq[j] += (T)2 * xq[j] * gflux[j] * inv_h[j];                        \
+                Nh[j] -= gflux[j] * flux[j] * inv_h[j];                             \
             }                                                                       \
             for (long j = 0; j < n; ++j) { Gh[j] = Nh[j]; Gq[j] = Nq[j]; }          \
         }                                                                           \
@@ -523,7 +566,11 @@ SLOSHING_ACTION(sloshing_action_f64, double, __builtin_sqrt)
    of each row's g. The faces' arrays sit one place in, between zeros, so that each ghost
    cell gathers from the face on its left and the one on its right alike; a tie of the
    speeds shares the face's gradient half and half, as torch.maximum's backward does.
-   work 16 (n + 2) values. */
+   The speeds are the forward's own (its divisions and roots), so that each maximum
+   picks the same side; the rest multiplies by 1 / h, 1 / dx and 1 / g. The sums over
+   cells (of the acceleration's and g's gradients) run after the loops that fill
+   their terms, which then vectorise; the ghost cells at the ends read a speed past
+   them whose weight meets a zero face. work 18 (n + 2) + 6 values. */
 #define SLOSHING_ADJOINT(NAME, T, SQRT)                                             \
 void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gfh_out, T *restrict gfq_out, \
           T *restrict g_accel, T *restrict g_g, T *restrict work, const T *restrict states, \
@@ -532,60 +579,72 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gfh_out, T *restri
           T dx, T c) {                                                              \
     FLUSH_BEGIN                                                                     \
     const long m = n + 2;                                                           \
-    T *restrict H = work, *restrict Q = work + m, *restrict flux = work + 2 * m;   \
+    T *restrict H = work, *restrict Q = work + m;                                   \
     T *restrict speed = work + 3 * m, *restrict cf = work + 4 * m;                 \
     T *restrict ah = work + 5 * m, *restrict aq = work + 6 * m;                    \
     T *restrict gFH = work + 7 * m + 1, *restrict gFQ = work + 8 * m + 2;          \
     T *restrict gc = work + 9 * m + 3, *restrict hc = work + 10 * m + 4;           \
     T *restrict GH = work + 11 * m + 5, *restrict GQ = work + 12 * m + 5;          \
+    T *restrict ratio = work + 14 * m + 6, *restrict inv_h = work + 15 * m + 6;    \
+    T *restrict roots = work + 16 * m + 6, *restrict dq = work + 17 * m + 6, idx = (T)1 / dx; \
     for (long j = 0; j < 14 * m + 6; ++j) work[j] = 0;                              \
     for (long b = 0; b < rows; ++b) {                                               \
         T *restrict Gh = gh_out + b * n, *restrict Gq = gq_out + b * n;             \
         T *restrict Gfh = gfh_out + b * n, *restrict Gfq = gfq_out + b * n;         \
-        T g = gs[b], half_g = (T)0.5 * g, gg = 0;                                   \
+        T g = gs[b], half_g = (T)0.5 * g, inv_g = (T)1 / g, gg = 0;                 \
         for (long i = 0; i < n; ++i) {                                              \
             Gh[i] = gh[b * n + i]; Gq[i] = gq[b * n + i];                           \
             Gfh[i] = gfh[b * n + i]; Gfq[i] = gfq[b * n + i];                       \
         }                                                                           \
         for (long k = substeps - 1; k >= 0; --k) {                                  \
             const T *restrict xh = states + (b * substeps + k) * 2 * n, *restrict xq = xh + n; \
-            T gacc = 0;                                                             \
-            SLOSHING_GHOSTS(T, SQRT)                                                \
+            T gacc = 0, gcells = 0;                                                 \
+            H[0] = xh[0]; H[n + 1] = xh[n - 1]; Q[0] = 0; Q[n + 1] = 0;             \
+            for (long i = 0; i < n; ++i) { H[i + 1] = xh[i]; Q[i + 1] = xq[i]; }    \
+            IVDEP for (long j = 0; j < m; ++j) {  /* the speeds as the forward's, for its maxima */ \
+                T r = Q[j] / H[j], root = SQRT(g * H[j]);                           \
+                speed[j] = (r < 0 ? -r : r) + root;                                 \
+                ratio[j] = r; inv_h[j] = (T)1 / H[j]; roots[j] = root;              \
+            }                                                                       \
+            for (long j = 0; j <= n; ++j) cf[j] = TORCH_MAX(speed[j], speed[j + 1]); \
             for (long i = 0; i < n; ++i) {                                          \
                 T sh = c * Gh[i], sq = c * Gq[i];                                   \
                 T dfh = Gfh[i] + (T)3 * sh, dfq = Gfq[i] + (T)3 * sq;               \
-                gacc -= dfq;                                                        \
-                ah[i + 1] = -(dfh / dx);                                            \
-                aq[i + 1] = -(dfq / dx);                                            \
+                dq[i] = dfq;                                                        \
+                ah[i + 1] = -(dfh * idx);                                           \
+                aq[i + 1] = -(dfq * idx);                                           \
                 Gfh[i] = -sh;                                                       \
                 Gfq[i] = -sq;                                                       \
             }                                                                       \
+            for (long i = 0; i < n; ++i) gacc -= dq[i];                             \
             g_accel[k * rows + b] = gacc;                                           \
-            for (long j = 0; j <= n; ++j) {  /* face j between ghost cells j, j + 1 */ \
+            IVDEP for (long j = 0; j <= n; ++j) {  /* face j between ghost cells j, j + 1 */ \
                 T a = ah[j] - ah[j + 1], e = aq[j] - aq[j + 1];                     \
                 gFH[j] = a; gFQ[j] = e; hc[j] = (T)0.5 * cf[j];                     \
                 gc[j] = -(((T)0.5 * a) * (H[j + 1] - H[j])) - ((T)0.5 * e) * (Q[j + 1] - Q[j]); \
             }                                                                       \
-            for (long j = 0; j < m; ++j) {  /* ghost cell j: faces j - 1 (its left) and j */ \
-                T s = speed[j], left = j > 0 ? speed[j - 1] : s, right = j <= n ? speed[j + 1] : s; \
+            IVDEP for (long j = 0; j < m; ++j) {  /* ghost cell j: faces j - 1 (its left) and j */ \
+                T s = speed[j], left = speed[j - 1], right = speed[j + 1];          \
                 T wl = s > left ? (T)1 : (s == left ? (T)0.5 : (T)0);               \
                 T wr = s > right ? (T)1 : (s == right ? (T)0.5 : (T)0);             \
                 T gsp = gc[j - 1] * wl + gc[j] * wr;                                \
                 T gfl = (T)0.5 * gFQ[j] + (T)0.5 * gFQ[j - 1];                      \
                 T gq_ = (T)0.5 * gFH[j] + (T)0.5 * gFH[j - 1] + hc[j] * gFQ[j] - hc[j - 1] * gFQ[j - 1]; \
                 T gh_ = hc[j] * gFH[j] - hc[j - 1] * gFH[j - 1];                    \
-                T r = Q[j] / H[j], root = SQRT(g * H[j]);                           \
-                T gr = gsp * (T)((r > 0) - (r < 0)), groot = gsp / ((T)2 * root);   \
-                gq_ += gr / H[j];                                                   \
-                gh_ -= gr * r / H[j];                                               \
+                T r = ratio[j], ih = inv_h[j];                                      \
+                /* 1 / sqrt(g H) as sqrt(g H) / (g H): no second root or division */ \
+                T gr = gsp * (T)((r > 0) - (r < 0)), groot = (T)0.5 * gsp * (roots[j] * ih * inv_g); \
+                gq_ += gr * ih;                                                     \
+                gh_ -= gr * r * ih;                                                 \
                 gh_ += groot * g;                                                   \
-                gg += groot * H[j];                                                 \
-                gq_ += (T)2 * Q[j] * gfl / H[j];                                    \
-                gh_ -= gfl * (Q[j] * Q[j]) / (H[j] * H[j]);                         \
+                gq_ += (T)2 * Q[j] * gfl * ih;                                      \
+                gh_ -= gfl * (r * r);                                               \
                 gh_ += gfl * (half_g * H[j]) + (gfl * H[j]) * half_g;               \
-                gg += (T)0.5 * ((gfl * H[j]) * H[j]);                               \
+                roots[j] = groot * H[j] + (T)0.5 * ((gfl * H[j]) * H[j]);  /* g's share */ \
                 GH[j] = gh_; GQ[j] = gq_;                                           \
             }                                                                       \
+            for (long j = 0; j < m; ++j) gcells += roots[j];                        \
+            gg += gcells;                                                           \
             for (long i = 0; i < n; ++i) { Gh[i] += GH[i + 1]; Gq[i] += GQ[i + 1]; } \
             Gh[0] += GH[0];                                                         \
             Gh[n - 1] += GH[n + 1];                                                 \
@@ -730,6 +789,50 @@ def tvd_adjoint(f: torch.Tensor, grad: torch.Tensor, dx: float, minmod: bool) ->
     return out
 
 
+# The stored substeps of the differentiated actions, kept for the next action once
+# nothing else holds them. A fresh buffer of several MB costs the process a page fault
+# a page (about 1 ms an action on burgers at 64 members, a third of its C forward
+# loop), and the actions of a horizon ask for the same sizes again and again. A
+# buffer is handed out again only when the cache's reference is the last one to its
+# storage (the graph that saved it is gone); at most _KEPT_BYTES are kept.
+_KEPT_BYTES = 256 << 20
+_SMALLEST_KEPT = 1 << 20
+_kept: list[torch.Tensor] = []
+_kept_lock = threading.Lock()
+
+
+def _unused(buffer: torch.Tensor) -> bool:
+    # the cache's tensor and the storage object asked for here are its only holders
+    return torch._C._storage_Use_Count(buffer.untyped_storage()._cdata) == 2
+
+
+def stored_substeps(like: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+    """An uninitialised tensor of ``shape`` and ``like``'s dtype and device for an
+    action's stored substeps: a kept buffer of that size that nothing holds any more
+    where there is one, else a new one, kept while the cache has room."""
+    numel = 1
+    for size in shape:
+        numel *= size
+    nbytes = numel * like.element_size()
+    if nbytes < _SMALLEST_KEPT or not hasattr(torch._C, "_storage_Use_Count"):
+        return like.new_empty(shape)
+    with _kept_lock:
+        free = [b for b in _kept if _unused(b)]
+        for buffer in free:
+            if buffer.dtype == like.dtype and buffer.device == like.device and buffer.numel() == numel:
+                return buffer.view(shape)
+        held = sum(b.numel() * b.element_size() for b in _kept)
+        for buffer in free:  # unused buffers of other sizes make room first
+            if held + nbytes <= _KEPT_BYTES:
+                break
+            _kept.remove(buffer)
+            held -= buffer.numel() * buffer.element_size()
+        buffer = like.new_empty(numel)
+        if held + nbytes <= _KEPT_BYTES:
+            _kept.append(buffer)
+        return buffer.view(shape)
+
+
 def _rows(name: str, *tensors: torch.Tensor) -> ctypes.CDLL:
     lib = _library if _tried else library()
     if lib is None or not takes(*tensors):
@@ -760,7 +863,7 @@ def burgers_action(
         )
     arrays = [t.contiguous() for t in (u, u_prev, inlet, forcing)]
     u_out, p_out = torch.empty_like(arrays[0]), torch.empty_like(arrays[0])
-    states, work = u.new_empty((rows, substeps, n)), u.new_empty(3 * n)
+    states, work = stored_substeps(u, (rows, substeps, n)), u.new_empty(3 * n)
     pointers = (t.data_ptr() for t in (u_out, p_out, states, work, *arrays))
     getattr(lib, f"burgers_action_{_KERNELS[u.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
     return u_out, p_out, states
@@ -781,7 +884,7 @@ def burgers_adjoint(
         )
     arrays = [t.contiguous() for t in (states, grad_u, grad_u_prev)]
     gu, gp = torch.empty_like(arrays[1]), torch.empty_like(arrays[1])
-    g_inlet, g_forcing, work = states.new_empty((rows, 1)), states.new_empty((rows, n - 2)), states.new_empty(7 * n)
+    g_inlet, g_forcing, work = states.new_empty((rows, 1)), states.new_empty((rows, n - 2)), states.new_empty(6 * n)
     pointers = (t.data_ptr() for t in (gu, gp, g_inlet, g_forcing, work, *arrays))
     getattr(lib, f"burgers_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
     return gu, gp, g_inlet, g_forcing
@@ -823,7 +926,7 @@ def shkadov_action(
         raise ValueError(f"shkadov_action: the rows {tuple(h.shape)} and the action's inputs do not fit")
     arrays = [t.contiguous() for t in (h, q, dh_prev, dq_prev, forcing_prev, forcing_new, alpha, inlet, scale)]
     outs = [torch.empty_like(t) for t in arrays[:4]]
-    states, work = h.new_empty((rows, substeps, 2, n)), h.new_empty(6 * n)
+    states, work = stored_substeps(h, (rows, substeps, 2, n)), h.new_empty(6 * n)
     pointers = (t.data_ptr() for t in (*outs, states, work, *arrays))
     getattr(lib, f"shkadov_action_{_KERNELS[h.dtype][0]}")(*pointers, rows, n, substeps, dx, c, third_a, third_b)
     return (*outs, states)
@@ -881,7 +984,7 @@ def sloshing_action(
         raise ValueError(f"sloshing_action: the rows {tuple(h.shape)} and the action's inputs do not fit")
     arrays = [t.contiguous() for t in (h, q, fh_prev, fq_prev, accel, g)]
     outs = [torch.empty_like(t) for t in arrays[:4]]
-    states, work = h.new_empty((rows, substeps, 2, n)), h.new_empty(6 * (n + 2))
+    states, work = stored_substeps(h, (rows, substeps, 2, n)), h.new_empty(6 * (n + 2))
     pointers = (t.data_ptr() for t in (*outs, states, work, *arrays))
     getattr(lib, f"sloshing_action_{_KERNELS[h.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
     return (*outs, states)
@@ -899,10 +1002,19 @@ def sloshing_adjoint(
         raise ValueError(f"sloshing_adjoint: states {tuple(states.shape)} and the gradients do not fit")
     arrays = [t.contiguous() for t in (states, g, *grads)]
     outs = [torch.empty_like(t) for t in arrays[2:]]
-    g_accel, g_g, work = states.new_empty((substeps, rows)), states.new_empty(rows), states.new_empty(14 * (n + 2) + 6)
+    g_accel, g_g, work = states.new_empty((substeps, rows)), states.new_empty(rows), states.new_empty(18 * (n + 2) + 6)
     pointers = (t.data_ptr() for t in (*outs, g_accel, g_g, work, *arrays))
     getattr(lib, f"sloshing_adjoint_{_KERNELS[states.dtype][0]}")(*pointers, rows, n, substeps, dx, c)
     return (*outs, g_accel, g_g)
+
+
+def output_grads(grads: tuple, likes: tuple) -> tuple:
+    """The gradients a backward pass of a whole action receives, a zero tensor shaped
+    like its ``like`` where an output received none. The actions' Functions leave
+    materialising them off: their stored substeps are an output too, and autograd
+    would otherwise fill a zero gradient as large as them every action (about 2 ms of
+    an 8 MB fill on burgers at 64 members)."""
+    return tuple(torch.zeros_like(like) if g is None else g for g, like in zip(grads, likes, strict=True))
 
 
 def rows_vmap(name: str, inputs: tuple[int | None, ...], outputs: tuple[int, ...]):
