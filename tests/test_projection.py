@@ -165,37 +165,6 @@ def test_wall_ghosts_impose_the_wall_velocities_per_member():
     assert (ue[0, 1:-1] == 0).all() and (ue[-1, 1:-1] == 0).all() and (ve[1:-1, 0] == 0).all()
 
 
-@pytest.mark.parametrize(
-    "make, shape",
-    [
-        (lambda kw: Ghosts.cells(5, 4, GRADIENT, -1.0, 0.0, GRADIENT, corners=False, **kw), (5, 4)),
-        (lambda kw: Ghosts.cells(5, 4, "periodic", "periodic", -1.0, -1.0, **kw), (5, 4)),
-        (lambda kw: Ghosts.u_faces(5, 4, **kw), (6, 4)),
-        (lambda kw: Ghosts.v_faces(5, 4, periodic=True, **kw), (5, 5)),
-        (lambda kw: Ghosts.periodic_wide(5, 2, 2, None, [1.0] * 4, **kw), (5, 4)),
-    ],
-)
-def test_a_ghost_map_gathers_and_differentiates_as_its_index_map(make, shape):
-    """The ghosted field, and its gradient, are those of the index map it is defined by
-    (gathered as slices joined, whose backward adds slices instead of scattering)."""
-    ghosts = make(F64)
-    f = torch.randn((*shape, 3), **F64).requires_grad_()
-    weight = torch.randn_like(ghosts(f))
-
-    def by_index(t):
-        t = t[ghosts.ix] if ghosts.ix is not None else t
-        t = t[:, ghosts.iy] if ghosts.iy is not None else t
-        return t * ghosts.factor
-
-    assert torch.equal(ghosts(f), by_index(f))
-    torch.testing.assert_close(
-        torch.autograd.grad((ghosts(f) * weight).sum(), f)[0],
-        torch.autograd.grad((by_index(f) * weight).sum(), f)[0],
-        rtol=1e-15,
-        atol=1e-15,
-    )
-
-
 def stretched(widths, dim: int) -> Stretched:
     """An axis of the given cell widths along ``dim`` (0: x, 1: y), ghost centres
     mirrored beyond its ends."""

@@ -34,7 +34,6 @@ class Ghosts:
     def __init__(self, index_x, factor_x, index_y, factor_y, *, dtype, device) -> None:
         as_index = lambda i: None if i is None else torch.tensor(i, dtype=torch.int64, device=device)
         self.ix, self.iy = as_index(index_x), as_index(index_y)
-        self.runs_x, self.runs_y = _runs(index_x), _runs(index_y)
         fx = torch.tensor(factor_x, dtype=torch.float64)
         fy = torch.tensor(factor_y, dtype=torch.float64)
         self.factor = (fx[:, None, None] * fy[None, :, None]).to(dtype=dtype, device=device)
@@ -83,31 +82,12 @@ class Ghosts:
         return cls(index, [1.0] * len(index), y_index, y_factor, **kw)
 
     def __call__(self, f: torch.Tensor, offset: torch.Tensor | None = None) -> torch.Tensor:
-        # the gather as slices joined (the index maps are runs of neighbouring
-        # positions): its backward adds slices, where an index's backward scatters
-        f = _gather(f, 0, self.runs_x)
-        f = _gather(f, 1, self.runs_y)
+        if self.ix is not None:
+            f = f[self.ix]
+        if self.iy is not None:
+            f = f[:, self.iy]
         f = f * self.factor
         return f if offset is None else f + offset
-
-
-def _runs(index) -> list[tuple[int, int]] | None:
-    """An index map as runs of neighbouring positions, ``(start, length)`` each."""
-    if index is None:
-        return None
-    runs: list[list[int]] = []
-    for i in index:
-        if runs and i == runs[-1][0] + runs[-1][1]:
-            runs[-1][1] += 1
-        else:
-            runs.append([i, 1])
-    return [(start, length) for start, length in runs]
-
-
-def _gather(f: torch.Tensor, dim: int, runs) -> torch.Tensor:
-    if runs is None:
-        return f
-    return torch.cat([f.narrow(dim, start, length) for start, length in runs], dim)
 
 
 def edge_offset(n: int, axis: int, low, high, like: torch.Tensor) -> torch.Tensor:
