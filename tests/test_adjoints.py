@@ -172,6 +172,117 @@ def test_a_cavity_compiles_with_gradients_to_the_eager_gradient():
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-10, atol=1e-12)
 
 
+def momentum_inputs(nx: int, ny: int, members: int, seed: int):
+    """Ghosted face velocities ``u`` ``[nx + 1, ny + 2, B]``, ``v`` ``[nx + 2, ny + 1, B]``
+    and weights of the two components of the terms."""
+    u, v = rand((nx + 1, ny + 2, members), seed), rand((nx + 2, ny + 1, members), seed + 1)
+    return u, v, rand((nx - 1, ny, members), seed + 2), rand((nx, ny - 1, members), seed + 3)
+
+
+def stretched_spacings():
+    """The two axes of a wake's grid (cells growing away from a refined box), as
+    :func:`staggered.tendency` takes them, and their cells."""
+    from beacon_torch.numerics.staggered import Axis, Stretched
+
+    x, y = Axis(3.0, 1.0, 1.6, 0.1, 1.3, 0.5), Axis(2.0, 0.8, 1.2, 0.1, 1.2, 0.4)
+    shaped = lambda t, dim: t.reshape((-1, 1, 1) if dim == 0 else (1, -1, 1))
+    spacings = (
+        Stretched(shaped(x.widths, 0), shaped(x.gaps, 0), 0),
+        Stretched(shaped(y.widths, 1), shaped(y.gaps, 1), 1),
+    )
+    return spacings, (x.n, y.n)
+
+
+def momentum_gradients(terms, u, v, nu, x, y, wu, wv):
+    """The gradients of the weighted terms ``terms(u, v, nu, x, y)`` with respect to
+    ``u``, ``v`` and (where it is a tensor) ``nu``."""
+    inputs = [t.detach().clone().requires_grad_() for t in (u, v, *([nu] if isinstance(nu, torch.Tensor) else []))]
+    hu, hv = terms(*inputs[:2], inputs[2] if len(inputs) > 2 else nu, x, y)
+    return torch.autograd.grad((hu * wu).sum() + (hv * wv).sum(), inputs)
+
+
+@pytest.mark.parametrize("grid", ["equal cells", "stretched"])
+@pytest.mark.parametrize("viscosity", ["number", "per member"])
+def test_the_momentum_adjoint_is_autograds_gradient_of_the_terms(grid, viscosity):
+    """Random velocities: the C adjoint of the staggered momentum terms (advection and
+    diffusion, both components) against autograd through the terms' slices, for both
+    velocities and the viscosity, on equal and on stretched cells; the terms themselves
+    bit for bit; and against central differences."""
+    from beacon_torch.numerics import staggered
+
+    (x, y), (nx, ny) = stretched_spacings() if grid == "stretched" else ((0.1, 0.07), (9, 6))
+    u, v, wu, wv = momentum_inputs(nx, ny, 3, seed=nx)
+    nu = 0.03 if viscosity == "number" else torch.tensor([0.01, 0.02, 0.05], dtype=torch.float64)
+    sx, sy = staggered.spacing(x), staggered.spacing(y)
+    got = momentum_gradients(staggered.tendency, u, v, nu, x, y, wu, wv)
+    want = momentum_gradients(staggered._terms, u, v, nu, sx, sy, wu, wv)
+    assert len(got) == (2 if viscosity == "number" else 3)
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-13, atol=1e-13 * w.abs().max())
+    with torch.enable_grad():
+        recorded = staggered.tendency(u.clone().requires_grad_(), v, nu, x, y)
+    for a, b in zip(recorded, staggered._terms(u, v, nu, sx, sy), strict=True):
+        assert torch.equal(a, b)
+    if grid == "equal cells":
+        small = [t[..., :1].clone().requires_grad_() for t in momentum_inputs(5, 4, 1, seed=1)[:2]]
+        assert torch.autograd.gradcheck(lambda u, v: staggered.tendency(u, v, 0.03, 0.2, 0.25), small)
+
+
+def test_the_momentum_adjoint_of_a_real_state_is_autograds_gradient(monkeypatch):
+    """rayleigh-v0's developed roll, its velocities with the cavity's wall ghosts as a
+    substep's predictor reads them: the C adjoint against autograd through the terms,
+    float64 and float32 (to float32's round-off)."""
+    from beacon_torch.numerics import staggered
+
+    env = beacon_torch.make("rayleigh-v0", 2, dtype="float64")
+    env.reset()
+    cavity = env.physics.cavity
+    flow = cavity.to_solver(env.physics.flow(env.state), env.physics.ghosts)
+    u, v = cavity.u_ghosts(flow.u), cavity.v_ghosts(flow.v)
+    nx, ny = cavity.nx, cavity.ny
+    wu, wv = rand((nx - 1, ny, 2), seed=5), rand((nx, ny - 1, 2), seed=6)
+    nu = env.physics.nu(env.params)
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+        cast = [t.to(dtype) for t in (u, v, wu, wv)]
+        args = (cavity.dx, cavity.dy)
+        got = momentum_gradients(staggered.tendency, cast[0], cast[1], nu, *args, *cast[2:])
+        spacings = tuple(staggered.spacing(h) for h in args)
+        want = momentum_gradients(staggered._terms, cast[0], cast[1], nu, *spacings, *cast[2:])
+        for g, w in zip(got, want, strict=True):
+            torch.testing.assert_close(g, w, rtol=tol, atol=tol * w.abs().max())
+
+
+def test_the_momentum_adjoint_maps_and_compiles():
+    """``vmap`` of ``grad`` through the momentum terms is each mapped value's own
+    gradient; a compiled function of them differentiates to the eager gradient, on
+    stretched cells with a per-member viscosity that requires grad."""
+    from beacon_torch.numerics import staggered
+
+    u, v, wu, wv = momentum_inputs(6, 5, 2, seed=11)
+
+    def loss(u):
+        hu, hv = staggered.tendency(u, v, 0.02, 0.1, 0.1)
+        return (hu * wu).sum() + (hv * wv).sum()
+
+    several = torch.stack([u, 2.0 * u, -u])
+    torch.testing.assert_close(vmap(grad(loss))(several), torch.stack([grad(loss)(x) for x in several]))
+
+    (x, y), (nx, ny) = stretched_spacings()
+    u, v, wu, wv = momentum_inputs(nx, ny, 2, seed=12)
+
+    def terms(u, v, nu):
+        hu, hv = staggered.tendency(u, v, nu, x, y)
+        return (hu * wu).sum() + (hv * wv).sum()
+
+    inputs = lambda: [t.clone().requires_grad_() for t in (u, v, torch.tensor([0.01, 0.03], dtype=torch.float64))]
+    eager = inputs()
+    expected = torch.autograd.grad(terms(*eager), eager)
+    compiled_inputs = inputs()
+    compiled = torch.compile(terms, fullgraph=True, dynamic=False)
+    for got, want in zip(torch.autograd.grad(compiled(*compiled_inputs), compiled_inputs), expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12 * want.abs().max())
+
+
 def tvd_inputs(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Rows with the limiters' kinks in them: flat stretches (r = 0, and a zero
     difference under the ratio), a straight ramp (r = 1) and random values."""

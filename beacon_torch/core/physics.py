@@ -37,7 +37,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from beacon_torch.compiled import Kernels
+from beacon_torch.compiled import Kernels, member_vectors
 from beacon_torch.core.state import Noise, State
 from beacon_torch.core.step import advance_settled, settle
 
@@ -65,6 +65,10 @@ class Physics(abc.ABC):
     # a few microseconds instead of tens, and a while_loop's iteration runs in C++
     # rather than in the generated Python wrapper
     inductor_options: ClassVar[dict] = {"cpp_wrapper": True}
+    # whether the fields' contiguous axis is the members (the 2-D flows' batch-last
+    # layout): the compiled kernels' vectors are then as wide as a row of members fills
+    # (:func:`~beacon_torch.compiled.member_vectors`)
+    members_innermost: ClassVar[bool] = False
     # substeps a compiled call runs where autograd records (compile=True with
     # differentiable=True; see Kernels.loop): fewer calls, each with its fixed cost,
     # against a compilation that grows with the chunk
@@ -97,7 +101,10 @@ class Physics(abc.ABC):
         # of choices
         self.n_obs, self.n_actions = self.sizes(params)
         # the compiled path: which functions run through torch.compile, decided later
-        self.kernels = Kernels(self.inductor_options, chunk=self.grad_chunk)
+        options = dict(self.inductor_options)
+        if self.members_innermost:
+            options.update(member_vectors(self.num_envs, dtype, self.device))
+        self.kernels = Kernels(options, chunk=self.grad_chunk)
         self.settle = self.kernels(settle)
         self.settled_action = self.kernels(advance_settled)
         with torch.no_grad():

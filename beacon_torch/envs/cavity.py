@@ -91,6 +91,8 @@ class CavityPhysics(Physics):
     ``H`` and ``solver``, probes of the scalar and the velocities, their history as
     observation."""
 
+    members_innermost = True
+
     episode_length: ClassVar[int] = 100
 
     scalar: ClassVar[str]  # the transported scalar's name in the state

@@ -4,7 +4,8 @@ walls.
 Layout: every field is ``[X, Y, B]``, x first, **batch last**. The members are the
 contiguous dimension, so a stencil shift moves whole rows of members: the fused kernels
 of the compiled path then vectorise across the batch with no tails and no masks (the
-comparison with batch first: docs/performance.md).
+comparison with batch first: docs/performance.md), with vectors as wide as a row of
+members fills (:func:`beacon_torch.compiled.member_vectors`).
 
 Ghost values are gathered from the stored values when a stencil needs them
 (:class:`Ghosts`: an index map and a factor per position, plus an offset for

@@ -25,6 +25,11 @@ adjoint written beside it. The sweep's adjoint is the reverse sweep (a C kernel 
 same loop run backwards), the tridiagonal solve's is the same solve (its matrix is symmetric, or
 similar to its transpose through the cells' widths), so that a gradient through a
 cavity step keeps the fast loops instead of a graph of thousands of small operations.
+The staggered grid's explicit momentum terms keep their tensor form forwards (inductor
+fuses it well); their adjoint is a C loop in which each velocity takes back what the
+terms that read it send (autograd's backward of their slices is a zero padding each,
+read under masks).
+
 Under ``torch.func.vmap`` the mapped dimension joins the members (the loops treat every
 member alike), and a compiled graph calls them as any other operator.
 """
@@ -655,6 +660,82 @@ void NAME(T *restrict gh_out, T *restrict gq_out, T *restrict gfh_out, T *restri
 }
 SLOSHING_ADJOINT(sloshing_adjoint_f32, float, __builtin_sqrtf)
 SLOSHING_ADJOINT(sloshing_adjoint_f64, double, __builtin_sqrt)
+
+/* The adjoint of the staggered grid's explicit momentum terms (centred fluxes of
+   face-averaged velocities, and nu times the second differences): from the gradients
+   gu [nx - 1][ny][B] and gv [nx][ny - 1][B] of the terms on the interior faces, the
+   gradients du [nx + 1][ny + 2][B] and dv [nx + 2][ny + 1][B] of the ghosted
+   velocities, each term adding to the faces it read. cx and cy hold each axis's
+   multipliers: the differences across the interior faces' control volumes (n - 1)
+   and the cells' (n), then the second differences' outer coefficients at the
+   interior faces (minus, plus: n - 1 each) and at the cells (n each). nu [B]. */
+#define MOMENTUM_ADJOINT(NAME, T)                                                   \
+void NAME(T *du, T *dv, const T *u, const T *v, const T *gu, const T *gv,           \
+          const T *nu, const T *cx, const T *cy, long nx, long ny, long B) {         \
+    const long uc = (ny + 2) * B, vc = (ny + 1) * B;                                \
+    const T *xdf = cx, *xdc = cx + (nx - 1), *xfm = xdc + nx, *xfp = xfm + (nx - 1); \
+    const T *xcm = xfp + (nx - 1), *xcp = xcm + nx;                                 \
+    const T *ydf = cy, *ydc = cy + (ny - 1), *yfm = ydc + ny, *yfp = yfm + (ny - 1); \
+    const T *ycm = yfp + (ny - 1), *ycp = ycm + ny;                                 \
+    for (long k = 0; k < (nx + 1) * uc; ++k) du[k] = 0;                             \
+    for (long k = 0; k < (nx + 2) * vc; ++k) dv[k] = 0;                             \
+    for (long i = 1; i < nx; ++i)                                                   \
+        for (long j = 0; j < ny; ++j) {                                             \
+            const T *g = gu + ((i - 1) * ny + j) * B;                               \
+            const T *uu = u + i * uc + (j + 1) * B, *vv = v + i * vc + j * B;       \
+            T *d = du + i * uc + (j + 1) * B, *e = dv + i * vc + j * B;             \
+            const T sx = xdf[i - 1], sy = ydc[j];                                   \
+            const T fm = xfm[i - 1], fp = xfp[i - 1], hm = ycm[j], hp = ycp[j];     \
+            const T fc = -(fm + fp) - (hm + hp);                                    \
+            IVDEP                                                                   \
+            for (long m = 0; m < B; ++m) {                                          \
+                const T G = g[m], a = -G * sx, b = -0.5 * G * sy, L = nu[m] * G;    \
+                const T pe = a * (0.5 * (uu[m] + uu[uc + m]));                      \
+                const T pw = a * (0.5 * (uu[m - uc] + uu[m]));                      \
+                const T un = 0.5 * (uu[m] + uu[B + m]), us = 0.5 * (uu[m - B] + uu[m]); \
+                const T vn = 0.5 * (vv[B + m] + vv[vc + B + m]), vs = 0.5 * (vv[m] + vv[vc + m]); \
+                const T qn = b * vn, qs = b * vs, rn = b * un, rs = b * us;         \
+                d[m] += (pe - pw) + (qn - qs) + L * fc;                             \
+                d[uc + m] += pe + L * fp;                                           \
+                d[m - uc] += L * fm - pw;                                           \
+                d[B + m] += qn + L * hp;                                            \
+                d[m - B] += L * hm - qs;                                            \
+                e[B + m] += rn;                                                     \
+                e[vc + B + m] += rn;                                                \
+                e[m] -= rs;                                                         \
+                e[vc + m] -= rs;                                                    \
+            }                                                                       \
+        }                                                                           \
+    for (long c = 0; c < nx; ++c)                                                   \
+        for (long k = 1; k < ny; ++k) {                                             \
+            const T *g = gv + (c * (ny - 1) + (k - 1)) * B;                         \
+            const T *vv = v + (c + 1) * vc + k * B, *uu = u + c * uc + k * B;       \
+            T *d = dv + (c + 1) * vc + k * B, *e = du + c * uc + k * B;             \
+            const T sy = ydf[k - 1], sx = xdc[c];                                   \
+            const T fm = yfm[k - 1], fp = yfp[k - 1], hm = xcm[c], hp = xcp[c];     \
+            const T fc = -(hm + hp) - (fm + fp);                                    \
+            IVDEP                                                                   \
+            for (long m = 0; m < B; ++m) {                                          \
+                const T G = g[m], a = -G * sy, b = -0.5 * G * sx, L = nu[m] * G;    \
+                const T pn = a * (0.5 * (vv[m] + vv[B + m]));                       \
+                const T ps = a * (0.5 * (vv[m - B] + vv[m]));                       \
+                const T ve = 0.5 * (vv[m] + vv[vc + m]), vw = 0.5 * (vv[m - vc] + vv[m]); \
+                const T ue = 0.5 * (uu[uc + m] + uu[uc + B + m]), uw = 0.5 * (uu[m] + uu[B + m]); \
+                const T qe = b * ue, qw = b * uw, re = b * ve, rw = b * vw;         \
+                d[m] += (pn - ps) + (qe - qw) + L * fc;                             \
+                d[B + m] += pn + L * fp;                                            \
+                d[m - B] += L * fm - ps;                                            \
+                d[vc + m] += qe + L * hp;                                           \
+                d[m - vc] += L * hm - qw;                                           \
+                e[uc + m] += re;                                                    \
+                e[uc + B + m] += re;                                                \
+                e[m] -= rw;                                                         \
+                e[B + m] -= rw;                                                     \
+            }                                                                       \
+        }                                                                           \
+}
+MOMENTUM_ADJOINT(momentum_adjoint_f32, float)
+MOMENTUM_ADJOINT(momentum_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno")
@@ -700,7 +781,7 @@ def _build() -> ctypes.CDLL | None:
     # microseconds a call, and the caller has chosen the kernel of the tensors' dtype
     pointer, size = ctypes.c_void_p, ctypes.c_long
     for suffix, ctype in (("f32", ctypes.c_float), ("f64", ctypes.c_double)):
-        for name, arrays in (("sweep", 4), ("lines", 5), ("sweep_adjoint", 7)):
+        for name, arrays in (("sweep", 4), ("lines", 5), ("sweep_adjoint", 7), ("momentum_adjoint", 9)):
             fn = getattr(lib, f"{name}_{suffix}")
             fn.argtypes = (*(pointer,) * arrays, size, size, size)
             fn.restype = None
@@ -1234,3 +1315,39 @@ def lines(f: torch.Tensor, lower: torch.Tensor, inv: torch.Tensor, upper: torch.
     """:func:`lines_kernel`, differentiable in ``f`` (the elimination is a constant of
     the grid), under ``torch.func`` and ``torch.compile`` too."""
     return _Lines.apply(f, lower, inv, upper, width)
+
+
+def _momentum_adjoint(
+    u: torch.Tensor,
+    v: torch.Tensor,
+    gu: torch.Tensor,
+    gv: torch.Tensor,
+    nu: torch.Tensor,
+    cx: torch.Tensor,
+    cy: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The gradients of the ghosted velocities ``u`` (``[nx + 1, ny + 2, B]``) and ``v``
+    (``[nx + 2, ny + 1, B]``) of the staggered momentum terms
+    (:func:`beacon_torch.numerics.staggered.tendency`) from ``gu`` and ``gv``, the
+    gradients of its results: the C kernel, with the viscosity ``nu`` (``[B]``) and the
+    axes' multipliers ``cx``, ``cy`` (see the C source;
+    :func:`beacon_torch.numerics.staggered.multipliers`)."""
+    nx, ny, members = u.shape[0] - 1, u.shape[1] - 2, u.shape[2]
+    if (
+        v.shape != (nx + 2, ny + 1, members)
+        or gu.shape != (nx - 1, ny, members)
+        or gv.shape != (nx, ny - 1, members)
+        or nu.shape != (members,)
+        or cx.shape != (6 * nx - 3,)
+        or cy.shape != (6 * ny - 3,)
+    ):
+        raise ValueError(f"momentum_adjoint: the velocities {tuple(u.shape)}, {tuple(v.shape)} and the rest do not fit")
+    return _call("momentum_adjoint", u, v, gu, gv, nu, cx, cy, sizes=(nx, ny, members), outs=(u, v))
+
+
+momentum_adjoint = operator(
+    "momentum_adjoint(Tensor u, Tensor v, Tensor gu, Tensor gv, Tensor nu, Tensor cx, Tensor cy) -> (Tensor, Tensor)",
+    _momentum_adjoint,
+    lambda u, v, gu, gv, nu, cx, cy: (_new(u), _new(v)),
+    _members_vmap("momentum_adjoint", (0, 1, 2, 3, 4), outputs=2),
+)

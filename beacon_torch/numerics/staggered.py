@@ -15,6 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from beacon_torch.numerics import native
 from beacon_torch.numerics.grid import ZERO_FACE
 
 
@@ -34,6 +35,12 @@ class Uniform:
         cells, from the values ``minus``, ``mid``, ``plus`` one node apart."""
         # the published form, which the reference rollouts match to the last bit
         return (plus - 2.0 * mid + minus) / self.h**2
+
+    def second_adjoint(self, g: torch.Tensor, faces: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The gradients of :meth:`second`'s ``minus``, ``mid`` and ``plus`` from ``g``,
+        the gradient of its result."""
+        side = g / self.h**2
+        return side, -2.0 * side, side
 
 
 class Stretched:
@@ -55,6 +62,12 @@ class Stretched:
         # between faces, the nodes are a cell apart; between cells, a gap apart
         inner, outer = (self.widths, self._part(self.gaps, 1, -1)) if faces else (self.gaps, self.widths)
         return ((plus - mid) / self._part(inner, 1, 0) - (mid - minus) / self._part(inner, 0, -1)) / outer
+
+    def second_adjoint(self, g: torch.Tensor, faces: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        inner, outer = (self.widths, self._part(self.gaps, 1, -1)) if faces else (self.gaps, self.widths)
+        g = g / outer
+        plus, minus = g / self._part(inner, 1, 0), g / self._part(inner, 0, -1)
+        return minus, -(plus + minus), plus
 
 
 class Axis:
@@ -133,9 +146,52 @@ def tendency(u: torch.Tensor, v: torch.Tensor, nu, dx, dy) -> tuple[torch.Tensor
     faces by plain averages: exact where the cells are equal, first order where they
     grow."""
     x, y = spacing(dx), spacing(dy)
+    one_per_member = not isinstance(nu, torch.Tensor) or nu.numel() in (1, u.shape[-1])
+    tensors = [t for t in (u, v, nu) if isinstance(t, torch.Tensor)]
+    if native.recording(*tensors) and one_per_member and native.applies(u.device, u.dtype) and native.takes(*tensors):
+        return _Tendency.apply(u, v, nu, x, y)
+    return _terms(u, v, nu, x, y)
+
+
+def _terms(u, v, nu, x, y) -> tuple[torch.Tensor, torch.Tensor]:
     # one function per component, so that the first one's temporaries are freed before
     # the second allocates its own (a lower peak: fewer fresh pages at large batches)
     return _x_momentum(u, v, nu, x, y), _y_momentum(u, v, nu, x, y)
+
+
+class _Tendency(torch.autograd.Function):
+    """:func:`tendency` with the C kernel :func:`~beacon_torch.numerics.native.momentum_adjoint`
+    as its backward pass: each velocity gathers in one loop what the terms that read it
+    send back, where autograd's backward of the dozen slices a component reads is a
+    zero padding apiece, which the compiled backward reads under masks (about three
+    times the forward's work on the cavities)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(u, v, nu, x, y):
+        return _terms(u, v, nu, x, y)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        u, v, nu, ctx.x, ctx.y = inputs
+        if isinstance(nu, torch.Tensor):
+            ctx.save_for_backward(u, v, nu)
+        else:
+            ctx.save_for_backward(u, v)
+            ctx.nu = nu
+
+    @staticmethod
+    def backward(ctx, gu, gv):
+        u, v, *nu = ctx.saved_tensors
+        nu = nu[0] if nu else ctx.nu
+        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
+            nx, ny, members = u.shape[0] - 1, u.shape[1] - 2, u.shape[2]
+            per_member = torch.as_tensor(nu, dtype=u.dtype).reshape(-1).expand(members).contiguous()
+            cx, cy = multipliers(ctx.x, nx, u), multipliers(ctx.y, ny, u)
+            du, dv = native.momentum_adjoint(u, v, gu, gv, per_member, cx, cy)
+            dnu = _nu_gradient(u, v, nu, ctx.x, ctx.y, gu, gv) if ctx.needs_input_grad[2] else None
+        return du, dv, dnu, None, None
 
 
 def _x_momentum(u: torch.Tensor, v: torch.Tensor, nu, x, y) -> torch.Tensor:
@@ -168,6 +224,39 @@ def _y_momentum(u: torch.Tensor, v: torch.Tensor, nu, x, y) -> torch.Tensor:
     duv = x.difference(ue * ve - uw * vw, faces=False)
     lap_v = x.second(v[:-2, 1:-1], vf, v[2:, 1:-1], faces=False) + y.second(v[1:-1, :-2], vf, v[1:-1, 2:], faces=True)
     return -dvv - duv + nu * lap_v
+
+
+def _nu_gradient(u, v, nu, x, y, gu, gv) -> torch.Tensor:
+    """The gradient of :func:`tendency`'s ``nu`` from those of its results: its
+    second differences, read against them."""
+    uf, vf = u[1:-1, 1:-1], v[1:-1, 1:-1]
+    lap_u = x.second(u[:-2, 1:-1], uf, u[2:, 1:-1], faces=True) + y.second(u[1:-1, :-2], uf, u[1:-1, 2:], faces=False)
+    lap_v = x.second(v[:-2, 1:-1], vf, v[2:, 1:-1], faces=False) + y.second(v[1:-1, :-2], vf, v[1:-1, 2:], faces=True)
+    return ((gu * lap_u).sum((0, 1)) + (gv * lap_v).sum((0, 1))).sum_to_size(nu.shape)
+
+
+def multipliers(axis, n: int, like: torch.Tensor) -> torch.Tensor:
+    """An axis's multipliers as the C adjoint of the momentum terms reads them
+    (``[6 n - 3]``, ``n`` cells; see :func:`beacon_torch.numerics.native.momentum_adjoint`),
+    from its own :meth:`difference` and :meth:`second_adjoint` of ones."""
+    dim = axis.dim if isinstance(axis, Stretched) else 0
+
+    def ones(k):
+        shape = [1, 1, 1]
+        shape[dim] = k
+        return torch.ones(shape, dtype=like.dtype, device=like.device)
+
+    face_minus, _, face_plus = axis.second_adjoint(ones(n - 1), faces=True)
+    cell_minus, _, cell_plus = axis.second_adjoint(ones(n), faces=False)
+    parts = (
+        axis.difference(ones(n - 1), faces=True),
+        axis.difference(ones(n), faces=False),
+        face_minus,
+        face_plus,
+        cell_minus,
+        cell_plus,
+    )
+    return torch.cat([t.reshape(-1) for t in parts])
 
 
 def predict(

@@ -92,6 +92,8 @@ class CylinderPhysics(Physics):
     """The channel flow past a cylinder with two jets (2 continuous actions: the jets'
     flow rates)."""
 
+    members_innermost = True
+
     Params = CylinderParams
     state_type = CylinderState
     episode_length = EPISODE_LENGTH

@@ -118,6 +118,8 @@ class PinballPhysics(Physics):
     """The flow past three rotating cylinders (3 continuous actions: their angular
     velocities)."""
 
+    members_innermost = True
+
     Params = PinballParams
     state_type = PinballState
     episode_length = EPISODE_LENGTH
