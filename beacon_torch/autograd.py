@@ -26,6 +26,11 @@ def checkpointed(step: Callable, *inputs):
     from torch.utils.checkpoint import checkpoint
 
     leaves, spec = tree_flatten(inputs)
+    if _plain_first_pass(leaves):
+        out_spec = []
+        out = _Recomputed.apply(step, spec, out_spec, *leaves)
+        release_free_memory()
+        return tree_unflatten(list(out), out_spec[0])
     traced = [i for i, x in enumerate(leaves) if isinstance(x, torch.Tensor) and x.requires_grad]
     if traced:
         # the backward pass reaches these inputs right after recomputing the action
@@ -35,6 +40,65 @@ def checkpointed(step: Callable, *inputs):
     out = checkpoint(step, *tree_unflatten(leaves, spec), use_reentrant=False)
     release_free_memory()
     return out
+
+
+def _plain_first_pass(leaves: list) -> bool:
+    """Whether an action can run its first pass without a graph (:class:`_Recomputed`):
+    every tensor that requires grad is one of its inputs' leaves (none hides in an
+    object, such as the parameters' dataclass) and no ``torch.func`` transform is active
+    (whose tensors a Function of this kind does not map)."""
+    import dataclasses
+
+    if torch._C._functorch.peek_interpreter_stack() is not None:
+        return False
+    for x in leaves:
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            if any(isinstance(v, torch.Tensor) and v.requires_grad for v in vars(x).values()):
+                return False
+        elif not isinstance(x, torch.Tensor | int | float | bool | str | None):
+            return False
+    return True
+
+
+class _Recomputed(torch.autograd.Function):
+    """An action whose forward pass runs without a graph (the compiled one-call step,
+    where the env is compiled) and whose backward pass runs it again with one, then
+    differentiates that: a checkpoint whose first pass costs a plain forward step. (The
+    non-reentrant ``torch.utils.checkpoint`` runs its first pass with the graph, its
+    saved tensors dropped: on the recomputed 2-D flows two forward passes with the graph
+    per differentiated action.)"""
+
+    @staticmethod
+    def forward(ctx, step, spec, out_spec, *leaves):
+        from torch.utils._pytree import tree_flatten, tree_unflatten
+
+        ctx.step, ctx.spec = step, spec
+        ctx.tensors = [i for i, x in enumerate(leaves) if isinstance(x, torch.Tensor)]
+        ctx.others = [None if i in ctx.tensors else x for i, x in enumerate(leaves)]
+        ctx.save_for_backward(*(leaves[i] for i in ctx.tensors))
+        out, tree = tree_flatten(step(*tree_unflatten(list(leaves), spec)))
+        if not all(isinstance(o, torch.Tensor) for o in out):
+            raise TypeError("a recomputed action returns tensors only")
+        out_spec.append(tree)
+        return tuple(out)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        from torch.utils._pytree import tree_flatten, tree_unflatten
+
+        leaves = list(ctx.others)
+        for i, x in zip(ctx.tensors, ctx.saved_tensors, strict=True):
+            leaves[i] = x.detach().requires_grad_(x.requires_grad)
+        wanted = [i for i in ctx.tensors if leaves[i].requires_grad]
+        with torch.enable_grad():
+            out, _ = tree_flatten(ctx.step(*tree_unflatten(leaves, ctx.spec)))
+        pairs = [(o, g) for o, g in zip(out, grads, strict=True) if g is not None and o.requires_grad]
+        found = torch.autograd.grad(
+            [o for o, _ in pairs], [leaves[i] for i in wanted], [g for _, g in pairs], allow_unused=True
+        )
+        release_free_memory()
+        given = dict(zip(wanted, found, strict=True))
+        return (None, None, None, *(given.get(i) for i in range(len(leaves))))
 
 
 class _ReleaseAfterBackward(torch.autograd.Function):

@@ -126,6 +126,49 @@ def test_checkpointing_gives_the_same_gradient_in_a_fraction_of_the_memory():
     assert memory_ck < memory / 10
 
 
+def graph_nodes(t: torch.Tensor, cap: int = 20_000) -> int:
+    """The autograd nodes that ``t``'s backward pass would visit (at most ``cap``)."""
+    seen, todo = set(), [t.grad_fn]
+    while todo and len(seen) < cap:
+        node = todo.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        todo.extend(n for n, _ in node.next_functions)
+    return len(seen)
+
+
+def test_a_checkpointed_action_runs_its_first_pass_without_a_graph_and_keeps_every_gradient():
+    """rayleigh-v0, two actions: recomputed in the backward pass, an action records no
+    graph of its substeps on the way forward (a few nodes an action, against tens of
+    thousands kept whole), and the gradients with respect to the actions, and to a
+    Rayleigh number that requires grad (which the parameters carry, out of the step's
+    tensor inputs: torch's own checkpoint then), are those of the graph kept whole."""
+
+    def run(checkpoint: bool, ra=None):
+        params = {} if ra is None else {"ra": ra}
+        env = beacon_torch.make("rayleigh-v0", 2, dtype=F64, differentiable=True, grad_checkpoint=checkpoint, **params)
+        env.reset()
+        action = torch.full((2, *env.action_spec.shape[1:]), 0.3, dtype=F64, requires_grad=True)
+        total = 0.0
+        for k in range(2):
+            td = env.step(TensorDict({"action": (action * (k + 1)).tanh()}, batch_size=env.batch_size))
+            total = total + td["next", "reward"].sum()
+        wanted = (action,) if ra is None else (action, ra)
+        return graph_nodes(total), torch.autograd.grad(total, wanted)
+
+    kept, (whole,) = run(False)
+    few, (recomputed,) = run(True)
+    torch.testing.assert_close(recomputed, whole, rtol=1e-12, atol=1e-14)
+    assert whole.abs().sum() > 0 and few < 500 < 20_000 <= kept
+    ra = lambda: torch.tensor(1e4, dtype=F64, requires_grad=True)
+    _, whole = run(False, ra())
+    _, recomputed = run(True, ra())
+    for got, want in zip(recomputed, whole, strict=True):
+        assert want.abs().sum() > 0
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-14)
+
+
 def test_detach_state_truncates_backpropagation():
     env = beacon_torch.make("vortex-v0", dtype=F64, differentiable=True)
     env.reset()
