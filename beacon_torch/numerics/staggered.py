@@ -36,11 +36,11 @@ class Uniform:
         # the published form, which the reference rollouts match to the last bit
         return (plus - 2.0 * mid + minus) / self.h**2
 
-    def second_adjoint(self, g: torch.Tensor, faces: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The gradients of :meth:`second`'s ``minus``, ``mid`` and ``plus`` from ``g``,
-        the gradient of its result."""
+    def second_weights(self, g: torch.Tensor, faces: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """The gradients of :meth:`second`'s ``minus`` and ``plus`` from ``g``, the
+        gradient of its result (``mid``'s is minus their sum)."""
         side = g / self.h**2
-        return side, -2.0 * side, side
+        return side, side
 
 
 class Stretched:
@@ -63,11 +63,10 @@ class Stretched:
         inner, outer = (self.widths, self._part(self.gaps, 1, -1)) if faces else (self.gaps, self.widths)
         return ((plus - mid) / self._part(inner, 1, 0) - (mid - minus) / self._part(inner, 0, -1)) / outer
 
-    def second_adjoint(self, g: torch.Tensor, faces: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def second_weights(self, g: torch.Tensor, faces: bool) -> tuple[torch.Tensor, torch.Tensor]:
         inner, outer = (self.widths, self._part(self.gaps, 1, -1)) if faces else (self.gaps, self.widths)
         g = g / outer
-        plus, minus = g / self._part(inner, 1, 0), g / self._part(inner, 0, -1)
-        return minus, -(plus + minus), plus
+        return g / self._part(inner, 0, -1), g / self._part(inner, 1, 0)
 
 
 class Axis:
@@ -206,8 +205,7 @@ def _x_momentum(u: torch.Tensor, v: torch.Tensor, nu, x, y) -> torch.Tensor:
     us = 0.5 * (u[1:-1, :-2] + uf)
     vs = 0.5 * (v[1:-2, :-1] + v[2:-1, :-1])
     duv = y.difference(un * vn - us * vs, faces=False)
-    lap_u = x.second(u[:-2, 1:-1], uf, u[2:, 1:-1], faces=True) + y.second(u[1:-1, :-2], uf, u[1:-1, 2:], faces=False)
-    return -duu - duv + nu * lap_u
+    return -duu - duv + nu * _laplacian_u(u, x, y)
 
 
 def _y_momentum(u: torch.Tensor, v: torch.Tensor, nu, x, y) -> torch.Tensor:
@@ -222,23 +220,30 @@ def _y_momentum(u: torch.Tensor, v: torch.Tensor, nu, x, y) -> torch.Tensor:
     vw = 0.5 * (v[:-2, 1:-1] + vf)
     uw = 0.5 * (u[:-1, 1:-2] + u[:-1, 2:-1])
     duv = x.difference(ue * ve - uw * vw, faces=False)
-    lap_v = x.second(v[:-2, 1:-1], vf, v[2:, 1:-1], faces=False) + y.second(v[1:-1, :-2], vf, v[1:-1, 2:], faces=True)
-    return -dvv - duv + nu * lap_v
+    return -dvv - duv + nu * _laplacian_v(v, x, y)
+
+
+def _laplacian_u(u: torch.Tensor, x, y) -> torch.Tensor:
+    uf = u[1:-1, 1:-1]
+    return x.second(u[:-2, 1:-1], uf, u[2:, 1:-1], faces=True) + y.second(u[1:-1, :-2], uf, u[1:-1, 2:], faces=False)
+
+
+def _laplacian_v(v: torch.Tensor, x, y) -> torch.Tensor:
+    vf = v[1:-1, 1:-1]
+    return x.second(v[:-2, 1:-1], vf, v[2:, 1:-1], faces=False) + y.second(v[1:-1, :-2], vf, v[1:-1, 2:], faces=True)
 
 
 def _nu_gradient(u, v, nu, x, y, gu, gv) -> torch.Tensor:
     """The gradient of :func:`tendency`'s ``nu`` from those of its results: its
     second differences, read against them."""
-    uf, vf = u[1:-1, 1:-1], v[1:-1, 1:-1]
-    lap_u = x.second(u[:-2, 1:-1], uf, u[2:, 1:-1], faces=True) + y.second(u[1:-1, :-2], uf, u[1:-1, 2:], faces=False)
-    lap_v = x.second(v[:-2, 1:-1], vf, v[2:, 1:-1], faces=False) + y.second(v[1:-1, :-2], vf, v[1:-1, 2:], faces=True)
+    lap_u, lap_v = _laplacian_u(u, x, y), _laplacian_v(v, x, y)
     return ((gu * lap_u).sum((0, 1)) + (gv * lap_v).sum((0, 1))).sum_to_size(nu.shape)
 
 
 def multipliers(axis, n: int, like: torch.Tensor) -> torch.Tensor:
     """An axis's multipliers as the C adjoint of the momentum terms reads them
     (``[6 n - 3]``, ``n`` cells; see :func:`beacon_torch.numerics.native.momentum_adjoint`),
-    from its own :meth:`difference` and :meth:`second_adjoint` of ones."""
+    from its own :meth:`difference` and :meth:`second_weights` of ones."""
     dim = axis.dim if isinstance(axis, Stretched) else 0
 
     def ones(k):
@@ -246,8 +251,8 @@ def multipliers(axis, n: int, like: torch.Tensor) -> torch.Tensor:
         shape[dim] = k
         return torch.ones(shape, dtype=like.dtype, device=like.device)
 
-    face_minus, _, face_plus = axis.second_adjoint(ones(n - 1), faces=True)
-    cell_minus, _, cell_plus = axis.second_adjoint(ones(n), faces=False)
+    face_minus, face_plus = axis.second_weights(ones(n - 1), faces=True)
+    cell_minus, cell_plus = axis.second_weights(ones(n), faces=False)
     parts = (
         axis.difference(ones(n - 1), faces=True),
         axis.difference(ones(n), faces=False),
