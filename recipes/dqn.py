@@ -17,7 +17,7 @@ from torchrl.objectives import DQNLoss, HardUpdate
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import DQNConfig, script
-from beacon_torch.training.env import make_collector, recipe_env
+from beacon_torch.training.env import recipe_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 
@@ -53,21 +53,7 @@ def main(cfg: DQNConfig) -> dict:
         run.counters["target_counter"] = target.counter
         run.save(env, policy=("qvalue_actor", cfg.hidden, qvalue), buffer=buffer, loss=loss, optim=optim)
 
-    random_frames = max(0, cfg.init_random_frames - run.frames)
-    policy = TensorDictSequential(qvalue, explore)
-    collector = make_collector(
-        cfg.env,
-        env,
-        policy,
-        frames_per_batch=cfg.frames_per_batch,
-        total_frames=run.remaining,
-        init_random_frames=random_frames,
-        collectors=cfg.collectors,
-        ray=cfg.ray or None,
-        seed=cfg.seed,
-        device=cfg.device,
-        params=cfg.params,
-    )
+    collector = recipe_collector(cfg, env, TensorDictSequential(qvalue, explore), run)
 
     for data in collector:
         buffer.extend(data.reshape(-1))

@@ -22,7 +22,7 @@ from torchrl.objectives.value import GAE
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import PPOConfig, script
-from beacon_torch.training.env import make_collector, recipe_env
+from beacon_torch.training.env import recipe_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 
@@ -74,18 +74,7 @@ def main(cfg: PPOConfig) -> dict:
         )
 
     # the collector and the buffer the minibatches are drawn from
-    collector = make_collector(
-        cfg.env,
-        env,
-        actor,
-        frames_per_batch=cfg.n_rollout,
-        total_frames=run.remaining,
-        collectors=cfg.collectors,
-        ray=cfg.ray or None,
-        seed=cfg.seed,
-        device=cfg.device,
-        params=cfg.params,
-    )
+    collector = recipe_collector(cfg, env, actor, run, frames_per_batch=cfg.n_rollout)
     buffer = ReplayBuffer(
         storage=LazyTensorStorage(cfg.n_rollout, device=cfg.device),
         sampler=SamplerWithoutReplacement(),

@@ -17,7 +17,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import SACConfig, script
-from beacon_torch.training.env import make_collector, recipe_env
+from beacon_torch.training.env import recipe_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 
@@ -59,19 +59,7 @@ def main(cfg: SACConfig) -> dict:
     def save() -> None:
         run.save(env, policy=("squashed_gaussian_actor", cfg.hidden, actor), buffer=buffer, loss=loss, **optims)
 
-    collector = make_collector(
-        cfg.env,
-        env,
-        actor,
-        frames_per_batch=cfg.frames_per_batch,
-        total_frames=run.remaining,
-        init_random_frames=max(0, cfg.init_random_frames - run.frames),
-        collectors=cfg.collectors,
-        ray=cfg.ray or None,
-        seed=cfg.seed,
-        device=cfg.device,
-        params=cfg.params,
-    )
+    collector = recipe_collector(cfg, env, actor, run)
 
     for data in collector:
         if keys.agents:  # the shared end of an episode, as each agent's

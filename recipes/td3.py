@@ -18,7 +18,7 @@ from torchrl.objectives import SoftUpdate, TD3Loss
 
 from beacon_torch.training import networks
 from beacon_torch.training.config import TD3Config, script
-from beacon_torch.training.env import make_collector, recipe_env
+from beacon_torch.training.env import recipe_collector, recipe_env
 from beacon_torch.training.run import Run, episode_values
 
 ACTOR_DELAY = 2  # critic updates per actor update
@@ -100,20 +100,7 @@ def main(cfg: TD3Config) -> dict:
             critic_optim=critic_optim,
         )
 
-    random_frames = max(0, cfg.init_random_frames - run.frames)
-    collector = make_collector(
-        cfg.env,
-        env,
-        policy,
-        frames_per_batch=cfg.frames_per_batch,
-        total_frames=run.remaining,
-        init_random_frames=random_frames,
-        collectors=cfg.collectors,
-        ray=cfg.ray or None,
-        seed=cfg.seed,
-        device=cfg.device,
-        params=cfg.params,
-    )
+    collector = recipe_collector(cfg, env, policy, run)
 
     for data in collector:
         values = episode_values(data)

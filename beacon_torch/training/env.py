@@ -95,6 +95,26 @@ def recipe_env(cfg, norm: dict | None, **options) -> TransformedEnv:
     )
 
 
+def recipe_collector(cfg, env: TransformedEnv, policy, run, frames_per_batch: int | None = None):
+    """A recipe's collector from its settings ``cfg``: :func:`make_collector` over its
+    training ``env`` for the transitions ``run`` has left, with the random actions of
+    ``cfg.init_random_frames`` (off-policy recipes) that a resumed run has not yet taken,
+    ``frames_per_batch`` a batch (``cfg.frames_per_batch`` unless given)."""
+    return make_collector(
+        cfg.env,
+        env,
+        policy,
+        frames_per_batch=cfg.frames_per_batch if frames_per_batch is None else frames_per_batch,
+        total_frames=run.remaining,
+        init_random_frames=max(0, getattr(cfg, "init_random_frames", 0) - run.frames),
+        collectors=cfg.collectors,
+        ray=cfg.ray or None,
+        seed=cfg.seed,
+        device=cfg.device,
+        params=cfg.params,
+    )
+
+
 def make_collector(
     env_id: str,
     env: TransformedEnv,
