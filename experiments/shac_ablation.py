@@ -43,6 +43,8 @@ VARIANTS = {
         "layer_norm": True,
         "grad_clip": 0.5,
     },
+    # the deterministic policy's pre-squash outputs kept where tanh passes the gradient
+    "squash-margin": {"squash_margin": 0.01},
     # more updates for the same transitions: fewer members, or shorter horizons
     "members-16": {"num_envs": 16},
     "members-4": {"num_envs": 4},

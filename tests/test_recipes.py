@@ -3,6 +3,7 @@ driver) and the training layer they share: short runs on small batches."""
 
 import functools
 import importlib
+import math
 import subprocess
 import sys
 from dataclasses import replace
@@ -877,6 +878,29 @@ def test_the_adaptive_horizon_shortens_where_the_gradient_grows_and_lengthens_wh
         )
     )
     assert 150 <= checkpoint(tmp_path)["frames"] < 150 + 4
+
+
+def test_the_squash_barrier_brings_a_saturated_policy_back_where_the_physics_gradient_reaches_it(tmp_path):
+    """Past atanh(1 - margin) tanh passes almost none of the physics' gradient to the
+    weights (none in float32 past 9): the barrier is 0 inside the margin, quadratic
+    outside it, and there its gradient pulls each saturated output back towards the box;
+    a run logs it, and the setting is the deterministic policy's only."""
+    bound = math.atanh(0.99)
+    param = torch.tensor([[0.5, -bound, bound + 1.0], [-(bound + 2.0), 0.0, 12.0]], requires_grad=True)
+    barrier = shac.squash_barrier(param, 0.01)
+    torch.testing.assert_close(barrier, torch.tensor([1.0, 4.0 + (12.0 - bound) ** 2]))
+    (grad,) = torch.autograd.grad(barrier.sum(), param)
+    assert grad[0, 0] == 0 and grad[0, 1] == 0 and grad[1, 1] == 0, "no pull inside the margin"
+    assert grad[0, 2] > 0 and grad[1, 0] < 0 and grad[1, 2] > 0, "descending it moves each output inwards"
+    # where tanh is flat in float32 the physics' gradient reaches nothing; the barrier's does
+    (through_tanh,) = torch.autograd.grad(torch.tanh(param).sum(), param)
+    assert through_tanh[1, 2] == 0 and grad[1, 2] > 0
+    with pytest.raises(ValueError, match="deterministic policy's squash"):
+        configure(SHACConfig, "burgers-v0", squash_margin=0.01, actor="stochastic")
+
+    settings = dict(num_envs=4, horizon=6, critic_iterations=2, progress=False, squash_margin=0.01)
+    last = shac.main(configure(SHACConfig, "burgers-v0", frames=48, out=str(tmp_path), **settings))
+    assert last["squash_barrier"] >= 0.0, last
 
 
 def test_the_mixed_estimator_weighs_the_first_order_gradient_against_the_likelihood_ratios(tmp_path):

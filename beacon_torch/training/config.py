@@ -442,6 +442,13 @@ class GradConfig(Config):
     init_alpha: float = setting(1.0, "the entropy bonus's first weight alpha", domain=POSITIVE)
     alpha_lr: float = setting(5e-3, "the learning rate of log alpha", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
+    squash_margin: float = setting(
+        0.0,
+        "a quadratic barrier on the deterministic policy's pre-squash outputs past atanh(1 - SQUASH_MARGIN), "
+        "where its actions come within that share of the half-width of the box's edges and tanh passes almost "
+        "none of the physics' gradient back (0: none)",
+        domain=(0.0, 0.5, False),
+    )
     stagger: bool = setting(
         False,
         "cut each member's first episode after a random number of actions, so that the members "
@@ -687,6 +694,8 @@ def _check(cfg: Settings) -> Settings:
             raise ValueError(
                 f"the mixed estimator's groups ({cfg.estimator_groups}) must number 2 to the members ({cfg.num_envs})"
             )
+    if isinstance(cfg, GradConfig) and cfg.squash_margin and cfg.actor != "deterministic":
+        raise ValueError("squash_margin bounds the deterministic policy's squash: not with actor=stochastic")
     if isinstance(cfg, GradConfig) and cfg.adaptive_horizon and not cfg.horizon_min <= cfg.horizon <= cfg.horizon_max:
         raise ValueError(
             f"the adaptive horizon starts within its bounds: horizon_min ({cfg.horizon_min}) <= horizon "
