@@ -19,6 +19,7 @@ variant, seed) as the page's table, a row per (env, variant) with the mean over 
 from __future__ import annotations
 
 import argparse
+from dataclasses import fields
 from pathlib import Path
 
 HERE = Path(__file__).resolve()
@@ -45,6 +46,9 @@ VARIANTS = {
     },
     # the deterministic policy's pre-squash outputs kept where tanh passes the gradient
     "squash-margin": {"squash_margin": 0.01},
+    # the same loop without its critic (recipes/grad.py) at the actor-critic's settings
+    "critic-less": {"critic": False},
+    "critic-less-squash-margin": {"critic": False, "squash_margin": 0.01},
     # more updates for the same transitions: fewer members, or shorter horizons
     "members-16": {"num_envs": 16},
     "members-4": {"num_envs": 4},
@@ -58,7 +62,7 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
     """Train one seed of ``variant`` on ``env_id`` (or finish it) and score its policy;
     ``frames``: fewer transitions than the recipe's budget (a trial)."""
     from beacon_torch.training import report
-    from beacon_torch.training.config import SHACConfig, configure
+    from beacon_torch.training.config import GradConfig, SHACConfig, configure
     from beacon_torch.training.evaluation import HELD_OUT, evaluate_run
     from beacon_torch.training.run import CHECKPOINT, load_checkpoint
 
@@ -66,8 +70,15 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
     settings = dict(VARIANTS[variant], seed=seed, out=str(out), progress=False, threads=1, logger="csv")
     if frames is not None:
         settings["frames"] = frames
+    kind = SHACConfig
+    if not settings.pop("critic", True):
+        # every setting the critic-less loop has, as the actor-critic sets it for the env
+        kind, given = GradConfig, configure(SHACConfig, env_id)
+        run_own = ("env", "seed", "out", "progress", "threads", "logger", "resume")
+        own = {f.name: getattr(given, f.name) for f in fields(GradConfig) if f.init and f.name not in run_own}
+        settings = {**own, **settings}
     resume = (out / CHECKPOINT).is_file()
-    cfg = configure(SHACConfig, env_id, resume=resume, **settings)
+    cfg = configure(kind, env_id, resume=resume, **settings)
     if not resume or load_checkpoint(out)["frames"] < cfg.frames:
         recipe().main(cfg)
     state = load_checkpoint(out)
@@ -101,14 +112,18 @@ def page_table(folder: Path) -> str:
     from beacon_torch import received
 
     newest: dict[tuple[str, str], dict[int, dict]] = {}
-    measured: dict[tuple[str, str], set[str]] = {}
+    # where and when each (env, variant, seed) of the table was measured: its newest record's
+    when_seed: dict[tuple[str, str, int], str] = {}
     for path in sorted(folder.glob("ablation-*.json"), key=lambda p: p.name[-20:]):
         record = received.json_file(path, "an actor-critic settings record")
         day = "-".join((path.stem[-15:-11], path.stem[-11:-9], path.stem[-9:-7]))
         cpu = str(record.get("machine", "")).split(",")[0].replace("(R)", "").replace(" Processor", "")
         for row in record["rows"]:
             newest.setdefault((row["env"], row["variant"]), {})[row["seed"]] = row
-            measured.setdefault((row["env"], row["variant"]), set()).add(f"{day}, {cpu}")
+            when_seed[row["env"], row["variant"], row["seed"]] = f"{day}, {cpu}"
+    measured: dict[tuple[str, str], set[str]] = {}
+    for (env_id, variant, _), when in when_seed.items():
+        measured.setdefault((env_id, variant), set()).add(when)
     lines = [
         "| env | settings | seeds | normalised, own start: mean (seeds) | normalised, test set: mean (seeds) "
         "| transitions | minutes a seed | measured |",

@@ -457,6 +457,12 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     assert again["wall_s"] == rows[1]["wall_s"] and again["own_score"] == rows[1]["own_score"]
     table = ablation.page_table(out)
     assert "| burgers-v0 | defaults: the defaults |" in table and "actor=stochastic" in table
+    # the loop without its critic, at the actor-critic's settings for the env
+    ablation.run("burgers-v0", "critic-less-squash-margin", 0, runs, frames=2048)
+    state = torch.load(runs / "burgers-v0" / "critic-less-squash-margin" / "seed0" / "checkpoint.pt", weights_only=True)
+    assert state["algo"] == "grad" and "critic" not in state["modules"]
+    assert state["config"]["num_envs"] == 64 and state["config"]["horizon"] == 32
+    assert state["config"]["squash_margin"] == 0.01
 
 
 def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_settings():
