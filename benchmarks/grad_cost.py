@@ -18,9 +18,12 @@ round, after a warm-up (compilation) that is not counted:
 - ``compiled-K`` (asked for with ``--kinds``): the same with ``K`` substeps a compiled
   call (``compiled-1``: each substep its own call).
 
-Recorded per env and round: CPU seconds per transition of each; the ratios are the
+Recorded per env and round: CPU seconds per transition of each, and of them the
+kernel's (``system_s``) and the pages faulted in (``page_faults``); the ratios are the
 medians over the rounds of each round's ratio; per way, the wall seconds of its two
-warm-up blocks (``warmup_s``: the compilation, where the inductor cache is cold). Writes a new
+warm-up blocks (``warmup_s``: the compilation, where the inductor cache is cold).
+``--keep-free B`` sets the free heap kept between recomputed actions
+(``beacon_torch.autograd.KEEP_FREE``; 0: trimmed after every action). Writes a new
 ``grad-cost-ENV-DATE-TIME.json`` per env in ``benchmarks/results/grad_cost`` and prints
 a table.
 """
@@ -28,6 +31,7 @@ a table.
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
 import time
 from pathlib import Path
@@ -88,6 +92,7 @@ class Way:
 
 
 def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
+    from beacon_torch import autograd
     from beacon_torch.training.config import SHACConfig, configure
 
     cfg = configure(SHACConfig, env_id)
@@ -99,17 +104,25 @@ def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
         way.actions()
         warmup[k] = time.perf_counter() - start
     per = {k: [] for k in kinds}
+    # per transition: the kernel's share of the CPU time and the pages faulted in
+    system, faults = {k: [] for k in kinds}, {k: [] for k in kinds}
     for _ in range(rounds):
         for k, way in ways.items():
-            start = time.process_time()
+            usage, start = resource.getrusage(resource.RUSAGE_SELF), time.process_time()
             n = way.actions()
             per[k].append((time.process_time() - start) / n)
+            after = resource.getrusage(resource.RUSAGE_SELF)
+            system[k].append((after.ru_stime - usage.ru_stime) / n)
+            faults[k].append((after.ru_minflt - usage.ru_minflt) / n)
     row = dict(
         env=env_id,
         members=cfg.num_envs,
         grad_checkpoint=cfg.grad_checkpoint,
         horizon=horizon,
         rounds=per,
+        system_s=system,
+        page_faults=faults,
+        keep_free=autograd.KEEP_FREE,
         warmup_s=warmup,
     )
     for k in kinds:
@@ -175,6 +188,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--horizon", type=int, default=4)
     parser.add_argument("--kinds", nargs="+", default=["forward", "eager", "compiled"])
+    parser.add_argument(
+        "--keep-free",
+        type=int,
+        default=None,
+        help="free heap bytes kept between recomputed actions (default: beacon_torch.autograd.KEEP_FREE)",
+    )
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_cost")
     parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
     args = parser.parse_args()
@@ -184,7 +203,11 @@ def main() -> None:
         print(write_block(args.page, BEGIN, END, page_table(args.out)))
         return
     torch.set_num_threads(1)
+    from beacon_torch import autograd
     from beacon_torch.files import save_rows
+
+    if args.keep_free is not None:
+        autograd.KEEP_FREE = args.keep_free
 
     print("| env | members | checkpoint | forward (ms/transition) | eager / forward | compiled / forward |")
     print("|---|---|---|---|---|---|", flush=True)

@@ -119,7 +119,7 @@ def horizon_peak(
         return bool(torch.isfinite(actions.grad).all())
 
     one()  # compiles
-    release_free_memory()
+    release_free_memory(keep=0)
     before = _status("VmRSS")
     # the peak from here on (writing 5 resets the process's high-water mark)
     Path("/proc/self/clear_refs").write_text("5")

@@ -350,7 +350,8 @@ def test_a_differentiated_transition_is_split_by_piece(tmp_path):
 
 def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_one(tmp_path):
     """benchmarks/grad_cost.py on lorenz: a record per env, the forward's time and the
-    differentiated one's ratio to it, per round."""
+    differentiated one's ratio to it, per round, with the kernel's time and the page
+    faults of each way and the free heap it kept."""
     import subprocess
     import sys
     from pathlib import Path
@@ -358,6 +359,7 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
     root = Path(__file__).resolve().parents[1]
     command = [sys.executable, str(root / "benchmarks" / "grad_cost.py"), "--envs", "lorenz-continuous-v0"]
     command += ["--rounds", "2", "--horizon", "2", "--kinds", "forward", "eager", "--out", str(tmp_path)]
+    command += ["--keep-free", "12345"]
     out = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     (record,) = tmp_path.glob("grad-cost-lorenz-continuous-v0-*.json")
@@ -368,6 +370,9 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
     assert row["members"] == configure(SHACConfig, "lorenz-continuous-v0").num_envs == 16
     assert len(row["rounds"]["eager"]) == 2
     assert row["forward_s"] > 0 and row["eager_ratio"] > 1
+    assert len(row["system_s"]["eager"]) == len(row["page_faults"]["forward"]) == 2
+    assert all(0 <= s <= t for s, t in zip(row["system_s"]["eager"], row["rounds"]["eager"], strict=True))
+    assert row["keep_free"] == 12345
 
 
 def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_curves():
