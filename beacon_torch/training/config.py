@@ -154,10 +154,11 @@ SHAC = {
     "shkadov-v0": dict(num_envs=16),
     "ks-v0": dict(num_envs=16),
     "vortex-v0": dict(grad_checkpoint=True, stagger=True),
-    # compiled: a differentiated action measured 5.4 to 6.3 (rayleigh) and 8.4 (mixing)
-    # times the compiled forward one, eagerly 28 and 25 times. Compiled, a horizon of
-    # rayleigh kept whole peaks at 2.5 GiB (0.8 recomputed) at 3.9 times the forward;
-    # mixing's at 9.5 GiB (1.2 recomputed), so it recomputes each action
+    # compiled: eagerly a differentiated action measured 28 (rayleigh) and 25 (mixing)
+    # times the compiled forward one. Compiled, a horizon of rayleigh kept whole peaks at
+    # 2.5 GiB (0.8 recomputed) at 3.9 times the forward; mixing's at 9.5 GiB (1.2
+    # recomputed), and in the recipe kept whole took longer an update (28 to 34 s against
+    # 24, at 16 GB resident), so it recomputes each action (5.3 times the forward)
     "rayleigh-v0": dict(num_envs=8, horizon=16, compile=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, compile=True),
     # the wakes compiled as in the gradient recipe, for the same measured reasons; the
