@@ -176,7 +176,12 @@ def test_the_gradients_page_shows_a_recorded_plan_of_every_continuous_env():
     assert {r["env"] for r in rows} == set(continuous_envs())
     # evaluated: scored over whole episodes (normalised where the env has a reference score)
     evaluated = {r["env"] for r in rows if "score_mean" in r}
-    assert {"lorenz-continuous-v0", "burgers-v0", "vortex-v0", "sloshing-v0", "ks-v0"} <= evaluated
+    assert {"lorenz-continuous-v0", "burgers-v0", "vortex-v0", "sloshing-v0", "ks-v0", "rayleigh-v0"} <= evaluated
+    # the cylinder at FluidGym's 20 x 10 from the test starts: its drag below no control's
+    (cylinder,) = [r for r in rows if r["env"] == "cylinder-v0"]
+    assert (cylinder["settings"]["horizon"], cylinder["settings"]["iterations"]) == (20, 10)
+    assert cylinder["planned_actions"] == env_spec("cylinder-v0").physics.episode_length
+    assert cylinder["dropped_iterations"] == 0 and cylinder["diagnostics"]["drag"]["relative_change"] < -0.05
     assert all("normalised" in r for r in rows if "score_mean" in r and env_spec(r["env"]).card.paper_ppo is not None)
     # an env whose reference came after its record (ks-v0's physical limit) is scored by it
     (ks,) = [line for line in table.table(rows).splitlines() if line.startswith("| ks-v0 |")]
