@@ -22,6 +22,8 @@ import argparse
 from dataclasses import fields
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve()
 ROOT = HERE.parents[1]
 ENVS = ("burgers-v0", "vortex-v0", "sloshing-v0")
@@ -49,6 +51,12 @@ VARIANTS = {
     # the same loop without its critic (recipes/grad.py) at the actor-critic's settings
     "critic-less": {"critic": False},
     "critic-less-squash-margin": {"critic": False, "squash_margin": 0.01},
+    # the defaults' very updates, with the policy's gradient through the critic's closing
+    # values and through the rest logged apart (one more backward pass an update)
+    "gradient-split": {"gradient_split": True},
+    # the closing values at a fraction of their weight in the policy's objective
+    "value-weight-0.1": {"value_weight": 0.1, "gradient_split": True},
+    "value-weight-0.1-squash-margin": {"value_weight": 0.1, "squash_margin": 0.01, "gradient_split": True},
     # more updates for the same transitions: fewer members, or shorter horizons
     "members-16": {"num_envs": 16},
     "members-4": {"num_envs": 4},
@@ -56,6 +64,7 @@ VARIANTS = {
     "horizon-8": {"horizon": 8},
 }
 BEGIN, END = "<!-- actor-critic settings: experiments/shac_ablation.py -->", "<!-- end of actor-critic settings -->"
+SPLIT = "<!-- closing values' gradient: experiments/shac_ablation.py -->", "<!-- end of closing values' gradient -->"
 
 
 def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = None) -> dict:
@@ -90,6 +99,9 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
         "frames": state["frames"],
         "wall_s": state["elapsed"],
     }
+    split = gradient_split(out)
+    if split:
+        row["gradient_split"] = split
     for name, starts in (("own", None), ("test", HELD_OUT)):
         result = evaluate_run(out, num_envs=8, starts=starts)
         row[f"{name}_score"] = result["score_mean"]
@@ -99,6 +111,25 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
     return row
 
 
+def gradient_split(out: Path) -> dict:
+    """Where the run logged its gradient split: per quarter of its updates, the medians of
+    the closing values' gradient norm over the rest's, of the cosine between the two, and
+    of the closing values' share of the objective (empty if not logged)."""
+    from beacon_torch.training.evaluation import read_scalar
+
+    _, closing = read_scalar(out, "closing_grad_norm")
+    if not closing.size:
+        return {}
+    rest, cosine, share = (read_scalar(out, name)[1] for name in ("reward_grad_norm", "grad_cosine", "closing_share"))
+    # the first update's critic is untrained (a zero last layer: no gradient at all)
+    ratio = closing / np.maximum(rest, np.finfo(float).tiny)
+    quarters = {"ratio": ratio, "cosine": cosine, "share": share}
+    return {
+        name: [float(np.median(part)) for part in np.array_split(values[1:], 4) if part.size]
+        for name, values in quarters.items()
+    }
+
+
 def recipe():
     """``recipes/shac.py`` as a module."""
     from beacon_torch.arguments import load_script
@@ -106,9 +137,9 @@ def recipe():
     return load_script(ROOT / "recipes" / "shac.py", "recipe_shac")
 
 
-def page_table(folder: Path) -> str:
-    """The newest record of each (env, variant, seed) in ``folder`` as a markdown table,
-    a row per (env, variant): the mean over its seeds and each seed's score."""
+def newest_records(folder: Path) -> tuple[dict, dict]:
+    """The newest row of each (env, variant, seed) in ``folder``'s records, as
+    ``{(env, variant): {seed: row}}``, and where and when each was measured."""
     from beacon_torch import received
 
     newest: dict[tuple[str, str], dict[int, dict]] = {}
@@ -121,6 +152,13 @@ def page_table(folder: Path) -> str:
         for row in record["rows"]:
             newest.setdefault((row["env"], row["variant"]), {})[row["seed"]] = row
             when_seed[row["env"], row["variant"], row["seed"]] = f"{day}, {cpu}"
+    return newest, when_seed
+
+
+def page_table(folder: Path) -> str:
+    """The newest record of each (env, variant, seed) in ``folder`` as a markdown table,
+    a row per (env, variant): the mean over its seeds and each seed's score."""
+    newest, when_seed = newest_records(folder)
     measured: dict[tuple[str, str], set[str]] = {}
     for (env_id, variant, _), when in when_seed.items():
         measured.setdefault((env_id, variant), set()).add(when)
@@ -158,6 +196,39 @@ def page_table(folder: Path) -> str:
     return "\n".join(lines)
 
 
+def split_table(folder: Path) -> str:
+    """The runs that logged their gradient split, a row per (env, variant): per quarter of
+    the updates, the closing values' gradient norm over the rest's, the cosine between
+    the two and the values' share of the objective (medians, each a mean over the seeds),
+    beside the normalised score from the env's own start."""
+    newest, _ = newest_records(folder)
+    lines = [
+        "| env | settings | seeds | closing / rest gradient norm, by quarter | cosine, by quarter "
+        "| closing values' share of the objective, by quarter | normalised, own start |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def quarters(rows: list[dict], name: str, form: str) -> str:
+        each = np.array([row["gradient_split"][name] for row in rows]).mean(0)
+        return ", ".join(format(v, form) for v in each)
+
+    others = sorted({env_id for env_id, _ in newest} - set(ENVS))
+    for env_id in (*ENVS, *others):
+        for variant in VARIANTS:
+            rows = [row for row in newest.get((env_id, variant), {}).values() if "gradient_split" in row]
+            if not rows:
+                continue
+            shown = ", ".join(f"{k}={v}" for k, v in rows[0]["settings"].items() if k != "gradient_split")
+            score = "-"
+            if all("own_normalised" in row for row in rows):
+                score = f"{sum(row['own_normalised'] for row in rows) / len(rows):.2f}"
+            lines.append(
+                f"| {env_id} | {variant}: {shown or 'the defaults'} | {len(rows)} | {quarters(rows, 'ratio', '.3g')} "
+                f"| {quarters(rows, 'cosine', '.2f')} | {quarters(rows, 'share', '.2f')} | {score} |"
+            )
+    return "\n".join(lines)
+
+
 def _scaled(uncontrolled: float, env_id: str) -> bool:
     from beacon_torch.training import report
 
@@ -180,6 +251,7 @@ def main() -> None:
         from beacon_torch.training.report import write_block
 
         print(write_block(args.page, BEGIN, END, page_table(args.out)))
+        print(write_block(args.page, *SPLIT, split_table(args.out)))
         return
     from beacon_torch.files import save_rows
 

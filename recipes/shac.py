@@ -128,12 +128,20 @@ def main(cfg: GradConfig) -> dict:
             steps = min(steps, -(-(cfg.frames - run.frames) // members))
         rollout = horizon(cfg, env, actor, target, td, cuts, temperature, steps)
         td, visited, log_probs = rollout.td, rollout.visited, rollout.log_probs
+        if cfg.critic and cfg.value_weight != 1.0:
+            # the closing values count for their weight only; the critic is fitted as before
+            rollout.objective = rollout.objective - (1.0 - cfg.value_weight) * rollout.closing
         loss = (rollout.barrier - rollout.objective.sum()) / (steps * members)
         optim.zero_grad()
+        split = None
+        if cfg.critic and cfg.gradient_split:
+            split = closing_gradient(actor, cfg.value_weight * rollout.closing.sum() / (steps * members))
         if cfg.estimator == "mixed":
             share = mix_gradients(cfg, actor, rollout, steps)
         else:
             loss.backward()
+        if split is not None:
+            split = gradient_split(actor, split)
         spent = steps
         if cfg.adaptive_horizon:
             growth = gradient_growth(visited)
@@ -159,6 +167,11 @@ def main(cfg: GradConfig) -> dict:
             values.update(horizon=float(spent), gradient_growth=growth)
         if cfg.estimator == "mixed":
             values["first_order_share"] = share
+        if split is not None:
+            # in sizes: a horizon's rewards can sum to 0
+            closing = (cfg.value_weight * rollout.closing).detach().abs().sum()
+            rest = (rollout.objective.detach() - cfg.value_weight * rollout.closing.detach()).abs().sum()
+            values.update(split, closing_share=(closing / (closing + rest).clamp_min(1e-30)).item())
         if cfg.squash_margin:
             values["squash_barrier"] = torch.as_tensor(rollout.barrier).item() / (spent * members)
         if rollout.scores:
@@ -178,13 +191,16 @@ class Rollout:
     (detached, for the critic), the scores of the episodes that ended, the mean reward
     per action, the draws' log-probabilities (``[horizon, members]``, detached; empty
     for a deterministic policy) and, for the mixed estimator, the same with a graph to
-    the weights only (the score function's); and the squash's barrier summed over the
-    horizon (0 without one), a graph to the weights."""
+    the weights only (the score function's); the squash's barrier summed over the
+    horizon (0 without one), a graph to the weights; and the closing values' part of
+    each member's objective (``[members]``, a graph; 0 without a critic)."""
 
-    def __init__(self, objective, td, visited, scores, reward, log_probs, score_log_probs, barrier=0.0) -> None:
+    def __init__(
+        self, objective, td, visited, scores, reward, log_probs, score_log_probs, barrier=0.0, closing=0.0
+    ) -> None:
         self.objective, self.td, self.visited, self.scores = objective, td, visited, scores
         self.reward, self.log_probs, self.score_log_probs = reward, log_probs, score_log_probs
-        self.barrier = barrier
+        self.barrier, self.closing = barrier, closing
 
 
 def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None, steps=None) -> Rollout:
@@ -199,6 +215,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
     keys = networks.Keys.of(env)
     steps = steps or cfg.horizon
     objective, rewards, scores, visited, log_probs, score_log_probs, barrier = 0.0, 0.0, [], [], [], [], 0.0
+    closing = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     # per member: the discounted rewards since the horizon or its episode began
     returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     discount = torch.ones_like(returns)
@@ -230,15 +247,16 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         discount = discount * cfg.gamma
         done = td["next", "done"][..., 0]
         last = h == steps - 1
+        ends = torch.ones_like(done) if last else done
         if target is not None and (last or done.any()):
             # the value of where a return is closed: the horizon's end, or an episode
             # cut short by its length (none after a blow-up)
             value = target(td["next"].select(keys.obs))[keys.value][..., 0]
             value = torch.where(td["next", "terminated"][..., 0], 0.0, value)
             closed = returns + discount * value
+            closing = closing + torch.where(ends, discount * value, 0.0)
         else:
             closed = returns
-        ends = torch.ones_like(done) if last else done
         objective = objective + torch.where(ends, closed, 0.0)
         # a member whose episode ended starts a new return
         returns = torch.where(done, 0.0, returns)
@@ -254,7 +272,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         visited.append(seen)
         td = td_next
     stacked = [torch.stack(x) if x else torch.zeros(0) for x in (log_probs, score_log_probs)]
-    return Rollout(objective, td, visited, scores, float(rewards) / steps, *stacked, barrier)
+    return Rollout(objective, td, visited, scores, float(rewards) / steps, *stacked, barrier, closing)
 
 
 def squash_barrier(param: torch.Tensor, margin: float) -> torch.Tensor:
@@ -305,6 +323,27 @@ def mix_gradients(cfg: GradConfig, actor, rollout: Rollout, steps: int) -> float
         p.grad = mixed[offset : offset + p.numel()].view_as(p).clone()
         offset += p.numel()
     return share
+
+
+def closing_gradient(actor, closing: torch.Tensor) -> list:
+    """The policy's gradient of the loss's closing-value part ``-closing``, keeping the
+    graph for the whole loss's backward pass."""
+    params = [p for p in actor.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(-closing, params, retain_graph=True, allow_unused=True)
+    return [torch.zeros_like(p) if g is None else g for p, g in zip(params, grads, strict=True)]
+
+
+def gradient_split(actor, closing: list) -> dict:
+    """How the policy's whole gradient (read after the backward pass, before clipping)
+    splits into the part through the critic's closing values (``closing``) and the rest
+    (the horizon's rewards, and the squash's barrier): their norms and the cosine of the
+    angle between them."""
+    total = torch.cat([p.grad.flatten() for p in actor.parameters() if p.requires_grad])
+    value = torch.cat([g.flatten() for g in closing])
+    rest = total - value
+    norms = value.norm(), rest.norm()
+    cosine = (value @ rest) / (norms[0] * norms[1]).clamp_min(torch.finfo(total.dtype).tiny)
+    return {"closing_grad_norm": norms[0].item(), "reward_grad_norm": norms[1].item(), "grad_cosine": cosine.item()}
 
 
 def gradient_growth(visited: list) -> float:

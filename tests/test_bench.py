@@ -438,7 +438,7 @@ def test_the_memory_of_a_differentiated_horizon_is_recorded_per_env(tmp_path):
     assert row["finite"] is True and row["grad_checkpoint"] is False
 
 
-@pytest.mark.slow(seconds=70)
+@pytest.mark.slow(seconds=80)
 def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     """experiments/shac_ablation.py on burgers, a trial of one update (2,048 transitions): the defaults
     and SAPO's settings together each train a seed, are scored normalised from the own
@@ -468,6 +468,13 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     assert state["algo"] == "grad" and "critic" not in state["modules"]
     assert state["config"]["num_envs"] == 64 and state["config"]["horizon"] == 32
     assert state["config"]["squash_margin"] == 0.01
+    # the defaults' updates with the policy's gradient split logged, summarised by quarter
+    row = ablation.run("burgers-v0", "gradient-split", 0, runs, frames=4096)
+    split = row["gradient_split"]
+    assert set(split) == {"ratio", "cosine", "share"} and all(len(v) == 1 for v in split.values()), split
+    assert -1 <= split["cosine"][0] <= 1 and 0 <= split["share"][0] <= 1 and split["ratio"][0] >= 0
+    save_rows([row], out, "ablation-burgers-v0-gradient-split")
+    assert "| burgers-v0 | gradient-split: the defaults | 1 |" in ablation.split_table(out)
 
 
 def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_settings():

@@ -967,6 +967,48 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         torch.testing.assert_close(2 * pair, alone, rtol=1e-9, atol=1e-12 * float(alone.abs().max()))
 
 
+def test_the_closing_values_gradient_is_split_from_the_rewards_and_weighted(tmp_path):
+    """A horizon's objective is its rewards' part plus the critic's closing values: the
+    closing part's gradient is exactly the gradient with the critic less the gradient
+    without it (float64, lorenz, a critic whose value varies); a run can log the split
+    and weigh the values down, and logging it leaves the updates as they were."""
+    settings = dict(num_envs=2, horizon=3, params={"reward_width": 1.0}, compile=False, progress=False)
+    cfg = configure(SHACConfig, "lorenz-continuous-v0", **settings)
+    env = make_env(cfg.env, 2, norm_steps=0, differentiable=True, params=cfg.params, dtype="float64")
+    torch.manual_seed(0)
+    actor = networks.deterministic_actor(env, 16, paper_init=False).double()
+    critic = networks.state_value(env, 16).double()
+    torch.nn.init.normal_(networks.last_linear(critic.module).weight)
+    params = list(actor.parameters())
+    td = env.reset()
+    start = env.base_env.state._asdict()
+    rollouts, grads = [], []
+    for closing in (critic, None):
+        env.base_env.set_state(start)
+        rollouts.append(shac.horizon(cfg, env, actor, closing, td))
+        grads.append(torch.autograd.grad(-rollouts[-1].objective.sum(), params, retain_graph=True))
+    with_critic, without = rollouts
+    scale = float(with_critic.objective.detach().abs().max())
+    torch.testing.assert_close(
+        with_critic.objective - with_critic.closing, without.objective, rtol=0, atol=1e-12 * scale
+    )
+    assert bool(with_critic.closing.abs().min() > 0)
+    for part, whole, rest in zip(shac.closing_gradient(actor, with_critic.closing.sum()), *grads, strict=True):
+        torch.testing.assert_close(part, whole - rest, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="setting 'value_weight' must be"):
+        configure(SHACConfig, "burgers-v0", value_weight=1.5)
+
+    # lorenz: within 6 actions burgers' actuation does not reach what its critic observes
+    runs = dict(num_envs=4, horizon=6, critic_iterations=2, progress=False, frames=72, compile=False)
+    plain = shac.main(configure(SHACConfig, cfg.env, out=str(tmp_path / "plain"), **runs))
+    split = shac.main(configure(SHACConfig, cfg.env, out=str(tmp_path / "split"), gradient_split=True, **runs))
+    assert split["grad_norm"] == plain["grad_norm"] and split["objective"] == plain["objective"]
+    assert split["closing_grad_norm"] > 0 and split["reward_grad_norm"] > 0 and -1 <= split["grad_cosine"] <= 1
+    weighted = dict(gradient_split=True, value_weight=0.0, **runs)
+    weighted = shac.main(configure(SHACConfig, cfg.env, out=str(tmp_path / "weighted"), **weighted))
+    assert weighted["closing_grad_norm"] == 0.0 and weighted["closing_share"] == 0.0
+
+
 def test_staggered_members_end_their_first_episode_apart_and_go_on():
     """stagger: a member's first episode is cut after its drawn count of actions, as by
     its length (truncated, closed by the critic's value, not scored), and it starts

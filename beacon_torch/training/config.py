@@ -494,6 +494,17 @@ class SHACConfig(GradConfig):
     target_critic: bool = setting(
         True, "close the horizons and the targets with a slowly following copy of the critics (SAPO: without)"
     )
+    value_weight: float = setting(
+        1.0,
+        "the weight of the critic's value where it closes a return, in the policy's objective (1: SHAC's; 0: the "
+        "rewards alone, the critic still fitted)",
+        domain=(0.0, 1.0, False),
+    )
+    gradient_split: bool = setting(
+        False,
+        "log the policy's gradient through the closing values and through the rest apart (their norms, their "
+        "cosine, the values' share of the objective); one more backward pass an update",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
