@@ -41,6 +41,13 @@ likelihood ratio's, each taken per group of members (``--estimator-groups``, a b
 pass through the physics each), mixed by their empirical variances, so that where the
 dynamics make the first-order gradient erratic the other carries the update.
 
+``--value-weight`` weighs the critic's closing values down in the policy's objective
+(the critic is fitted as before; 0 leaves the rewards alone, as without a critic), and
+``--gradient-split`` logs the policy's gradient through those values and through the
+rest apart (their norms and cosine; one more backward pass an update): where the
+critic's gradient, which nothing fits, outweighs the rewards' by far, the policy
+follows it and not the physics.
+
 Without the critic (``recipes/grad.py``, the same loop) each horizon's rewards are all
 the policy sees: short-horizon analytic policy gradients. The policy is TD3's
 deterministic actor, so ``beacon-torch eval`` and ``plot`` read these runs like any

@@ -487,7 +487,11 @@ def test_the_gradients_page_shows_the_recorded_trials_of_the_actor_critics_setti
 
     folder = root / "experiments" / "results" / "shac_ablation"
     table = ablation.page_table(folder)
-    assert table in (root / "docs" / "gradients.md").read_text()
+    page = (root / "docs" / "gradients.md").read_text()
+    assert table in page and ablation.split_table(folder) in page
+    # the gradient's split is recorded on the envs the actor-critic trains, rayleigh-v0 among them
+    split = [line for line in ablation.split_table(folder).splitlines() if "gradient-split" in line]
+    assert {line.split(" | ")[0][2:] for line in split} >= {"burgers-v0", "vortex-v0", "sloshing-v0", "rayleigh-v0"}
     rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| burgers-v0 |")]
     # each at the recipe's budget of burgers-v0, a tenth of PPO's 500,000 transitions
     counts = [[int(n.replace(",", "")) for n in row[5].split(" or ")] for row in rows]
