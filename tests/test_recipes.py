@@ -967,17 +967,23 @@ def test_a_blow_up_inside_a_horizon_leaves_the_update_finite_and_the_others_grad
         torch.testing.assert_close(2 * pair, alone, rtol=1e-9, atol=1e-12 * float(alone.abs().max()))
 
 
+def float64_lorenz(members: int, horizon: int):
+    """The actor-critic's settings for a float64 lorenz env of ``members`` with the smooth
+    reward (the default counts sign changes: no gradient), a policy and a critic, seeded."""
+    settings = dict(num_envs=members, horizon=horizon, params={"reward_width": 1.0}, compile=False, progress=False)
+    cfg = configure(SHACConfig, "lorenz-continuous-v0", **settings)
+    env = make_env(cfg.env, members, norm_steps=0, differentiable=True, params=cfg.params, dtype="float64")
+    torch.manual_seed(0)
+    actor = networks.deterministic_actor(env, 16, paper_init=False).double()
+    return cfg, env, actor, networks.state_value(env, 16).double()
+
+
 def test_the_closing_values_gradient_is_split_from_the_rewards_and_weighted(tmp_path):
     """A horizon's objective is its rewards' part plus the critic's closing values: the
     closing part's gradient is exactly the gradient with the critic less the gradient
     without it (float64, lorenz, a critic whose value varies); a run can log the split
     and weigh the values down, and logging it leaves the updates as they were."""
-    settings = dict(num_envs=2, horizon=3, params={"reward_width": 1.0}, compile=False, progress=False)
-    cfg = configure(SHACConfig, "lorenz-continuous-v0", **settings)
-    env = make_env(cfg.env, 2, norm_steps=0, differentiable=True, params=cfg.params, dtype="float64")
-    torch.manual_seed(0)
-    actor = networks.deterministic_actor(env, 16, paper_init=False).double()
-    critic = networks.state_value(env, 16).double()
+    cfg, env, actor, critic = float64_lorenz(2, 3)
     torch.nn.init.normal_(networks.last_linear(critic.module).weight)
     params = list(actor.parameters())
     td = env.reset()
@@ -1013,12 +1019,7 @@ def test_staggered_members_end_their_first_episode_apart_and_go_on():
     """stagger: a member's first episode is cut after its drawn count of actions, as by
     its length (truncated, closed by the critic's value, not scored), and it starts
     again there while the others go on; the counts draw apart the members' episodes."""
-    settings = dict(num_envs=3, horizon=6, params={"reward_width": 1.0}, compile=False, progress=False)
-    cfg = configure(SHACConfig, "lorenz-continuous-v0", **settings)
-    env = make_env(cfg.env, 3, norm_steps=0, differentiable=True, params=cfg.params, dtype="float64")
-    torch.manual_seed(0)
-    actor = networks.deterministic_actor(env, 16, paper_init=False).double()
-    critic = networks.state_value(env, 16).double()
+    cfg, env, actor, critic = float64_lorenz(3, 6)
     cuts = torch.tensor([2, 0, 5])
     rollout = shac.horizon(cfg, env, actor, critic, env.reset(), cuts)
     objective, visited, scores = rollout.objective.sum(), rollout.visited, rollout.scores
