@@ -1,9 +1,9 @@
 """Model-free and gradient-based control side by side on every continuous env: the
 recorded pairs' normalised training scores against transitions and against minutes
-(PPO, TD3, SAC and the short-horizon actor-critic, from ``docs/results/``), gradient
-MPC's level (``experiments/results/mpc/``), and the transitions and minutes each pair
-needed to reach the env's reference (normalised 1.0: the paper's PPO score where there
-is one).
+(PPO, TD3, SAC, the short-horizon actor-critic and its loop without a critic, grad,
+from ``docs/results/``), gradient MPC's level (``experiments/results/mpc/``), and the
+transitions and minutes each pair needed to reach the env's reference (normalised 1.0:
+the paper's PPO score where there is one).
 
     .venv/bin/python experiments/comparison.py [--page docs/gradients.md]
 
@@ -27,7 +27,7 @@ from beacon_torch.registry import continuous_envs
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED = ROOT / "docs" / "results"
 BEGIN, END = "<!-- comparison: experiments/comparison.py -->", "<!-- end of comparison -->"
-ALGOS = ("ppo", "td3", "sac", "shac")
+ALGOS = ("ppo", "td3", "sac", "shac", "grad")
 # PPO trains on the discrete twins of these: their rows are the targets' reference
 PPO_OF = {"lorenz-continuous-v0": "lorenz-v0", "mixing-continuous-v0": "mixing-v0"}
 # curve points over which "reached 1.0" is judged (training episodes are noisy)
@@ -194,7 +194,7 @@ def draw(path: Path, recorded: Path = RECORDED) -> None:
             ax.axhline(1.0, color="k", ls=":", lw=1)
             ax.axhline(0.0, color="k", ls="--", lw=1)
             if env_id in levels:
-                ax.axhline(levels[env_id]["normalised"], color="C4", ls="-.", lw=1.2, label="gradient MPC")
+                ax.axhline(levels[env_id]["normalised"], color=f"C{len(ALGOS)}", ls="-.", lw=1.2, label="gradient MPC")
             ax.grid(alpha=0.3)
             ax.set_ylabel("normalised score")
         left.set_xscale("log")

@@ -10,7 +10,10 @@ of the solver); the graph is then cut at the current state and the episodes go o
 critic, no sampling noise: what a simulator that is torch buys.
 
     python recipes/grad.py --env burgers-v0
-    python recipes/grad.py --env vortex-v0 --horizon 200
+    python recipes/grad.py --env vortex-v0 --horizon 100 --lr 3e-4
+
+Its settings are the actor-critic's, env by env, without the critic and with the
+squash's margin (``GradConfig``).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ import importlib
 import math
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 from importlib.util import find_spec
 from pathlib import Path
 
@@ -84,7 +84,7 @@ def test_config_holds_the_papers_table_and_checks_overrides():
         )
     } <= set(PPOConfig.__dataclass_fields__)
     assert configure(TD3Config, "vortex-v0").frames == configure(PPOConfig, "vortex-v0").frames == 1_000_000
-    assert configure(GradConfig, "burgers-v0").horizon == 40 and configure(DQNConfig, "mixing-v0").frames == 100_000
+    assert configure(GradConfig, "sloshing-v0").horizon == 16 and configure(DQNConfig, "mixing-v0").frames == 100_000
     # the members decide the collected batch: rounded when not given, refused when given
     assert configure(PPOConfig, "lorenz-v0", num_envs=16, collectors=3).n_rollout == 9984
     with pytest.raises(ValueError, match="multiple of the members collecting it, num_envs x collectors"):
@@ -1042,6 +1042,17 @@ def test_the_actor_critic_budget_is_a_tenth_of_ppos():
 def test_the_gradient_recipe_is_the_actor_critics_loop_without_its_critic():
     assert Path(grad.main.__code__.co_filename).name == "shac.py" and grad.main.__name__ == "main"
     assert not GradConfig.critic and SHACConfig.critic and issubclass(SHACConfig, GradConfig)
+    # the same settings on every env, but for the critic's and the squash's margin, which
+    # the loop without a critic needs and which the actor-critic's published seeds lack
+    own = {f.name for f in fields(GradConfig)} - {"squash_margin"}
+    for env_id in ("lorenz-continuous-v0", "burgers-v0", "sloshing-v0", "rayleigh-v0", "pinball-periodic-v0"):
+        first_order, actor_critic = configure(GradConfig, env_id), configure(SHACConfig, env_id)
+        assert {name: getattr(first_order, name) for name in own if name != "out"} == {
+            name: getattr(actor_critic, name) for name in own if name != "out"
+        }
+        assert (first_order.squash_margin, actor_critic.squash_margin) == (0.01, 0.0)
+        assert first_order.frames == configure(PPOConfig, env_id).frames // 10
+    assert "barrier" in SHACConfig.__dataclass_fields__["squash_margin"].metadata["help"]
 
 
 def test_config_module_is_the_one_place_of_the_algorithms():

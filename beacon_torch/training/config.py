@@ -124,31 +124,16 @@ SAC = {
     # beyond TD3's table: the gradient recipe's budget on the cylinder
     "cylinder-v0": dict(frames=16_000),
 }
-# gradient-based control, where its settings differ from the defaults
-GRAD = {
-    "burgers-v0": dict(frames=51_200, horizon=40),
-    # vortex's high cycle takes a hundred actions to grow, and the default rate lost it
-    # again once found
-    "vortex-v0": dict(frames=128_000, horizon=100, lr=3e-4, grad_checkpoint=True),
-    # an action's 50 steps of the 2-D flow, kept whole for 8 members, take gigabytes:
-    # each action is recomputed in the backward pass instead. Compiled, an update took a
-    # third of the eager one's time and memory, with the same numbers to round-off
-    "cylinder-v0": dict(frames=16_000, num_envs=8, horizon=20, grad_checkpoint=True, compile=True),
-    # the pinball's action is 100 steps of a larger box: 0.55 GB a member recomputed.
-    # Compiled, an update took a fifth of the eager one's time at 20 actions (a third at 4)
-    # and a quarter of its memory, with the same numbers to float32 round-off
-    "pinball-v0": dict(frames=16_000, num_envs=8, horizon=20, grad_checkpoint=True, compile=True),
-}
-
-# the short-horizon actor-critic, where its settings differ from the defaults. Its budget
-# is a tenth of PPO's: where 64 members x 32 actions leave too few updates in it (9 on
-# sloshing and shkadov, 97 on lorenz and ks), 16 members, which trials of one seed
-# measured to learn further in the budget (ks by the same rule, untried). Lorenz's
-# reward counts steps in a lobe and has no gradient: it is trained on the indicator's
-# value with a smooth step's gradient. The 2-D flows, whose differentiated action holds
-# gigabytes, with fewer members and each action recomputed in the backward pass (first
-# settings, not yet tuned).
-SHAC = {
+# the first-order loop (gradient-based control and the short-horizon actor-critic: one
+# table, so that the two differ only by the critic), where its settings differ from the
+# defaults. Its budget is a tenth of PPO's: where 64 members x 32 actions leave too few
+# updates in it (9 on sloshing and shkadov, 97 on lorenz and ks), 16 members, which
+# trials of one seed measured to learn further in the budget (ks by the same rule,
+# untried). Lorenz's reward counts steps in a lobe and has no gradient: it is trained on
+# the indicator's value with a smooth step's gradient. The 2-D flows, whose
+# differentiated action holds gigabytes, with fewer members and, where the memory calls
+# for it, each action recomputed in the backward pass.
+FIRST_ORDER = {
     "lorenz-v0": dict(num_envs=16, params={"reward_width": 1.0, "reward_value": "indicator"}),
     "sloshing-v0": dict(num_envs=16, horizon=16),
     "shkadov-v0": dict(num_envs=16),
@@ -161,8 +146,9 @@ SHAC = {
     # 24, at 16 GB resident), so it recomputes each action (5.3 times the forward)
     "rayleigh-v0": dict(num_envs=8, horizon=16, compile=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, compile=True),
-    # the wakes compiled as in the gradient recipe, for the same measured reasons; the
-    # cylinder's compiled horizon kept whole (16 actions at 8 members: 2.6 GiB at the
+    # the wakes compiled: an update of 20 actions took a third (the cylinder) and a fifth
+    # (the pinball) of the eager one's time and a quarter of its memory, with the same
+    # numbers to float32 round-off; the cylinder's compiled horizon kept whole (16 actions at 8 members: 2.6 GiB at the
     # process's peak against 0.95 recomputed; 3.8 times the forward against 5.0), the
     # pinball's actions (0.55 GB a member) recomputed
     "cylinder-v0": dict(num_envs=8, horizon=20, compile=True),
@@ -192,6 +178,12 @@ def setting(
     if isinstance(default, dict):
         return field(default_factory=dict, metadata=metadata)
     return field(default=default, metadata=metadata)
+
+
+def redefault(cls: type, name: str, default):
+    """``cls``'s setting ``name`` with another default, for a subclass: its help and
+    domain said once."""
+    return setting(default, **{k: v for k, v in next(f for f in fields(cls) if f.name == name).metadata.items()})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -397,16 +389,18 @@ class GradConfig(Config):
 
     algo: ClassVar[str] = "grad"
     action_kind: ClassVar[str] = "continuous"
-    table: ClassVar[dict[str, dict]] = GRAD
+    table: ClassVar[dict[str, dict]] = FIRST_ORDER
+    # what it is to show: PPO's score in a tenth of PPO's transitions
+    budget_share: ClassVar[float] = 0.1
     in_process: ClassVar[bool] = True
     positive: ClassVar[tuple[str, ...]] = ("horizon", "horizon_min", "horizon_max", "estimator_groups")
     # whether a critic's value closes each horizon
     critic: ClassVar[bool] = False
 
-    num_envs: int = setting(16, "members of the batched env")
+    num_envs: int = setting(64, "members of the batched env")
     norm_steps: int = setting(NORM_STEPS, "random steps whose observations set the normalisation (0: raw observations)")
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
-    lr: float = setting(1e-3, "learning rate", domain=POSITIVE)
+    lr: float = setting(2e-3, "the policy's learning rate", domain=POSITIVE)
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
     optimizer: str = setting(
         "adam", "the policy's (and critics') optimiser; adamw: SAPO's, betas 0.7 and 0.95", ("adam", "adamw")
@@ -443,8 +437,10 @@ class GradConfig(Config):
     init_alpha: float = setting(1.0, "the entropy bonus's first weight alpha", domain=POSITIVE)
     alpha_lr: float = setting(5e-3, "the learning rate of log alpha", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
+    # without a critic the policy's actions drifted to the box's edges, where the squash
+    # passes no gradient, on rayleigh and vortex (docs/gradients.md's table of settings)
     squash_margin: float = setting(
-        0.0,
+        0.01,
         "a quadratic barrier on the deterministic policy's pre-squash outputs past atanh(1 - SQUASH_MARGIN), "
         "where its actions come within that share of the half-width of the box's edges and tanh passes almost "
         "none of the physics' gradient back (0: none)",
@@ -471,14 +467,12 @@ class SHACConfig(GradConfig):
     the states the horizons went through."""
 
     algo: ClassVar[str] = "shac"
-    table: ClassVar[dict[str, dict]] = SHAC
-    # what it is to show: PPO's score in a tenth of PPO's transitions
-    budget_share: ClassVar[float] = 0.1
     positive: ClassVar[tuple[str, ...]] = (*GradConfig.positive, "critic_iterations", "critic_minibatches", "critics")
     critic: ClassVar[bool] = True
 
-    num_envs: int = setting(64, "members of the batched env")
-    lr: float = setting(2e-3, "the policy's learning rate", domain=POSITIVE)
+    # the seeds published ran without the squash's margin, which measured level with a
+    # critic on burgers, vortex and sloshing
+    squash_margin: float = redefault(GradConfig, "squash_margin", 0.0)
     critic_lr: float = setting(1e-3, "the critic's learning rate", domain=POSITIVE)
     lmbda: float = setting(0.95, "lambda of the critic's TD(lambda) targets", domain=(0.0, 1.0, False))
     critic_iterations: int = setting(16, "passes over a horizon's states fitting the critic")
