@@ -718,14 +718,18 @@ def test_gradient_control_beats_no_control_on_burgers_and_resumes(tmp_path):
     solver (5 updates): the deterministic policy already damps the inlet noise better
     than no control on fresh episodes (measured -1.77 +- 0.11 against -3.43; about -0.5
     in the longer runs of docs/gradients.md)."""
-    grad.main(configure(GradConfig, "burgers-v0", num_envs=4, frames=800, out=str(tmp_path), progress=False))
+    grad.main(
+        configure(GradConfig, "burgers-v0", num_envs=4, horizon=40, frames=800, out=str(tmp_path), progress=False)
+    )
     state = checkpoint(tmp_path)
     assert state["algo"] == "grad" and state["frames"] == 800 and state["counters"]["skipped"] == 0
     result = evaluate_run(tmp_path, num_envs=4)
     assert result["score_mean"] < 0 and result["score_mean"] > result["uncontrolled"] + 0.5, result
     first = {k: v.clone() for k, v in state["modules"]["actor"].items()}
     grad.main(
-        configure(GradConfig, "burgers-v0", num_envs=4, frames=960, out=str(tmp_path), progress=False, resume=True)
+        configure(
+            GradConfig, "burgers-v0", num_envs=4, horizon=40, frames=960, out=str(tmp_path), progress=False, resume=True
+        )
     )
     state = checkpoint(tmp_path)
     assert state["frames"] == 960
