@@ -142,4 +142,4 @@ def test_the_page_shows_the_recorded_validation_trials_and_results():
     # the published three-seed results, each recipe's row as the recorded summaries give it
     results = ks_trials.results()
     assert results in page
-    assert {line.split("|")[1].strip() for line in results.splitlines()[2:]} == {"ppo", "td3", "shac"}
+    assert {line.split("|")[1].strip() for line in results.splitlines()[2:]} == {"ppo", "td3", "shac", "grad"}
