@@ -19,7 +19,6 @@ variant, seed) as the page's table, a row per (env, variant) with the mean over 
 from __future__ import annotations
 
 import argparse
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -81,11 +80,10 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
         settings["frames"] = frames
     kind = SHACConfig
     if not settings.pop("critic", True):
-        # every setting the critic-less loop has, as the actor-critic sets it for the env
-        kind, given = GradConfig, configure(SHACConfig, env_id)
-        run_own = ("env", "seed", "out", "progress", "threads", "logger", "resume")
-        own = {f.name: getattr(given, f.name) for f in fields(GradConfig) if f.init and f.name not in run_own}
-        settings = {**own, **settings}
+        # the two share their per-env settings but for the squash's margin: a variant
+        # names what differs from the actor-critic's defaults, its margin included
+        kind = GradConfig
+        settings.setdefault("squash_margin", SHACConfig.__dataclass_fields__["squash_margin"].default)
     resume = (out / CHECKPOINT).is_file()
     cfg = configure(kind, env_id, resume=resume, **settings)
     if not resume or load_checkpoint(out)["frames"] < cfg.frames:

@@ -148,9 +148,9 @@ FIRST_ORDER = {
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, compile=True),
     # the wakes compiled: an update of 20 actions took a third (the cylinder) and a fifth
     # (the pinball) of the eager one's time and a quarter of its memory, with the same
-    # numbers to float32 round-off; the cylinder's compiled horizon kept whole (16 actions at 8 members: 2.6 GiB at the
-    # process's peak against 0.95 recomputed; 3.8 times the forward against 5.0), the
-    # pinball's actions (0.55 GB a member) recomputed
+    # numbers to float32 round-off; the cylinder's compiled horizon kept whole (16
+    # actions at 8 members: 2.6 GiB at the process's peak against 0.95 recomputed; 3.8
+    # times the forward against 5.0), the pinball's actions (0.55 GB a member) recomputed
     "cylinder-v0": dict(num_envs=8, horizon=20, compile=True),
     "pinball-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True, compile=True),
 }
