@@ -50,6 +50,8 @@ VARIANTS = {
     # the same loop without its critic (recipes/grad.py) at the actor-critic's settings
     "critic-less": {"critic": False},
     "critic-less-squash-margin": {"critic": False, "squash_margin": 0.01},
+    # SHAC's own schedule of the rates, on the loop without its critic
+    "critic-less-lr-linear": {"critic": False, "squash_margin": 0.01, "lr_schedule": "linear"},
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},

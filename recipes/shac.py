@@ -27,7 +27,8 @@ by side, the horizons closed by their mean value and their targets taken from th
 lowest; ``--no-target-critic`` uses the critics themselves where the slowly following
 copy was; ``--optimizer adamw`` is its optimiser (betas 0.7 and 0.95); ``--layer-norm``
 its hidden layers (linear, LayerNorm, SiLU) in the policy and the critics; its gradient
-clipping is ``--grad-clip 0.5``.
+clipping is ``--grad-clip 0.5``. ``--lr-schedule linear`` is SHAC's own schedule (its
+published configurations): the rates fall linearly to 1e-5 over the run.
 
 ``--adaptive-horizon`` adapts the horizon after each update, as AHAC (Georgiev et al.,
 ICML 2024) does against a measure of the dynamics' stiffness; the measure here is how much
@@ -154,6 +155,11 @@ def main(cfg: GradConfig) -> dict:
             growth = gradient_growth(visited)
             steps = run.counters["horizon"] = adapted(cfg, steps, growth)
         norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip)
+        if cfg.lr_schedule == "linear":
+            # from the transitions done, so that a resumed run goes on where it stopped
+            anneal(optim, cfg.lr, run.frames / cfg.frames)
+            if cfg.critic:
+                anneal(critic_optim, cfg.critic_lr, run.frames / cfg.frames)
         if torch.isfinite(norm):
             optim.step()
         else:
@@ -445,6 +451,13 @@ class Temperature(torch.nn.Module):
         optim.zero_grad()
         loss.backward()
         optim.step()
+
+
+def anneal(optim: torch.optim.Optimizer, lr: float, done: float, last: float = 1e-5) -> None:
+    """The linear schedule's rate after the share ``done`` of the run: ``lr`` down to
+    ``last``."""
+    for group in optim.param_groups:
+        group["lr"] = lr + (last - lr) * min(done, 1.0)
 
 
 def optimiser(cfg: GradConfig, parameters, lr: float) -> torch.optim.Optimizer:

@@ -761,6 +761,27 @@ def test_shac_closes_its_horizons_with_a_fitted_critic_and_resumes(tmp_path):
         assert any(not torch.equal(before[k], after[k]) for k in before), f"the resumed run left the {name} as it was"
 
 
+def test_shac_with_shacs_linear_schedule_lowers_both_rates_by_the_transitions_done(tmp_path):
+    """SHAC's schedule: before each update the policy's and the critic's rates are their
+    values less the share of the run done of their way down to 1e-5, counted from the
+    transitions, so that a resumed run takes the schedule up where it stopped."""
+    settings = dict(num_envs=4, horizon=10, critic_iterations=2, out=str(tmp_path), progress=False)
+    settings.update(lr_schedule="linear", lr=2e-3, critic_lr=1e-3)
+    shac.main(configure(SHACConfig, "burgers-v0", frames=320, **settings))
+    rate = lambda lr, done, total: lr + (1e-5 - lr) * done / total
+    modules = checkpoint(tmp_path)["modules"]
+    # the last of 8 updates of 40 transitions came after 280 of the 320
+    assert modules["optim"]["param_groups"][0]["lr"] == pytest.approx(rate(2e-3, 280, 320), rel=1e-12)
+    assert modules["critic_optim"]["param_groups"][0]["lr"] == pytest.approx(rate(1e-3, 280, 320), rel=1e-12)
+    shac.main(configure(SHACConfig, "burgers-v0", frames=400, resume=True, **settings))
+    modules = checkpoint(tmp_path)["modules"]
+    assert modules["optim"]["param_groups"][0]["lr"] == pytest.approx(rate(2e-3, 360, 400), rel=1e-12)
+    constant = configure(GradConfig, "burgers-v0")
+    assert constant.lr_schedule == "constant"
+    with pytest.raises(ValueError, match="lr_schedule"):
+        configure(GradConfig, "burgers-v0", lr_schedule="cosine")
+
+
 def test_shac_with_sapos_twin_critics_without_a_target_adamw_and_layer_norm_trains_and_resumes(tmp_path):
     """SAPO's critics: two side by side, the horizons closed by their mean value and
     their TD(lambda) targets taken from the lowest, no slowly following copy; AdamW

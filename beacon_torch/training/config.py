@@ -402,6 +402,12 @@ class GradConfig(Config):
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
     lr: float = setting(2e-3, "the policy's learning rate", domain=POSITIVE)
     grad_clip: float = setting(1.0, "clipping of the policy's gradient norm", domain=POSITIVE)
+    lr_schedule: str = setting(
+        "constant",
+        "the learning rates over the run: constant, or linear (SHAC's: from their values down to 1e-5 at the "
+        "run's last transition, the policy's and the critics' alike)",
+        ("constant", "linear"),
+    )
     optimizer: str = setting(
         "adam", "the policy's (and critics') optimiser; adamw: SAPO's, betas 0.7 and 0.95", ("adam", "adamw")
     )
