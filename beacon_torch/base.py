@@ -40,7 +40,16 @@ from beacon_torch.autograd import graph_mode
 from beacon_torch.compiled import step_inputs
 from beacon_torch.core import saving
 from beacon_torch.core.card import FrameInputs
-from beacon_torch.core.checks import Guard, as_batch_size, as_device, as_dtype, as_flag, as_seed, check_memory
+from beacon_torch.core.checks import (
+    Guard,
+    as_batch_size,
+    as_count,
+    as_device,
+    as_dtype,
+    as_flag,
+    as_seed,
+    check_memory,
+)
 from beacon_torch.core.state import State, map_state, where_members
 from beacon_torch.core.step import step
 from beacon_torch.history import History
@@ -65,6 +74,7 @@ class FlowEnv(EnvBase):
         record_history: bool = False,
         differentiable: bool = False,
         grad_checkpoint: bool = False,
+        grad_checkpoint_after: int = 0,
         starts: str | None = None,
         **params: Any,
     ) -> None:
@@ -102,8 +112,15 @@ class FlowEnv(EnvBase):
         self.differentiable = differentiable
         # a named set of developed start states instead of the env's own start
         self.starts = start_sets.check(starts)
-        # recompute each action's substeps in the backward pass instead of keeping them
+        # recompute each action's substeps in the backward pass instead of keeping them,
+        # but for the first ``grad_checkpoint_after`` actions since the graph was last cut
+        # (a reset of every member, detach_state): as many graphs kept whole as memory
+        # allows cost no second forward pass
         self.grad_checkpoint = grad_checkpoint
+        self.grad_checkpoint_after = as_count("grad_checkpoint_after", grad_checkpoint_after, self.env_id)
+        if self.grad_checkpoint_after and not grad_checkpoint:
+            raise ValueError(f"{self.env_id}: grad_checkpoint_after needs grad_checkpoint=True")
+        self._kept_whole = 0
         self.history = History(record_history)
         # a state given to set_state with a graph, not stepped yet: a reset would drop it
         self._traced_start = False
@@ -339,6 +356,7 @@ class FlowEnv(EnvBase):
             raise RuntimeError(f"{self.env_id}: call reset() before detach_state()")
         self._state = map_state(torch.Tensor.detach, self._state)
         self._obs = self._obs.detach()
+        self._kept_whole = 0
 
     def set_state(self, state: State | dict[str, torch.Tensor], count: int | torch.Tensor = 0) -> torch.Tensor:
         """Continue every member from ``state`` (an instance of the env's
@@ -414,6 +432,7 @@ class FlowEnv(EnvBase):
             if mask is None or self._state is None:
                 self._state = init
                 self._count = torch.zeros_like(self._count)
+                self._kept_whole = 0
             else:
                 self._state = where_members(mask, init, self._state)
                 self._count = torch.where(mask, torch.zeros_like(self._count), self._count)
@@ -456,7 +475,9 @@ class FlowEnv(EnvBase):
         inputs = (self.physics, self.params, self._state, action, noise, self._count, self._obs, stepping)
         with graph_mode(self.differentiable):
             if self.differentiable and torch.is_grad_enabled():
-                out = step(*inputs, keep_graph=True, checkpoint=self.grad_checkpoint)
+                recompute = self.grad_checkpoint and self._kept_whole >= self.grad_checkpoint_after
+                self._kept_whole += not recompute
+                out = step(*inputs, keep_graph=True, checkpoint=recompute)
             else:
                 # compiled, this is one call: the action's values, the physics, the
                 # blow-up bookkeeping and the counters
@@ -609,6 +630,11 @@ def make(
         with ``differentiable``, recompute each action's substeps in the backward pass
         instead of keeping them (the memory of a differentiated episode becomes one
         state per action); default False.
+    ``grad_checkpoint_after``
+        with ``grad_checkpoint``, keep the graphs of the first N actions since the graph
+        was last cut (a reset of every member, :meth:`FlowEnv.detach_state`) whole and
+        recompute only the later ones: each action kept whole saves a second forward
+        pass for the memory of its graph; default 0 (every action recomputed).
     ``record_history``
         True keeps member ``render_index``'s states since its reset, so that
         ``render()`` draws the episode so far; default False (the current state only).

@@ -25,7 +25,15 @@ from beacon_torch.core.physics import Physics
 from beacon_torch.params import resolve_params, resolved
 
 # what make() takes beside an env's physical parameters
-OPTIONS = ("compile", "differentiable", "grad_checkpoint", "record_history", "check_actions", "starts")
+OPTIONS = (
+    "compile",
+    "differentiable",
+    "grad_checkpoint",
+    "grad_checkpoint_after",
+    "record_history",
+    "check_actions",
+    "starts",
+)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -159,6 +167,9 @@ def _check_defaults(env_id: str, physics: type[Physics], defaults: dict[str, Any
     for name in ("differentiable", "grad_checkpoint", "record_history", "check_actions"):
         if name in defaults and not isinstance(defaults[name], bool):
             raise TypeError(f"{env_id}: the default {name} must be True or False, got {defaults[name]!r}")
+    after = defaults.get("grad_checkpoint_after", 0)
+    if isinstance(after, bool) or not isinstance(after, int) or after < 0:
+        raise TypeError(f"{env_id}: the default grad_checkpoint_after must be a non-negative integer, got {after!r}")
     if "compile" in defaults and not isinstance(defaults["compile"], (bool, dict)):
         raise TypeError(f"{env_id}: the default compile must be True, False or a dict of options")
 

@@ -1,6 +1,6 @@
 """What a differentiated transition costs against a compiled forward one, per env, at the
 short-horizon actor-critic's batch and settings (``SHACConfig``: its members and
-``grad_checkpoint``), in CPU time of this process, float32.
+``grad_checkpoint`` and ``grad_checkpoint_after``), in CPU time of this process, float32.
 
     .venv/bin/python benchmarks/grad_cost.py [--envs ...] [--rounds 5] [--horizon 4]
     .venv/bin/python benchmarks/grad_cost.py --page docs/measurements.md
@@ -16,7 +16,11 @@ round, after a warm-up (compilation) that is not counted:
   one compiled call differentiated by torch.compile as one graph; the whole action as
   one such call where the physics asks for it, ``grad_whole_action``);
 - ``compiled-K`` (asked for with ``--kinds``): the same with ``K`` substeps a compiled
-  call (``compiled-1``: each substep its own call).
+  call (``compiled-1``: each substep its own call);
+- ``kept`` (asked for with ``--kinds``): ``compiled`` with every action's graph kept
+  whole where the actor-critic recomputes each action in the backward pass (mixing, the
+  pinball): what a transition costs without the recomputation, at a horizon short
+  enough to fit in memory.
 
 Recorded per env and round: CPU seconds per transition of each, and of them the
 kernel's (``system_s``) and the pages faulted in (``page_faults``); the ratios are the
@@ -49,10 +53,11 @@ PARAMS = {"lorenz-continuous-v0": {"reward_width": 1.0}}
 class Way:
     """One way of taking actions of ``env_id`` at ``members``."""
 
-    def __init__(self, env_id: str, members: int, kind: str, checkpoint: bool, horizon: int) -> None:
+    def __init__(self, env_id: str, members: int, kind: str, checkpoint: bool, horizon: int, after: int = 0) -> None:
         import beacon_torch
 
         differentiable = kind != "forward"
+        checkpoint = checkpoint and differentiable and kind != "kept"
         self.kind, self.horizon = kind, horizon
         self.env = beacon_torch.make(
             env_id,
@@ -60,7 +65,8 @@ class Way:
             seed=0,
             compile=kind != "eager",
             differentiable=differentiable,
-            grad_checkpoint=checkpoint and differentiable,
+            grad_checkpoint=checkpoint,
+            grad_checkpoint_after=after if checkpoint else 0,
             params=PARAMS.get(env_id, {}),
         )
         if kind.startswith("compiled-"):  # another chunk of substeps per compiled call
@@ -91,12 +97,13 @@ class Way:
         return self.horizon * env.num_envs
 
 
-def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
+def measure(env_id: str, rounds: int, horizon: int, kinds: list[str], grad_checkpoint_after: int | None = None) -> dict:
     from beacon_torch import autograd
     from beacon_torch.training.config import SHACConfig, configure
 
     cfg = configure(SHACConfig, env_id)
-    ways = {k: Way(env_id, cfg.num_envs, k, cfg.grad_checkpoint, horizon) for k in kinds}
+    kept = cfg.grad_checkpoint_after if grad_checkpoint_after is None else grad_checkpoint_after
+    ways = {k: Way(env_id, cfg.num_envs, k, cfg.grad_checkpoint, horizon, kept) for k in kinds}
     warmup = {}
     for k, way in ways.items():  # compilation, forward and backward
         start = time.perf_counter()
@@ -118,6 +125,7 @@ def measure(env_id: str, rounds: int, horizon: int, kinds: list[str]) -> dict:
         env=env_id,
         members=cfg.num_envs,
         grad_checkpoint=cfg.grad_checkpoint,
+        grad_checkpoint_after=kept,
         horizon=horizon,
         rounds=per,
         system_s=system,
@@ -138,10 +146,16 @@ BEGIN, END = (
 )
 
 
+def settings(row: dict) -> tuple:
+    """What a row's ways were measured with (records from before
+    ``grad_checkpoint_after`` recomputed every action)."""
+    return row.get("members"), row.get("grad_checkpoint"), row.get("grad_checkpoint_after", 0)
+
+
 def page_table(folder: Path) -> str:
     """The newest measurement of each env and way in ``folder`` as a markdown table (a
     way missing from an env's newest record, such as the cavities' eager path, keeps
-    its newest earlier ratio measured at the same members and ``grad_checkpoint``; each
+    its newest earlier ratio measured at the same members, ``grad_checkpoint`` and ``grad_checkpoint_after``; each
     ratio is against the forward way of its own record)."""
     from beacon_torch import received
 
@@ -157,7 +171,7 @@ def page_table(folder: Path) -> str:
                 row = {**row, "compiled-1_ratio": row["compiled_ratio"]}
                 del row["compiled_ratio"]
             before = newest.get(row["env"], {})
-            if (before.get("members"), before.get("grad_checkpoint")) != (row["members"], row["grad_checkpoint"]):
+            if settings(before) != settings(row):
                 before = {}  # ways measured with other settings are not this row's
             newest[row["env"]] = {**before, **row, "measured": f"{day}, {cpu}"}
     lines = [
@@ -175,8 +189,11 @@ def page_table(folder: Path) -> str:
         substeps = "-" if physics.grad_action_in_c else ratio("compiled-1")
         way = "the action in C" if physics.grad_action_in_c else way
         compiled = f"{ratio('compiled')} ({way})" if "compiled_ratio" in r else "-"
+        checkpoint = str(r["grad_checkpoint"])
+        if r["grad_checkpoint"] and r.get("grad_checkpoint_after"):
+            checkpoint += f" (after {r['grad_checkpoint_after']} actions kept whole)"
         lines.append(
-            f"| {env_id} | {r['members']} | {r['grad_checkpoint']} | {1e3 * r['forward_s']:.3g} "
+            f"| {env_id} | {r['members']} | {checkpoint} | {1e3 * r['forward_s']:.3g} "
             f"| {ratio('eager')} | {substeps} | {compiled} | {r['measured']} |"
         )
     return "\n".join(lines)
@@ -194,6 +211,12 @@ def main() -> None:
         default=None,
         help="free heap bytes kept between recomputed actions (default: beacon_torch.autograd.KEEP_FREE)",
     )
+    parser.add_argument(
+        "--grad-checkpoint-after",
+        type=int,
+        default=None,
+        help="the recomputing env's actions kept whole a horizon (default: the actor-critic's setting)",
+    )
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_cost")
     parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
     args = parser.parse_args()
@@ -209,11 +232,14 @@ def main() -> None:
     if args.keep_free is not None:
         autograd.KEEP_FREE = args.keep_free
 
-    print("| env | members | checkpoint | forward (ms/transition) | eager / forward | compiled / forward |")
-    print("|---|---|---|---|---|---|", flush=True)
+    ways = ("eager", "compiled", "kept")
+    print(
+        "| env | members | checkpoint | forward (ms/transition) | " + " | ".join(f"{k} / forward" for k in ways) + " |"
+    )
+    print("|---|---|---|---|---|---|---|", flush=True)
     for env_id in args.envs:
-        row = measure(env_id, args.rounds, args.horizon, args.kinds)
-        ratios = " | ".join(f"{row.get(f'{k}_ratio', float('nan')):.1f}" for k in ("eager", "compiled"))
+        row = measure(env_id, args.rounds, args.horizon, args.kinds, args.grad_checkpoint_after)
+        ratios = " | ".join(f"{row.get(f'{k}_ratio', float('nan')):.1f}" for k in ways)
         print(f"| {env_id} | {row['members']} | {row['grad_checkpoint']} | {1e3 * row['forward_s']:.3g} | {ratios} |")
         # a record per env, written as soon as it is measured
         print(f"written to {save_rows([row], args.out, f'grad-cost-{env_id}')}", flush=True)

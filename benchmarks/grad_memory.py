@@ -92,11 +92,16 @@ def _status(field: str) -> int:
 
 
 def horizon_peak(
-    env_id: str, members: int, horizon: int, compile: bool | None = None, checkpoint: bool | None = None
+    env_id: str,
+    members: int,
+    horizon: int,
+    compile: bool | None = None,
+    checkpoint: bool | None = None,
+    after: int | None = None,
 ) -> dict:
     """The resident memory of one differentiated horizon of ``env_id`` with the
-    actor-critic's settings (its ``grad_checkpoint``; its compiled path unless
-    ``compile`` says): before, at its peak (the process's) and the difference, in
+    actor-critic's settings (its ``grad_checkpoint`` and ``grad_checkpoint_after``;
+    its compiled path unless ``compile`` says): before, at its peak (the process's) and the difference, in
     bytes, with the seconds of the horizon and whether its gradient is finite."""
     from beacon_torch.autograd import release_free_memory
     from beacon_torch.training.config import SHACConfig, configure
@@ -104,7 +109,16 @@ def horizon_peak(
     cfg = configure(SHACConfig, env_id)
     compile = cfg.compile if compile is None else compile
     checkpoint = cfg.grad_checkpoint if checkpoint is None else checkpoint
-    env = beacon_torch.make(env_id, members, seed=0, compile=compile, differentiable=True, grad_checkpoint=checkpoint)
+    after = (cfg.grad_checkpoint_after if after is None else after) if checkpoint else 0
+    env = beacon_torch.make(
+        env_id,
+        members,
+        seed=0,
+        compile=compile,
+        differentiable=True,
+        grad_checkpoint=checkpoint,
+        grad_checkpoint_after=after,
+    )
     env.reset()
     g = torch.Generator().manual_seed(0)
 
@@ -133,6 +147,7 @@ def horizon_peak(
         horizon=horizon,
         compile=compile,
         grad_checkpoint=checkpoint,
+        grad_checkpoint_after=after,
         rss_before=before,
         peak=peak,
         held=peak - before,
@@ -142,7 +157,13 @@ def horizon_peak(
 
 
 def peaks(
-    envs: list[str], members: int, horizon: int, compile: bool | None, checkpoint: bool | None, out: Path
+    envs: list[str],
+    members: int,
+    horizon: int,
+    compile: bool | None,
+    checkpoint: bool | None,
+    out: Path,
+    after: int | None = None,
 ) -> Path:
     """:func:`horizon_peak` of each env in a process of its own; writes the record."""
     rows = []
@@ -160,6 +181,8 @@ def peaks(
         for flag, value in (("--compile", compile), ("--grad-checkpoint", checkpoint)):
             if value is not None:
                 command += [flag, str(value).lower()]
+        if after is not None:
+            command += ["--grad-checkpoint-after", str(after)]
         done = subprocess.run(command, capture_output=True, text=True, check=True)
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
         r = rows[-1]
@@ -186,19 +209,24 @@ def main(argv=None) -> None:
     parser.add_argument("--horizon", type=int, default=16)
     parser.add_argument("--compile", choices=["true", "false"], default=None, help="default: the recipe's setting")
     parser.add_argument("--grad-checkpoint", choices=["true", "false"], default=None, help="default: the recipe's")
+    parser.add_argument(
+        "--grad-checkpoint-after", type=int, default=None, help="actions kept whole a horizon (default: the recipe's)"
+    )
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_memory")
     args = parser.parse_args(argv)
     compile = None if args.compile is None else args.compile == "true"
     checkpoint = None if args.grad_checkpoint is None else args.grad_checkpoint == "true"
     if args.peak_one is not None:
-        print(json.dumps(horizon_peak(args.peak_one, args.members, args.horizon, compile, checkpoint)))
+        after = args.grad_checkpoint_after
+        print(json.dumps(horizon_peak(args.peak_one, args.members, args.horizon, compile, checkpoint, after)))
         return
     if args.peak:
         envs = args.envs or PEAK_ENVS
         print(f"one horizon, {torch.get_num_threads()} threads, resident memory of the process")
         print("| env | members x actions | compiled | grad_checkpoint | before | peak | held | time | finite |")
         print("|---|---|---|---|---|---|---|---|---|")
-        print(f"written to {peaks(envs, args.members, args.horizon, compile, checkpoint, args.out)}")
+        record = peaks(envs, args.members, args.horizon, compile, checkpoint, args.out, args.grad_checkpoint_after)
+        print(f"written to {record}")
         return
     dtype = getattr(torch, args.dtype)
     args.envs = args.envs or list(ENVS)

@@ -75,13 +75,26 @@ def main(cfg: GradConfig) -> dict:
     """Train the policy on ``cfg.frames`` transitions; returns the last logged values."""
     # the graph of a horizon of every member, estimated from one action, must fit
     longest = cfg.horizon_max if cfg.adaptive_horizon else cfg.horizon
-    need = horizon_bytes(cfg.env, longest, cfg.num_envs, params=cfg.params, grad_checkpoint=cfg.grad_checkpoint)
+    need = horizon_bytes(
+        cfg.env,
+        longest,
+        cfg.num_envs,
+        params=cfg.params,
+        grad_checkpoint=cfg.grad_checkpoint,
+        kept=cfg.grad_checkpoint_after,
+    )
     fits(f"the graph of {longest} differentiated actions of {cfg.num_envs} members", need, cfg.device)
     run = Run.of(cfg)
     torch.manual_seed(cfg.seed)
 
     # the differentiable env, with the saved normalisation when resuming
-    env = recipe_env(cfg, run.obs_norm, differentiable=True, grad_checkpoint=cfg.grad_checkpoint)
+    env = recipe_env(
+        cfg,
+        run.obs_norm,
+        differentiable=True,
+        grad_checkpoint=cfg.grad_checkpoint,
+        grad_checkpoint_after=cfg.grad_checkpoint_after if cfg.grad_checkpoint else 0,
+    )
     base = env.base_env
     keys = networks.Keys.of(env)
 

@@ -375,6 +375,18 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
     assert row["keep_free"] == 12345
 
 
+def test_the_kept_way_differentiates_without_recomputing_the_actions():
+    """grad_cost's ``kept`` way: the env the actor-critic recomputes (mixing) compiled
+    and differentiable with each action's graph kept whole; its ``compiled`` way
+    recomputes, as the recipe does."""
+    from benchmarks import grad_cost as cost
+
+    kept = cost.Way("mixing-continuous-v0", 2, "kept", True, 1)
+    recomputed = cost.Way("mixing-continuous-v0", 2, "compiled", True, 1)
+    assert kept.env.differentiable and not kept.env.grad_checkpoint
+    assert recomputed.env.grad_checkpoint
+
+
 def test_the_comparison_reads_when_each_pair_reached_the_paper_score_from_its_curves():
     """experiments/comparison.py: with its seeds' curves, a pair reached normalised 1.0
     where the mean of its last points first does (transitions and minutes there); without

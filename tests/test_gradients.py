@@ -185,6 +185,45 @@ def test_a_checkpointed_action_runs_its_first_pass_without_a_graph_and_keeps_eve
         torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-14)
 
 
+def test_the_first_actions_after_a_cut_keep_their_graphs_whole_and_the_later_ones_are_recomputed():
+    """``grad_checkpoint_after=N``: of the actions since the graph was last cut, the
+    first N keep their substeps' graphs, the later ones record a few nodes and are
+    recomputed in the backward pass; detach_state and a reset of every member start the
+    count again; the gradients are the graph's kept whole."""
+
+    def run(after: int | None, actions: int = 3):
+        checkpoint = after is not None
+        env = beacon_torch.make(
+            "vortex-v0", 2, dtype=F64, differentiable=True, grad_checkpoint=checkpoint, grad_checkpoint_after=after or 0
+        )
+        env.reset()
+        action = torch.full((2, 2), 0.3, dtype=F64, requires_grad=True)
+        total, sizes = 0.0, []
+        for k in range(actions):
+            reward = env.step(TensorDict({"action": (action * (k + 1)).tanh()}, batch_size=env.batch_size))
+            total = total + reward["next", "reward"].sum()
+            sizes.append(graph_nodes(total))
+        return env, sizes, torch.autograd.grad(total, action)[0]
+
+    _, whole_sizes, whole = run(None)
+    for after in (0, 1, 2, 3):
+        env, sizes, grad = run(after)
+        torch.testing.assert_close(grad, whole, rtol=1e-12, atol=1e-14)
+        assert sizes[:after] == whole_sizes[:after]
+        # a recomputed action adds a few nodes, one kept whole its substeps' graph
+        added = [b - a for a, b in zip([0, *sizes], sizes, strict=False)]
+        assert all(n < 50 for n in added[after:]) and all(n > 100 for n in added[:after])
+        for cut in (env.detach_state, env.reset):
+            cut()
+            action = torch.zeros((2, 2), dtype=F64, requires_grad=True)
+            reward = env.step(TensorDict({"action": action}, batch_size=env.batch_size))["next", "reward"]
+            assert (graph_nodes(reward.sum()) > 100) == (after > 0)
+    with pytest.raises(ValueError, match="grad_checkpoint_after needs grad_checkpoint=True"):
+        beacon_torch.make("vortex-v0", differentiable=True, grad_checkpoint_after=2)
+    with pytest.raises(TypeError, match="grad_checkpoint_after must be a non-negative integer"):
+        beacon_torch.make("vortex-v0", differentiable=True, grad_checkpoint=True, grad_checkpoint_after=1.5)
+
+
 def test_detach_state_truncates_backpropagation():
     env = beacon_torch.make("vortex-v0", dtype=F64, differentiable=True)
     env.reset()

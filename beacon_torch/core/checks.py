@@ -53,6 +53,15 @@ def as_flag(name: str, value: Any) -> bool:
     raise TypeError(f"{name} must be True or False, got {value!r}")
 
 
+def as_count(name: str, value: Any, env_id: str) -> int:
+    """A number of things: a non-negative integer, not a bool or a float."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{env_id}: {name} must be a non-negative integer, got {value!r}")
+    if value < 0:
+        raise ValueError(f"{env_id}: {name} must be a non-negative integer, got {value}")
+    return int(value)
+
+
 def as_seed(seed: Any) -> int:
     if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
         raise TypeError(f"seed must be an integer in [0, 2**64), got {seed!r}")

@@ -143,16 +143,21 @@ FIRST_ORDER = {
     # times the compiled forward one. Compiled, a horizon of rayleigh kept whole peaks at
     # 2.5 GiB (0.8 recomputed) at 3.9 times the forward; mixing's at 9.5 GiB (1.2
     # recomputed), and in the recipe kept whole took longer an update (28 to 34 s against
-    # 24, at 16 GB resident), so it recomputes each action (5.3 times the forward)
+    # 24, at 16 GB resident), so it recomputes each action (4.9 to 5.3 times the forward;
+    # with its first 4 actions of 16 kept whole, 5.0)
     "rayleigh-v0": dict(num_envs=8, horizon=16, compile=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, compile=True),
     # the wakes compiled: an update of 20 actions took a third (the cylinder) and a fifth
     # (the pinball) of the eager one's time and a quarter of its memory, with the same
     # numbers to float32 round-off; the cylinder's compiled horizon kept whole (16
     # actions at 8 members: 2.6 GiB at the process's peak against 0.95 recomputed; 3.8
-    # times the forward against 5.0), the pinball's actions (0.55 GB a member) recomputed
+    # times the forward against 5.0), the pinball's actions recomputed but for the first
+    # 10 of a horizon
     "cylinder-v0": dict(num_envs=8, horizon=20, compile=True),
-    "pinball-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True, compile=True),
+    # the pinball's first 10 actions of a horizon kept whole and the rest recomputed: 16
+    # actions at 8 members peak at 3.5 GiB and cost 2.6 times the compiled forward (all
+    # kept whole: 4.8 GiB, 2.2 times; all recomputed: 1.1 GiB, 3.3 times)
+    "pinball-v0": dict(num_envs=8, horizon=20, grad_checkpoint=True, grad_checkpoint_after=10, compile=True),
 }
 
 # domains of settings: (lowest, highest, whether the lowest itself is excluded)
@@ -443,6 +448,12 @@ class GradConfig(Config):
     init_alpha: float = setting(1.0, "the entropy bonus's first weight alpha", domain=POSITIVE)
     alpha_lr: float = setting(5e-3, "the learning rate of log alpha", domain=POSITIVE)
     grad_checkpoint: bool = setting(False, "recompute each action in the backward pass (long horizons)")
+    grad_checkpoint_after: int = setting(
+        0,
+        "with grad_checkpoint, the actions of a horizon whose graphs are kept whole before the later ones are "
+        "recomputed (memory for time)",
+        domain=NON_NEGATIVE,
+    )
     # without a critic the policy's actions drifted to the box's edges, where the squash
     # passes no gradient, on rayleigh and vortex (docs/gradients.md's table of settings)
     squash_margin: float = setting(

@@ -221,12 +221,19 @@ def check_ray_fits(resources: dict, collectors: int) -> None:
 
 
 def horizon_bytes(
-    env_id: str, horizon: int, members: int, *, params: dict | None = None, grad_checkpoint: bool = False
+    env_id: str,
+    horizon: int,
+    members: int,
+    *,
+    params: dict | None = None,
+    grad_checkpoint: bool = False,
+    kept: int = 0,
 ) -> int:
     """About the memory the graph of ``horizon`` differentiated actions of ``members``
     members keeps (float32), from one action of one member measured here: that
     action's graph per action and member, or with ``grad_checkpoint`` what each action
-    saves plus one action's whole graph, recomputed in the backward pass."""
+    saves plus one action's whole graph, recomputed in the backward pass, but for the
+    first ``kept`` actions, whose graphs are kept whole."""
 
     def one_action(checkpoint: bool) -> int:
         env = beacon_torch.make(env_id, 1, differentiable=True, grad_checkpoint=checkpoint, params=params or {})
@@ -241,4 +248,5 @@ def horizon_bytes(
     whole = one_action(False)
     if not grad_checkpoint:
         return horizon * members * whole
-    return horizon * members * one_action(True) + members * whole
+    kept = min(kept, horizon)
+    return kept * members * whole + (horizon - kept) * members * one_action(True) + members * whole
