@@ -20,7 +20,7 @@ from typing import Any
 
 from beacon_torch import gym_ids
 from beacon_torch.core.card import Card
-from beacon_torch.core.checks import as_batch_size, as_device, as_dtype, check_memory
+from beacon_torch.core.checks import as_batch_size, as_count, as_device, as_dtype, check_memory
 from beacon_torch.core.physics import Physics
 from beacon_torch.params import resolve_params, resolved
 
@@ -167,9 +167,7 @@ def _check_defaults(env_id: str, physics: type[Physics], defaults: dict[str, Any
     for name in ("differentiable", "grad_checkpoint", "record_history", "check_actions"):
         if name in defaults and not isinstance(defaults[name], bool):
             raise TypeError(f"{env_id}: the default {name} must be True or False, got {defaults[name]!r}")
-    after = defaults.get("grad_checkpoint_after", 0)
-    if isinstance(after, bool) or not isinstance(after, int) or after < 0:
-        raise TypeError(f"{env_id}: the default grad_checkpoint_after must be a non-negative integer, got {after!r}")
+    as_count("the default grad_checkpoint_after", defaults.get("grad_checkpoint_after", 0), env_id)
     if "compile" in defaults and not isinstance(defaults["compile"], (bool, dict)):
         raise TypeError(f"{env_id}: the default compile must be True, False or a dict of options")
 
