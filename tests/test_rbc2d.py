@@ -3,6 +3,8 @@ the env's layouts, as FluidGym's code defines them."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -145,6 +147,24 @@ def test_the_levels_are_registered_with_fluidgyms_settings():
             params = spec.physics.Params(**spec.physical_defaults())
             assert (params.pr, params.heaters, params.heater_cells, params.period) == (0.7, 12, 8, 1.0)
     assert beacon_torch.registry.ENVS["rbc2d-hard-ma-v0"].agents == "heater"
+
+
+def test_every_level_trains_with_fluidgyms_ppo_and_sac_settings():
+    # its runscripts use the same Stable-Baselines3 settings at the three levels, so
+    # every cell of the table trains alike: a level left out of the recipes' tables
+    # would train with another env's defaults
+    from beacon_torch.training.config import PPOConfig, SACConfig, configure
+
+    for level in ("easy", "medium", "hard"):
+        ppo, sac = configure(PPOConfig, f"rbc2d-{level}-v0"), configure(SACConfig, f"rbc2d-{level}-v0")
+        assert (ppo.frames, ppo.n_rollout, ppo.minibatches, ppo.epochs) == (50_000, 2048, 32, 10)
+        assert (ppo.actor_lr, ppo.critic_lr, ppo.gae_lambda, ppo.grad_clip) == (3e-4, 3e-4, 0.95, 0.5)
+        assert (sac.frames, sac.batch_size, sac.init_random_frames) == (50_000, 256, 100)
+        ma_ppo, ma_sac = configure(PPOConfig, f"rbc2d-{level}-ma-v0"), configure(SACConfig, f"rbc2d-{level}-ma-v0")
+        assert (
+            ma_ppo.minibatches == 256 and dataclasses.replace(ma_ppo, minibatches=32, env=ppo.env, out=ppo.out) == ppo
+        )
+        assert (ma_sac.frames, ma_sac.batch_size, ma_sac.updates_per_batch) == (50_000, 21, 12 * 64)
 
 
 def test_each_start_is_its_own_randomised_copy_of_the_developed_flow():

@@ -85,8 +85,8 @@ PPO = {
     # (200 actions each, every action a transition of each of the 10 agents), with
     # rayleigh-v0's settings of the paper otherwise
     "rayleigh-separable-v0": dict(n_rollout=1000, frames=70_000, entropy=0.001, hidden=128),
-    # beyond the paper: FluidGym's runs on its RBC2D levels
-    "rbc2d-easy-v0": FLUIDGYM_PPO,
+    # beyond the paper: FluidGym's runs on its RBC2D levels (the same settings at each)
+    **{f"rbc2d-{level}-v0": FLUIDGYM_PPO for level in ("easy", "medium", "hard")},
     # its multi-agent runs: each agent a member of Stable-Baselines3's vector env, so a
     # rollout of 2,048 flow steps holds 2,048 transitions of each agent, in minibatches
     # of 64 agent transitions; here a minibatch is 8 flow steps of the 12 agents (96)
@@ -113,8 +113,12 @@ SAC = {
     "rayleigh-v0": dict(frames=19_200),
     "mixing-v0": dict(frames=8_192),
     # FluidGym's runs on its RBC2D levels (Stable-Baselines3's SAC: a buffer of the whole
-    # run, batches of 256, a gradient step a transition, 100 random transitions first)
-    "rbc2d-easy-v0": dict(frames=50_000, batch_size=256, init_random_frames=100),
+    # run, batches of 256, a gradient step a transition, 100 random transitions first;
+    # the same settings at each level)
+    **{
+        f"rbc2d-{level}-v0": dict(frames=50_000, batch_size=256, init_random_frames=100)
+        for level in ("easy", "medium", "hard")
+    },
     # multi-agent, a gradient step per agent transition, each of 21 flow steps of the 12
     # agents (252 agent transitions; Stable-Baselines3's vector env of agents: 256)
     **{
