@@ -149,6 +149,36 @@ def test_projection_leaves_every_member_divergence_free(bc):
     assert (v2[:, -1] == 0).all()
 
 
+@pytest.mark.parametrize("bc", BCS)
+def test_the_walled_correction_reads_the_increment_as_its_ghosted_field_does(bc):
+    # the interior faces' pressure gradient, taken from the increment's cells, is the
+    # one taken from its ghost-extended field, to the last bit, and so is its gradient
+    B, nx, ny, dt = 3, 12, 10, 0.01
+    cavity = Cavity(nx, ny, 1 / 12, 0.8 / 10, bc, **F64)
+    u, v = filled(cavity, B, 5)
+    p = random((nx, ny, B), 7)
+    u, v, p = (t.requires_grad_() for t in (u, v, p))
+
+    def ghosted(u, v, p):
+        solver = cavity.solver
+        phi = solver.solve(divergence(u, v, cavity.dx, cavity.dy) / dt)
+        ext = solver.ghosts(phi)
+        gx = torch.nn.functional.pad((ext[2:-1, 1:-1] - ext[1:-2, 1:-1]) / cavity.dx, (0, 0, 0, 0, 1, 1))
+        gy = torch.nn.functional.pad((ext[1:-1, 2:-1] - ext[1:-1, 1:-2]) / cavity.dy, (0, 0, 1, 1))
+        return u - dt * gx, v - dt * gy, p + phi
+
+    weights = [random(t.shape, 11 + k) for k, t in enumerate((u, v, p))]
+    outputs = {}
+    for name, fn in (("cells", lambda *a: project(*a, cavity.solver, dt, cavity.dx, cavity.dy)), ("ghosts", ghosted)):
+        out = fn(u, v, p)
+        grads = torch.autograd.grad(sum((w * o).sum() for w, o in zip(weights, out, strict=True)), (u, v, p))
+        outputs[name] = ([o.detach() for o in out], grads)
+    for a, b in zip(outputs["cells"][0], outputs["ghosts"][0], strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    for a, b in zip(outputs["cells"][1], outputs["ghosts"][1], strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12 * float(b.abs().max()))
+
+
 def test_wall_ghosts_impose_the_wall_velocities_per_member():
     cavity = Cavity(6, 5, 0.2, 0.2, **F64)
     u, v = filled(cavity, 2, 3)

@@ -314,11 +314,14 @@ def project(
     increment's condition leaves there, as published. A periodic x axis has equal
     cells (``dx`` a number); ``dy`` may be :class:`Stretched`."""
     phi = solver.solve(divergence(u, v, dx, dy) / dt)
-    ext = solver.ghosts(phi)
     if solver.periodic:
-        # no side walls: every x-face is corrected, the first and the last alike
+        # no side walls: every x-face is corrected, the first and the last alike, the
+        # two reading the increment across the wrap
+        ext = solver.ghosts(phi)
         gx = (ext[1:, 1:-1] - ext[:-1, 1:-1]) / dx
     else:
-        gx = F.pad(spacing(dx).difference(ext[2:-1, 1:-1] - ext[1:-2, 1:-1], faces=True), (0, 0, 0, 0, 1, 1))
-    gy = F.pad(spacing(dy).difference(ext[1:-1, 2:-1] - ext[1:-1, 1:-2], faces=True), (0, 0, 1, 1))
+        # only the interior faces are corrected, and they read interior cells only: no
+        # ghost values, whose gathers' backward is a scatter over the ghosted field
+        gx = F.pad(spacing(dx).difference(phi[1:] - phi[:-1], faces=True), (0, 0, 0, 0, 1, 1))
+    gy = F.pad(spacing(dy).difference(phi[:, 1:] - phi[:, :-1], faces=True), (0, 0, 1, 1))
     return u - dt * gx, v - dt * gy, p + phi
