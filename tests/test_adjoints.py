@@ -679,3 +679,125 @@ def test_the_sloshing_action_maps_compiles_and_carries_the_envs_gradient():
     )
 
     assert_the_env_takes_the_c_action(sloshing, "sloshing-v0", {"g": [9.81, 10.0], "amp": 5.0})
+
+
+PROJECTIONS = {
+    # (solver, the spacings of x and y): equal cells with the folded x products (8 cells),
+    # the dense ones (9), a zero-ghost wall, and a stretched grid on both axes
+    "walls": lambda: (SOLVERS["walls"](), 1 / 8, 1 / 10),
+    "odd": lambda: (PoissonSolver(9, 10, 1 / 9, 1 / 10, (NEUMANN,) * 4, **F64), 1 / 9, 1 / 10),
+    "open top": lambda: (SOLVERS["open top"](), 1 / 8, 1 / 10),
+    "stretched": lambda: (SOLVERS["stretched"](), *stretched_axes()),
+}
+
+
+def stretched_axes():
+    """:data:`SOLVERS`' stretched grid's axes as the staggered stencils read them."""
+    from beacon_torch.numerics.staggered import Axis, Stretched
+
+    axes = []
+    for dim, length in ((0, 2.0), (1, 3.0)):
+        axis = Axis(length, 0.4 * length, 0.6 * length, 0.1, 1.3, 0.5)
+        shaped = lambda t, dim=dim: t.reshape((-1, 1, 1) if dim == 0 else (1, -1, 1))
+        axes.append(Stretched(shaped(axis.widths), shaped(axis.gaps), dim))
+    return axes
+
+
+def projection_inputs(solver, members: int, seed: int):
+    """Predicted face velocities (zero on the walls), a pressure, and weights of the
+    three corrected fields."""
+    nx, ny = solver.x.n, solver.lines[0][0].shape[1]
+    u, v = rand((nx + 1, ny, members), seed), rand((nx, ny + 1, members), seed + 1)
+    u[0], u[-1], v[:, 0], v[:, -1] = 0.0, 0.0, 0.0, 0.0
+    fields = (u, v, rand((nx, ny, members), seed + 2))
+    return fields, [rand(f.shape, seed + 3 + k) for k, f in enumerate(fields)]
+
+
+def projection_gradients(fn, fields, weights):
+    inputs = [t.detach().clone().requires_grad_() for t in fields]
+    out = fn(*inputs)
+    return out, torch.autograd.grad(sum((w * o).sum() for w, o in zip(weights, out, strict=True)), inputs)
+
+
+@pytest.mark.parametrize("kind", sorted(PROJECTIONS))
+def test_the_projections_adjoint_is_autograds_gradient_of_its_stencils_and_solve(kind):
+    """Random predicted velocities and pressure: the projection's adjoint (its two
+    stencils in C, the solve's transpose) against autograd through the same
+    divergence, C solve and pressure correction, for all three fields; the corrected
+    fields themselves bit for bit; and against central differences."""
+    from beacon_torch.numerics import staggered
+
+    solver, dx, dy = PROJECTIONS[kind]()
+    fields, weights = projection_inputs(solver, 3, seed=4)
+    dt = 0.01
+    (got_out, got), (want_out, want) = (
+        projection_gradients(lambda u, v, p, fn=fn: fn(u, v, p, solver, dt, dx, dy), fields, weights)
+        for fn in (staggered.project, staggered._corrected)
+    )
+    assert type(got_out[0].grad_fn).__name__ == "_ProjectBackward"
+    for a, b in zip(got_out, want_out, strict=True):
+        assert torch.equal(a, b)
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-12, atol=1e-12 * w.abs().max())
+    small = [t[..., :1].clone().requires_grad_() for t in fields]
+    assert torch.autograd.gradcheck(lambda u, v, p: staggered.project(u, v, p, solver, dt, dx, dy), small)
+
+
+def test_the_projections_adjoint_of_a_real_state_is_autograds_gradient():
+    """mixing-continuous-v0 after two actions: the velocities a substep's projection
+    receives from its predictor, with the cavity's zero-ghost top; the adjoint against
+    autograd, float64 and float32 (to float32's round-off)."""
+    from tensordict import TensorDict
+
+    from beacon_torch.numerics import staggered
+
+    env = beacon_torch.make("mixing-continuous-v0", 2, dtype="float64", params={"L": 0.3, "H": 0.3, "side": 0.2})
+    env.reset()
+    for _ in range(2):
+        env.step(TensorDict({env.action_key: torch.full((2, 2), 0.7, dtype=torch.float64)}, batch_size=[2]))
+    physics = env.physics
+    cavity = physics.cavity
+    flow = cavity.to_solver(physics.flow(env.state), physics.ghosts)
+    u, v = cavity.predict(flow, None, physics.nu(env.params), physics.dt)
+    weights = [rand(t.shape, seed=20 + k) for k, t in enumerate((u, v, flow.p))]
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+        fields, w = [t.to(dtype) for t in (u, v, flow.p)], [t.to(dtype) for t in weights]
+        solver = PoissonSolver(cavity.nx, cavity.ny, cavity.dx, cavity.dy, physics.poisson_bc, dtype=dtype)
+        args = (solver, physics.dt, cavity.dx, cavity.dy)
+        (_, got), (_, want) = (
+            projection_gradients(lambda u, v, p, fn=fn, args=args: fn(u, v, p, *args), fields, w)
+            for fn in (staggered.project, staggered._corrected)
+        )
+        for g, x in zip(got, want, strict=True):
+            torch.testing.assert_close(g, x, rtol=tol, atol=tol * x.abs().max())
+
+
+def test_the_projections_adjoint_maps_and_compiles():
+    """``vmap`` of ``grad`` through the projection is each mapped value's own gradient;
+    a compiled function of it differentiates to the eager gradient, on the stretched
+    grid."""
+    from beacon_torch.numerics import staggered
+
+    solver, dx, dy = PROJECTIONS["walls"]()
+    (u, v, p), (wu, wv, wp) = projection_inputs(solver, 2, seed=9)
+
+    def loss(u):
+        a, b, c = staggered.project(u, v, p, solver, 0.01, dx, dy)
+        return (a * wu).sum() + (b * wv).sum() + (c * wp).sum()
+
+    several = torch.stack([u, 2.0 * u, -u])
+    torch.testing.assert_close(vmap(grad(loss))(several), torch.stack([grad(loss)(x) for x in several]))
+
+    solver, dx, dy = PROJECTIONS["stretched"]()
+    fields, weights = projection_inputs(solver, 2, seed=10)
+
+    def corrected(u, v, p):
+        out = staggered.project(u, v, p, solver, 0.01, dx, dy)
+        return sum((w * o).sum() for w, o in zip(weights, out, strict=True))
+
+    eager = [t.clone().requires_grad_() for t in fields]
+    expected = torch.autograd.grad(corrected(*eager), eager)
+    compiled_inputs = [t.clone().requires_grad_() for t in fields]
+    compiled = torch.compile(corrected, fullgraph=True, dynamic=False)
+    for got, want in zip(torch.autograd.grad(compiled(*compiled_inputs), compiled_inputs), expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12 * want.abs().max())
