@@ -28,9 +28,7 @@ cavity step keeps the fast loops instead of a graph of thousands of small operat
 The staggered grid's explicit momentum terms keep their tensor form forwards (inductor
 fuses it well); their adjoint is a C loop in which each velocity takes back what the
 terms that read it send (autograd's backward of their slices is a zero padding each,
-read under masks). The projection's two stencils between walls (the divergence and
-the pressure correction) have their adjoints here too, the solve's transpose between
-them (:class:`beacon_torch.numerics.staggered._Project`).
+read under masks).
 
 Under ``torch.func.vmap`` the mapped dimension joins the members (the loops treat every
 member alike), and a compiled graph calls them as any other operator.
@@ -738,88 +736,6 @@ void NAME(T *du, T *dv, const T *u, const T *v, const T *gu, const T *gv,       
 }
 MOMENTUM_ADJOINT(momentum_adjoint_f32, float)
 MOMENTUM_ADJOINT(momentum_adjoint_f64, double)
-
-/* The adjoint of the projection's two stencils between walls, for the gradients gu
-   [nx + 1][ny][B] and gv [nx][ny + 1][B] of the corrected face velocities
-   u - dt grad phi, v - dt grad phi (interior faces only), with cx and cy the axes'
-   multipliers as above (the interior faces' first, then the cells'). Each row of x
-   is a contiguous run of ny B values, so the x stencil runs along whole rows and the
-   y stencil along the members of each cell; the faces on the walls, which are not
-   corrected, send nothing.
-   The correction's: each cell's increment takes back what the faces beside it sent,
-   plus gp [nx][ny][B] (the pressure's p + phi): gphi [nx][ny][B]. */
-#define CORRECTION_ADJOINT(NAME, T)                                                 \
-void NAME(T *gphi, const T *gu, const T *gv, const T *gp, const T *cx, const T *cy, \
-          long nx, long ny, long B, T dt) {                                         \
-    const long row = ny * B, vc = (ny + 1) * B;                                     \
-    for (long i = 0; i < nx; ++i) {                                                 \
-        T *restrict o = gphi + i * row;                                             \
-        const T *restrict p = gp + i * row, *restrict uw = gu + i * row, *restrict ue = uw + row; \
-        const T fw = i > 0 ? -dt * cx[i - 1] : 0, fe = i < nx - 1 ? -dt * cx[i] : 0; \
-        if (i > 0 && i < nx - 1)                                                    \
-            for (long k = 0; k < row; ++k) o[k] = p[k] + (uw[k] * fw - ue[k] * fe); \
-        else if (i > 0)                                                             \
-            for (long k = 0; k < row; ++k) o[k] = p[k] + uw[k] * fw;                \
-        else if (i < nx - 1)                                                        \
-            for (long k = 0; k < row; ++k) o[k] = p[k] - ue[k] * fe;                \
-        else                                                                        \
-            for (long k = 0; k < row; ++k) o[k] = p[k];                             \
-        const T *v = gv + i * vc;                                                   \
-        for (long j = 0; j < ny; ++j) {                                             \
-            T *restrict c = o + j * B;                                              \
-            const T *restrict vs = v + j * B, *restrict vn = vs + B;                \
-            const T fs = j > 0 ? -dt * cy[j - 1] : 0, fn = j < ny - 1 ? -dt * cy[j] : 0; \
-            if (j > 0 && j < ny - 1)                                                \
-                for (long m = 0; m < B; ++m) c[m] += vs[m] * fs - vn[m] * fn;       \
-            else if (j > 0)                                                         \
-                for (long m = 0; m < B; ++m) c[m] += vs[m] * fs;                    \
-            else if (j < ny - 1)                                                    \
-                for (long m = 0; m < B; ++m) c[m] -= vn[m] * fn;                    \
-        }                                                                           \
-    }                                                                               \
-}
-CORRECTION_ADJOINT(correction_adjoint_f32, float)
-CORRECTION_ADJOINT(correction_adjoint_f64, double)
-
-/* The divergence's (of the predicted velocities, over dt): from g [nx][ny][B], the
-   gradient of div / dt, each face takes back what the cells beside it sent (a face
-   on a wall has one), plus the corrected velocities' own gradients gu and gv:
-   du [nx + 1][ny][B], dv [nx][ny + 1][B]. */
-#define DIVERGENCE_ADJOINT(NAME, T)                                                 \
-void NAME(T *du, T *dv, const T *gu, const T *gv, const T *g, const T *cx, const T *cy, \
-          long nx, long ny, long B, T dt) {                                         \
-    const T *cxc = cx + (nx - 1), *cyc = cy + (ny - 1);                             \
-    const long row = ny * B, vc = (ny + 1) * B;                                     \
-    for (long i = 0; i <= nx; ++i) {                                                \
-        T *restrict o = du + i * row;                                               \
-        const T *restrict a = gu + i * row;                                         \
-        const T *restrict w = g + (i > 0 ? i - 1 : 0) * row, *restrict e = g + (i < nx ? i : 0) * row; \
-        const T fw = i > 0 ? cxc[i - 1] / dt : 0, fe = i < nx ? cxc[i] / dt : 0;   \
-        if (i > 0 && i < nx)                                                        \
-            for (long k = 0; k < row; ++k) o[k] = a[k] + (w[k] * fw - e[k] * fe);   \
-        else if (i > 0)                                                             \
-            for (long k = 0; k < row; ++k) o[k] = a[k] + w[k] * fw;                 \
-        else                                                                        \
-            for (long k = 0; k < row; ++k) o[k] = a[k] - e[k] * fe;                 \
-    }                                                                               \
-    for (long i = 0; i < nx; ++i) {                                                 \
-        const T *gi = g + i * row;                                                  \
-        for (long j = 0; j <= ny; ++j) {                                            \
-            T *restrict o = dv + i * vc + j * B;                                    \
-            const T *restrict a = gv + i * vc + j * B;                              \
-            const T *restrict s = gi + (j > 0 ? j - 1 : 0) * B, *restrict n = gi + (j < ny ? j : 0) * B; \
-            const T fs = j > 0 ? cyc[j - 1] / dt : 0, fn = j < ny ? cyc[j] / dt : 0; \
-            if (j > 0 && j < ny)                                                    \
-                for (long m = 0; m < B; ++m) o[m] = a[m] + (s[m] * fs - n[m] * fn); \
-            else if (j > 0)                                                         \
-                for (long m = 0; m < B; ++m) o[m] = a[m] + s[m] * fs;               \
-            else                                                                    \
-                for (long m = 0; m < B; ++m) o[m] = a[m] - n[m] * fn;               \
-        }                                                                           \
-    }                                                                               \
-}
-DIVERGENCE_ADJOINT(divergence_adjoint_f32, float)
-DIVERGENCE_ADJOINT(divergence_adjoint_f64, double)
 """
 
 _FLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno")
@@ -868,10 +784,6 @@ def _build() -> ctypes.CDLL | None:
         for name, arrays in (("sweep", 4), ("lines", 5), ("sweep_adjoint", 7), ("momentum_adjoint", 9)):
             fn = getattr(lib, f"{name}_{suffix}")
             fn.argtypes = (*(pointer,) * arrays, size, size, size)
-            fn.restype = None
-        for name, arrays in (("correction_adjoint", 6), ("divergence_adjoint", 7)):
-            fn = getattr(lib, f"{name}_{suffix}")
-            fn.argtypes = (*(pointer,) * arrays, size, size, size, ctype)
             fn.restype = None
         fn = getattr(lib, f"tvd_adjoint_{suffix}")
         fn.argtypes = (*(pointer,) * 4, size, size, ctype, size)
@@ -1438,54 +1350,4 @@ momentum_adjoint = operator(
     _momentum_adjoint,
     lambda u, v, gu, gv, nu, cx, cy: (_new(u), _new(v)),
     _members_vmap("momentum_adjoint", (0, 1, 2, 3, 4), outputs=2),
-)
-
-
-def _correction_adjoint(
-    gu: torch.Tensor, gv: torch.Tensor, gp: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, dt: float
-) -> torch.Tensor:
-    """The gradient of the pressure increment ``phi`` (``[nx, ny, B]``) of the
-    projection's corrected fields ``u - dt grad phi``, ``v - dt grad phi`` and
-    ``p + phi`` between walls (:func:`beacon_torch.numerics.staggered.project`), from
-    their gradients ``gu`` (``[nx + 1, ny, B]``), ``gv`` and ``gp``: the C kernel, with
-    the axes' multipliers ``cx``, ``cy`` (:func:`beacon_torch.numerics.staggered.multipliers`)."""
-    nx, ny, members = gp.shape
-    if gu.shape != (nx + 1, ny, members) or gv.shape != (nx, ny + 1, members) or cx.shape != (6 * nx - 3,):
-        raise ValueError(
-            f"correction_adjoint: the gradients {tuple(gu.shape)}, {tuple(gv.shape)} and the rest do not fit"
-        )
-    if cy.shape != (6 * ny - 3,):
-        raise ValueError(f"correction_adjoint: the multipliers {tuple(cy.shape)} do not fit {ny} rows")
-    return _call("correction_adjoint", gu, gv, gp, cx, cy, sizes=(nx, ny, members, dt), outs=(gp,))[0]
-
-
-correction_adjoint = operator(
-    "correction_adjoint(Tensor gu, Tensor gv, Tensor gp, Tensor cx, Tensor cy, float dt) -> Tensor",
-    _correction_adjoint,
-    lambda gu, gv, gp, cx, cy, dt: _new(gp),
-    _members_vmap("correction_adjoint", (0, 1, 2)),
-)
-
-
-def _divergence_adjoint(
-    gu: torch.Tensor, gv: torch.Tensor, g: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, dt: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The gradients of the predicted face velocities of the projection between walls
-    from those of its corrected ones (``gu``, ``gv``) and ``g``, the gradient of their
-    divergence over ``dt`` (``[nx, ny, B]``): the C kernel."""
-    nx, ny, members = g.shape
-    if gu.shape != (nx + 1, ny, members) or gv.shape != (nx, ny + 1, members) or cx.shape != (6 * nx - 3,):
-        raise ValueError(
-            f"divergence_adjoint: the gradients {tuple(gu.shape)}, {tuple(gv.shape)} and the rest do not fit"
-        )
-    if cy.shape != (6 * ny - 3,):
-        raise ValueError(f"divergence_adjoint: the multipliers {tuple(cy.shape)} do not fit {ny} rows")
-    return _call("divergence_adjoint", gu, gv, g, cx, cy, sizes=(nx, ny, members, dt), outs=(gu, gv))
-
-
-divergence_adjoint = operator(
-    "divergence_adjoint(Tensor gu, Tensor gv, Tensor g, Tensor cx, Tensor cy, float dt) -> (Tensor, Tensor)",
-    _divergence_adjoint,
-    lambda gu, gv, g, cx, cy, dt: (_new(gu), _new(gv)),
-    _members_vmap("divergence_adjoint", (0, 1, 2), outputs=2),
 )

@@ -79,8 +79,6 @@ class _Basis:
             self.qo = inv[:h, ~even].to(dtype=dtype, device=device)
             self.qet = fwd[:h, even].T.contiguous().to(dtype=dtype, device=device)
             self.qot = fwd[:h, ~even].T.contiguous().to(dtype=dtype, device=device)
-        # the forward vectors are the inverse's times scale^2 (see solve_adjoint)
-        self.scale2 = None if scale is None else (scale**2)[:, None, None].to(dtype=dtype, device=device)
         # copies of their own: eigh's vectors are column-major, so q^T would otherwise
         # share q's storage, which a compiled loop refuses as aliased inputs
         self.q = inv.to(dtype=dtype, device=device).clone()
@@ -248,7 +246,6 @@ class PoissonSolver:
             self.upper = cast(torch.cat((ly.diagonal(1), ly.new_zeros(1))))
             # what the solves' adjoint reads: ly = diag(1 / wy) S with S symmetric
             self.width = cast(wy if wy is not None else torch.ones(ly.shape[0], dtype=torch.float64))
-            self.equal_rows = wy is None  # the width scalings are then ones
             self.lines, self.singular = [], []
             for shift in self.x.blocks(ex):
                 lower, inverse, singular = _eliminate(ly, shift, 1e-9 * scale)
@@ -271,29 +268,6 @@ class PoissonSolver:
             # the y products broadcast over x
             hat = [self.qy @ ((self.qyt @ c) * inv) for c, inv in blocks]
         return self.x.inverse(hat)
-
-    def solve_adjoint(self, g: torch.Tensor) -> torch.Tensor:
-        """The transpose of :meth:`solve` applied to ``g`` (``[nx, ny, B]``), where the
-        solve runs in C (``native``): with the x products F = Qf^T and I = Qi (Qf the
-        inverse's vectors times scale^2 along x, the cells' widths), the solve I T F
-        has the transpose scale^2 I T^T F scale^-2, where T^T takes each mode's mean
-        along y off first (a symmetric projection) and then solves the transposed
-        tridiagonal system (the lines' own adjoint). Differentiable once: for a
-        backward pass."""
-        scale2 = self.x.scale2
-        if scale2 is not None:
-            g = g / scale2
-        w = self.width[:, None]
-        hat = []
-        for c, (lower, inv), singular in zip(self.x.forward(g), self.lines, self.singular, strict=True):
-            if singular is not None:
-                c = c - singular * c.mean(1, keepdim=True)
-            if self.equal_rows:
-                hat.append(native.lines_kernel(c, lower, inv, self.upper, self.width))
-            else:
-                hat.append(w * native.lines_kernel(c / w, lower, inv, self.upper, self.width))
-        out = self.x.inverse(hat)
-        return out if scale2 is None else out * scale2
 
     def apply(self, phi: torch.Tensor) -> torch.Tensor:
         """L phi, with the solver's boundary conditions (for checks and tests)."""

@@ -245,12 +245,6 @@ def multipliers(axis, n: int, like: torch.Tensor) -> torch.Tensor:
     (``[6 n - 3]``, ``n`` cells; see :func:`beacon_torch.numerics.native.momentum_adjoint`),
     from its own :meth:`difference` and :meth:`second_weights` of ones."""
     dim = axis.dim if isinstance(axis, Stretched) else 0
-    # an eager backward pass would otherwise build them from a dozen small operations
-    # at every call; a traced one (compiled, or a tensor subclass) builds its own
-    cached = isinstance(axis, Uniform) and type(like) is torch.Tensor and not torch.compiler.is_compiling()
-    key = (axis.h, n, like.dtype, like.device) if cached else None
-    if key in _MULTIPLIERS:
-        return _MULTIPLIERS[key]
 
     def ones(k):
         shape = [1, 1, 1]
@@ -267,13 +261,7 @@ def multipliers(axis, n: int, like: torch.Tensor) -> torch.Tensor:
         cell_minus,
         cell_plus,
     )
-    out = torch.cat([t.reshape(-1) for t in parts])
-    if cached:
-        _MULTIPLIERS[key] = out
-    return out
-
-
-_MULTIPLIERS: dict[tuple, torch.Tensor] = {}
+    return torch.cat([t.reshape(-1) for t in parts])
 
 
 def predict(
@@ -324,55 +312,7 @@ def project(
     increment has zero normal gradient that is also what the correction would give;
     on a zero-ghost wall (mixing's top) the cells next to it keep the divergence the
     increment's condition leaves there, as published. A periodic x axis has equal
-    cells (``dx`` a number); ``dy`` may be :class:`Stretched`.
-
-    Between walls, where autograd records and the solve runs in C, its backward pass
-    is its adjoint (:class:`_Project`): the two stencils' in C and the solve's
-    transpose, instead of autograd's backward of the stencils' slices (zero paddings,
-    which the compiled backward reads under masks, with the solve's flips fused in:
-    three times the projection's forward time)."""
-    x, y = spacing(dx), spacing(dy)
-    if (
-        not solver.periodic
-        and getattr(solver, "native", False)
-        and isinstance(dt, int | float)
-        and native.recording(u, v, p)
-        and native.takes(u, v, p, solver.upper)
-    ):
-        return _Project.apply(u, v, p, solver, float(dt), x, y)
-    return _corrected(u, v, p, solver, dt, dx, dy)
-
-
-class _Project(torch.autograd.Function):
-    """:func:`project` between walls with its adjoint as the backward pass: the
-    gradients of the corrected fields go back through the pressure correction's
-    stencil (:func:`~beacon_torch.numerics.native.correction_adjoint`), the solve's
-    transpose (:meth:`PoissonSolver.solve_adjoint`) and the divergence's stencil
-    (:func:`~beacon_torch.numerics.native.divergence_adjoint`); nothing is saved but
-    the grid."""
-
-    generate_vmap_rule = True
-
-    @staticmethod
-    def forward(u, v, p, solver, dt, x, y):
-        return _corrected(u, v, p, solver, dt, x, y)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        _, _, _, ctx.solver, ctx.dt, ctx.x, ctx.y = inputs
-
-    @staticmethod
-    def backward(ctx, gu, gv, gp):
-        with torch.no_grad():  # differentiable once: the adjoint keeps no graph
-            nx, ny = gp.shape[0], gp.shape[1]
-            cx, cy = multipliers(ctx.x, nx, gp), multipliers(ctx.y, ny, gp)
-            gphi = native.correction_adjoint(gu, gv, gp, cx, cy, ctx.dt)
-            du, dv = native.divergence_adjoint(gu, gv, ctx.solver.solve_adjoint(gphi), cx, cy, ctx.dt)
-        return du, dv, gp, None, None, None, None
-
-
-def _corrected(u, v, p, solver, dt, dx, dy) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`project`'s fields, as tensor operations."""
+    cells (``dx`` a number); ``dy`` may be :class:`Stretched`."""
     phi = solver.solve(divergence(u, v, dx, dy) / dt)
     if solver.periodic:
         # no side walls: every x-face is corrected, the first and the last alike, the
