@@ -22,9 +22,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from beacon_torch.envs.rbc2d import LEVELS
+
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- results: experiments/rbc2d_table.py -->", "<!-- end of the results -->"
-LEVELS = ("easy", "medium", "hard")
 # FluidGym's rows (paper/tables/RBC_results_table.tex, branch experiments): the IQM of
 # the episodes' Nusselt number over its seeds and test episodes, and its improvement
 FLUIDGYM = {

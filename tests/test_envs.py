@@ -10,6 +10,7 @@ from torchrl.envs.utils import check_env_specs
 import beacon_torch
 from beacon_torch import episodes
 from beacon_torch.core.card import COMPUTED, PAPER_PPO, PHYSICAL_LIMIT, PUBLISHED_RESULT
+from beacon_torch.envs.rbc2d import LEVELS as RBC2D_LEVELS
 
 from conftest import EXPENSIVE_ENVS, make, run_actions
 
@@ -250,7 +251,7 @@ SOURCES = {
     "pinball-v0": None,
     "pinball-chaotic-v0": None,
     # FluidGym's levels: its best result at each level
-    **{f"rbc2d-{level}{layout}-v0": PUBLISHED_RESULT for level in ("easy", "medium", "hard") for layout in ("", "-ma")},
+    **{f"rbc2d-{level}{layout}-v0": PUBLISHED_RESULT for level in RBC2D_LEVELS for layout in ("", "-ma")},
 }
 
 

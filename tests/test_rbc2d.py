@@ -155,7 +155,7 @@ def test_every_level_trains_with_fluidgyms_ppo_and_sac_settings():
     # would train with another env's defaults
     from beacon_torch.training.config import PPOConfig, SACConfig, configure
 
-    for level in ("easy", "medium", "hard"):
+    for level in rbc2d.LEVELS:
         ppo, sac = configure(PPOConfig, f"rbc2d-{level}-v0"), configure(SACConfig, f"rbc2d-{level}-v0")
         assert (ppo.frames, ppo.n_rollout, ppo.minibatches, ppo.epochs) == (50_000, 2048, 32, 10)
         assert (ppo.actor_lr, ppo.critic_lr, ppo.gae_lambda, ppo.grad_clip) == (3e-4, 3e-4, 0.95, 0.5)

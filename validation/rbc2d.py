@@ -32,6 +32,8 @@ from pathlib import Path
 
 import torch
 
+from beacon_torch.envs import rbc2d
+
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "validation" / "results" / "rbc2d"
 BEGIN, END = "<!-- validation: validation/rbc2d.py -->", "<!-- end of the validation -->"
@@ -50,7 +52,6 @@ def time_step(level: dict, cells: int) -> float:
     columns' width (the CFL number of the env's grid kept) and, where the explicit
     diffusion of the finest rows asks for less, to 0.8 of that bound; a whole number
     of steps a time unit. The env's grid keeps the level's step."""
-    from beacon_torch.envs import rbc2d
 
     nx = HEATERS * cells
     ny = round(rbc2d.Y_SCALE * nx / math.pi)
@@ -62,7 +63,6 @@ def time_step(level: dict, cells: int) -> float:
 
 
 def measure(name: str, cells: int, seeds: list[int], average: int, compile: bool = True) -> dict:
-    from beacon_torch.envs import rbc2d
     from beacon_torch.params import resolve_params
 
     level = rbc2d.LEVELS[name]
@@ -144,13 +144,13 @@ def latest_rows(records: list[Path], received) -> list[dict]:
     for record in records:
         for row in received.json_file(record, "an RBC2D validation record")["rows"]:
             found[row["level"], row["heater_cells"]] = row
-    order = {name: k for k, name in enumerate(("easy", "medium", "hard"))}
+    order = {name: k for k, name in enumerate(rbc2d.LEVELS)}
     return [found[key] for key in sorted(found, key=lambda key: (order[key[0]], key[1]))]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--levels", nargs="+", default=["easy", "medium", "hard"])
+    parser.add_argument("--levels", nargs="+", default=list(rbc2d.LEVELS))
     parser.add_argument("--cells", nargs="+", type=int, default=list(GRIDS))
     parser.add_argument("--average", type=int, default=100, help="time units averaged after the development")
     parser.add_argument("--seeds", type=int, default=10, help="initial domains per level (seeds 300, 301, ...)")

@@ -24,6 +24,7 @@ import beacon_torch
 from beacon_torch import threads
 from beacon_torch.arguments import find_user_modules, plain
 from beacon_torch.core.checks import as_device
+from beacon_torch.envs.rbc2d import LEVELS as RBC2D_LEVELS
 from beacon_torch.params import parse_assignments
 from beacon_torch.registry import ENVS, EnvSpec, compiles_by_default, continuous_envs, env_spec
 from beacon_torch.training.env import NORM_STEPS
@@ -86,11 +87,11 @@ PPO = {
     # rayleigh-v0's settings of the paper otherwise
     "rayleigh-separable-v0": dict(n_rollout=1000, frames=70_000, entropy=0.001, hidden=128),
     # beyond the paper: FluidGym's runs on its RBC2D levels (the same settings at each)
-    **{f"rbc2d-{level}-v0": FLUIDGYM_PPO for level in ("easy", "medium", "hard")},
+    **{f"rbc2d-{level}-v0": FLUIDGYM_PPO for level in RBC2D_LEVELS},
     # its multi-agent runs: each agent a member of Stable-Baselines3's vector env, so a
     # rollout of 2,048 flow steps holds 2,048 transitions of each agent, in minibatches
     # of 64 agent transitions; here a minibatch is 8 flow steps of the 12 agents (96)
-    **{f"rbc2d-{level}-ma-v0": dict(FLUIDGYM_PPO, minibatches=256) for level in ("easy", "medium", "hard")},
+    **{f"rbc2d-{level}-ma-v0": dict(FLUIDGYM_PPO, minibatches=256) for level in RBC2D_LEVELS},
 }
 # TD3, where its settings differ from the paper's agent
 TD3 = {
@@ -115,15 +116,12 @@ SAC = {
     # FluidGym's runs on its RBC2D levels (Stable-Baselines3's SAC: a buffer of the whole
     # run, batches of 256, a gradient step a transition, 100 random transitions first;
     # the same settings at each level)
-    **{
-        f"rbc2d-{level}-v0": dict(frames=50_000, batch_size=256, init_random_frames=100)
-        for level in ("easy", "medium", "hard")
-    },
+    **{f"rbc2d-{level}-v0": dict(frames=50_000, batch_size=256, init_random_frames=100) for level in RBC2D_LEVELS},
     # multi-agent, a gradient step per agent transition, each of 21 flow steps of the 12
     # agents (252 agent transitions; Stable-Baselines3's vector env of agents: 256)
     **{
         f"rbc2d-{level}-ma-v0": dict(frames=50_000, batch_size=21, updates_per_batch=12 * 64, init_random_frames=100)
-        for level in ("easy", "medium", "hard")
+        for level in RBC2D_LEVELS
     },
     # beyond TD3's table: the gradient recipe's budget on the cylinder
     "cylinder-v0": dict(frames=16_000),
