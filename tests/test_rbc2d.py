@@ -165,6 +165,11 @@ def test_every_level_trains_with_fluidgyms_ppo_and_sac_settings():
             ma_ppo.minibatches == 256 and dataclasses.replace(ma_ppo, minibatches=32, env=ppo.env, out=ppo.out) == ppo
         )
         assert (ma_sac.frames, ma_sac.batch_size, ma_sac.updates_per_batch) == (50_000, 21, 12 * 64)
+        # its replay buffer (50,000) and random start (100) count agent transitions: a
+        # stored flow step holds the 12 agents' (the whole run's would be 6.8 GB)
+        assert (sac.buffer_size or sac.frames) == 50_000
+        assert 12 * ma_sac.buffer_size <= 50_000 < 12 * (ma_sac.buffer_size + 1)
+        assert 12 * (ma_sac.init_random_frames - 1) < 100 <= 12 * ma_sac.init_random_frames
 
 
 def test_each_start_is_its_own_randomised_copy_of_the_developed_flow():

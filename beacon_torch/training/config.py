@@ -117,10 +117,18 @@ SAC = {
     # run, batches of 256, a gradient step a transition, 100 random transitions first;
     # the same settings at each level)
     **{f"rbc2d-{level}-v0": dict(frames=50_000, batch_size=256, init_random_frames=100) for level in RBC2D_LEVELS},
-    # multi-agent, a gradient step per agent transition, each of 21 flow steps of the 12
-    # agents (252 agent transitions; Stable-Baselines3's vector env of agents: 256)
+    # multi-agent: Stable-Baselines3's vector env of the 12 agents counts its buffer (50,000)
+    # and its random start (100) in agent transitions, so here in flow steps of the 12
+    # (the whole run's flow steps would hold twelve times its buffer, 6.8 GB); a gradient
+    # step per agent transition, each on 21 flow steps (252 agent transitions; its 256)
     **{
-        f"rbc2d-{level}-ma-v0": dict(frames=50_000, batch_size=21, updates_per_batch=12 * 64, init_random_frames=100)
+        f"rbc2d-{level}-ma-v0": dict(
+            frames=50_000,
+            buffer_size=50_000 // 12,
+            batch_size=21,
+            updates_per_batch=12 * 64,
+            init_random_frames=-(-100 // 12),
+        )
         for level in RBC2D_LEVELS
     },
     # beyond TD3's table: the gradient recipe's budget on the cylinder
