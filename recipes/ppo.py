@@ -35,8 +35,9 @@ def main(cfg: PPOConfig) -> dict:
     env = recipe_env(cfg, run.obs_norm)
     keys = networks.Keys.of(env)
 
-    # the paper's networks
-    actor = networks.stochastic_actor(env, cfg.hidden).to(cfg.device)
+    # the paper's networks, or Stable-Baselines3's actor
+    network = {"paper": "stochastic_actor", "free-spread": "free_spread_actor"}[cfg.actor]
+    actor = networks.policy(env, network, cfg.hidden).to(cfg.device)
     critic = networks.state_value(env, cfg.hidden).to(cfg.device)
 
     # the loss (clipped surrogate, analytic entropy, squared value error), GAE, and one
@@ -67,7 +68,7 @@ def main(cfg: PPOConfig) -> dict:
     def save() -> None:
         run.save(
             env,
-            policy=("stochastic_actor", cfg.hidden, actor),
+            policy=(network, cfg.hidden, actor),
             critic=critic,
             actor_optim=actor_optim,
             critic_optim=critic_optim,

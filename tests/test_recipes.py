@@ -156,6 +156,48 @@ def test_ppo_runs_updates_its_networks_and_resumes(env_id, tmp_path):
     assert ppo.main(more)["frames"] == 600
 
 
+def test_ppo_trains_stable_baselines3s_actor_which_evaluation_rebuilds(tmp_path):
+    """The free-spread actor: its first actions are draws of spread 1 about a mean near 0,
+    PPO moves its mean and its spread, the checkpoint names it and evaluation rebuilds it;
+    on discrete actions it is refused in one line."""
+    env = make_env("vortex-v0", 4)
+    torch.manual_seed(0)
+    actor = networks.free_spread_actor(env, 16)
+    td = actor(env.reset())
+    assert torch.allclose(td["scale"], torch.ones_like(td["scale"]))
+    assert td["loc"].abs().max() < 0.1
+    cfg = configure(
+        PPOConfig,
+        "vortex-v0",
+        frames=400,
+        n_rollout=200,
+        num_envs=4,
+        epochs=2,
+        out=str(tmp_path),
+        progress=False,
+        actor="free-spread",
+    )
+    ppo.main(cfg)
+    state = checkpoint(tmp_path)
+    assert state["policy"] == {"network": "free_spread_actor", "hidden": 64}
+    spread = [v for k, v in state["modules"]["actor"].items() if k.endswith("log_spread")]
+    assert len(spread) == 1 and not torch.equal(spread[0], torch.zeros_like(spread[0])), "PPO left the spread at 1"
+    assert math.isfinite(evaluate_run(tmp_path, num_envs=2)["score_mean"])
+    with pytest.raises(ValueError, match="lorenz-v0: the free-spread actor is for continuous actions"):
+        ppo.main(
+            configure(
+                PPOConfig,
+                "lorenz-v0",
+                frames=200,
+                n_rollout=100,
+                num_envs=2,
+                out=str(tmp_path / "d"),
+                progress=False,
+                actor="free-spread",
+            )
+        )
+
+
 def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
     out = tmp_path / "run"
     args = [

@@ -322,6 +322,13 @@ class PPOConfig(Config):
     clip: float = setting(0.2, "PPO's clipping of the probability ratio", domain=POSITIVE)
     entropy: float = setting(0.01, "entropy bonus", domain=NON_NEGATIVE)
     grad_clip: float = setting(0.1, "clipping of each network's gradient norm", domain=POSITIVE)
+    actor: str = setting(
+        "paper",
+        "the actor: 'paper' (the paper's agent: bounded mean and spread heads, a spread starting at "
+        "0.5) or 'free-spread' (Stable-Baselines3's: an unbounded mean, one learned spread per action "
+        "starting at 1); continuous actions",
+        ("paper", "free-spread"),
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,6 +9,7 @@ so that evaluation rebuilds any trained policy without knowing the algorithm.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import partial
 
@@ -118,6 +119,49 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
     # distribution, whose vanishing gradient at the bounds traps "no control" policies
     return ProbabilisticActor(
         module,
+        in_keys=dict(zip(("loc", "scale"), params, strict=True)),
+        out_keys=[keys.action],
+        log_prob_key=keys.log_prob,
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        spec=env.full_action_spec,
+    )
+
+
+class FreeSpread(nn.Module):
+    """Stable-Baselines3's continuous actor (its ``MlpPolicy``): two tanh layers to an
+    unbounded mean, and one learned log-spread per action dimension, the same in every
+    state, starting at 0 (a spread of 1)."""
+
+    def __init__(self, n_obs: int, hidden: int, n_act: int) -> None:
+        super().__init__()
+        self.mean = nn.Sequential(
+            nn.Linear(n_obs, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act)
+        )
+        self.log_spread = nn.Parameter(torch.zeros(n_act))
+        # its initialisation: orthogonal, gain sqrt(2) in the hidden layers and 0.01 at
+        # the mean, so that the first actions are the spread's draws about 0
+        for layer in self.mean:
+            if isinstance(layer, nn.Linear):
+                nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
+                nn.init.zeros_(layer.bias)
+        nn.init.orthogonal_(self.mean[-1].weight, 0.01)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.mean(obs)
+        return loc, self.log_spread.exp().expand_as(loc)
+
+
+def free_spread_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
+    """PPO's actor as Stable-Baselines3 builds it (:class:`FreeSpread`): a normal
+    sample, clipped to the box by the env's transform as the paper's is."""
+    if env.base_env.discrete:
+        raise ValueError(f"{env.base_env.env_id}: the free-spread actor is for continuous actions")
+    keys = Keys.of(env)
+    params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
+    heads = FreeSpread(n_observations(env), hidden, env.full_action_spec[keys.action].shape[-1])
+    return ProbabilisticActor(
+        TensorDictModule(heads, in_keys=[keys.obs], out_keys=params),
         in_keys=dict(zip(("loc", "scale"), params, strict=True)),
         out_keys=[keys.action],
         log_prob_key=keys.log_prob,
@@ -290,6 +334,7 @@ def qvalue_actor(env: TransformedEnv, hidden: int) -> QValueActor:
 # the policies a checkpoint can hold, by the name it records
 NETWORKS = {
     "stochastic_actor": stochastic_actor,
+    "free_spread_actor": free_spread_actor,
     "deterministic_actor": deterministic_actor,
     "squashed_gaussian_actor": squashed_gaussian_actor,
     "qvalue_actor": qvalue_actor,
