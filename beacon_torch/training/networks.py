@@ -108,17 +108,19 @@ def stochastic_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
             return_log_prob=True,
             spec=env.action_spec,
         )
+    heads = Heads(n_obs, hidden, env.full_action_spec[keys.action].shape[-1])
+    return normal_actor(env, initialised(heads, last_linear(heads.mean), last_linear(heads.spread)))
+
+
+def normal_actor(env: TransformedEnv, heads: nn.Module) -> ProbabilisticActor:
+    """The policy drawing from the diagonal normal whose mean and spread ``heads`` give:
+    as the paper's agent, a normal sample, clipped to the box by the env's transform
+    (env.make_env) while the loss sees the sample itself; not a tanh-squashed
+    distribution, whose vanishing gradient at the bounds traps "no control" policies."""
+    keys = Keys.of(env)
     params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
-    n_act = env.full_action_spec[keys.action].shape[-1]
-    heads = Heads(n_obs, hidden, n_act)
-    module = TensorDictModule(
-        initialised(heads, last_linear(heads.mean), last_linear(heads.spread)), in_keys=[keys.obs], out_keys=params
-    )
-    # as the paper's agent: a normal sample, clipped to the box by the env's transform
-    # (env.make_env) while the loss sees the sample itself; not a tanh-squashed
-    # distribution, whose vanishing gradient at the bounds traps "no control" policies
     return ProbabilisticActor(
-        module,
+        TensorDictModule(heads, in_keys=[keys.obs], out_keys=params),
         in_keys=dict(zip(("loc", "scale"), params, strict=True)),
         out_keys=[keys.action],
         log_prob_key=keys.log_prob,
@@ -153,22 +155,12 @@ class FreeSpread(nn.Module):
 
 
 def free_spread_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
-    """PPO's actor as Stable-Baselines3 builds it (:class:`FreeSpread`): a normal
-    sample, clipped to the box by the env's transform as the paper's is."""
+    """PPO's actor as Stable-Baselines3 builds it (:class:`FreeSpread`), drawing as the
+    paper's does (:func:`normal_actor`)."""
     if env.base_env.discrete:
         raise ValueError(f"{env.base_env.env_id}: the free-spread actor is for continuous actions")
-    keys = Keys.of(env)
-    params = [sibling(keys.action, "loc"), sibling(keys.action, "scale")]
-    heads = FreeSpread(n_observations(env), hidden, env.full_action_spec[keys.action].shape[-1])
-    return ProbabilisticActor(
-        TensorDictModule(heads, in_keys=[keys.obs], out_keys=params),
-        in_keys=dict(zip(("loc", "scale"), params, strict=True)),
-        out_keys=[keys.action],
-        log_prob_key=keys.log_prob,
-        distribution_class=IndependentNormal,
-        return_log_prob=True,
-        spec=env.full_action_spec,
-    )
+    n_act = env.full_action_spec[Keys.of(env).action].shape[-1]
+    return normal_actor(env, FreeSpread(n_observations(env), hidden, n_act))
 
 
 def normed_mlp(n_in: int, n_out: int, hidden: int) -> MLP:
