@@ -14,7 +14,8 @@ improvement is the one FluidGym's table gives: the Nusselt number's fall against
 control, in per cent of no control's (ours: no control from the same starts). Compute:
 FluidGym's A100-hours a run are its 50,000 environment steps at the seconds a step its
 paper gives; ours are the CPU-hours of a seed's training (its wall time times its
-threads, on the machine of the campaign).
+threads, on the machine of the campaign); the actor, whose policy network it trained
+(FluidGym's runs: Stable-Baselines3's).
 """
 
 from __future__ import annotations
@@ -52,6 +53,14 @@ def cell(algo: str, env_id: str) -> tuple[str, str]:
     return level, ("MA-" if env_id.endswith("-ma-v0") else "") + algo.upper()
 
 
+def actor(algo: str, summary: dict) -> str:
+    """Whose policy network a pair trained: PPO's runs record their actor (those made
+    before the setting existed trained the paper's); SAC's is Stable-Baselines3's kind."""
+    if algo != "ppo":
+        return "SAC's"
+    return {"free-spread": "Stable-Baselines3's", "paper": "the paper's"}[summary["config"].get("actor", "paper")]
+
+
 def recorded(results: Path, received) -> list[dict]:
     """The table's rows from the recorded summaries of the RBC2D pairs in ``results``."""
     rows = []
@@ -75,7 +84,15 @@ def recorded(results: Path, received) -> list[dict]:
                     for s in summary["seeds"]
                 ]
                 level_name, name = cell(algo, env_id)
-                rows.append({"level": level_name, "algorithm": name, "env": env_id, "seeds": seeds})
+                rows.append(
+                    {
+                        "level": level_name,
+                        "algorithm": name,
+                        "env": env_id,
+                        "actor": actor(algo, summary),
+                        "seeds": seeds,
+                    }
+                )
     return rows
 
 
@@ -84,8 +101,8 @@ def table(rows: list[dict]) -> str:
 
     lines = [
         "| level | algorithm | FluidGym: Nu | improvement | A100-hours a run | here: Nu | improvement | "
-        "no control here | seeds x episodes | transitions | CPU-hours a seed |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "no control here | seeds x episodes | transitions | CPU-hours a seed | actor |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     done = {(r["level"], r["algorithm"]): r for r in rows}
     for level in LEVELS:
@@ -94,7 +111,7 @@ def table(rows: list[dict]) -> str:
             theirs, gain = FLUIDGYM[level, name]
             row = done.get((level, name))
             if row is None or not row["seeds"]:
-                ours = "not run | | | | |"
+                ours = "not run | | | | | |"
             else:
                 nu = iqm([x for s in row["seeds"] for x in s["nusselt"]])
                 free = iqm([x for s in row["seeds"] for x in s["uncontrolled_nusselt"]])
@@ -103,7 +120,7 @@ def table(rows: list[dict]) -> str:
                 episodes = len(row["seeds"][0]["nusselt"])
                 ours = (
                     f"**{nu:.3f}** | {100 * (free - nu) / free:.1f} % | {free:.3f} | "
-                    f"{len(row['seeds'])} x {episodes} | {frames} | {cpu:.2f}"
+                    f"{len(row['seeds'])} x {episodes} | {frames} | {cpu:.2f} | {row['actor']}"
                 )
             lines.append(f"| {level} | {name} | {theirs:.3f} | {gain:.1f} % | {hours:.1f} | {ours} |")
     return "\n".join(lines)

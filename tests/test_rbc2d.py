@@ -159,6 +159,7 @@ def test_every_level_trains_with_fluidgyms_ppo_and_sac_settings():
         ppo, sac = configure(PPOConfig, f"rbc2d-{level}-v0"), configure(SACConfig, f"rbc2d-{level}-v0")
         assert (ppo.frames, ppo.n_rollout, ppo.minibatches, ppo.epochs) == (50_000, 2048, 32, 10)
         assert (ppo.actor_lr, ppo.critic_lr, ppo.gae_lambda, ppo.grad_clip) == (3e-4, 3e-4, 0.95, 0.5)
+        assert ppo.actor == "free-spread"  # its MlpPolicy's actor
         assert (sac.frames, sac.batch_size, sac.init_random_frames) == (50_000, 256, 100)
         ma_ppo, ma_sac = configure(PPOConfig, f"rbc2d-{level}-ma-v0"), configure(SACConfig, f"rbc2d-{level}-ma-v0")
         assert (
@@ -221,8 +222,14 @@ def test_the_results_table_sets_each_cell_beside_fluidgyms(tmp_path):
     lines = rbc2d_table.table(rows).splitlines()[2:]
     assert len(lines) == 12 and sum("not run" in line for line in lines) == 11
     # the IQM over the seeds' episodes leaves the outlying episodes out, as FluidGym's
-    ours = "**4.000** | 20.0 % | 5.000 | 2 x 8 | 51,200, 51,200 | 0.25 |"
+    ours = "**4.000** | 20.0 % | 5.000 | 2 x 8 | 51,200, 51,200 | 0.25 | the paper's |"
     assert lines[0] == f"| easy | PPO | 4.008 | 17.2 % | 17.6 | {ours}"
+    # a run that records Stable-Baselines3's actor says so
+    summary = {"config": {"threads": 1, "actor": "free-spread"}, "seeds": seeds}
+    (tmp_path / "ppo" / "rbc2d-easy-v0.json").write_text(json.dumps(summary))
+    assert (
+        rbc2d_table.table(rbc2d_table.recorded(tmp_path, received)).splitlines()[2].endswith("| Stable-Baselines3's |")
+    )
 
 
 def test_a_levels_one_is_fluidgyms_best_nusselt_number_as_a_share_of_no_controls():
