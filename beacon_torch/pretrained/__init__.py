@@ -25,7 +25,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 
 from beacon_torch import received
@@ -110,6 +110,18 @@ def shipped(name: str) -> Path:
     return path
 
 
+class _Box(nn.Module):
+    """Clips actions to the box ``[low, high]``."""
+
+    def __init__(self, low: torch.Tensor, high: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("low", low.clone())
+        self.register_buffer("high", high.clone())
+
+    def forward(self, action: torch.Tensor) -> torch.Tensor:
+        return torch.maximum(torch.minimum(action, self.high), self.low)
+
+
 def _read(path: Path, env_id: str | None = None) -> tuple[dict, TensorDictModule, int]:
     """A policy file, checked, and its policy: tensors and plain values only (nothing
     in it runs), read within bounds (``beacon_torch.received``), a known env and
@@ -152,6 +164,12 @@ def _read(path: Path, env_id: str | None = None) -> tuple[dict, TensorDictModule
         received.load_into(
             policy, weights, f"{path}: the weights", f"a {record['network']} of width {record['hidden']}"
         )
+        if record["network"] == "free_spread_actor":
+            # its mean is unbounded (training clips the action in the env): shipped,
+            # the policy clips it to the box itself, as Stable-Baselines3 does
+            low, high = networks.action_bounds(env)
+            key = networks.Keys.of(env).action
+            policy = TensorDictSequential(policy, TensorDictModule(_Box(low, high), in_keys=[key], out_keys=[key]))
         built["policy"], built["n_obs"] = policy, networks.n_observations(env)
 
     return received.torch_file(path, "policy file", check), built["policy"], built["n_obs"]
