@@ -74,7 +74,7 @@ def test_export_folds_the_normalisation_into_the_first_layer(shipped):
         x = raw["observation"].double()
         norm = {k: state["obs_norm"][k].double() for k in ("loc", "scale")}
         unfolded = actor.double()(raw.clone().set("observation", (x - norm["loc"]) / norm["scale"]))["action"]
-        weights = {k: v.double() for k, v in folded.state_dict().items()}
+        weights = {k: v.double() for k, v in folded.module[0].state_dict().items()}
         exact = folded.double()(raw.clone().set("observation", x))["action"]
     w1, b1 = weights["module.0.module.trunk.0.weight"], weights["module.0.module.trunk.0.bias"]
     w2, w3 = weights["module.0.module.mean.0.weight"], weights["module.0.module.mean.2.weight"]

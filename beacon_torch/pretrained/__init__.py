@@ -11,7 +11,8 @@ pair of the recorded campaign (docs/results.md).
 A pair is named ``ALGO/ENV`` here as everywhere (runs go to ``runs/ALGO/ENV``); its
 file is ``ALGO/ENV.pt`` in this folder. A policy is a TorchRL module that reads the env's observation key and writes its
 action key, deterministic by default (the mean of a PPO policy, the greedy action of a
-DQN one; TorchRL's ``set_exploration_type`` samples a PPO policy instead). It takes the
+DQN one; TorchRL's ``set_exploration_type`` samples a PPO policy instead); a continuous
+action, mean or sample, comes clipped to the env's action box. It takes the
 raw observations of ``beacon_torch.make``: the observation normalisation a training used
 is folded into the network's first layer. A file holds tensors, numbers and strings
 only, read with ``torch.load(weights_only=True)`` and checked (known env and network,
@@ -164,9 +165,10 @@ def _read(path: Path, env_id: str | None = None) -> tuple[dict, TensorDictModule
         received.load_into(
             policy, weights, f"{path}: the weights", f"a {record['network']} of width {record['hidden']}"
         )
-        if record["network"] == "free_spread_actor":
-            # its mean is unbounded (training clips the action in the env): shipped,
-            # the policy clips it to the box itself, as Stable-Baselines3 does
+        if not env.base_env.discrete:
+            # a shipped policy acts inside the box whatever its actor: Stable-Baselines3's
+            # has an unbounded mean (training clips the action in the env), and a user
+            # may step the physics without the env's clip
             low, high = networks.action_bounds(env)
             key = networks.Keys.of(env).action
             policy = TensorDictSequential(policy, TensorDictModule(_Box(low, high), in_keys=[key], out_keys=[key]))
