@@ -23,7 +23,9 @@ them) and left uncontrolled, stands after ``offsets[k]`` actions. The offsets li
 ``[0, episode_length)``, drawn from the same seed, and those of one set are all of one
 residue modulo 3 (train 0, validation 1, test 2), so the three sets never share a
 start even on an env without noise (lorenz-v0, vortex-v0), whose uncontrolled path from
-the published start is one and the same.
+the published start is one and the same. An env that draws its starts from a bank of
+developed flows per set, as FluidGym's modes do (its ``domains`` parameter: the rbc2d
+levels), takes a set's states from that set's own bank.
 
 ``make(env_id, n, starts="test")`` starts member ``i`` of every reset from state
 ``i mod size`` of the test set (the same episodes for every evaluation), and with
@@ -191,7 +193,10 @@ def _computed(shell, spec, name: str, dtype: str, device: str, params: tuple):
 
 def _run(shell, spec, name: str, dtype: str, device: str, params: tuple):
     seed, size, _ = SETS[name]
-    env = shell(spec, size, device=device, dtype=getattr(torch, dtype), seed=seed, **dict(params))
+    params = dict(params)
+    if "domains" in params:  # an env with a bank of developed flows per set: the set's own
+        params["domains"] = name
+    env = shell(spec, size, device=device, dtype=getattr(torch, dtype), seed=seed, **params)
     at = offsets(name, env.episode_length).to(env.device)
     kept = None
     with torch.no_grad():

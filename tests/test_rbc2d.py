@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import beacon_torch
+from beacon_torch import cache, starts
 from beacon_torch.envs import rbc2d
 from beacon_torch.numerics.grid import NEUMANN, PERIODIC
 from beacon_torch.numerics.projection import Cavity
@@ -185,9 +186,32 @@ def test_each_start_is_its_own_randomised_copy_of_the_developed_flow():
     u, v = state.u[:, 1:, 1:-1].movedim(0, -1), state.v[:, 1:-1, 1:].movedim(0, -1)
     assert float(divergence(u, v, physics.dx, physics.dy).abs().max()) < 1e-8
     bank = physics._start(p)
-    assert bank.u.shape[0] == len(rbc2d.BANK_SEEDS) == 10
+    assert bank.u.shape[0] == len(rbc2d.BANK_SEEDS["train"]) == 10
     developed = physics.nusselt(p, rbc2d.Rbc2dState(*bank, bottom=torch.ones(10, physics.nx, dtype=F64)))
     assert (physics.nusselt(p, state) - developed.mean()).abs().max() < 1.0
+
+
+def test_the_validation_and_test_starts_come_from_developed_flows_of_their_own(monkeypatch):
+    # FluidGym's modes: ten developed flows each, from other seeds, all shipped
+    banks = {}
+    for level, settings in rbc2d.LEVELS.items():
+        for domains, bank_seeds in rbc2d.BANK_SEEDS.items():
+            p = rbc2d.Rbc2dParams(**settings, domains=domains)
+            name = cache.file_name("rbc2d-developed", rbc2d.START_VERSION, rbc2d.start_key(p))
+            assert (cache.PACKAGE_DATA / name).is_file(), (level, domains)
+            assert len(bank_seeds) == 10
+            banks[level, domains] = name
+    assert len(set(banks.values())) == 9
+    assert set(rbc2d.BANK_SEEDS["train"]).isdisjoint(rbc2d.BANK_SEEDS["test"])
+    # a start set asks for its own bank; a user's env for the training one
+    asked = []
+    start = rbc2d.Rbc2dPhysics._start
+    monkeypatch.setattr(rbc2d.Rbc2dPhysics, "_start", lambda self, p: asked.append(p.domains) or start(self, p))
+    env = beacon_torch.make("rbc2d-easy-v0", 2, period=0.02, start_run=0.03, seed=0)
+    env.reset()
+    assert set(asked) == {"train"}
+    states = starts.states(env, "validation")
+    assert set(asked) == {"train", "validation"} and states.theta.shape[0] == starts.SETS["validation"][1]
 
 
 @pytest.mark.parametrize("level", ["medium", "hard"])

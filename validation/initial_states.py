@@ -6,7 +6,8 @@ shkadov: the film developed for 200 time units (default delta), about 50 s here;
 rayleigh: the convection roll developed for 200 time units, about 20 s; cylinder and
 cylinder-coarse: the wake shedding 8 time units after the inflow starts, at the default
 40 cells per diameter (about 70 s) and at the tests' 10; rbc2d-easy, -medium, -hard:
-the banks of ten initial domains, 283 time units each (compiled: 4 to 10 minutes a level). Without --write,
+the banks of ten initial domains, 283 time units each (compiled: 1 to 10 minutes a
+bank), and their -validation and -test banks. Without --write,
 compares the regenerated states with the shipped ones.
 """
 
@@ -38,13 +39,16 @@ STATES = {
         for name, cells in (("cylinder", 40), ("cylinder-coarse", 10))
     },
     **{
-        f"rbc2d-{level}": (
+        f"rbc2d-{level}" + ("" if domains == "train" else f"-{domains}"): (
             "rbc2d-developed",
             rbc2d.START_VERSION,
-            rbc2d.start_key(rbc2d.Rbc2dParams(**settings)),
-            lambda settings=settings: rbc2d.developed_bank(rbc2d.Rbc2dParams(**settings), compile=True),
+            rbc2d.start_key(rbc2d.Rbc2dParams(**settings, domains=domains)),
+            lambda settings=settings, domains=domains: rbc2d.developed_bank(
+                rbc2d.Rbc2dParams(**settings, domains=domains), compile=True
+            ),
         )
         for level, settings in rbc2d.LEVELS.items()
+        for domains in rbc2d.BANK_SEEDS
     },
 }
 

@@ -34,12 +34,14 @@ Nusselt reward plus 0.8 of the whole flow's.
 
 Starts: FluidGym's. Ten developed flows (:func:`developed_bank`: the conduction profile
 with noise of each one's own seed, 283 time units without control; FluidGym develops ten
-training domains so) and, at each reset, a member's own copy of one of them drawn at
-random, flipped in x with probability 1/2, shifted by a random number of cells, with
-noise of 0.05 on the temperature (clipped to [0, 1]) and the velocities, then 1 to 2
-time units without control. At the medium level two of ten seeds settle into one pair
-of rolls instead of two, with a lower Nusselt number: a bank keeps that mix, as
-FluidGym's domains do.
+domains so for each of its modes) and, at each reset, a member's own copy of one of them
+drawn at random, flipped in x with probability 1/2, shifted by a random number of cells,
+with noise of 0.05 on the temperature (clipped to [0, 1]) and the velocities, then 1 to
+2 time units without control. Training draws from the train bank; the validation and
+test start sets (``starts=``) from banks of their own, developed from other seeds, as
+FluidGym's modes do. At the medium level some seeds settle into one pair of rolls
+instead of two, with a lower Nusselt number: a bank keeps that mix, as FluidGym's
+domains do.
 """
 
 from __future__ import annotations
@@ -74,7 +76,10 @@ SENSOR_ROWS, SENSORS_PER_HEATER = 8, 4
 FIELDS = ("temperature", "u", "v", "pressure")  # the observed fields, in this order
 EPISODE_LENGTH = 200
 DEVELOP_TIME = 283.0  # FluidGym's initial domain: 283 actions without control
-BANK_SEEDS = tuple(range(100, 110))  # FluidGym's training domains: seeds 100 to 109 (ours: our generator's)
+# FluidGym's initial domains: ten developed flows for each of its modes, each mode from
+# its own seeds (ours drawn by our generator), so that a policy is judged from developed
+# flows it never trained from
+BANK_SEEDS = {"train": tuple(range(100, 110)), "validation": tuple(range(200, 210)), "test": tuple(range(300, 310))}
 START_VERSION = 2
 # FluidGym's randomisation of a start
 START_NOISE = 0.05
@@ -133,6 +138,13 @@ class Rbc2dParams:
     )
     window: int = param(
         11, low=1, high=47, kind="int", per_member=False, doc="multi-agent: heaters an agent sees (odd)"
+    )
+    domains: str = param(
+        "train",
+        kind="choice",
+        choices=tuple(BANK_SEEDS),
+        doc="the bank of developed flows a start is drawn from (FluidGym's train, validation and test domains; "
+        "a start set draws from its own)",
     )
 
     def __post_init__(self):
@@ -274,7 +286,7 @@ class Rbc2dPhysics(CavityPhysics):
     def _start(self, p) -> Flow:
         p = dataclasses.replace(p, ra=number(p.ra), pr=number(p.pr))
         key = start_key(p)
-        like = rest_state(len(BANK_SEEDS), self.nx, self.ny, torch.float64, "cpu")
+        like = rest_state(len(BANK_SEEDS[p.domains]), self.nx, self.ny, torch.float64, "cpu")
         span = T_HOT - T_COLD
         bounds = {"scalar": (T_COLD - span, T_HOT + span)}
         # compiled where the env is: minutes of substeps
@@ -286,7 +298,7 @@ class Rbc2dPhysics(CavityPhysics):
     def initial_state(self, p, generator, mask=None) -> Rbc2dState:
         b, nx = self.num_envs, self.nx
         bank = self._start(p)
-        pick = torch.randint(len(BANK_SEEDS), (b,), generator=generator).to(self.device)
+        pick = torch.randint(bank.u.shape[0], (b,), generator=generator).to(self.device)
         flow = Flow(*(f[pick] for f in bank))
         bottom = torch.full((b, nx), T_HOT, dtype=self.dtype, device=self.device)
         offset = self.offset(bottom)
@@ -383,16 +395,27 @@ def rest_state(num_envs: int, nx: int, ny: int, dtype, device) -> Flow:
 
 def start_key(p: Rbc2dParams) -> dict:
     """What the developed start depends on: the parameters of its file's name."""
-    return dict(ra=p.ra, pr=p.pr, heaters=p.heaters, heater_cells=p.heater_cells, aspect=p.aspect, base=p.base, dt=p.dt)
+    return dict(
+        ra=p.ra,
+        pr=p.pr,
+        heaters=p.heaters,
+        heater_cells=p.heater_cells,
+        aspect=p.aspect,
+        base=p.base,
+        dt=p.dt,
+        domains=p.domains,
+    )
 
 
 def developed_bank(
-    p: Rbc2dParams = Rbc2dParams(), *, time: float = DEVELOP_TIME, seeds=BANK_SEEDS, compile: bool = False
+    p: Rbc2dParams = Rbc2dParams(), *, time: float = DEVELOP_TIME, seeds=None, compile: bool = False
 ) -> Flow:
-    """FluidGym's initial domains, one per seed of ``seeds``: :func:`develop` in float64,
+    """FluidGym's initial domains, one per seed of ``seeds`` (None: the seeds of the
+    bank ``p.domains``): :func:`develop` in float64,
     kept in float32 (``[len(seeds), ...]``, ghosted as a state; a start is randomised
     before use). ``compile`` runs the substeps compiled."""
     given = {**dataclasses.asdict(p)}
+    seeds = BANK_SEEDS[p.domains] if seeds is None else seeds
     cpu, f64 = torch.device("cpu"), torch.float64
     p = resolve_params(Rbc2dParams, given, batch_size=len(seeds), device=cpu, dtype=f64, env_id="rbc2d-easy-v0")
     physics = Rbc2dPhysics(p, len(seeds), dtype=f64, device=cpu)
