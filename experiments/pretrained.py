@@ -15,7 +15,8 @@ round-off, up to what chaotic envs make of it over an episode. ``--changed`` eva
 only the policies shipped since the numbers file was written (a policy whose shipping
 record, seed, transitions and recorded score, differs from its row's, or is new) and
 keeps the other rows (normalised again by the cards' current references): the
-cavities' policies take minutes each.
+cavities' policies take minutes each. ``--test-again PART`` evaluates the kept policies
+whose name holds PART from the test starts again (after their env's start sets changed).
 """
 
 from __future__ import annotations
@@ -41,11 +42,19 @@ def scale(score: float, uncontrolled: float, env_id: str) -> float | None:
     return float(normalised(score, uncontrolled, env_id)) if normalisable(env_id) else None
 
 
-def evaluate_all(num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = ()) -> list[dict]:
+def evaluate_all(
+    num_envs: int = 8, seed: int = EVAL_SEED, keep: list[dict] = (), test_again: tuple[str, ...] = ()
+) -> list[dict]:
     """One row per shipped policy: its deterministic score against no control. A row of
     ``keep`` (taken with the same num_envs and seed) stands for its policy while the
-    policy's shipping record is the one the row holds."""
-    kept = {row["policy"]: row for row in keep}
+    policy's shipping record is the one the row holds; its test-start scores too, unless
+    the policy's name holds one of ``test_again`` (its env's test set has changed)."""
+    kept = {
+        row["policy"]: {k: v for k, v in row.items() if not k.startswith("test_")}
+        if any(part in row["policy"] for part in test_again)
+        else row
+        for row in keep
+    }
     rows = []
     for name in pretrained.available():
         algo, env_id = name.split("/")
@@ -141,6 +150,14 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="evaluate only the policies shipped since --json was written, keep its other rows",
     )
+    parser.add_argument(
+        "--test-again",
+        nargs="+",
+        default=(),
+        metavar="PART",
+        help="with --changed: evaluate again from the test starts the kept policies whose name holds PART "
+        "(after their env's start sets changed)",
+    )
     args = parser.parse_args(argv)
     if args.num_envs < 1:
         parser.error(f"--num-envs must be at least 1, got {args.num_envs}")
@@ -154,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"{args.json} was taken with {before['num_envs']} members and seed {before['seed']}: "
                 f"evaluating every policy"
             )
-    rows = evaluate_all(args.num_envs, args.seed, keep)
+    rows = evaluate_all(args.num_envs, args.seed, keep, tuple(args.test_again))
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(
         json.dumps({"num_envs": args.num_envs, "seed": args.seed, "torch": torch.__version__, "rows": rows}, indent=1)

@@ -144,6 +144,15 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
     # it is shipped anew
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     assert json.loads((tmp_path / "pretrained.json").read_text())["rows"] == [row]
+    # --test-again evaluates a kept policy from the test starts again, its own-start row kept
+    numbers = json.loads((tmp_path / "pretrained.json").read_text())
+    numbers["rows"][0]["test_score"] = 1e9
+    (tmp_path / "pretrained.json").write_text(json.dumps(numbers))
+    changed = ["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"]
+    bench.main([*changed, "--test-again", "td3/"])
+    assert json.loads((tmp_path / "pretrained.json").read_text())["rows"][0]["test_score"] == 1e9
+    bench.main([*changed, "--test-again", "vortex"])
+    assert json.loads((tmp_path / "pretrained.json").read_text())["rows"] == [row]
     pretrained.export(shipped, pretrained.path_of("ppo/vortex-v0"), seed=0, score=2.0)
     bench.main(["--num-envs", "2", "--page", str(page), "--json", str(tmp_path / "pretrained.json"), "--changed"])
     (again,) = json.loads((tmp_path / "pretrained.json").read_text())["rows"]
