@@ -14,8 +14,8 @@ improvement is the one FluidGym's table gives: the Nusselt number's fall against
 control, in per cent of no control's (ours: no control from the same starts). Compute:
 FluidGym's A100-hours a run are its 50,000 environment steps at the seconds a step its
 paper gives; ours are the CPU-hours of a seed's training (its wall time times its
-threads, on the machine of the campaign); the actor, whose policy network it trained
-(FluidGym's runs: Stable-Baselines3's).
+threads, on the machine of the campaign); the agent, whose actor, critic and update
+a PPO pair trained with (FluidGym's runs: Stable-Baselines3's).
 """
 
 from __future__ import annotations
@@ -53,12 +53,16 @@ def cell(algo: str, env_id: str) -> tuple[str, str]:
     return level, ("MA-" if env_id.endswith("-ma-v0") else "") + algo.upper()
 
 
-def actor(algo: str, summary: dict) -> str:
-    """Whose policy network a pair trained: PPO's runs record their actor (those made
-    before the setting existed trained the paper's); SAC's is Stable-Baselines3's kind."""
+def agent(algo: str, summary: dict) -> str:
+    """Whose PPO a pair trained: its actor, critic and update as its run recorded them
+    (runs made before a setting existed trained the paper's); SAC's is of one kind."""
     if algo != "ppo":
         return "SAC's"
-    return {"free-spread": "Stable-Baselines3's", "paper": "the paper's"}[summary["config"].get("actor", "paper")]
+    config = summary["config"]
+    parts = (config.get("actor", "paper"), config.get("critic", "paper"), config.get("update", "paper"))
+    if parts == ("free-spread", "sb3", "sb3"):
+        return "Stable-Baselines3's"
+    return "Stable-Baselines3's actor" if parts[0] == "free-spread" else "the paper's"
 
 
 def recorded(results: Path, received) -> list[dict]:
@@ -89,7 +93,7 @@ def recorded(results: Path, received) -> list[dict]:
                         "level": level_name,
                         "algorithm": name,
                         "env": env_id,
-                        "actor": actor(algo, summary),
+                        "agent": agent(algo, summary),
                         "seeds": seeds,
                     }
                 )
@@ -101,7 +105,7 @@ def table(rows: list[dict]) -> str:
 
     lines = [
         "| level | algorithm | FluidGym: Nu | improvement | A100-hours a run | here: Nu | improvement | "
-        "no control here | seeds x episodes | transitions | CPU-hours a seed | actor |",
+        "no control here | seeds x episodes | transitions | CPU-hours a seed | agent |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     done = {(r["level"], r["algorithm"]): r for r in rows}
@@ -120,7 +124,7 @@ def table(rows: list[dict]) -> str:
                 episodes = len(row["seeds"][0]["nusselt"])
                 ours = (
                     f"**{nu:.3f}** | {100 * (free - nu) / free:.1f} % | {free:.3f} | "
-                    f"{len(row['seeds'])} x {episodes} | {frames} | {cpu:.2f} | {row['actor']}"
+                    f"{len(row['seeds'])} x {episodes} | {frames} | {cpu:.2f} | {row['agent']}"
                 )
             lines.append(f"| {level} | {name} | {theirs:.3f} | {gain:.1f} % | {hours:.1f} | {ours} |")
     return "\n".join(lines)

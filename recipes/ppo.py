@@ -38,13 +38,20 @@ def main(cfg: PPOConfig) -> dict:
     # the paper's networks, or Stable-Baselines3's actor
     network = {"paper": "stochastic_actor", "free-spread": "free_spread_actor"}[cfg.actor]
     actor = networks.policy(env, network, cfg.hidden).to(cfg.device)
-    critic = networks.state_value(env, cfg.hidden).to(cfg.device)
+    critic = networks.state_value(env, cfg.hidden, kind=cfg.critic).to(cfg.device)
 
     # the loss (clipped surrogate, analytic entropy, squared value error), GAE, and one
     # optimiser per network: each network's gradient is clipped on its own, as the
-    # critic's is far larger at the start and a common clip would starve the actor
+    # critic's is far larger at the start and a common clip would starve the actor;
+    # Stable-Baselines3's update clips the two as one and weighs the value error by half
+    sb3 = cfg.update == "sb3"
     loss = ClipPPOLoss(
-        actor, critic, clip_epsilon=cfg.clip, entropy_coeff=cfg.entropy, critic_coeff=1.0, loss_critic_type="l2"
+        actor,
+        critic,
+        clip_epsilon=cfg.clip,
+        entropy_coeff=cfg.entropy,
+        critic_coeff=0.5 if sb3 else 1.0,
+        loss_critic_type="l2",
     )
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False)
     fields = dict(
@@ -57,9 +64,10 @@ def main(cfg: PPOConfig) -> dict:
     )
     loss.set_keys(action=keys.action, sample_log_prob=keys.log_prob, **fields)
     advantage.set_keys(**fields)
-    actor_optim = torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr)
+    eps = 1e-5 if sb3 else 1e-8  # Adam's per parameter: two optimisers step as one would
+    actor_optim = torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr, eps=eps)
     critic_optim = {"adam": torch.optim.Adam, "nadam": torch.optim.NAdam}[cfg.critic_optim](
-        critic.parameters(), lr=cfg.critic_lr
+        critic.parameters(), lr=cfg.critic_lr, eps=eps
     )
     run.restore(actor=actor, critic=critic, actor_optim=actor_optim, critic_optim=critic_optim)
     if run.remaining <= 0:
@@ -88,21 +96,29 @@ def main(cfg: PPOConfig) -> dict:
                 data[("next", *key)] = data["next", flag].unsqueeze(-2).expand(data[("next", *keys.reward)].shape)
         with torch.no_grad():
             data = advantage(data)
-            # normalised once over the whole rollout, not per minibatch; per agent in a
-            # multi-agent layout, as the jets sit at different places of the film
-            adv = data[keys.advantage]
-            dims = tuple(d for d in range(adv.ndim) if not (keys.agents and d == adv.ndim - 2))
-            data[keys.advantage] = (adv - adv.mean(dims, keepdim=True)) / (adv.std(dims, keepdim=True) + 1e-8)
+            if not sb3:
+                # normalised once over the whole rollout, not per minibatch; per agent in a
+                # multi-agent layout, as the jets sit at different places of the film
+                adv = data[keys.advantage]
+                dims = tuple(d for d in range(adv.ndim) if not (keys.agents and d == adv.ndim - 2))
+                data[keys.advantage] = (adv - adv.mean(dims, keepdim=True)) / (adv.std(dims, keepdim=True) + 1e-8)
         buffer.extend(data.reshape(-1))
         for _ in range(cfg.epochs):
             for _ in range(cfg.minibatches):
-                losses = loss(buffer.sample())
+                batch = buffer.sample()
+                if sb3:  # over the minibatch's transitions, every agent's alike
+                    adv = batch[keys.advantage]
+                    batch[keys.advantage] = (adv - adv.mean()) / (adv.std() + 1e-8)
+                losses = loss(batch)
                 total = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
                 actor_optim.zero_grad()
                 critic_optim.zero_grad()
                 total.backward()
+                if sb3:
+                    nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], cfg.grad_clip)
                 for net, optim in ((actor, actor_optim), (critic, critic_optim)):
-                    nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
+                    if not sb3:
+                        nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
                     optim.step()
         collector.update_policy_weights_()
         run.log(data.numel(), {**episode_values(data, keys.reward), "loss": total.item()}, save)

@@ -161,6 +161,7 @@ def test_every_level_trains_with_fluidgyms_ppo_and_sac_settings():
         assert (ppo.frames, ppo.n_rollout, ppo.minibatches, ppo.epochs) == (50_000, 2048, 32, 10)
         assert (ppo.actor_lr, ppo.critic_lr, ppo.gae_lambda, ppo.grad_clip) == (3e-4, 3e-4, 0.95, 0.5)
         assert ppo.actor == "free-spread"  # its MlpPolicy's actor
+        assert (ppo.critic, ppo.update) == ("sb3", "sb3")  # and its critic and update
         assert (sac.frames, sac.batch_size, sac.init_random_frames) == (50_000, 256, 100)
         ma_ppo, ma_sac = configure(PPOConfig, f"rbc2d-{level}-ma-v0"), configure(SACConfig, f"rbc2d-{level}-ma-v0")
         assert (
@@ -248,12 +249,14 @@ def test_the_results_table_sets_each_cell_beside_fluidgyms(tmp_path):
     # the IQM over the seeds' episodes leaves the outlying episodes out, as FluidGym's
     ours = "**4.000** | 20.0 % | 5.000 | 2 x 8 | 51,200, 51,200 | 0.25 | the paper's |"
     assert lines[0] == f"| easy | PPO | 4.008 | 17.2 % | 17.6 | {ours}"
-    # a run that records Stable-Baselines3's actor says so
-    summary = {"config": {"threads": 1, "actor": "free-spread"}, "seeds": seeds}
-    (tmp_path / "ppo" / "rbc2d-easy-v0.json").write_text(json.dumps(summary))
-    assert (
-        rbc2d_table.table(rbc2d_table.recorded(tmp_path, received)).splitlines()[2].endswith("| Stable-Baselines3's |")
-    )
+    # a run that records Stable-Baselines3's actor, or its whole PPO, says so
+    for config, agent in (
+        ({"actor": "free-spread"}, "Stable-Baselines3's actor"),
+        ({"actor": "free-spread", "critic": "sb3", "update": "sb3"}, "Stable-Baselines3's"),
+    ):
+        summary = {"config": {"threads": 1, **config}, "seeds": seeds}
+        (tmp_path / "ppo" / "rbc2d-easy-v0.json").write_text(json.dumps(summary))
+        assert rbc2d_table.table(rbc2d_table.recorded(tmp_path, received)).splitlines()[2].endswith(f"| {agent} |")
 
 
 def test_a_levels_one_is_fluidgyms_best_nusselt_number_as_a_share_of_no_controls():

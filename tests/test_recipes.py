@@ -198,6 +198,48 @@ def test_ppo_trains_stable_baselines3s_actor_which_evaluation_rebuilds(tmp_path)
         )
 
 
+def test_ppo_updates_as_stable_baselines3_does_when_asked(tmp_path, monkeypatch):
+    """update='sb3': each minibatch's advantages normalised on their own, the value error
+    weighted by half, the two networks' gradient clipped as one, Adam's epsilon 1e-5;
+    critic='sb3': Stable-Baselines3's tanh critic. Both recorded and resumed."""
+    clipped, advantages = [], []
+    monkeypatch.setattr(ppo.nn.utils, "clip_grad_norm_", lambda params, norm: clipped.append(list(params)) or 0.0)
+    forward = ppo.ClipPPOLoss.forward
+
+    def recording(self, batch):
+        advantages.append(batch["advantage"].clone())
+        assert self.critic_coeff == 0.5
+        return forward(self, batch)
+
+    monkeypatch.setattr(ppo.ClipPPOLoss, "forward", recording)
+    settings = dict(frames=400, n_rollout=200, num_envs=4, epochs=2, minibatches=4, progress=False)
+    cfg = configure(
+        PPOConfig, "vortex-v0", out=str(tmp_path), actor="free-spread", critic="sb3", update="sb3", **settings
+    )
+    ppo.main(cfg)
+    assert len(advantages) == 2 * 2 * 4 and all(a.shape[0] == 50 for a in advantages)
+    for a in advantages:
+        assert abs(float(a.mean())) < 1e-5 and float(a.std()) == pytest.approx(1.0, abs=1e-4)
+    state = checkpoint(tmp_path)
+    n_actor, n_critic = (len(state["modules"][name]) for name in ("actor", "critic"))
+    assert [len(params) for params in clipped] == [n_actor + n_critic] * len(advantages)
+    assert all(
+        group["eps"] == 1e-5
+        for name in ("actor_optim", "critic_optim")
+        for group in state["modules"][name]["param_groups"]
+    )
+    critic = [v for k, v in state["modules"]["critic"].items() if k.endswith("weight")]
+    assert len(critic) == 3 and critic[0].shape[0] == 64
+    # the paper's update: each network clipped alone, epsilon 1e-8
+    monkeypatch.setattr(ppo.ClipPPOLoss, "forward", forward)
+    clipped.clear()
+    ppo.main(configure(PPOConfig, "vortex-v0", out=str(tmp_path / "paper"), **settings))
+    paper = checkpoint(tmp_path / "paper")
+    sizes = [len(paper["modules"][name]) for name in ("actor", "critic")]
+    assert len(clipped) == 2 * len(advantages) and [len(params) for params in clipped] == sizes * len(advantages)
+    assert all(group["eps"] == 1e-8 for group in paper["modules"]["actor_optim"]["param_groups"])
+
+
 def test_recipe_command_lines_and_their_errors(tmp_path, capsys):
     out = tmp_path / "run"
     args = [

@@ -49,10 +49,13 @@ RABAULT = dict(
 # beyond the paper: FluidGym's runs on its RBC2D levels (Stable-Baselines3's PPO and
 # its 64-wide networks: 2,048 transitions a rollout in minibatches of 64, 10 epochs,
 # both rates 3e-4, GAE's lambda 0.95, gradient norm 0.5, 50,000 flow steps a run) with
-# its actor, whose spread starts at 1: with the paper's (0.5) the easy level's three
-# seeds lowered the Nusselt number of the test starts by 12.0 %, with this one by 16.7
+# its actor, whose spread starts at 1 (with the paper's, 0.5, the easy level's three
+# seeds lowered the Nusselt number of the test starts by 12.0 %, with this one by
+# 16.7), its critic and its update
 FLUIDGYM_PPO = dict(
     actor="free-spread",
+    critic="sb3",
+    update="sb3",
     frames=50_000,
     n_rollout=2048,
     minibatches=32,
@@ -331,6 +334,19 @@ class PPOConfig(Config):
         "0.5) or 'free-spread' (Stable-Baselines3's: an unbounded mean, one learned spread per action "
         "starting at 1); continuous actions",
         ("paper", "free-spread"),
+    )
+    critic: str = setting(
+        "paper",
+        "the critic: 'paper' (two ReLU layers, the output zero) or 'sb3' (Stable-Baselines3's: two tanh layers, "
+        "orthogonal with gain sqrt(2), the output's gain 1)",
+        ("paper", "sb3"),
+    )
+    update: str = setting(
+        "paper",
+        "the update: 'paper' (advantages normalised over the rollout; each network's gradient clipped alone) or "
+        "'sb3' (Stable-Baselines3's: advantages normalised per minibatch, the value error weighted 0.5, the two "
+        "networks' gradient clipped as one, Adam's epsilon 1e-5)",
+        ("paper", "sb3"),
     )
 
 

@@ -154,6 +154,18 @@ class FreeSpread(nn.Module):
         return loc, self.log_spread.exp().expand_as(loc)
 
 
+def sb3_critic(n_obs: int, hidden: int) -> nn.Sequential:
+    """Stable-Baselines3's PPO critic (its ``MlpPolicy``): two tanh layers, orthogonal
+    with gain sqrt(2), the value's layer with gain 1, zero biases."""
+    net = nn.Sequential(nn.Linear(n_obs, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, 1))
+    for layer in net:
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
+            nn.init.zeros_(layer.bias)
+    nn.init.orthogonal_(net[-1].weight, 1.0)
+    return net
+
+
 def free_spread_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
     """PPO's actor as Stable-Baselines3 builds it (:class:`FreeSpread`), drawing as the
     paper's does (:func:`normal_actor`)."""
@@ -175,9 +187,12 @@ def normed_mlp(n_in: int, n_out: int, hidden: int) -> MLP:
     )
 
 
-def state_value(env: TransformedEnv, hidden: int, normed: bool = False) -> ValueOperator:
-    """The paper's PPO critic: two ReLU layers (``normed``: :func:`normed_mlp`'s)."""
+def state_value(env: TransformedEnv, hidden: int, normed: bool = False, kind: str = "paper") -> ValueOperator:
+    """The paper's PPO critic: two ReLU layers (``normed``: :func:`normed_mlp`'s;
+    ``kind="sb3"``: :func:`sb3_critic`)."""
     keys = Keys.of(env)
+    if kind == "sb3":
+        return ValueOperator(sb3_critic(n_observations(env), hidden), in_keys=[keys.obs], out_keys=[keys.value])
     if normed:
         net = normed_mlp(n_observations(env), 1, hidden)
     else:
