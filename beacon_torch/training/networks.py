@@ -130,6 +130,17 @@ def normal_actor(env: TransformedEnv, heads: nn.Module) -> ProbabilisticActor:
     )
 
 
+def sb3_initialised(net: nn.Sequential, out_gain: float) -> nn.Sequential:
+    """``net`` initialised as Stable-Baselines3 does: orthogonal with gain sqrt(2), zero
+    biases, the last layer with gain ``out_gain``."""
+    for layer in net:
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
+            nn.init.zeros_(layer.bias)
+    nn.init.orthogonal_(net[-1].weight, out_gain)
+    return net
+
+
 class FreeSpread(nn.Module):
     """Stable-Baselines3's continuous actor (its ``MlpPolicy``): two tanh layers to an
     unbounded mean, and one learned log-spread per action dimension, the same in every
@@ -141,13 +152,8 @@ class FreeSpread(nn.Module):
             nn.Linear(n_obs, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, n_act)
         )
         self.log_spread = nn.Parameter(torch.zeros(n_act))
-        # its initialisation: orthogonal, gain sqrt(2) in the hidden layers and 0.01 at
-        # the mean, so that the first actions are the spread's draws about 0
-        for layer in self.mean:
-            if isinstance(layer, nn.Linear):
-                nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
-                nn.init.zeros_(layer.bias)
-        nn.init.orthogonal_(self.mean[-1].weight, 0.01)
+        # 0.01 at the mean, so that the first actions are the spread's draws about 0
+        sb3_initialised(self.mean, 0.01)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mean(obs)
@@ -155,15 +161,10 @@ class FreeSpread(nn.Module):
 
 
 def sb3_critic(n_obs: int, hidden: int) -> nn.Sequential:
-    """Stable-Baselines3's PPO critic (its ``MlpPolicy``): two tanh layers, orthogonal
-    with gain sqrt(2), the value's layer with gain 1, zero biases."""
+    """Stable-Baselines3's PPO critic (its ``MlpPolicy``): two tanh layers, the value's
+    layer with gain 1."""
     net = nn.Sequential(nn.Linear(n_obs, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, 1))
-    for layer in net:
-        if isinstance(layer, nn.Linear):
-            nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
-            nn.init.zeros_(layer.bias)
-    nn.init.orthogonal_(net[-1].weight, 1.0)
-    return net
+    return sb3_initialised(net, 1.0)
 
 
 def free_spread_actor(env: TransformedEnv, hidden: int) -> ProbabilisticActor:
