@@ -261,18 +261,21 @@ class FlowEnv(EnvBase):
 
     def _field_shapes(self) -> dict[str, torch.Size]:
         """The shape of each field of the state (the batch first): the current state's,
-        or, before the first reset, that of a start computed once without drawing from
-        the env's generator."""
+        or, before the first reset, that of the physics' :meth:`~beacon_torch.core.physics.Physics.state_like`, or else
+        that of a start computed once without drawing from the env's generator."""
         if self._state is not None:
             return {key: value.shape for key, value in self._state._asdict().items()}
         if self._shapes is None:
-            rng = self.rng.get_state()
-            try:
-                with torch.no_grad():
-                    start = self.physics.initial_state(self.params, self.rng)
-            finally:
-                self.rng.set_state(rng)
-            self._shapes = {key: value.shape for key, value in start._asdict().items()}
+            with torch.no_grad():
+                like = self.physics.state_like(self.params)
+            if like is None:
+                rng = self.rng.get_state()
+                try:
+                    with torch.no_grad():
+                        like = self.physics.initial_state(self.params, self.rng)
+                finally:
+                    self.rng.set_state(rng)
+            self._shapes = {key: value.shape for key, value in like._asdict().items()}
         return self._shapes
 
     def _make_specs(self) -> None:

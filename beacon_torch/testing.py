@@ -234,6 +234,10 @@ def check_batch_invariance(spec: EnvSpec) -> str | None:
 def check_partial_reset(spec: EnvSpec) -> None:
     env = _make(spec, 4, dtype=F64, seed=1)
     start = env.reset_members().clone()
+    like = env.physics.state_like(env.params)
+    if like is not None:  # what a state given before a reset is checked against
+        fields = lambda state: {k: (tuple(v.shape), v.dtype) for k, v in state._asdict().items()}
+        assert fields(like) == fields(env.state), f"state_like gives {fields(like)}, a start {fields(env.state)}"
     for a in _actions(env, 5):
         env.step_members(a)
     before = {k: v.clone() for k, v in env.state._asdict().items()}

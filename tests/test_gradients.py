@@ -64,6 +64,38 @@ def test_a_rollout_from_a_state_given_to_set_state():
         env.rollout(2)
 
 
+@pytest.mark.parametrize(
+    "env_id, name",
+    [
+        ("rbc2d-easy-v0", "ra"),
+        ("rayleigh-v0", "ra"),
+        ("cylinder-v0", "nu"),
+        ("pinball-v0", "re"),
+        ("shkadov-v0", "delta"),
+    ],
+)
+def test_a_state_given_at_other_parameters_develops_no_start(env_id, name, monkeypatch):
+    """Central differences in a parameter step an env made at a nearby value from a
+    state given to set_state: the env takes it and steps without developing a start of
+    its own (minutes for a developed flow at a value no file holds)."""
+    settings = beacon_torch.registry.env_spec(env_id).card.test_settings
+    source = beacon_torch.make(env_id, 2, dtype=F64, **settings)
+    source.reset()
+    value = getattr(source.params, name) * (1 + 1e-6)
+    env = beacon_torch.make(env_id, 2, dtype=F64, **settings, **{name: value})
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the env computed a start")
+
+    monkeypatch.setattr(env.physics, "initial_state", refuse)
+    env.set_state(source.state)
+    first = source.state._fields[0]
+    with pytest.raises(ValueError, match=f"state.{first}"):
+        env.set_state(source.state._replace(**{first: source.state[0][:, 1:]}))
+    _, reward, terminated, _ = env.step_members(env.physics.null_action())
+    assert torch.isfinite(reward).all() and not terminated.any()
+
+
 def rollout_gradient(checkpoint, steps=12):
     env = beacon_torch.make(
         "burgers-v0", batch_size=3, dtype=F64, seed=2, differentiable=True, grad_checkpoint=checkpoint

@@ -25,8 +25,9 @@ The hooks, on a state of tensors whose leading dimension is the batch:
 and optionally ``setup(params)``, ``noise(params, generator)`` (the random numbers of
 one action: drawn before the step, so that a compiled step draws nothing),
 ``null_action()`` (the benchmark's "no control" action), ``out_of_bounds(params,
-state)`` (physical bounds beyond finiteness) and ``diagnose(params, state)`` (the
-quantities named in ``diagnostics``). Their contracts are in their docstrings.
+state)`` (physical bounds beyond finiteness), ``diagnose(params, state)`` (the
+quantities named in ``diagnostics``) and ``state_like(params)`` (the start's shapes
+without its cost). Their contracts are in their docstrings.
 """
 
 from __future__ import annotations
@@ -147,6 +148,13 @@ class Physics(abc.ABC):
     def observe(self, params, state: State) -> torch.Tensor:
         """The observation of ``state``: ``[batch, n_obs]`` (``[batch, n_agents,
         n_obs]`` for multi-agent layouts), in the physics' dtype."""
+
+    def state_like(self, params) -> State | None:
+        """A state with the fields and shapes of a start, cheap to build (a flow at
+        rest will do), for a physics whose start is costly (a developed flow, a run
+        from it): what a state given before the first reset is checked against. None
+        (the default): the env computes a start once to learn its shapes."""
+        return None
 
     def noise(self, params, generator: torch.Generator | None) -> Noise:
         """The random numbers one action of the whole batch uses, drawn from

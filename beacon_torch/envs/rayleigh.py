@@ -290,6 +290,10 @@ class RayleighPhysics(CavityPhysics):
         where = dict(device=self.device, dtype=self.dtype)
         return cached("rayleigh-convection", START_VERSION, key, develop, like, bounds, **where)
 
+    def state_like(self, p) -> RayleighState:
+        flow = Flow(*rest_state(self.num_envs, self.nx, self.ny, self.dtype, self.device))
+        return RayleighState(*flow, bottom=flow.p[:, :, 0], probes=self.probes.start(flow))
+
     def initial_state(self, p, generator, mask=None) -> RayleighState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
         bottom = torch.full((self.num_envs, self.nx), T_HOT, dtype=self.dtype, device=self.device)

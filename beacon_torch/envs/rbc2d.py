@@ -295,6 +295,10 @@ class Rbc2dPhysics(CavityPhysics):
             "rbc2d-developed", START_VERSION, key, develop, like, bounds, device=self.device, dtype=self.dtype
         )
 
+    def state_like(self, p) -> Rbc2dState:
+        flow = rest_state(self.num_envs, self.nx, self.ny, self.dtype, self.device)
+        return Rbc2dState(*flow, bottom=flow.p[:, :, 0])
+
     def initial_state(self, p, generator, mask=None) -> Rbc2dState:
         b, nx = self.num_envs, self.nx
         bank = self._start(p)

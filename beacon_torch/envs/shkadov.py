@@ -400,6 +400,9 @@ class ShkadovPhysics(Physics):
         amp = self.member(p.amp)
         return run_action(state, action, self._profiles, p.delta, DX, noise["inlet"], amp, self._substeps)
 
+    def state_like(self, p) -> ShkadovState:
+        return flat_state(self.num_envs, self.n_cells, self.n_jets, self.dtype, self.device)
+
     def initial_state(self, p, generator, mask=None) -> ShkadovState:
         film = self._film(p)
         state = flat_state(self.num_envs, self.n_cells, self.n_jets, self.dtype, self.device)._replace(

@@ -147,6 +147,10 @@ class CylinderPhysics(Physics):
 
         return self.remembered(("start loads", cells, nu), loads)
 
+    def state_like(self, p) -> CylinderState:
+        flow = rest(self.num_envs, self.channel, self.dtype, self.device)
+        return CylinderState(*flow, drag=flow.q, lift=flow.q)
+
     def initial_state(self, p, generator, mask=None) -> CylinderState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
         drag, lift = (f.expand(self.num_envs).clone() for f in self._start_loads(p))

@@ -174,6 +174,10 @@ class PinballPhysics(Physics):
 
         return self.remembered(("start loads", cells, re), loads)
 
+    def state_like(self, p) -> PinballState:
+        flow = rest(self.num_envs, self.box, self.dtype, self.device)
+        return PinballState(*flow, drag=flow.omega, lift=flow.omega, torque=flow.omega)
+
     def initial_state(self, p, generator, mask=None) -> PinballState:
         flow = Flow(*(f.expand(self.num_envs, *f.shape).clone() for f in self._start(p)))
         drag, lift, torque = (f.expand(self.num_envs, 3).clone() for f in self._start_loads(p).unbind(1))
