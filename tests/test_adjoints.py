@@ -625,7 +625,9 @@ def sloshing_c(dx):
 def test_the_sloshing_action_in_c_is_the_tensor_loop_and_its_adjoint_autograds_gradient(dtype):
     """A whole action of sloshing-v0 as one C loop a member gives the tensor loop's four
     fields to round-off (torch's CPU square root is not always correctly rounded, C's
-    is; one substep of the two is the same bit for bit); its reverse loop gives
+    is; one substep of the two is the same bit for bit in float64, and in float32 to
+    round-off, as torch's vectorised float32 kernels differ between CPUs); its
+    reverse loop gives
     autograd's gradient of that loop with respect to every input (the fields, each
     substep's acceleration, each member's g) to round-off, on a sloshing state and on
     a perturbed one."""
@@ -633,12 +635,17 @@ def test_the_sloshing_action_in_c_is_the_tensor_loop_and_its_adjoint_autograds_g
 
     inputs, dx = sloshing_inputs(3, 0, dtype)
     perturbed = [t + 0.01 * rand(t.shape, 40 + k).to(dtype) * (k < 2) for k, t in enumerate(inputs)]
-    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    # float32's round-off over an action's substeps differs between CPUs by up to 2e-5
+    # of the largest value; float64 is where exactness is checked
+    tol = 1e-12 if dtype == torch.float64 else 1e-4
     one = [*inputs[:4], inputs[4][:1], inputs[5]]
     for a, b in zip(
         sloshing_c(dx)(*one), sloshing.sloshing_substep(0, one[:4], one[4], one[5][:, None], dx), strict=True
     ):
-        assert torch.equal(a, b)
+        if dtype == torch.float64:
+            assert torch.equal(a, b)
+        else:
+            torch.testing.assert_close(a, b, rtol=tol, atol=tol)
 
     def gradient(fn, given):
         x = [t.clone().requires_grad_() for t in given]

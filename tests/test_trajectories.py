@@ -3,8 +3,10 @@
 ``tests/data/trajectories.json``, so that a refactor cannot change the physics unseen.
 
 On the machine that recorded them the rollouts agree bit for bit; elsewhere floating
-point reductions may be vectorised differently, so the test allows round-off (and says
-so when the agreement is not exact). After a deliberate change of the physics, record
+point reductions may be vectorised differently, so the test allows round-off. The
+machine's name (its vendor's family, threads, torch) does not tell one CPU model from
+another, nor does one record say which machine each env was recorded on, so round-off
+is allowed everywhere: it is far below any change of the physics. After a deliberate change of the physics, record
 them again and say why in the commit:
 
     .venv/bin/python tests/test_trajectories.py
@@ -56,15 +58,12 @@ def test_trajectories_are_the_recorded_ones(env_id):
     for part in ("observations", "rewards"):
         x = torch.tensor(got[part], dtype=torch.float64)
         y = torch.tensor(expected[part], dtype=torch.float64)
-        if data["machine"] == machine():
-            assert torch.equal(x, y), f"{env_id} {part} changed (largest difference {(x - y).abs().max().item():.3g})"
-        else:
-            torch.testing.assert_close(
-                x,
-                y,
-                **ROUND_OFF.get(env_id, dict(rtol=1e-10, atol=1e-12)),
-                msg=lambda m, part=part: f"{env_id} {part} changed beyond round-off: {m}",
-            )
+        torch.testing.assert_close(
+            x,
+            y,
+            **ROUND_OFF.get(env_id, dict(rtol=1e-10, atol=1e-12)),
+            msg=lambda m, part=part: f"{env_id} {part} changed beyond round-off: {m}",
+        )
 
 
 def test_every_env_is_recorded():
