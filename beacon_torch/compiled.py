@@ -30,6 +30,8 @@ from typing import Any
 
 import torch
 
+from beacon_torch.numerics import native
+
 # each env, shape and dtype is one entry of the step's compiled code (every env runs
 # the one step function, and so shares its code object); past torch's default limit
 # (8 entries) the step would silently run eagerly
@@ -313,6 +315,7 @@ class _Kernel:
         compiled = kernels._cache.get(fn)
         if compiled is None:
             announce_compilation()
+            native.library()  # built before the trace, which cannot build it
             compiled = kernels._cache[fn] = torch.compile(fn, **kernels.options)
         with _SETTINGS:
             return compiled(*args, **kwargs)

@@ -285,3 +285,43 @@ def test_a_small_action_is_one_differentiated_compiled_call_with_the_eager_gradi
     torch.testing.assert_close(r_c, r_e, **ROUND_OFF)
     torch.testing.assert_close(g_c, g_e, rtol=1e-8, atol=1e-10 * g_e.abs().max().item())
     assert advance_settled in envs[1].physics.kernels._cache  # the action compiled whole
+
+
+def test_a_trace_before_the_c_kernels_are_built_takes_the_tensor_path(monkeypatch):
+    """Tracing cannot build the C kernels (a compiler run under a lock): code compiled
+    before they exist takes the tensor path, and is compiled again once they do."""
+    from beacon_torch.numerics import native
+
+    if native.library() is None:
+        pytest.skip("no C compiler here")
+    monkeypatch.setattr(native, "_tried", False)
+    monkeypatch.setattr(native, "_library", None)
+
+    @torch.compile(fullgraph=True, backend="eager")
+    def which(x):
+        return x + 1 if native.applies(x.device, x.dtype) else x - 1
+
+    assert which(torch.zeros(2)).tolist() == [-1.0, -1.0]
+    assert not native._tried
+    assert native.library() is not None
+    assert which(torch.zeros(2)).tolist() == [1.0, 1.0]
+
+
+@pytest.mark.slow(seconds=40)
+def test_a_compiled_env_is_the_first_thing_a_process_runs():
+    """``make(..., compile=True)`` stepped first thing in a fresh process, before any
+    C kernel was built (sloshing's step asks for them inside its compiled call)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import beacon_torch\n"
+        "from beacon_torch.numerics import native\n"
+        "env = beacon_torch.make('sloshing-v0', 2, compile=True)\n"
+        "env.reset()\n"
+        "env.rand_step()\n"
+        "print(native._tried)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[-1] == "True"

@@ -809,6 +809,11 @@ def library() -> ctypes.CDLL | None:
     if os.environ.get("BEACON_TORCH_NATIVE", "1") == "0":
         return None
     if not _tried:
+        if torch.compiler.is_compiling():
+            # a trace can neither run the compiler nor hold a lock: the code being
+            # traced takes the tensor paths, and its guard on _tried compiles it again
+            # once the library is built (the env's own compiled calls build it first)
+            return None
         with _lock:
             if not _tried:
                 _library = _build()
