@@ -27,7 +27,13 @@ kernel's (``system_s``) and the pages faulted in (``page_faults``); the ratios a
 medians over the rounds of each round's ratio; per way, the wall seconds of its two
 warm-up blocks (``warmup_s``: the compilation, where the inductor cache is cold).
 ``--keep-free B`` sets the free heap kept between recomputed actions
-(``beacon_torch.autograd.KEEP_FREE``; 0: trimmed after every action). Writes a new
+(``beacon_torch.autograd.KEEP_FREE``; 0: trimmed after every action). Each way runs in
+a process of its own (the rounds still alternate, the parent handing each process its
+block in turn): a forward transition taken in a process that also differentiates ran
+10 to 20 % slower on rayleigh-v0 than in a process that only steps (its heap and caches
+as the differentiated blocks leave them), which made the ratio look better than what a
+collector pays; ``--one-process`` measures the ways in one process, as records before
+2026-12-06 did (``apart`` in a record says which). Writes a new
 ``grad-cost-ENV-DATE-TIME.json`` per env in ``benchmarks/results/grad_cost`` and prints
 a table.
 """
@@ -97,30 +103,95 @@ class Way:
         return self.horizon * env.num_envs
 
 
-def measure(env_id: str, rounds: int, horizon: int, kinds: list[str], grad_checkpoint_after: int | None = None) -> dict:
+class Here:
+    """A way measured in this process."""
+
+    def __init__(self, kind: str, env_id: str, members: int, checkpoint: bool, horizon: int, after: int, keep_free):
+        self.way = Way(env_id, members, kind, checkpoint, horizon, after)
+
+    def warm(self) -> float:
+        """Two blocks (the compilation, forward and backward); their wall seconds."""
+        start = time.perf_counter()
+        self.way.actions()
+        self.way.actions()
+        return time.perf_counter() - start
+
+    def block(self) -> tuple[float, float, float]:
+        """One block: CPU seconds, kernel seconds and pages faulted in, per transition."""
+        usage, start = resource.getrusage(resource.RUSAGE_SELF), time.process_time()
+        n = self.way.actions()
+        cpu = (time.process_time() - start) / n
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        return cpu, (after.ru_stime - usage.ru_stime) / n, (after.ru_minflt - usage.ru_minflt) / n
+
+    def close(self) -> None:
+        pass
+
+
+def _serve(conn, kind: str, *settings) -> None:
+    """A way's own process: builds it, then answers each request of the parent's."""
+    torch.set_num_threads(1)
+    from beacon_torch import autograd
+
+    autograd.KEEP_FREE = settings[-1]
+    here = Here(kind, *settings)
+    for request in iter(conn.recv, "stop"):
+        conn.send(getattr(here, request)())
+
+
+class Apart:
+    """A way measured in a process of its own, one block whenever asked."""
+
+    def __init__(self, kind: str, *settings) -> None:
+        import multiprocessing
+
+        context = multiprocessing.get_context("spawn")
+        self.conn, child = context.Pipe()
+        self.process = context.Process(target=_serve, args=(child, kind, *settings), daemon=True)
+        self.process.start()
+
+    def warm(self) -> float:
+        self.conn.send("warm")
+        return self.conn.recv()
+
+    def block(self) -> tuple[float, float, float]:
+        self.conn.send("block")
+        return self.conn.recv()
+
+    def close(self) -> None:
+        self.conn.send("stop")
+        self.process.join(timeout=60)
+
+
+def measure(
+    env_id: str,
+    rounds: int,
+    horizon: int,
+    kinds: list[str],
+    grad_checkpoint_after: int | None = None,
+    apart: bool = True,
+) -> dict:
     from beacon_torch import autograd
     from beacon_torch.training.config import SHACConfig, configure
 
     cfg = configure(SHACConfig, env_id)
     kept = cfg.grad_checkpoint_after if grad_checkpoint_after is None else grad_checkpoint_after
-    ways = {k: Way(env_id, cfg.num_envs, k, cfg.grad_checkpoint, horizon, kept) for k in kinds}
-    warmup = {}
-    for k, way in ways.items():  # compilation, forward and backward
-        start = time.perf_counter()
-        way.actions()
-        way.actions()
-        warmup[k] = time.perf_counter() - start
-    per = {k: [] for k in kinds}
-    # per transition: the kernel's share of the CPU time and the pages faulted in
-    system, faults = {k: [] for k in kinds}, {k: [] for k in kinds}
-    for _ in range(rounds):
-        for k, way in ways.items():
-            usage, start = resource.getrusage(resource.RUSAGE_SELF), time.process_time()
-            n = way.actions()
-            per[k].append((time.process_time() - start) / n)
-            after = resource.getrusage(resource.RUSAGE_SELF)
-            system[k].append((after.ru_stime - usage.ru_stime) / n)
-            faults[k].append((after.ru_minflt - usage.ru_minflt) / n)
+    given = (env_id, cfg.num_envs, cfg.grad_checkpoint, horizon, kept, autograd.KEEP_FREE)
+    ways = {k: (Apart(k, *given) if apart else Here(k, *given)) for k in kinds}
+    try:
+        warmup = {k: way.warm() for k, way in ways.items()}  # compilation, forward and backward
+        per = {k: [] for k in kinds}
+        # per transition: the kernel's share of the CPU time and the pages faulted in
+        system, faults = {k: [] for k in kinds}, {k: [] for k in kinds}
+        for _ in range(rounds):
+            for k, way in ways.items():
+                cpu, kernel, faulted = way.block()
+                per[k].append(cpu)
+                system[k].append(kernel)
+                faults[k].append(faulted)
+    finally:
+        for way in ways.values():
+            way.close()
     row = dict(
         env=env_id,
         members=cfg.num_envs,
@@ -132,6 +203,7 @@ def measure(env_id: str, rounds: int, horizon: int, kinds: list[str], grad_check
         page_faults=faults,
         keep_free=autograd.KEEP_FREE,
         warmup_s=warmup,
+        apart=apart,
     )
     for k in kinds:
         row[f"{k}_s"] = statistics.median(per[k])
@@ -173,7 +245,8 @@ def page_table(folder: Path) -> str:
             before = newest.get(row["env"], {})
             if settings(before) != settings(row):
                 before = {}  # ways measured with other settings are not this row's
-            newest[row["env"]] = {**before, **row, "measured": f"{day}, {cpu}"}
+            apart = ", each way its own process" if row.get("apart") else ""
+            newest[row["env"]] = {**before, **row, "measured": f"{day}, {cpu}{apart}"}
     lines = [
         "| env | members | grad_checkpoint | forward, compiled (ms per transition) | differentiated, eager "
         "| compiled, a call a substep | compiled, as the env runs it | measured (each row's ways side by side) |",
@@ -217,6 +290,9 @@ def main() -> None:
         default=None,
         help="the recomputing env's actions kept whole a horizon (default: the actor-critic's setting)",
     )
+    parser.add_argument(
+        "--one-process", action="store_true", help="every way in this process (as records before 2026-12-06)"
+    )
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "grad_cost")
     parser.add_argument("--page", type=Path, default=None, help="write --out's newest records as this page's table")
     args = parser.parse_args()
@@ -238,7 +314,7 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|", flush=True)
     for env_id in args.envs:
-        row = measure(env_id, args.rounds, args.horizon, args.kinds, args.grad_checkpoint_after)
+        row = measure(env_id, args.rounds, args.horizon, args.kinds, args.grad_checkpoint_after, not args.one_process)
         ratios = " | ".join(f"{row.get(f'{k}_ratio', float('nan')):.1f}" for k in ways)
         print(f"| {env_id} | {row['members']} | {row['grad_checkpoint']} | {1e3 * row['forward_s']:.3g} | {ratios} |")
         # a record per env, written as soon as it is measured

@@ -373,6 +373,8 @@ def test_the_cost_of_a_differentiated_transition_is_measured_beside_the_forward_
     assert len(row["system_s"]["eager"]) == len(row["page_faults"]["forward"]) == 2
     assert all(0 <= s <= t for s, t in zip(row["system_s"]["eager"], row["rounds"]["eager"], strict=True))
     assert row["keep_free"] == 12345
+    # each way in a process of its own, as a collector's forward steps run
+    assert row["apart"] is True
 
 
 def test_the_kept_way_differentiates_without_recomputing_the_actions():
