@@ -227,8 +227,9 @@ def settings(row: dict) -> tuple:
 def page_table(folder: Path) -> str:
     """The newest measurement of each env and way in ``folder`` as a markdown table (a
     way missing from an env's newest record, such as the cavities' eager path, keeps
-    its newest earlier ratio measured at the same members, ``grad_checkpoint`` and ``grad_checkpoint_after``; each
-    ratio is against the forward way of its own record)."""
+    its newest earlier ratio measured on the same CPU at the same members,
+    ``grad_checkpoint`` and ``grad_checkpoint_after``; each ratio is against the forward
+    way of its own record)."""
     from beacon_torch import received
 
     newest: dict[str, dict] = {}
@@ -243,10 +244,10 @@ def page_table(folder: Path) -> str:
                 row = {**row, "compiled-1_ratio": row["compiled_ratio"]}
                 del row["compiled_ratio"]
             before = newest.get(row["env"], {})
-            if settings(before) != settings(row):
-                before = {}  # ways measured with other settings are not this row's
+            if settings(before) != settings(row) or before.get("cpu") != cpu:
+                before = {}  # ways measured with other settings or on another CPU are not this row's
             apart = ", each way its own process" if row.get("apart") else ""
-            newest[row["env"]] = {**before, **row, "measured": f"{day}, {cpu}{apart}"}
+            newest[row["env"]] = {**before, **row, "cpu": cpu, "measured": f"{day}, {cpu}{apart}"}
     lines = [
         "| env | members | grad_checkpoint | forward, compiled (ms per transition) | differentiated, eager "
         "| compiled, a call a substep | compiled, as the env runs it | measured (each row's ways side by side) |",
