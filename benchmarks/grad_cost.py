@@ -106,7 +106,7 @@ class Way:
 class Here:
     """A way measured in this process."""
 
-    def __init__(self, kind: str, env_id: str, members: int, checkpoint: bool, horizon: int, after: int, keep_free):
+    def __init__(self, kind: str, env_id: str, members: int, checkpoint: bool, horizon: int, after: int) -> None:
         self.way = Way(env_id, members, kind, checkpoint, horizon, after)
 
     def warm(self) -> float:
@@ -128,12 +128,12 @@ class Here:
         pass
 
 
-def _serve(conn, kind: str, *settings) -> None:
+def _serve(conn, keep_free: int, kind: str, *settings) -> None:
     """A way's own process: builds it, then answers each request of the parent's."""
     torch.set_num_threads(1)
     from beacon_torch import autograd
 
-    autograd.KEEP_FREE = settings[-1]
+    autograd.KEEP_FREE = keep_free
     here = Here(kind, *settings)
     for request in iter(conn.recv, "stop"):
         conn.send(getattr(here, request)())
@@ -145,9 +145,12 @@ class Apart:
     def __init__(self, kind: str, *settings) -> None:
         import multiprocessing
 
+        from beacon_torch import autograd
+
         context = multiprocessing.get_context("spawn")
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_serve, args=(child, kind, *settings), daemon=True)
+        args = (child, autograd.KEEP_FREE, kind, *settings)  # this process's setting, as --keep-free left it
+        self.process = context.Process(target=_serve, args=args, daemon=True)
         self.process.start()
 
     def warm(self) -> float:
@@ -176,7 +179,7 @@ def measure(
 
     cfg = configure(SHACConfig, env_id)
     kept = cfg.grad_checkpoint_after if grad_checkpoint_after is None else grad_checkpoint_after
-    given = (env_id, cfg.num_envs, cfg.grad_checkpoint, horizon, kept, autograd.KEEP_FREE)
+    given = (env_id, cfg.num_envs, cfg.grad_checkpoint, horizon, kept)
     ways = {k: (Apart(k, *given) if apart else Here(k, *given)) for k in kinds}
     try:
         warmup = {k: way.warm() for k, way in ways.items()}  # compilation, forward and backward

@@ -6,8 +6,8 @@ On the machine that recorded them the rollouts agree bit for bit; elsewhere floa
 point reductions may be vectorised differently, so the test allows round-off. The
 machine's name (its vendor's family, threads, torch) does not tell one CPU model from
 another, nor does one record say which machine each env was recorded on, so round-off
-is allowed everywhere: it is far below any change of the physics. After a deliberate change of the physics, record
-them again and say why in the commit:
+is allowed everywhere: it is far below any change of the physics. After a deliberate
+change of the physics, record them again and say why in the commit:
 
     .venv/bin/python tests/test_trajectories.py
 """
