@@ -340,6 +340,41 @@ def test_the_adjoint_loops_take_subnormal_gradients_as_zero_and_leave_the_proces
     assert float(torch.tensor(1e-39) * torch.tensor(1.0)) > 0.0
 
 
+@pytest.mark.parametrize("members", [8, 16])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_kernels_inlined_for_a_batch_give_each_member_what_it_gets_alone(members, dtype):
+    """The 2-D kernels are compiled apart for 8 and 16 members (whole vectors a row):
+    each member of such a batch gets from the sweep, its reverse, the line solve and the
+    momentum terms' adjoint exactly what it gets alone, to the last bit."""
+    from beacon_torch.numerics.staggered import Uniform, multipliers
+
+    nx, ny = 11, 7
+    cast = lambda t: t.to(dtype).contiguous()
+    s, g, x = (cast(rand((nx + 2, ny + 2, members), k)) for k in (1, 2, 3))
+    a, b = (cast(0.2 * rand((nx, ny, members), k).abs()) for k in (4, 5))
+    f = cast(rand((5, ny, members), 6))
+    lower, inv, upper = cast(rand((5, ny), 7)), cast(1.0 + rand((5, ny), 8).abs()), cast(rand((ny,), 9))
+    u, v, gu, gv = (cast(t) for t in momentum_inputs(nx, ny, members, seed=10))
+    nu = cast(0.01 + rand((members,), 11).abs())
+    cx, cy = multipliers(Uniform(1 / nx), nx, u), multipliers(Uniform(1 / ny), ny, u)
+    width = torch.ones(ny, dtype=dtype)
+    kernels = {
+        "sweep": lambda k: (native.sweep_kernel(s[..., k], a[..., k], b[..., k]),),
+        "sweep_adjoint": lambda k: native.sweep_adjoint(g[..., k], x[..., k], a[..., k], b[..., k]),
+        "lines": lambda k: (native.lines_kernel(f[..., k], lower, inv, upper, width),),
+        "momentum_adjoint": lambda k: native.momentum_adjoint(
+            u[..., k], v[..., k], gu[..., k], gv[..., k], nu[k], cx, cy
+        ),
+    }
+    whole = slice(None)
+    for name, kernel in kernels.items():
+        batch = kernel(whole)
+        for m in range(members):
+            alone = kernel(slice(m, m + 1))
+            for got, want in zip(batch, alone, strict=True):
+                assert torch.equal(got[..., m : m + 1], want), (name, m)
+
+
 def test_the_float32_kernels_compute_in_float32():
     """Every constant of the C kernels' source is cast to the kernel's type: a bare
     ``0.5`` is a double in C, so the float32 kernel converts each operand to double and

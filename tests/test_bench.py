@@ -143,7 +143,7 @@ def test_a_tree_is_named_by_its_commit_and_whether_it_was_changed(tmp_path):
 def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
     """validation/same_steps.py: a tree against itself steps alike, bit for bit; against
     a copy whose lorenz starts elsewhere, every case of lorenz differs from its first
-    observation, and the record says which."""
+    observation, and the record says which (and at how many members it compared)."""
     import shutil
     import subprocess
     import sys
@@ -157,7 +157,16 @@ def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
     command = [sys.executable, str(root / "validation" / "same_steps.py")]
     for trees, name in (([root, root], "same"), ([root, other], "other")):
         out = subprocess.run(
-            [*command, *map(str, trees), "--envs", "lorenz-v0", "--out", str(tmp_path / f"{name}.json")],
+            [
+                *command,
+                *map(str, trees),
+                "--envs",
+                "lorenz-v0",
+                "--members",
+                "3",
+                "--out",
+                str(tmp_path / f"{name}.json"),
+            ],
             capture_output=True,
             text=True,
             check=False,
@@ -167,6 +176,7 @@ def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
         assert out.returncode == 0, out.stderr[-2000:]
     same, other = (json.loads((tmp_path / f"{name}.json").read_text()) for name in ("same", "other"))
     assert same["cases"] == other["cases"] == 4 and same["tensors"] > 20 and same["differ"] == []
+    assert same["members"] == other["members"] == 3
     assert "lorenz-v0 eager float64: observation 0" in other["differ"]
     # the copy is no git checkout: its commit is not known
     assert same["commits"][0] == same["commits"][1] and other["commits"][1] is None

@@ -90,9 +90,23 @@ _SOURCE = r"""
 #else
 #define PREFETCH_NEXT_STATE(T, WIDTH)
 #endif
+/* The 2-D flows' kernels loop over a cell's members innermost, a count known only when
+   called, and the compiler's vector loop is then wider than a row of 8 float32 members:
+   such a row ran through the remainder's code. Where a kernel measured faster so, it is
+   inlined for the actor-critic's batches (8 members, and 16 where that paid too), the
+   count a constant and the row whole vectors; the results are the same to the last bit
+   (2026-12-07: the sweep and the line solve 1.8 times faster at 8 float32 members, the
+   momentum adjoint 2.5 times; the line solve at 16 and the reverse sweep were slower,
+   and are not). */
+#if defined(__GNUC__) || defined(__clang__)
+#define INLINED static inline __attribute__((always_inline))
+#else
+#define INLINED static inline
+#endif
 
 #define SWEEP(NAME, T)                                                              \
-void NAME(T *out, const T *s, const T *a, const T *b, long nx, long ny, long members) { \
+INLINED void NAME##_rows(                                                           \
+          T *out, const T *s, const T *a, const T *b, long nx, long ny, long members) { \
     const long column = (ny + 2) * members;                                         \
     for (long m = 0; m < column; ++m) {  /* the ghosts keep their values */         \
         out[m] = s[m];                                                              \
@@ -114,6 +128,11 @@ void NAME(T *out, const T *s, const T *a, const T *b, long nx, long ny, long mem
                 x[m] = (old[m] + ai[m] * west[m]) + bi[m] * south[m];               \
         }                                                                           \
     }                                                                               \
+}                                                                                   \
+void NAME(T *out, const T *s, const T *a, const T *b, long nx, long ny, long members) { \
+    if (members == 8) NAME##_rows(out, s, a, b, nx, ny, 8);                         \
+    else if (members == 16) NAME##_rows(out, s, a, b, nx, ny, 16);                  \
+    else NAME##_rows(out, s, a, b, nx, ny, members);                                \
 }
 SWEEP(sweep_f32, float)
 SWEEP(sweep_f64, double)
@@ -123,7 +142,8 @@ SWEEP(sweep_f64, double)
    x[j] = (y[j] - upper[j] x[j + 1]) inv[k, j] after y[j] = f[j] - lower[k, j] y[j - 1]
    (a singular mode has inv 0 on its last row, which leaves that value at 0). */
 #define LINES(NAME, T)                                                              \
-void NAME(T *out, const T *f, const T *lower, const T *inv, const T *upper,         \
+INLINED void NAME##_rows(                                                           \
+          T *out, const T *f, const T *lower, const T *inv, const T *upper,         \
           long modes, long n, long members) {                                       \
     for (long k = 0; k < modes; ++k) {                                              \
         T *x = out + k * n * members;                                               \
@@ -141,6 +161,11 @@ void NAME(T *out, const T *f, const T *lower, const T *inv, const T *upper,     
                 row[m] = (row[m] - upper[j] * next[m]) * w[j];                      \
         }                                                                           \
     }                                                                               \
+}                                                                                   \
+void NAME(T *out, const T *f, const T *lower, const T *inv, const T *upper,         \
+          long modes, long n, long members) {                                       \
+    if (members == 8) NAME##_rows(out, f, lower, inv, upper, modes, n, 8);          \
+    else NAME##_rows(out, f, lower, inv, upper, modes, n, members);                 \
 }
 LINES(lines_f32, float)
 LINES(lines_f64, double)
@@ -686,13 +711,10 @@ SLOSHING_ADJOINT(sloshing_adjoint_f64, double, __builtin_sqrt)
    velocities, each term adding to the faces it read. cx and cy hold each axis's
    multipliers: the differences across the interior faces' control volumes (n - 1)
    and the cells' (n), then the second differences' outer coefficients at the
-   interior faces (minus, plus: n - 1 each) and at the cells (n each). nu [B]. The
-   loop is inlined for 8 and 16 members, the actor-critic's batches: with the count
-   a constant, a face's members are whole vectors with no remainder loop, and the
-   loop ran 2.5 times faster at 8 float32 members (the same results). The reverse
-   sweep, inlined so, ran slower, and is not. */
+   interior faces (minus, plus: n - 1 each) and at the cells (n each). nu [B]. Inlined
+   for 8 and 16 members (see INLINED). */
 #define MOMENTUM_ADJOINT(NAME, T)                                                   \
-static inline __attribute__((always_inline)) void NAME##_rows(                      \
+INLINED void NAME##_rows(                                                           \
           T *du, T *dv, const T *u, const T *v, const T *gu, const T *gv,           \
           const T *nu, const T *cx, const T *cy, long nx, long ny, long B) {         \
     const long uc = (ny + 2) * B, vc = (ny + 1) * B;                                \
