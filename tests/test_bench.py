@@ -185,6 +185,31 @@ def test_two_trees_compared_step_by_step_name_what_differs(tmp_path):
     }
 
 
+def test_the_c_kernels_are_timed_per_tree_and_compared_bit_for_bit(tmp_path):
+    """benchmarks/c_kernels.py: each tree's kernel source built and called on the same
+    inputs; a tree against itself gives the same results in every case, and a new
+    record names the trees and the times."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import torch
+
+    from beacon_torch.numerics import native
+
+    if not native.applies("cpu", torch.float64):
+        pytest.skip("no C compiler")
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "benchmarks" / "c_kernels.py"), str(root), str(root), "--calls", "1"]
+    command += ["--repeats", "1", "--out", str(tmp_path)]
+    out = subprocess.run(command, capture_output=True, text=True, check=False, cwd=tmp_path, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (record,) = [json.loads(p.read_text()) for p in tmp_path.glob("c-kernels-*.json")]
+    kernels = {row["kernel"] for row in record["rows"]}
+    assert kernels == {"sweep", "sweep_adjoint", "lines", "momentum_adjoint"} and len(record["trees"]) == 2
+    assert all(row["equal"] and len(row["us"]) == 2 and min(row["us"]) > 0 for row in record["rows"])
+
+
 @pytest.mark.slow(20)
 def test_two_trees_timed_block_by_block_give_a_ratio_per_case(tmp_path):
     """benchmarks/revisions.py --interleaved: the two processes' blocks of each case
