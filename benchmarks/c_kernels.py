@@ -19,6 +19,7 @@ import argparse
 import ctypes
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -58,8 +59,11 @@ def build(text: str, folder: Path, name: str) -> ctypes.CDLL:
 
     c, so = folder / f"{name}.c", folder / f"{name}.so"
     c.write_text(text)
-    compiler = os.environ.get("CC") or "cc"
-    subprocess.run([compiler, *native._FLAGS, *native._HOST, str(c), "-o", str(so)], check=True, capture_output=True)
+    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    try:
+        native._compile(compiler, (*native._FLAGS, *native._HOST), str(c), str(so))
+    except subprocess.CalledProcessError:  # a compiler that does not know this CPU, as native falls back
+        native._compile(compiler, native._FLAGS, str(c), str(so))
     return ctypes.CDLL(str(so))
 
 
