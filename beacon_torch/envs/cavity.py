@@ -19,12 +19,15 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from beacon_torch.core.card import FrameInputs
 from beacon_torch.core.physics import Physics
 from beacon_torch.core.state import State
+from beacon_torch.numerics import native
 from beacon_torch.numerics.grid import NEUMANN, Ghosts
 from beacon_torch.numerics.projection import Cavity, Flow
+from beacon_torch.numerics.transport import sweep_adjoint
 
 N_PROBES = 4
 HISTORY = 4  # the 3 previous probe vectors and the current one, oldest first
@@ -80,10 +83,114 @@ def transport(
     return torch.cat((s[:1], torch.cat((s[1:-1, :1], interior, s[1:-1, -1:]), 1), s[-1:]), 0)
 
 
+def transport_adjoint(
+    grad: torch.Tensor,
+    s: torch.Tensor,
+    new: torch.Tensor,
+    u: torch.Tensor,
+    v: torch.Tensor,
+    ghosts: Ghosts,
+    offset,
+    cavity: Cavity,
+    kappa,
+    dt: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The gradients of :func:`transport`'s ``s`` (its ghosts read nothing: zero),
+    ``u``, ``v`` and ``offset`` from ``grad``, that of its result ``new`` (where
+    :attr:`Cavity.adjoint`)."""
+    ghosted = ghosts(s[1:-1, 1:-1], offset)
+    gs, gu, gv = sweep_adjoint(grad, new, ghosted, u, v, kappa, dt, cavity.dx, cavity.dy)
+    g_offset = None if offset is None else gs.sum_to_size(offset.shape)
+    return F.pad(ghosts.fold(gs), (0, 0, 1, 1, 1, 1)), gu, gv, g_offset
+
+
 def _any_substep(substep: Callable, i, flow: Flow, *inputs) -> Flow:
     """A cavity's substep as the loop over an action's substeps calls it (every
     substep of an action is the same)."""
     return substep(flow, *inputs)
+
+
+class _Stored:
+    """``length`` substeps of ``substep`` from a flow: the flow after the last, and the
+    velocities and scalar after each, stacked (``[length, ...]``; what the substeps'
+    adjoint reads; an object, not a closure, so that an env can be pickled)."""
+
+    def __init__(self, substep: Callable, length: int) -> None:
+        self.substep, self.length = substep, length
+
+    def __call__(self, flow: Flow, *inputs) -> tuple[Flow, tuple[torch.Tensor, ...]]:
+        kept = []
+        for _ in range(self.length):
+            flow = self.substep(flow, *inputs)
+            kept.append((flow.u, flow.v, flow.scalar))
+        return flow, tuple(torch.stack(fields) for fields in zip(*kept, strict=True))
+
+
+class _Reversed:
+    """The adjoint of ``length`` substeps: ``adjoint`` applied from the last substep to
+    the first, from the fields before the first (``start``: u, v, the scalar) and after
+    each (``after``, stacked as :class:`_Stored` gives them), the gradients of the walls'
+    and the scalar's offsets summed over the substeps."""
+
+    def __init__(self, adjoint: Callable, length: int) -> None:
+        self.adjoint, self.length = adjoint, length
+
+    def __call__(self, start: tuple, after: tuple, grad: Flow, walls, offset, *inputs):
+        g_walls = g_offset = None
+        add = lambda total, g: g if total is None else total + g
+        fields = lambda j: start if j < 0 else tuple(t[j] for t in after)
+        for j in reversed(range(self.length)):
+            (u0, v0, s0), (u1, v1, s1) = fields(j - 1), fields(j)
+            grad, gw, go = self.adjoint(Flow(u0, v0, None, s0), Flow(u1, v1, None, s1), grad, walls, offset, *inputs)
+            if gw is not None:
+                g_walls = gw if g_walls is None else tuple(map(add, g_walls, gw))
+            if go is not None:
+                g_offset = add(g_offset, go)
+        return grad, g_walls, g_offset
+
+
+class _Substeps(torch.autograd.Function):
+    """An action's substeps with their adjoint written out as the backward pass: the
+    forward pass is the substeps without a graph (the forward path's own code), keeping
+    the velocities and the scalar after each substep, and the backward pass runs each
+    substep's adjoint (:attr:`CavityPhysics.substep_adjoint`) from the last to the
+    first, from those fields alone (the pressure enters linearly and needs none).
+    Differentiable once; not under ``torch.func`` (the env then records the substeps
+    as it does elsewhere)."""
+
+    @staticmethod
+    def forward(ctx, physics, n: int, nu, kappa, offset, wall_u, wall_v, u, v, p, s):
+        walls = None if wall_u is None else (wall_u, wall_v)
+        inputs = (walls, offset, physics.cavity, physics.ghosts, nu, kappa)
+        flow, kept = Flow(u, v, p, s), [(u, v, s)]
+        for length in physics.adjoint_chunks(n):
+            flow, fields = physics.stored[length](flow, *inputs)
+            kept.append(fields)
+        ctx.physics, ctx.nu, ctx.kappa, ctx.n = physics, nu, kappa, n
+        ctx.ends = (offset is not None, wall_u is not None)
+        ctx.save_for_backward(*[t for t in (offset, wall_u, wall_v) if t is not None], *(t for f in kept for t in f))
+        return tuple(flow)
+
+    @staticmethod
+    def backward(ctx, gu, gv, gp, gs):
+        physics, saved = ctx.physics, list(ctx.saved_tensors)
+        has_offset, has_walls = ctx.ends
+        offset = saved.pop(0) if has_offset else None
+        walls = (saved.pop(0), saved.pop(0)) if has_walls else None
+        kept = [tuple(saved[k : k + 3]) for k in range(0, len(saved), 3)]
+        grad, g_walls, g_offset = Flow(gu, gv, gp, gs), None, None
+        inputs = (walls, offset, physics.cavity, physics.ghosts, ctx.nu, ctx.kappa)
+        chunks = physics.adjoint_chunks(ctx.n)
+        for c in reversed(range(len(chunks))):
+            # the fields before the chunk: the last of the chunk before, or the action's start
+            start = kept[0] if c == 0 else tuple(t[-1] for t in kept[c])
+            grad, gw, go = physics.reversed[chunks[c]](start, kept[c + 1], grad, *inputs)
+            if gw is not None:
+                g_walls = gw if g_walls is None else (g_walls[0] + gw[0], g_walls[1] + gw[1])
+            if go is not None:
+                g_offset = go if g_offset is None else g_offset + go
+        g_walls = g_walls or (None, None)
+        return None, None, None, None, g_offset, *g_walls, *grad
 
 
 class CavityPhysics(Physics):
@@ -104,6 +211,11 @@ class CavityPhysics(Physics):
     # (flow, walls, offset, cavity, ghosts, nu, kappa) -> flow: one substep of the
     # solver's batch-last flow, a staticmethod of the physics class
     substep: ClassVar[Callable]
+    # (start, end, grad, walls, offset, cavity, ghosts, nu, kappa) -> (gradient of the
+    # start's flow, of the walls' offsets or None, of the scalar's offset or None): the
+    # substep's adjoint from the fields before and after it (u, v and the scalar), where
+    # the grid has one (Cavity.adjoint); None: autograd records the substeps
+    substep_adjoint: ClassVar[Callable | None] = None
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -134,6 +246,35 @@ class CavityPhysics(Physics):
         self.ghosts = self.scalar_ghosts()
         self._substeps = self.kernels.loop(functools.partial(_any_substep, self.substep))
         self.probes = Probes(self.nx, self.ny, self.device)
+        # the written-out adjoint's compiled calls by their number of substeps (None: the
+        # grid has no adjoint)
+        self.stored = self.reversed = None
+        if self.substep_adjoint is not None and self.cavity.adjoint:
+            self.stored, self.reversed = {}, {}
+
+    def adjoint_chunks(self, n: int) -> list[int]:
+        """The substeps of an action as the written-out adjoint runs them, in order: chunks
+        of :attr:`~beacon_torch.compiled.Kernels.chunk` substeps a compiled call, the rest
+        one by one; the calls of each length made on first use."""
+        chunk = max(1, self.kernels.chunk)
+        chunks = [chunk] * (n // chunk) + [1] * (n % chunk)
+        for length in set(chunks) - set(self.stored):
+            self.stored[length] = self.kernels(_Stored(self.substep, length))
+            self.reversed[length] = self.kernels(_Reversed(self.substep_adjoint, length))
+        return chunks
+
+    def _adjoint_applies(self, flow: Flow, walls, offset, nu, kappa) -> bool:
+        """Whether :meth:`run` differentiates its substeps through :class:`_Substeps`:
+        autograd records, the grid has the adjoint, the viscosity and diffusivity are
+        constants of the graph, and no ``torch.func`` transform or trace is active."""
+        if self.stored is None:
+            return False
+        tensors = [*flow, *(walls or ()), *([offset] if offset is not None else [])]
+        if not native.recording(*tensors) or not native.takes(*flow):
+            return False
+        if any(isinstance(t, torch.Tensor) and t.requires_grad for t in (nu, kappa)):
+            return False
+        return not torch.compiler.is_compiling() and torch._C._functorch.peek_interpreter_stack() is None
 
     def grid(self, p) -> tuple[int, int, float, float]:
         """``(nx, ny, dx, dy)`` of the parameters' cavity."""
@@ -152,7 +293,11 @@ class CavityPhysics(Physics):
         ``walls`` (``Cavity.walls``; None for walls at rest) and the scalar's ghost
         offset: the layout converted once each way."""
         flow = self.cavity.to_solver(flow, self.ghosts, offset)
-        flow = self._substeps(n, flow, walls, offset, self.cavity, self.ghosts, nu, kappa)
+        if self._adjoint_applies(flow, walls, offset, nu, kappa):
+            wall_u, wall_v = walls if walls is not None else (None, None)
+            flow = Flow(*_Substeps.apply(self, n, nu, kappa, offset, wall_u, wall_v, *flow))
+        else:
+            flow = self._substeps(n, flow, walls, offset, self.cavity, self.ghosts, nu, kappa)
         return self.cavity.to_state(flow, walls if walls is not None else self.cavity.walls(like=flow.u))
 
     def flow(self, state: State) -> Flow:

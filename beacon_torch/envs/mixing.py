@@ -24,10 +24,10 @@ import torch
 
 from beacon_torch.core.card import Card, GradCheck
 from beacon_torch.core.state import Noise
-from beacon_torch.envs.cavity import N_OBS, CavityPhysics, cavity_frame, transport
+from beacon_torch.envs.cavity import N_OBS, CavityPhysics, cavity_frame, transport, transport_adjoint
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
 from beacon_torch.numerics.projection import Cavity, Flow
-from beacon_torch.numerics.staggered import project
+from beacon_torch.numerics.staggered import project, project_adjoint
 from beacon_torch.params import param
 
 DT = 0.002
@@ -81,6 +81,18 @@ def substep(flow: Flow, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, k
     return Flow(u, v, p, transport(flow.scalar, u, v, c_ghosts, c_offset, cavity, kappa, DT))
 
 
+def substep_adjoint(start: Flow, end: Flow, grad: Flow, walls, c_offset, cavity: Cavity, c_ghosts, nu, kappa):
+    """:func:`substep`'s adjoint (where :attr:`Cavity.adjoint`): the gradients of its
+    flow and its ``walls`` from ``grad``, that of the flow it gives, and the fields
+    before (``start``) and after it (``end``)."""
+    g_c, gu, gv, g_offset = transport_adjoint(
+        grad.scalar, start.scalar, end.scalar, end.u, end.v, c_ghosts, c_offset, cavity, kappa, DT
+    )
+    gu, gv, gp = project_adjoint(grad.u + gu, grad.v + gv, grad.p, cavity.solver, DT, cavity.dx, cavity.dy)
+    grads, _, g_walls = cavity.predict_adjoint(start, walls, nu, DT, gu, gv)
+    return Flow(grads.u, grads.v, grads.p + gp, g_c), g_walls, g_offset
+
+
 class MixingPhysics(CavityPhysics):
     """The lid-driven cavity mixing a scalar (4 discrete actions: which walls move,
     which way)."""
@@ -104,6 +116,7 @@ class MixingPhysics(CavityPhysics):
     poisson_bc = (NEUMANN, NEUMANN, NEUMANN, ZERO_GHOST)
     jacobi_tol = 1e-4
     substep = staticmethod(substep)
+    substep_adjoint = staticmethod(substep_adjoint)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

@@ -34,10 +34,10 @@ from beacon_torch import seeds
 from beacon_torch.cache import cached
 from beacon_torch.core.card import PUBLISHED_RESULT, Card, GradCheck, Reference
 from beacon_torch.core.state import Noise, map_state
-from beacon_torch.envs.cavity import N_OBS, PROBED, CavityPhysics, cavity_frame, grid, transport
+from beacon_torch.envs.cavity import N_OBS, PROBED, CavityPhysics, cavity_frame, grid, transport, transport_adjoint
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, PERIODIC, VALUE, Ghosts, edge_offset
 from beacon_torch.numerics.projection import Cavity, Flow
-from beacon_torch.numerics.staggered import project
+from beacon_torch.numerics.staggered import project, project_adjoint
 from beacon_torch.params import number, param, resolve_params
 from beacon_torch.starts import GENERATED, PUBLISHED, choose_start, published_table, start_param
 
@@ -171,6 +171,20 @@ def substep(flow: Flow, walls, theta_offset: torch.Tensor, cavity: Cavity, theta
     return Flow(u, v, p, transport(theta, u, v, theta_ghosts, theta_offset, cavity, kappa, DT))
 
 
+def substep_adjoint(start: Flow, end: Flow, grad: Flow, walls, theta_offset, cavity: Cavity, theta_ghosts, nu, kappa):
+    """:func:`substep`'s adjoint (where :attr:`Cavity.adjoint`): the gradients of its
+    flow and its ``theta_offset`` from ``grad``, that of the flow it gives, and the
+    fields before (``start``) and after it (``end``)."""
+    g_theta, gu, gv, g_offset = transport_adjoint(
+        grad.scalar, start.scalar, end.scalar, end.u, end.v, theta_ghosts, theta_offset, cavity, kappa, DT
+    )
+    gu, gv, gp = project_adjoint(grad.u + gu, grad.v + gv, grad.p, cavity.solver, DT, cavity.dx, cavity.dy)
+    grads, g_buoyancy, g_walls = cavity.predict_adjoint(start, walls, nu, DT, gu, gv)
+    # the buoyancy read the cells above the interior v faces
+    g_theta = g_theta + F.pad(g_buoyancy, (0, 0, 2, 1, 1, 1))
+    return Flow(grads.u, grads.v, grads.p + gp, g_theta), g_walls, g_offset
+
+
 def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:
     """Instantaneous Nusselt number: the mean over the bottom cells of the first-order
     temperature gradient to the reference plate temperature 1/2, ``[B]``."""
@@ -240,6 +254,7 @@ class RayleighPhysics(CavityPhysics):
     substeps = SUBSTEPS
     jacobi_tol = 1e-8
     substep = staticmethod(substep)
+    substep_adjoint = staticmethod(substep_adjoint)
 
     @classmethod
     def sizes(cls, p) -> tuple[int, int]:

@@ -35,6 +35,10 @@ class Ghosts:
     def __init__(self, index_x, factor_x, index_y, factor_y, *, dtype, device) -> None:
         as_index = lambda i: None if i is None else torch.tensor(i, dtype=torch.int64, device=device)
         self.ix, self.iy = as_index(index_x), as_index(index_y)
+        # where the two ghosts of an axis read, for :meth:`fold`: a map that is the stored
+        # positions in order with one ghost on each side (None: another map)
+        ends = lambda i: (i[0], i[-1]) if i is not None and list(i[1:-1]) == list(range(len(i) - 2)) else None
+        self.ends_x, self.ends_y = ends(index_x), ends(index_y)
         fx = torch.tensor(factor_x, dtype=torch.float64)
         fy = torch.tensor(factor_y, dtype=torch.float64)
         self.factor = (fx[:, None, None] * fy[None, :, None]).to(dtype=dtype, device=device)
@@ -89,6 +93,25 @@ class Ghosts:
             f = f[:, self.iy]
         f = f * self.factor
         return f if offset is None else f + offset
+
+    def fold(self, g: torch.Tensor) -> torch.Tensor:
+        """The adjoint of the map in its field: the gradient of the stored values from
+        ``g``, that of the extended field (each ghost's share added to the position it
+        reads). The offset's gradient is ``g`` itself, summed to the offset's shape."""
+        g = g * self.factor
+        for dim, index, ends in ((1, self.iy, self.ends_y), (0, self.ix, self.ends_x)):
+            if index is None:
+                continue
+            if ends is None:
+                raise NotImplementedError("fold: an index map with more than one ghost on a side")
+            n = g.shape[dim] - 2
+            low, mid, high = g.narrow(dim, 0, 1), g.narrow(dim, 1, n), g.narrow(dim, n + 1, 1)
+            first = (low if ends[0] == 0 else 0) + (high if ends[1] == 0 else 0)
+            last = (low if ends[0] == n - 1 else 0) + (high if ends[1] == n - 1 else 0)
+            g = torch.cat(
+                (mid.narrow(dim, 0, 1) + first, mid.narrow(dim, 1, n - 2), mid.narrow(dim, n - 1, 1) + last), dim
+            )
+        return g
 
 
 def edge_offset(n: int, axis: int, low, high, like: torch.Tensor) -> torch.Tensor:

@@ -47,7 +47,16 @@ from beacon_torch.numerics.grid import (
     edge_offset,
 )
 from beacon_torch.numerics.poisson import FEW_MEMBERS, JacobiSolver, PoissonSolver, laplacian_1d
-from beacon_torch.numerics.staggered import Axis, Stretched, divergence, predict, project, tendency
+from beacon_torch.numerics.staggered import (
+    Axis,
+    Stretched,
+    divergence,
+    predict,
+    predict_adjoint,
+    project,
+    project_adjoint,
+    tendency,
+)
 from beacon_torch.numerics.transport import Explicit, Sweep
 
 __all__ = [
@@ -69,7 +78,9 @@ __all__ = [
     "edge_offset",
     "laplacian_1d",
     "predict",
+    "predict_adjoint",
     "project",
+    "project_adjoint",
     "tendency",
 ]
 
@@ -173,6 +184,32 @@ class Cavity:
         u, v, p = self.u_wide(flow.u, off_u), self.v_wide(flow.v), self.p_wide(flow.p)
         u_star, v_star = predict(u, v, p, nu, dt, self.dx, self.dy, v_source)
         return u_star[1:-1], v_star[1:-1]
+
+    @property
+    def adjoint(self) -> bool:
+        """Whether a substep's adjoint is written out for this grid (:meth:`predict_adjoint`,
+        :func:`project_adjoint`, the transport's): between walls, on equal cells, with the
+        direct solve and the C kernels."""
+        return (
+            not self.periodic
+            and not isinstance(self.dy, Stretched)
+            and isinstance(self.solver, PoissonSolver)
+            and self.solver.native
+            and self.sweep.native
+        )
+
+    def predict_adjoint(
+        self, flow: Flow, walls, nu, dt: float, gu: torch.Tensor, gv: torch.Tensor
+    ) -> tuple[Flow, torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
+        """The gradients of :meth:`predict`'s flow (its ``u``, ``v`` and ``p``; the
+        scalar's zero), its source and its ``walls`` from ``gu`` and ``gv``, those of its
+        results (where :attr:`adjoint`)."""
+        off_u, off_v = walls if walls is not None else (None, None)
+        u, v = self.u_ghosts(flow.u, off_u), self.v_ghosts(flow.v, off_v)
+        du, dv, gp, g_source = predict_adjoint(u, v, gu, gv, nu, dt, self.dx, self.dy)
+        g_walls = None if walls is None else (du.sum_to_size(off_u.shape), dv.sum_to_size(off_v.shape))
+        grads = Flow(self.u_ghosts.fold(du), self.v_ghosts.fold(dv), gp, torch.zeros_like(flow.scalar))
+        return grads, g_source, g_walls
 
     def to_solver(self, flow: Flow, ghosts: Ghosts, offset: torch.Tensor | None = None) -> Flow:
         """The batch-last flow the substeps carry, from a batch-first ghosted one; the

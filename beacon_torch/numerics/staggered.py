@@ -294,6 +294,52 @@ def predict(
     return F.pad(u_star, (0, 0, 0, 0, 1, 1)), F.pad(v_star, (0, 0, 1, 1))
 
 
+def predict_adjoint(
+    u: torch.Tensor, v: torch.Tensor, gu: torch.Tensor, gv: torch.Tensor, nu, dt: float, dx: float, dy: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The gradients of :func:`predict`'s ghosted ``u`` and ``v``, its ``p`` and its
+    ``v_source`` from ``gu`` and ``gv``, those of its results, on equal cells and where
+    the C kernels apply (the caller has asked): the momentum terms' C adjoint, and the
+    pressure gradient's adjoint, minus the divergence of the faces' gradients."""
+    gui, gvi = gu[1:-1], gv[:, 1:-1]
+    nx, ny, members = u.shape[0] - 1, u.shape[1] - 2, u.shape[2]
+    per_member = torch.as_tensor(nu, dtype=u.dtype, device=u.device).reshape(-1).expand(members).contiguous()
+    x, y = Uniform(dx), Uniform(dy)
+    du, dv = native.momentum_adjoint(u, v, dt * gui, dt * gvi, per_member, multipliers(x, nx, u), multipliers(y, ny, u))
+    # u* reads the interior faces themselves
+    du = du + F.pad(gui, (0, 0, 1, 1, 1, 1))
+    dv = dv + F.pad(gvi, (0, 0, 1, 1, 1, 1))
+    # -dt (p[k] - p[k - 1]) / h on each interior face: p[k] gets -dt (g[k - 1] - g[k]) / h
+    gp = (dt / dx) * (F.pad(gui, (0, 0, 0, 0, 0, 1)) - F.pad(gui, (0, 0, 0, 0, 1, 0))) + (dt / dy) * (
+        F.pad(gvi, (0, 0, 0, 1)) - F.pad(gvi, (0, 0, 1, 0))
+    )
+    return du, dv, gp, dt * gvi
+
+
+def project_adjoint(
+    gu: torch.Tensor, gv: torch.Tensor, gp: torch.Tensor, solver, dt: float, dx: float, dy: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The gradients of :func:`project`'s ``u``, ``v`` and ``p`` from ``gu``, ``gv``
+    and ``gp``, those of its results, between walls on equal cells: the projection is
+    its own adjoint (the divergence and the gradient are each other's adjoints, up to
+    sign, and the solve is symmetric), so it is the same projection of the faces'
+    gradients, with the pressure's gradient joining the increment's source. ``solver``
+    is a :class:`~beacon_torch.numerics.poisson.PoissonSolver` with its C line solves."""
+    inner = lambda g, dim: g.narrow(dim, 1, g.shape[dim] - 2)
+    walls_u = F.pad(inner(gu, 0), (0, 0, 0, 0, 1, 1))
+    walls_v = F.pad(inner(gv, 1), (0, 0, 1, 1))
+    source = gp + dt * divergence(walls_u, walls_v, dx, dy)
+    if any(mode is not None for mode in solver.singular):
+        # the solve takes the constant off its solution, so its transpose takes it off
+        # the source first (between walls on equal cells the constant is the mean); what
+        # it leaves in the solution is a constant, which the gradient below does not see
+        source = source - source.mean((0, 1))
+    source = solver.solve(source)
+    gx = F.pad((source[1:] - source[:-1]) / dx, (0, 0, 0, 0, 1, 1))
+    gy = F.pad((source[:, 1:] - source[:, :-1]) / dy, (0, 0, 1, 1))
+    return gu - gx / dt, gv - gy / dt, gp
+
+
 def divergence(u: torch.Tensor, v: torch.Tensor, dx, dy) -> torch.Tensor:
     """Discrete divergence in the cells, ``[nx, ny, B]``, of face velocities
     ``[nx + 1, ny, B]`` and ``[nx, ny + 1, B]`` (spacings as :func:`tendency`'s)."""

@@ -107,6 +107,36 @@ def _coefficients(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: 
     return c, dt * (kx + 0.5 * uw / dx), dt * (ky + 0.5 * vs / dy)
 
 
+def sweep_adjoint(
+    grad: torch.Tensor, swept: torch.Tensor, s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt, dx, dy
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The gradients of the ghosted scalar ``s`` and the velocities ``u``, ``v`` that
+    the C :class:`Sweep` read (equal cells), from ``grad``, that of its result given with
+    the ghosts as the substep keeps them (``[nx + 2, ny + 2, B]``: the ghosts are ``s``'s
+    own), and ``swept``, that result: the reverse sweep, then the adjoint of
+    :func:`_coefficients` in its own stencil form (each cell gathering what the
+    neighbours' updates that read it send back)."""
+    c, a, b = _coefficients(s, u, v, kappa, dt, dx, dy)
+    pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
+    interior = grad[1:-1, 1:-1]
+    gf, ga, gb = native.sweep_adjoint(pad(interior), swept, a, b)
+    gc = gf[1:-1, 1:-1]
+    sc, se, sn = s[1:-1, 1:-1], s[2:, 1:-1], s[1:-1, 2:]
+    uw, ue, vs, vn = u[:-1], u[1:], v[:, :-1], v[:, 1:]
+    kx, ky = kappa / dx**2, kappa / dy**2
+    h = 0.5 * dt
+    g_sc = gc * (1.0 + dt * (-2.0 * kx - 2.0 * ky) - (h / dx) * (ue - uw) - (h / dy) * (vn - vs))
+    g_se = gc * (dt * kx - (h / dx) * ue)
+    g_sn = gc * (dt * ky - (h / dy) * vn)
+    # the ghosts' own gradients: the result's ghosts are s's, and the reverse sweep's
+    gs = gf + (grad - pad(interior)) + pad(g_sc) + F.pad(g_se, (0, 0, 1, 1, 2, 0)) + F.pad(g_sn, (0, 0, 2, 0, 1, 1))
+    g_w = (h / dx) * (gc * sc + ga)
+    g_s = (h / dy) * (gc * sc + gb)
+    gu = F.pad(g_w, (0, 0, 0, 0, 0, 1)) - F.pad((h / dx) * gc * (se + sc), (0, 0, 0, 0, 1, 0))
+    gv = F.pad(g_s, (0, 0, 0, 1)) - F.pad((h / dy) * gc * (sn + sc), (0, 0, 1, 0))
+    return gs - pad(gf[1:-1, 1:-1]), gu, gv
+
+
 class Explicit:
     """The same centred advection-diffusion with every neighbour's old value: plain
     forward Euler. Where the x axis wraps around (a channel), an ordered sweep would
