@@ -189,13 +189,16 @@ def graph_nodes(t: torch.Tensor, cap: int = 20_000) -> int:
 def test_a_checkpointed_action_runs_its_first_pass_without_a_graph_and_keeps_every_gradient():
     """rayleigh-v0, two actions: recomputed in the backward pass, an action records no
     graph of its substeps on the way forward (a few nodes an action, against tens of
-    thousands kept whole), and the gradients with respect to the actions, and to a
-    Rayleigh number that requires grad (which the parameters carry, out of the step's
-    tensor inputs: torch's own checkpoint then), are those of the graph kept whole."""
+    thousands kept whole where autograd records the substeps, without their adjoint
+    written out), and the gradients with respect to the actions, and to a Rayleigh
+    number that requires grad (which the parameters carry, out of the step's tensor
+    inputs: torch's own checkpoint then), are those of the graph kept whole."""
 
-    def run(checkpoint: bool, ra=None):
+    def run(checkpoint: bool, ra=None, recorded: bool = True):
         params = {} if ra is None else {"ra": ra}
         env = beacon_torch.make("rayleigh-v0", 2, dtype=F64, differentiable=True, grad_checkpoint=checkpoint, **params)
+        if recorded:
+            env.physics.stored = None
         env.reset()
         action = torch.full((2, *env.action_spec.shape[1:]), 0.3, dtype=F64, requires_grad=True)
         total = 0.0

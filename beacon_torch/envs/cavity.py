@@ -216,6 +216,10 @@ class CavityPhysics(Physics):
     # substep's adjoint from the fields before and after it (u, v and the scalar), where
     # the grid has one (Cavity.adjoint); None: autograd records the substeps
     substep_adjoint: ClassVar[Callable | None] = None
+    # the written-out adjoint's compiled calls by their number of substeps (None: the
+    # grid has no adjoint, or a physics sets itself up without the base's set-up)
+    stored: dict | None = None
+    reversed: dict | None = None
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -246,9 +250,6 @@ class CavityPhysics(Physics):
         self.ghosts = self.scalar_ghosts()
         self._substeps = self.kernels.loop(functools.partial(_any_substep, self.substep))
         self.probes = Probes(self.nx, self.ny, self.device)
-        # the written-out adjoint's compiled calls by their number of substeps (None: the
-        # grid has no adjoint)
-        self.stored = self.reversed = None
         if self.substep_adjoint is not None and self.cavity.adjoint:
             self.stored, self.reversed = {}, {}
 
