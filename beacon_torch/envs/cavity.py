@@ -9,6 +9,15 @@ conditions, and one substep of its physics; :meth:`CavityPhysics.run` advances a
 A state's first four fields are its flow (:class:`~beacon_torch.numerics.projection.Flow`:
 ``u``, ``v``, ``p`` and the scalar), which travels as one typed value to the substeps
 and back.
+
+Where autograd records an action on the CPU, its substeps run as the forward path runs
+them, keeping only the velocities and the scalar after each, and the backward pass is
+the substeps' adjoint written out (:class:`_Substeps`, with the env's
+``substep_adjoint``): per substep the transport's reverse sweep and its coefficients'
+adjoint, the projection (its own adjoint), and the predictor's (the momentum terms' C
+adjoint and the pressure gradient's), in the forward's stencil form. No graph of the
+substeps is kept: an action holds a few hundred of the fields' copies, where the
+recorded substeps held their every intermediate.
 """
 
 from __future__ import annotations
@@ -216,6 +225,9 @@ class CavityPhysics(Physics):
     # substep's adjoint from the fields before and after it (u, v and the scalar), where
     # the grid has one (Cavity.adjoint); None: autograd records the substeps
     substep_adjoint: ClassVar[Callable | None] = None
+    # substeps a compiled call of the written-out adjoint runs, each way (None: the
+    # kernels' chunk, ``grad_chunk``)
+    adjoint_chunk: ClassVar[int | None] = None
     # the written-out adjoint's compiled calls by their number of substeps (None: the
     # grid has no adjoint, or a physics sets itself up without the base's set-up)
     stored: dict | None = None
@@ -255,9 +267,10 @@ class CavityPhysics(Physics):
 
     def adjoint_chunks(self, n: int) -> list[int]:
         """The substeps of an action as the written-out adjoint runs them, in order: chunks
-        of :attr:`~beacon_torch.compiled.Kernels.chunk` substeps a compiled call, the rest
-        one by one; the calls of each length made on first use."""
-        chunk = max(1, self.kernels.chunk)
+        of :attr:`adjoint_chunk` substeps a compiled call (else the kernels'
+        :attr:`~beacon_torch.compiled.Kernels.chunk`), the rest one by one; the calls of
+        each length made on first use."""
+        chunk = max(1, self.adjoint_chunk or self.kernels.chunk)
         chunks = [chunk] * (n // chunk) + [1] * (n % chunk)
         for length in set(chunks) - set(self.stored):
             self.stored[length] = self.kernels(_Stored(self.substep, length))

@@ -162,7 +162,7 @@ FIRST_ORDER = {
     # 24, at 16 GB resident), so it recomputes each action (4.9 to 5.3 times the forward;
     # with its first 4 actions of 16 kept whole, 5.0)
     "rayleigh-v0": dict(num_envs=8, horizon=16, compile=True),
-    "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, compile=True),
+    "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, grad_checkpoint_after=12, compile=True),
     # the wakes compiled: an update of 20 actions took a third (the cylinder) and a fifth
     # (the pinball) of the eager one's time and a quarter of its memory, with the same
     # numbers to float32 round-off; the cylinder's compiled horizon kept whole (16
