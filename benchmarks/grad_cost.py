@@ -266,7 +266,7 @@ def page_table(folder: Path) -> str:
         substeps = "-" if physics.grad_action_in_c else ratio("compiled-1")
         way = "the action in C" if physics.grad_action_in_c else way
         if getattr(physics, "substep_adjoint", None) is not None:
-            way = f"the substeps' adjoint written out, chunks of {physics.grad_chunk}"
+            way = f"the substeps' adjoint written out, chunks of {physics.adjoint_chunk or physics.grad_chunk}"
         compiled = f"{ratio('compiled')} ({way})" if "compiled_ratio" in r else "-"
         checkpoint = str(r["grad_checkpoint"])
         if r["grad_checkpoint"] and r.get("grad_checkpoint_after"):

@@ -156,11 +156,10 @@ FIRST_ORDER = {
     "ks-v0": dict(num_envs=16),
     "vortex-v0": dict(grad_checkpoint=True, stagger=True),
     # compiled: eagerly a differentiated action measured 28 (rayleigh) and 25 (mixing)
-    # times the compiled forward one. Compiled, a horizon of rayleigh kept whole peaks at
-    # 2.5 GiB (0.8 recomputed) at 3.9 times the forward; mixing's at 9.5 GiB (1.2
-    # recomputed), and in the recipe kept whole took longer an update (28 to 34 s against
-    # 24, at 16 GB resident), so it recomputes each action (4.9 to 5.3 times the forward;
-    # with its first 4 actions of 16 kept whole, 5.0)
+    # times the compiled forward one. With the substeps' adjoint written out an action
+    # keeps its fields, not a graph: a horizon of rayleigh kept whole peaks at 1.35 GiB,
+    # mixing's at 4.3 GiB (2.8 to 3.0 times the forward), and with its first 12 actions
+    # of 16 kept whole at 3.6 GiB (3.2 to 3.5 times, against 4.2 recomputed)
     "rayleigh-v0": dict(num_envs=8, horizon=16, compile=True),
     "mixing-v0": dict(num_envs=8, horizon=16, grad_checkpoint=True, grad_checkpoint_after=12, compile=True),
     # the wakes compiled: an update of 20 actions took a third (the cylinder) and a fifth
