@@ -36,6 +36,7 @@ from beacon_torch.core.state import State
 from beacon_torch.numerics import native
 from beacon_torch.numerics.grid import NEUMANN, Ghosts
 from beacon_torch.numerics.projection import Cavity, Flow
+from beacon_torch.numerics.staggered import project_adjoint
 from beacon_torch.numerics.transport import sweep_adjoint
 
 N_PROBES = 4
@@ -113,6 +114,20 @@ def transport_adjoint(
     return F.pad(ghosts.fold(gs), (0, 0, 1, 1, 1, 1)), gu, gv, g_offset
 
 
+def substep_adjoint(start: Flow, end: Flow, grad: Flow, walls, offset, cavity: Cavity, ghosts: Ghosts, nu, kappa, dt):
+    """The adjoint of a cavity's substep (the predictor, the projection, the scalar's
+    transport; where :attr:`Cavity.adjoint`), from the fields before (``start``) and
+    after it (``end``) and ``grad``, the gradient of the flow it gives: the gradients of
+    its flow, of the predictor's source (its ``v_source``: each env says what it read),
+    of its ``walls`` and of the scalar's ``offset``."""
+    g_s, gu, gv, g_offset = transport_adjoint(
+        grad.scalar, start.scalar, end.scalar, end.u, end.v, ghosts, offset, cavity, kappa, dt
+    )
+    gu, gv, gp = project_adjoint(grad.u + gu, grad.v + gv, grad.p, cavity.solver, dt, cavity.dx, cavity.dy)
+    grads, g_source, g_walls = cavity.predict_adjoint(start, walls, nu, dt, gu, gv)
+    return Flow(grads.u, grads.v, grads.p + gp, g_s), g_source, g_walls, g_offset
+
+
 def _any_substep(substep: Callable, i, flow: Flow, *inputs) -> Flow:
     """A cavity's substep as the loop over an action's substeps calls it (every
     substep of an action is the same)."""
@@ -146,16 +161,20 @@ class _Reversed:
 
     def __call__(self, start: tuple, after: tuple, grad: Flow, walls, offset, *inputs):
         g_walls = g_offset = None
-        add = lambda total, g: g if total is None else total + g
         fields = lambda j: start if j < 0 else tuple(t[j] for t in after)
         for j in reversed(range(self.length)):
             (u0, v0, s0), (u1, v1, s1) = fields(j - 1), fields(j)
             grad, gw, go = self.adjoint(Flow(u0, v0, None, s0), Flow(u1, v1, None, s1), grad, walls, offset, *inputs)
-            if gw is not None:
-                g_walls = gw if g_walls is None else tuple(map(add, g_walls, gw))
-            if go is not None:
-                g_offset = add(g_offset, go)
+            g_walls, g_offset = _summed(g_walls, gw), _summed(g_offset, go)
         return grad, g_walls, g_offset
+
+
+def _summed(total, g):
+    """``total + g`` for gradients that may be None (none yet, or none given) or
+    tuples of tensors (the walls' two offsets)."""
+    if g is None or total is None:
+        return total if g is None else g
+    return tuple(map(torch.add, total, g)) if isinstance(g, tuple) else total + g
 
 
 class _Substeps(torch.autograd.Function):
@@ -194,10 +213,7 @@ class _Substeps(torch.autograd.Function):
             # the fields before the chunk: the last of the chunk before, or the action's start
             start = kept[0] if c == 0 else tuple(t[-1] for t in kept[c])
             grad, gw, go = physics.reversed[chunks[c]](start, kept[c + 1], grad, *inputs)
-            if gw is not None:
-                g_walls = gw if g_walls is None else (g_walls[0] + gw[0], g_walls[1] + gw[1])
-            if go is not None:
-                g_offset = go if g_offset is None else g_offset + go
+            g_walls, g_offset = _summed(g_walls, gw), _summed(g_offset, go)
         g_walls = g_walls or (None, None)
         return None, None, None, None, g_offset, *g_walls, *grad
 

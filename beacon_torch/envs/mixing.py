@@ -24,10 +24,11 @@ import torch
 
 from beacon_torch.core.card import Card, GradCheck
 from beacon_torch.core.state import Noise
-from beacon_torch.envs.cavity import N_OBS, CavityPhysics, cavity_frame, transport, transport_adjoint
+from beacon_torch.envs.cavity import N_OBS, CavityPhysics, cavity_frame, transport
+from beacon_torch.envs.cavity import substep_adjoint as cavity_adjoint
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, ZERO_GHOST, Ghosts
 from beacon_torch.numerics.projection import Cavity, Flow
-from beacon_torch.numerics.staggered import project, project_adjoint
+from beacon_torch.numerics.staggered import project
 from beacon_torch.params import param
 
 DT = 0.002
@@ -82,15 +83,10 @@ def substep(flow: Flow, walls, c_offset, cavity: Cavity, c_ghosts: Ghosts, nu, k
 
 
 def substep_adjoint(start: Flow, end: Flow, grad: Flow, walls, c_offset, cavity: Cavity, c_ghosts, nu, kappa):
-    """:func:`substep`'s adjoint (where :attr:`Cavity.adjoint`): the gradients of its
-    flow and its ``walls`` from ``grad``, that of the flow it gives, and the fields
-    before (``start``) and after it (``end``)."""
-    g_c, gu, gv, g_offset = transport_adjoint(
-        grad.scalar, start.scalar, end.scalar, end.u, end.v, c_ghosts, c_offset, cavity, kappa, DT
-    )
-    gu, gv, gp = project_adjoint(grad.u + gu, grad.v + gv, grad.p, cavity.solver, DT, cavity.dx, cavity.dy)
-    grads, _, g_walls = cavity.predict_adjoint(start, walls, nu, DT, gu, gv)
-    return Flow(grads.u, grads.v, grads.p + gp, g_c), g_walls, g_offset
+    """:func:`substep`'s adjoint (:func:`~beacon_torch.envs.cavity.substep_adjoint`,
+    where :attr:`Cavity.adjoint`): the gradients of its flow, walls and ``c_offset``."""
+    grads, _, g_walls, g_offset = cavity_adjoint(start, end, grad, walls, c_offset, cavity, c_ghosts, nu, kappa, DT)
+    return grads, g_walls, g_offset
 
 
 class MixingPhysics(CavityPhysics):

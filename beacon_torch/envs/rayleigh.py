@@ -34,10 +34,11 @@ from beacon_torch import seeds
 from beacon_torch.cache import cached
 from beacon_torch.core.card import PUBLISHED_RESULT, Card, GradCheck, Reference
 from beacon_torch.core.state import Noise, map_state
-from beacon_torch.envs.cavity import N_OBS, PROBED, CavityPhysics, cavity_frame, grid, transport, transport_adjoint
+from beacon_torch.envs.cavity import N_OBS, PROBED, CavityPhysics, cavity_frame, grid, transport
+from beacon_torch.envs.cavity import substep_adjoint as cavity_adjoint
 from beacon_torch.numerics.grid import GRADIENT, NEUMANN, PERIODIC, VALUE, Ghosts, edge_offset
 from beacon_torch.numerics.projection import Cavity, Flow
-from beacon_torch.numerics.staggered import project, project_adjoint
+from beacon_torch.numerics.staggered import project
 from beacon_torch.params import number, param, resolve_params
 from beacon_torch.starts import GENERATED, PUBLISHED, choose_start, published_table, start_param
 
@@ -172,17 +173,15 @@ def substep(flow: Flow, walls, theta_offset: torch.Tensor, cavity: Cavity, theta
 
 
 def substep_adjoint(start: Flow, end: Flow, grad: Flow, walls, theta_offset, cavity: Cavity, theta_ghosts, nu, kappa):
-    """:func:`substep`'s adjoint (where :attr:`Cavity.adjoint`): the gradients of its
-    flow and its ``theta_offset`` from ``grad``, that of the flow it gives, and the
-    fields before (``start``) and after it (``end``)."""
-    g_theta, gu, gv, g_offset = transport_adjoint(
-        grad.scalar, start.scalar, end.scalar, end.u, end.v, theta_ghosts, theta_offset, cavity, kappa, DT
+    """:func:`substep`'s adjoint (:func:`~beacon_torch.envs.cavity.substep_adjoint`,
+    where :attr:`Cavity.adjoint`): the gradients of its flow, walls and
+    ``theta_offset``."""
+    grads, g_buoyancy, g_walls, g_offset = cavity_adjoint(
+        start, end, grad, walls, theta_offset, cavity, theta_ghosts, nu, kappa, DT
     )
-    gu, gv, gp = project_adjoint(grad.u + gu, grad.v + gv, grad.p, cavity.solver, DT, cavity.dx, cavity.dy)
-    grads, g_buoyancy, g_walls = cavity.predict_adjoint(start, walls, nu, DT, gu, gv)
     # the buoyancy read the cells above the interior v faces
-    g_theta = g_theta + F.pad(g_buoyancy, (0, 0, 2, 1, 1, 1))
-    return Flow(grads.u, grads.v, grads.p + gp, g_theta), g_walls, g_offset
+    theta = grads.scalar + F.pad(g_buoyancy, (0, 0, 2, 1, 1, 1))
+    return grads._replace(scalar=theta), g_walls, g_offset
 
 
 def nusselt(theta: torch.Tensor, dy: float) -> torch.Tensor:

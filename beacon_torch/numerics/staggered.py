@@ -185,12 +185,17 @@ class _Tendency(torch.autograd.Function):
         u, v, *nu = ctx.saved_tensors
         nu = nu[0] if nu else ctx.nu
         with torch.no_grad():  # differentiable once: the adjoint keeps no graph
-            nx, ny, members = u.shape[0] - 1, u.shape[1] - 2, u.shape[2]
-            per_member = torch.as_tensor(nu, dtype=u.dtype).reshape(-1).expand(members).contiguous()
-            cx, cy = multipliers(ctx.x, nx, u), multipliers(ctx.y, ny, u)
-            du, dv = native.momentum_adjoint(u, v, gu, gv, per_member, cx, cy)
+            du, dv = _momentum_adjoint(u, v, gu, gv, nu, ctx.x, ctx.y)
             dnu = _nu_gradient(u, v, nu, ctx.x, ctx.y, gu, gv) if ctx.needs_input_grad[2] else None
         return du, dv, dnu, None, None
+
+
+def _momentum_adjoint(u, v, gu, gv, nu, x, y) -> tuple[torch.Tensor, torch.Tensor]:
+    """The C adjoint of :func:`tendency` (the gradients of the ghosted ``u``, ``v`` from
+    ``gu``, ``gv``, those of its results), a viscosity per member or one for all."""
+    nx, ny, members = u.shape[0] - 1, u.shape[1] - 2, u.shape[2]
+    per_member = torch.as_tensor(nu, dtype=u.dtype, device=u.device).reshape(-1).expand(members).contiguous()
+    return native.momentum_adjoint(u, v, gu, gv, per_member, multipliers(x, nx, u), multipliers(y, ny, u))
 
 
 def _x_momentum(u: torch.Tensor, v: torch.Tensor, nu, x, y) -> torch.Tensor:
@@ -302,10 +307,7 @@ def predict_adjoint(
     the C kernels apply (the caller has asked): the momentum terms' C adjoint, and the
     pressure gradient's adjoint, minus the divergence of the faces' gradients."""
     gui, gvi = gu[1:-1], gv[:, 1:-1]
-    nx, ny, members = u.shape[0] - 1, u.shape[1] - 2, u.shape[2]
-    per_member = torch.as_tensor(nu, dtype=u.dtype, device=u.device).reshape(-1).expand(members).contiguous()
-    x, y = Uniform(dx), Uniform(dy)
-    du, dv = native.momentum_adjoint(u, v, dt * gui, dt * gvi, per_member, multipliers(x, nx, u), multipliers(y, ny, u))
+    du, dv = _momentum_adjoint(u, v, dt * gui, dt * gvi, nu, Uniform(dx), Uniform(dy))
     # u* reads the interior faces themselves
     du = du + F.pad(gui, (0, 0, 1, 1, 1, 1))
     dv = dv + F.pad(gvi, (0, 0, 1, 1, 1, 1))
@@ -334,9 +336,7 @@ def project_adjoint(
         # the source first (between walls on equal cells the constant is the mean); what
         # it leaves in the solution is a constant, which the gradient below does not see
         source = source - source.mean((0, 1))
-    source = solver.solve(source)
-    gx = F.pad((source[1:] - source[:-1]) / dx, (0, 0, 0, 0, 1, 1))
-    gy = F.pad((source[:, 1:] - source[:, :-1]) / dy, (0, 0, 1, 1))
+    gx, gy = _wall_gradient(solver.solve(source), dx, dy)
     return gu - gx / dt, gv - gy / dt, gp
 
 
@@ -360,14 +360,20 @@ def project(
     increment's condition leaves there, as published. A periodic x axis has equal
     cells (``dx`` a number); ``dy`` may be :class:`Stretched`."""
     phi = solver.solve(divergence(u, v, dx, dy) / dt)
+    gx, gy = _wall_gradient(phi, dx, dy, x_walls=not solver.periodic)
     if solver.periodic:
         # no side walls: every x-face is corrected, the first and the last alike, the
         # two reading the increment across the wrap
         ext = solver.ghosts(phi)
         gx = (ext[1:, 1:-1] - ext[:-1, 1:-1]) / dx
-    else:
-        # only the interior faces are corrected, and they read interior cells only: no
-        # ghost values, whose gathers' backward is a scatter over the ghosted field
-        gx = F.pad(spacing(dx).difference(phi[1:] - phi[:-1], faces=True), (0, 0, 0, 0, 1, 1))
-    gy = F.pad(spacing(dy).difference(phi[:, 1:] - phi[:, :-1], faces=True), (0, 0, 1, 1))
     return u - dt * gx, v - dt * gy, p + phi
+
+
+def _wall_gradient(phi: torch.Tensor, dx, dy, x_walls: bool = True) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """The gradient of a cell field on the faces between walls (x too where
+    ``x_walls``; else None for x): zero on the wall faces, the interior faces reading
+    interior cells only (no ghost values, whose gathers' backward is a scatter over the
+    ghosted field)."""
+    gx = F.pad(spacing(dx).difference(phi[1:] - phi[:-1], faces=True), (0, 0, 0, 0, 1, 1)) if x_walls else None
+    gy = F.pad(spacing(dy).difference(phi[:, 1:] - phi[:, :-1], faces=True), (0, 0, 1, 1))
+    return gx, gy
