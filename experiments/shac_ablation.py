@@ -52,6 +52,15 @@ VARIANTS = {
     "critic-less-squash-margin": {"critic": False, "squash_margin": 0.01},
     # SHAC's own schedule of the rates, on the loop without its critic
     "critic-less-lr-linear": {"critic": False, "squash_margin": 0.01, "lr_schedule": "linear"},
+    # each piece again on the loop without its critic (recipes/grad.py's defaults), whose
+    # rewards' gradient is all the policy follows; the stochastic policy has no squash's
+    # margin (its draws are squashed, not its outputs)
+    "critic-less-stochastic": {"critic": False, "squash_margin": 0.0, "actor": "stochastic"},
+    "critic-less-mixed-estimator": {"critic": False, "squash_margin": 0.0, "actor": "stochastic", "estimator": "mixed"},
+    "critic-less-adamw": {"critic": False, "squash_margin": 0.01, "optimizer": "adamw"},
+    "critic-less-layer-norm": {"critic": False, "squash_margin": 0.01, "layer_norm": True},
+    "critic-less-clip-0.5": {"critic": False, "squash_margin": 0.01, "grad_clip": 0.5},
+    "critic-less-adaptive-horizon": {"critic": False, "squash_margin": 0.01, "adaptive_horizon": True},
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},
