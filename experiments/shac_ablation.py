@@ -61,6 +61,13 @@ VARIANTS = {
     "critic-less-layer-norm": {"critic": False, "squash_margin": 0.01, "layer_norm": True},
     "critic-less-clip-0.5": {"critic": False, "squash_margin": 0.01, "grad_clip": 0.5},
     "critic-less-adaptive-horizon": {"critic": False, "squash_margin": 0.01, "adaptive_horizon": True},
+    # members staggered over an episode's phases (vortex's default): from one start a
+    # deterministic policy steps identical members in step, the same transitions many times
+    "critic-less-stagger": {"critic": False, "squash_margin": 0.01, "stagger": True},
+    # staggered, and a larger rate for the few updates a tenth of PPO's budget holds
+    "critic-less-stagger-lr-5e-3": {"critic": False, "squash_margin": 0.01, "stagger": True, "lr": 5e-3},
+    # staggered, each member's objective in units of its own rewards' size
+    "critic-less-stagger-member-scale": {"critic": False, "squash_margin": 0.01, "stagger": True, "member_scale": True},
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},
@@ -91,10 +98,12 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
         settings["frames"] = frames
     kind = SHACConfig
     if not settings.pop("critic", True):
-        # the two share their per-env settings but for the squash's margin: a variant
-        # names what differs from the actor-critic's defaults, its margin included
+        # the two share their per-env settings but for the squash's margin and the
+        # staggering: a variant names what differs from the actor-critic's defaults, those
+        # included
         kind = GradConfig
-        settings.setdefault("squash_margin", SHACConfig.__dataclass_fields__["squash_margin"].default)
+        for name in ("squash_margin", "stagger"):
+            settings.setdefault(name, SHACConfig.__dataclass_fields__[name].default)
     resume = (out / CHECKPOINT).is_file()
     cfg = configure(kind, env_id, resume=resume, **settings)
     if not resume or load_checkpoint(out)["frames"] < cfg.frames:

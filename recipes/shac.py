@@ -152,7 +152,11 @@ def main(cfg: GradConfig) -> dict:
         if cfg.critic and cfg.value_weight != 1.0:
             # the closing values count for their weight only; the critic is fitted as before
             rollout.objective = rollout.objective - (1.0 - cfg.value_weight) * rollout.closing
-        loss = (rollout.barrier - rollout.objective.sum()) / (steps * members)
+        objective = rollout.objective
+        if cfg.member_scale:
+            # each member's objective in units of its own rewards' size over the horizon
+            objective = objective / (rollout.sizes / steps).clamp_min(torch.finfo(objective.dtype).tiny)
+        loss = (rollout.barrier - objective.sum()) / (steps * members)
         optim.zero_grad()
         split = None
         if cfg.critic and cfg.gradient_split:
@@ -222,9 +226,10 @@ class Rollout:
     each member's objective (``[members]``, a graph; 0 without a critic)."""
 
     def __init__(
-        self, objective, td, visited, scores, reward, log_probs, score_log_probs, barrier=0.0, closing=0.0
+        self, objective, td, visited, scores, reward, log_probs, score_log_probs, barrier=0.0, closing=0.0, sizes=None
     ) -> None:
         self.objective, self.td, self.visited, self.scores = objective, td, visited, scores
+        self.sizes = sizes
         self.reward, self.log_probs, self.score_log_probs = reward, log_probs, score_log_probs
         self.barrier, self.closing = barrier, closing
 
@@ -242,6 +247,8 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
     steps = steps or cfg.horizon
     objective, rewards, scores, visited, log_probs, score_log_probs, barrier = 0.0, 0.0, [], [], [], [], 0.0
     closing = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
+    # per member: the sum of its rewards' sizes over the horizon
+    sizes = torch.zeros_like(closing)
     # per member: the discounted rewards since the horizon or its episode began
     returns = torch.zeros(cfg.num_envs, dtype=env.base_env.dtype, device=cfg.device)
     discount = torch.ones_like(returns)
@@ -267,6 +274,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
             td_next = env.reset(td_next.set("_reset", cut.unsqueeze(-1))).exclude("_reset")
         reward = td["next", "reward"][..., 0]
         rewards = rewards + reward.detach().mean()
+        sizes = sizes + reward.detach().abs()
         if temperature is not None:
             reward = reward - temperature.alpha * temperature.scale(reward) * log_prob
         returns = returns + discount * reward
@@ -298,7 +306,7 @@ def horizon(cfg: GradConfig, env, actor, target, td, cuts=None, temperature=None
         visited.append(seen)
         td = td_next
     stacked = [torch.stack(x) if x else torch.zeros(0) for x in (log_probs, score_log_probs)]
-    return Rollout(objective, td, visited, scores, float(rewards) / steps, *stacked, barrier, closing)
+    return Rollout(objective, td, visited, scores, float(rewards) / steps, *stacked, barrier, closing, sizes)
 
 
 def squash_barrier(param: torch.Tensor, margin: float) -> torch.Tensor:

@@ -1139,8 +1139,21 @@ def test_staggered_members_end_their_first_episode_apart_and_go_on():
     # the cut members started again: 4 and 1 actions into their new episodes, the other 6
     assert env.base_env.step_count.tolist() == [4, 6, 1]
     assert torch.isfinite(torch.autograd.grad(objective, list(actor.parameters()))[0]).all()
-    # the settings: off by default, drawn for vortex, whose members learned one phase only
+    # the settings: the actor-critic's off by default, drawn for vortex, whose members
+    # learned one phase only; the loop without its critic staggers everywhere
     assert not configure(SHACConfig, "burgers-v0").stagger and configure(SHACConfig, "vortex-v0").stagger
+    assert all(configure(GradConfig, env_id).stagger for env_id in ("sloshing-v0", "cylinder-v0", "vortex-v0"))
+
+
+def test_member_scale_weighs_each_member_by_its_own_rewards_size():
+    """member_scale: a horizon records each member's summed reward sizes, and the loop
+    divides that member's objective by their mean, so that a member whose rewards are a
+    thousandth of another's pulls the policy as hard."""
+    cfg, env, actor, critic = float64_lorenz(3, 6)
+    rollout = shac.horizon(cfg, env, actor, None, env.reset())
+    rewards = torch.stack([v["next", "reward"][..., 0] for v in rollout.visited])  # [time, members]
+    torch.testing.assert_close(rollout.sizes, rewards.abs().sum(0))
+    assert not GradConfig.__dataclass_fields__["member_scale"].default
 
 
 def test_the_actor_critic_budget_is_a_tenth_of_ppos():
@@ -1151,9 +1164,10 @@ def test_the_actor_critic_budget_is_a_tenth_of_ppos():
 def test_the_gradient_recipe_is_the_actor_critics_loop_without_its_critic():
     assert Path(grad.main.__code__.co_filename).name == "shac.py" and grad.main.__name__ == "main"
     assert not GradConfig.critic and SHACConfig.critic and issubclass(SHACConfig, GradConfig)
-    # the same settings on every env, but for the critic's and the squash's margin, which
-    # the loop without a critic needs and which the actor-critic's published seeds lack
-    own = {f.name for f in fields(GradConfig)} - {"squash_margin", "out"}
+    # the same settings on every env, but for the critic's, the squash's margin and the
+    # staggering, which the loop without a critic needs and the actor-critic's published
+    # seeds lack
+    own = {f.name for f in fields(GradConfig)} - {"squash_margin", "stagger", "out"}
     for env_id in ("lorenz-continuous-v0", "burgers-v0", "sloshing-v0", "rayleigh-v0", "pinball-periodic-v0"):
         first_order, actor_critic = configure(GradConfig, env_id), configure(SHACConfig, env_id)
         assert {name: getattr(first_order, name) for name in own} == {name: getattr(actor_critic, name) for name in own}
