@@ -66,6 +66,9 @@ VARIANTS = {
     "critic-less-stagger": {"critic": False, "squash_margin": 0.01, "stagger": True},
     # staggered, and a larger rate for the few updates a tenth of PPO's budget holds
     "critic-less-stagger-lr-5e-3": {"critic": False, "squash_margin": 0.01, "stagger": True, "lr": 5e-3},
+    # staggered, longer horizons for the same transitions
+    "critic-less-stagger-horizon-32": {"critic": False, "squash_margin": 0.01, "stagger": True, "horizon": 32},
+    "critic-less-stagger-horizon-64": {"critic": False, "squash_margin": 0.01, "stagger": True, "horizon": 64},
     # staggered, each member's objective in units of its own rewards' size
     "critic-less-stagger-member-scale": {"critic": False, "squash_margin": 0.01, "stagger": True, "member_scale": True},
     # the defaults' very updates, with the policy's gradient through the critic's closing
