@@ -38,13 +38,13 @@ def episode(env_id: str, algo: str):
     return torch.tensor(rewards, dtype=torch.float64), torch.stack(actions).double()
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", required=True)
     parser.add_argument("--algos", nargs="+", default=["ppo", "grad"])
     parser.add_argument("--stretch", type=int, default=20, help="actions a row of the table")
     parser.add_argument("--out", type=Path, default=HERE.parent / "results" / "policy_trace")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     from beacon_torch.files import save_rows
 
     traces = {algo: episode(args.env, algo) for algo in args.algos}
@@ -65,7 +65,9 @@ def main() -> None:
     for row in rows[:-1]:
         cells = " | ".join(f"{row[f'{a}_reward']:.4f} | {row[f'{a}_action_size']:.4f}" for a in args.algos)
         print(f"| {row['first_action']} to {row['first_action'] + row['actions'] - 1} | {cells} |")
-    print(f"written to {save_rows(rows, args.out, f'trace-{args.env}')}")
+    written = save_rows(rows, args.out, f"trace-{args.env}")
+    print(f"written to {written}")
+    return written
 
 
 if __name__ == "__main__":

@@ -172,6 +172,23 @@ def test_the_benchmark_evaluates_every_shipped_policy_into_the_page(shipped, tmp
         bench.main(["--num-envs", "0", "--page", str(page)])
 
 
+def test_the_trace_splits_a_shipped_policys_episode_into_its_stretches(shipped, tmp_path, capsys):
+    """experiments/policy_trace.py plays a shipped policy from the env's own start: its
+    stretches of actions cover the episode and sum to what the evaluation scores."""
+    import json
+
+    from beacon_torch.training.evaluation import evaluate_run
+    from experiments import policy_trace
+
+    written = policy_trace.main(["--env", "vortex-v0", "--algos", "ppo", "--stretch", "300", "--out", str(tmp_path)])
+    *stretches, totals = json.loads(written.read_text())["rows"]
+    assert [(row["first_action"], row["actions"]) for row in stretches] == [(0, 300), (300, 300), (600, 200)]
+    assert sum(row["ppo_reward"] for row in stretches) == pytest.approx(totals["totals"]["ppo"], rel=1e-9)
+    assert totals["totals"]["ppo"] == pytest.approx(evaluate_run(shipped, num_envs=1)["score_mean"], rel=1e-4)
+    assert all(row["ppo_action_size"] >= 0 for row in stretches)
+    assert "| 600 to 799 |" in capsys.readouterr().out
+
+
 def test_a_generated_part_without_its_end_marker_is_refused(tmp_path):
     from beacon_torch.training.report import write_block
 
