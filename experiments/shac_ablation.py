@@ -10,7 +10,7 @@ page (0: no control, 1: the env's reference).
 A variant is a set of settings on top of the env's defaults (``VARIANTS``). Each run
 trains into ``--runs`` (``runs/shac_ablation/ENV/VARIANT/seedK``, a run folder ``beacon-torch
 eval`` reads; an existing one is resumed, so that a stopped campaign goes on) and
-writes a new ``ablation-ENV-VARIANT-DATE-TIME.json`` to ``--out``: the settings, the
+writes a new ``ablation-ENV-VARIANT-seedK-DATE-TIME.json`` to ``--out``: the settings, the
 scores, the transitions and the run's wall seconds (its own clock; compare only runs
 that shared the machine alike). ``--page`` writes the newest record of each (env,
 variant, seed) as the page's table, a row per (env, variant) with the mean over seeds.
@@ -71,6 +71,33 @@ VARIANTS = {
     "critic-less-stagger-horizon-64": {"critic": False, "squash_margin": 0.01, "stagger": True, "horizon": 64},
     # staggered, each member's objective in units of its own rewards' size
     "critic-less-stagger-member-scale": {"critic": False, "squash_margin": 0.01, "stagger": True, "member_scale": True},
+    # staggered, every seed starting near no control (its output layer a hundredth of
+    # torch's initialisation), not from a random policy of its own
+    "critic-less-stagger-init-0.01": {"critic": False, "squash_margin": 0.01, "stagger": True, "init_scale": 0.01},
+    "critic-less-stagger-init-0": {"critic": False, "squash_margin": 0.01, "stagger": True, "init_scale": 0.0},
+    "critic-less-stagger-init-0.01-lr-5e-3": {
+        "critic": False,
+        "squash_margin": 0.01,
+        "stagger": True,
+        "init_scale": 0.01,
+        "lr": 5e-3,
+    },
+    "critic-less-stagger-init-0.01-members-16": {
+        "critic": False,
+        "squash_margin": 0.01,
+        "stagger": True,
+        "init_scale": 0.01,
+        "num_envs": 16,
+    },
+    "critic-less-stagger-init-0.01-members-16-lr-5e-3": {
+        "critic": False,
+        "squash_margin": 0.01,
+        "stagger": True,
+        "init_scale": 0.01,
+        "num_envs": 16,
+        "lr": 5e-3,
+    },
+    "critic-less-stagger-members-16": {"critic": False, "squash_margin": 0.01, "stagger": True, "num_envs": 16},
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},
@@ -105,8 +132,9 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
         # staggering: a variant names what differs from the actor-critic's defaults, those
         # included
         kind = GradConfig
-        for name in ("squash_margin", "stagger"):
-            settings.setdefault(name, SHACConfig.__dataclass_fields__[name].default)
+        actor_critic = configure(SHACConfig, env_id)
+        for name in ("squash_margin", "stagger", "num_envs", "lr", "init_scale"):
+            settings.setdefault(name, getattr(actor_critic, name))
     resume = (out / CHECKPOINT).is_file()
     cfg = configure(kind, env_id, resume=resume, **settings)
     if not resume or load_checkpoint(out)["frames"] < cfg.frames:
@@ -284,7 +312,9 @@ def main() -> None:
                 f"test {row.get('test_normalised', float('nan')):.2f}, {row['wall_s'] / 60:.1f} min",
                 flush=True,
             )
-            print(f"written to {save_rows([row], args.out, f'ablation-{env_id}-{variant}')}", flush=True)
+            print(
+                f"written to {save_rows([row], args.out, f'ablation-{env_id}-{variant}-seed{args.seed}')}", flush=True
+            )
 
 
 if __name__ == "__main__":

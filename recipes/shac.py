@@ -105,7 +105,9 @@ def main(cfg: GradConfig) -> dict:
         actor = networks.squashed_gaussian_actor(env, cfg.hidden, normed=cfg.layer_norm)
     else:
         network = "deterministic_actor"
-        actor = networks.deterministic_actor(env, cfg.hidden, paper_init=False, normed=cfg.layer_norm)
+        actor = networks.deterministic_actor(
+            env, cfg.hidden, paper_init=False, normed=cfg.layer_norm, output_scale=cfg.init_scale
+        )
     network = f"normed_{network}" if cfg.layer_norm else network
     actor = actor.to(cfg.device)
     optim = optimiser(cfg, actor.parameters(), cfg.lr)

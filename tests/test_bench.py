@@ -516,7 +516,8 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     state = torch.load(runs / "burgers-v0" / "critic-less-squash-margin" / "seed0" / "checkpoint.pt", weights_only=True)
     assert state["algo"] == "grad" and "critic" not in state["modules"]
     assert state["config"]["num_envs"] == 64 and state["config"]["horizon"] == 32
-    assert state["config"]["squash_margin"] == 0.01
+    assert state["config"]["squash_margin"] == 0.01 and not state["config"]["stagger"]
+    assert state["config"]["lr"] == 2e-3 and state["config"]["init_scale"] == 1.0
     # the defaults' updates with the policy's gradient split logged, summarised by quarter
     row = ablation.run("burgers-v0", "gradient-split", 0, runs, frames=4096)
     split = row["gradient_split"]

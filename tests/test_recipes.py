@@ -1164,15 +1164,26 @@ def test_the_actor_critic_budget_is_a_tenth_of_ppos():
 def test_the_gradient_recipe_is_the_actor_critics_loop_without_its_critic():
     assert Path(grad.main.__code__.co_filename).name == "shac.py" and grad.main.__name__ == "main"
     assert not GradConfig.critic and SHACConfig.critic and issubclass(SHACConfig, GradConfig)
-    # the same settings on every env, but for the critic's, the squash's margin and the
-    # staggering, which the loop without a critic needs and the actor-critic's published
-    # seeds lack
-    own = {f.name for f in fields(GradConfig)} - {"squash_margin", "stagger", "out"}
+    # the same settings on every env, but for the critic's and those the loop without a
+    # critic was measured to need and the actor-critic's published seeds lack: the
+    # squash's margin, the staggering, the policy's start near no control, and where an
+    # env's table does not say, 16 members at the rate 5e-3
+    differ = {"squash_margin", "stagger", "init_scale", "num_envs", "lr"}
+    own = {f.name for f in fields(GradConfig)} - {*differ, "out"}
     for env_id in ("lorenz-continuous-v0", "burgers-v0", "sloshing-v0", "rayleigh-v0", "pinball-periodic-v0"):
         first_order, actor_critic = configure(GradConfig, env_id), configure(SHACConfig, env_id)
         assert {name: getattr(first_order, name) for name in own} == {name: getattr(actor_critic, name) for name in own}
         assert (first_order.squash_margin, actor_critic.squash_margin) == (0.01, 0.0)
+        assert (first_order.init_scale, actor_critic.init_scale, first_order.lr, actor_critic.lr) == (
+            0.01,
+            1,
+            5e-3,
+            2e-3,
+        )
         assert first_order.frames == configure(PPOConfig, env_id).frames // 10
+    # an env's own members apply to both; the defaults differ
+    assert configure(GradConfig, "sloshing-v0").num_envs == configure(SHACConfig, "sloshing-v0").num_envs == 16
+    assert (configure(GradConfig, "burgers-v0").num_envs, configure(SHACConfig, "burgers-v0").num_envs) == (16, 64)
     assert "barrier" in SHACConfig.__dataclass_fields__["squash_margin"].metadata["help"]
 
 
@@ -1523,3 +1534,30 @@ def test_experiment_trackers_log_beside_the_csv_logs(tracker, tmp_path, monkeypa
         client = mlflow.tracking.MlflowClient(f"sqlite:///{out / 'mlflow.db'}")
         runs = client.search_runs([client.get_experiment_by_name("ppo-vortex-v0").experiment_id])
         assert len(runs) == 2 and "reward" in runs[0].data.metrics and runs[0].data.params["env"] == "vortex-v0"
+
+
+def test_the_first_order_policy_starts_near_no_control_with_a_gradient_through_every_layer():
+    """init_scale: the deterministic policy's output layer is torch's, times the factor;
+    the loop without a critic starts each seed near no control (actions a hundredth of
+    torch's random policy's), and the physics' gradient still reaches every layer."""
+    env = make_env("lorenz-continuous-v0", 4, norm_steps=0, differentiable=True, params={"reward_width": 1.0})
+    td = env.reset()
+    policies = []
+    for scale in (1.0, 0.01):
+        torch.manual_seed(0)
+        policies.append(networks.deterministic_actor(env, 16, paper_init=False, output_scale=scale))
+    full, small = (networks.last_linear(p) for p in policies)
+    torch.testing.assert_close(small.weight, 0.01 * full.weight)
+    torch.testing.assert_close(small.bias, 0.01 * full.bias)
+    first = [next(p.parameters()) for p in policies]
+    torch.testing.assert_close(first[0], first[1])  # the hidden layers are torch's
+    low, high = (torch.as_tensor(b) for b in networks.action_bounds(env))
+    half = (high - low) / 2
+    centre = (high + low) / 2
+    wide = (policies[0](td.clone())["action"] - centre) / half
+    narrow = (policies[1](td.clone())["action"] - centre) / half
+    assert narrow.abs().max() < 0.02 * max(wide.abs().max().item(), 0.05)
+    step = env.step(policies[1](td.clone()))
+    grads = torch.autograd.grad(step["next", "reward"].sum(), list(policies[1].parameters()), allow_unused=True)
+    assert all(g is not None and g.abs().sum() > 0 for g in grads)
+    assert configure(GradConfig, "vortex-v0").init_scale == 0.01

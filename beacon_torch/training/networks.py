@@ -258,12 +258,13 @@ def action_bounds(env: TransformedEnv) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def deterministic_actor(
-    env: TransformedEnv, hidden: int, paper_init: bool = True, normed: bool = False
+    env: TransformedEnv, hidden: int, paper_init: bool = True, normed: bool = False, output_scale: float = 1.0
 ) -> TensorDictSequential:
     """A deterministic policy (TD3, gradient-based control): an MLP squashed into the
     action box. ``paper_init`` False keeps torch's default initialisation (gradient-based
-    control, whose first updates need a gradient through every layer); ``normed``: the
-    hidden layers of :func:`normed_mlp`."""
+    control, whose first updates need a gradient through every layer), its output layer
+    times ``output_scale`` (near 0: a policy near no control, still with a gradient
+    through every layer); ``normed``: the hidden layers of :func:`normed_mlp`."""
     low, high = action_bounds(env)
     if normed:
         net = normed_mlp(n_observations(env), env.action_spec.shape[-1], hidden)
@@ -276,6 +277,9 @@ def deterministic_actor(
         )
     if paper_init:
         initialised(net, last_linear(net))
+    with torch.no_grad():
+        for tensor in last_linear(net).parameters():
+            tensor.mul_(output_scale)
     return TensorDictSequential(
         TensorDictModule(net, in_keys=["observation"], out_keys=["param"]),
         TanhModule(in_keys=["param"], out_keys=["action"], low=low, high=high),
