@@ -250,7 +250,9 @@ def test_corrupt_buffer_values_and_optimiser_states_are_named_corrupt(td3_run, t
 
 # ---------------------------------------------------------------- memory before allocating
 def test_a_horizon_or_a_buffer_beyond_memory_is_refused_with_its_estimate(tmp_path):
-    cfg = configure(GradConfig, "burgers-v0", out=str(tmp_path / "grad"), horizon=1_000_000, progress=False)
+    cfg = configure(
+        GradConfig, "burgers-v0", out=str(tmp_path / "grad"), num_envs=64, horizon=1_000_000, progress=False
+    )
     with pytest.raises(
         ValueError, match="the graph of 1000000 differentiated actions of 64 members needs about .* GiB"
     ):
