@@ -128,8 +128,8 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
         settings["frames"] = frames
     kind = SHACConfig
     if not settings.pop("critic", True):
-        # the two share their per-env settings but for the squash's margin and the
-        # staggering: a variant names what differs from the actor-critic's defaults, those
+        # the two share their per-env settings but for the five the loop without a critic
+        # changed: a variant names what differs from the actor-critic's settings, those
         # included
         kind = GradConfig
         actor_critic = configure(SHACConfig, env_id)

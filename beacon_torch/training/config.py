@@ -438,8 +438,8 @@ class GradConfig(Config):
     critic: ClassVar[bool] = False
 
     # 16 members: four times the updates of 64 in a tenth of PPO's transitions, each an
-    # average over members spread across the episode (vortex 1.48 to 1.50 against 0.62 to
-    # 0.95 at 64, burgers 1.78 against 1.67; docs/gradients.md's table of settings)
+    # average over members spread across the episode (vortex 1.42 to 1.50 against 0.60 to
+    # 1.01 at 64, burgers 1.79 against 1.73; docs/gradients.md's table of settings)
     num_envs: int = setting(16, "members of the batched env")
     norm_steps: int = setting(NORM_STEPS, "random steps whose observations set the normalisation (0: raw observations)")
     horizon: int = setting(32, "differentiated steps per update (the graph is cut between updates)")
