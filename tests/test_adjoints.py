@@ -522,7 +522,8 @@ def test_an_actions_stored_substeps_are_reused_only_once_nothing_holds_them(monk
     tensor loop's gradient, twice in a row (the second horizon on the first's buffers),
     and with room for one buffer only (the last action's new previous state has no
     gradient: the backward pass takes zeros for it). A buffer held anywhere, a view
-    included, is never handed out; the cache keeps at most its bytes."""
+    included, is never handed out; the cache keeps at most its bytes, dropping unused
+    buffers of other sizes for a new one."""
     from beacon_torch.envs import burgers
 
     monkeypatch.setattr(native, "_kept", [])
@@ -554,6 +555,13 @@ def test_an_actions_stored_substeps_are_reused_only_once_nothing_holds_them(monk
     monkeypatch.setattr(native, "_kept", [])
     torch.testing.assert_close(horizon(burgers.burgers_action), want, rtol=1e-12, atol=0)
     assert sum(b.numel() * b.element_size() for b in native._kept) <= 4 << 20
+    # a buffer of another size (another batch in the same process) makes room by dropping
+    # an unused one, wherever it lies among those held
+    monkeypatch.setattr(native, "_kept", [])
+    held, unused = native.stored_substeps(like, (256, 1024)), native.stored_substeps(like, (512, 1024))
+    del unused
+    other = native.stored_substeps(like, (768, 1024))
+    assert [b.data_ptr() for b in native._kept] == [held.data_ptr(), other.data_ptr()]
 
 
 def shkadov_inputs(members: int, seed: int, dtype=torch.float64):

@@ -962,7 +962,8 @@ def stored_substeps(like: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
         for buffer in free:  # unused buffers of other sizes make room first
             if held + nbytes <= _KEPT_BYTES:
                 break
-            _kept.remove(buffer)
+            # by identity: list.remove compares tensors with ==, elementwise
+            del _kept[next(i for i, b in enumerate(_kept) if b is buffer)]
             held -= buffer.numel() * buffer.element_size()
         buffer = like.new_empty(numel)
         if held + nbytes <= _KEPT_BYTES:
