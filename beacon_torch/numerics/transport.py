@@ -104,7 +104,12 @@ def _coefficients(s: torch.Tensor, u: torch.Tensor, v: torch.Tensor, kappa, dt: 
         - (ue * 0.5 * (se + sc) - uw * 0.5 * sc) / dx
         - (vn * 0.5 * (sn + sc) - vs * 0.5 * sc) / dy
     )
-    return c, dt * (kx + 0.5 * uw / dx), dt * (ky + 0.5 * vs / dy)
+    return (c, *_weights(u, v, kappa, dt, dx, dy))
+
+
+def _weights(u: torch.Tensor, v: torch.Tensor, kappa, dt: float, dx: float, dy: float):
+    """The west and south neighbours' weights of :func:`_coefficients` on equal cells."""
+    return dt * (kappa / dx**2 + 0.5 * u[:-1] / dx), dt * (kappa / dy**2 + 0.5 * v[:, :-1] / dy)
 
 
 def sweep_adjoint(
@@ -116,7 +121,7 @@ def sweep_adjoint(
     own), and ``swept``, that result: the reverse sweep, then the adjoint of
     :func:`_coefficients` in its own stencil form (each cell gathering what the
     neighbours' updates that read it send back)."""
-    c, a, b = _coefficients(s, u, v, kappa, dt, dx, dy)
+    a, b = _weights(u, v, kappa, dt, dx, dy)
     pad = lambda f: F.pad(f, (0, 0, 1, 1, 1, 1))
     interior = grad[1:-1, 1:-1]
     gf, ga, gb = native.sweep_adjoint(pad(interior), swept, a, b)
