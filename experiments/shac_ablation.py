@@ -98,6 +98,19 @@ VARIANTS = {
         "lr": 5e-3,
     },
     "critic-less-stagger-members-16": {"critic": False, "squash_margin": 0.01, "stagger": True, "num_envs": 16},
+    # the actor-critic on the loop's own settings (recipes/grad.py's defaults), its critic
+    # closing each horizon at full and at a tenth of the weight: what lies past a horizon
+    # is what the loop without it cannot see
+    "grad-settings-critic": {"grad_settings": True},
+    "grad-settings-value-weight-0.1": {"grad_settings": True, "value_weight": 0.1},
+    # the loop at its own defaults with longer horizons: fewer updates, each seeing further
+    # (and with fewer members, as many updates as at 16 actions)
+    "grad-horizon-32": {"critic": False, "grad_settings": True, "horizon": 32},
+    "grad-horizon-64": {"critic": False, "grad_settings": True, "horizon": 64},
+    "grad-horizon-64-members-4": {"critic": False, "grad_settings": True, "horizon": 64, "num_envs": 4},
+    # the loop at its own defaults with larger rates
+    "grad-lr-1e-2": {"critic": False, "grad_settings": True, "lr": 1e-2},
+    "grad-lr-2e-2": {"critic": False, "grad_settings": True, "lr": 2e-2},
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},
@@ -126,15 +139,14 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
     settings = dict(VARIANTS[variant], seed=seed, out=str(out), progress=False, threads=1, logger="csv")
     if frames is not None:
         settings["frames"] = frames
-    kind = SHACConfig
-    if not settings.pop("critic", True):
-        # the two share their per-env settings but for the five the loop without a critic
-        # changed: a variant names what differs from the actor-critic's settings, those
-        # included
-        kind = GradConfig
-        actor_critic = configure(SHACConfig, env_id)
+    # the two share their per-env settings but for the five the loop without a critic
+    # changed: a variant is built on the actor-critic's settings unless it names the
+    # loop's own, and names what differs from them, those five included
+    kind = SHACConfig if settings.pop("critic", True) else GradConfig
+    base = GradConfig if settings.pop("grad_settings", False) else SHACConfig
+    if kind is not base:
         for name in ("squash_margin", "stagger", "num_envs", "lr", "init_scale"):
-            settings.setdefault(name, getattr(actor_critic, name))
+            settings.setdefault(name, getattr(configure(base, env_id), name))
     resume = (out / CHECKPOINT).is_file()
     cfg = configure(kind, env_id, resume=resume, **settings)
     if not resume or load_checkpoint(out)["frames"] < cfg.frames:

@@ -518,6 +518,14 @@ def test_the_actor_critics_settings_are_tried_alone_and_tabled(tmp_path):
     assert state["config"]["num_envs"] == 64 and state["config"]["horizon"] == 32
     assert state["config"]["squash_margin"] == 0.01 and not state["config"]["stagger"]
     assert state["config"]["lr"] == 2e-3 and state["config"]["init_scale"] == 1.0
+    # and the actor-critic at the loop's settings for the env, its critic closing the horizons
+    ablation.run("burgers-v0", "grad-settings-value-weight-0.1", 0, runs, frames=2048)
+    state = torch.load(
+        runs / "burgers-v0" / "grad-settings-value-weight-0.1" / "seed0" / "checkpoint.pt", weights_only=True
+    )
+    assert state["algo"] == "shac" and "critic" in state["modules"] and state["config"]["value_weight"] == 0.1
+    assert state["config"]["num_envs"] == 16 and state["config"]["squash_margin"] == 0.01 and state["config"]["stagger"]
+    assert state["config"]["lr"] == 5e-3 and state["config"]["init_scale"] == 0.01
     # the defaults' updates with the policy's gradient split logged, summarised by quarter
     row = ablation.run("burgers-v0", "gradient-split", 0, runs, frames=4096)
     split = row["gradient_split"]
