@@ -100,15 +100,16 @@ VARIANTS = {
     "critic-less-stagger-members-16": {"critic": False, "squash_margin": 0.01, "stagger": True, "num_envs": 16},
     # the actor-critic on the loop's own settings (recipes/grad.py's defaults), its critic
     # closing each horizon at full and at a tenth of the weight: what lies past a horizon
-    # is what the loop without it cannot see
-    "grad-settings-critic": {"grad_settings": True},
-    "grad-settings-value-weight-0.1": {"grad_settings": True, "value_weight": 0.1},
+    # is what the loop without it cannot see. These and the longer horizons were measured
+    # at the rate 5e-3, the loop's default then
+    "grad-settings-critic": {"grad_settings": True, "lr": 5e-3},
+    "grad-settings-value-weight-0.1": {"grad_settings": True, "value_weight": 0.1, "lr": 5e-3},
     # the loop at its own defaults with longer horizons: fewer updates, each seeing further
     # (and with fewer members, as many updates as at 16 actions)
-    "grad-horizon-32": {"critic": False, "grad_settings": True, "horizon": 32},
-    "grad-horizon-64": {"critic": False, "grad_settings": True, "horizon": 64},
-    "grad-horizon-64-members-4": {"critic": False, "grad_settings": True, "horizon": 64, "num_envs": 4},
-    # the loop at its own defaults with larger rates
+    "grad-horizon-32": {"critic": False, "grad_settings": True, "horizon": 32, "lr": 5e-3},
+    "grad-horizon-64": {"critic": False, "grad_settings": True, "horizon": 64, "lr": 5e-3},
+    "grad-horizon-64-members-4": {"critic": False, "grad_settings": True, "horizon": 64, "num_envs": 4, "lr": 5e-3},
+    # the loop at its own defaults with larger rates (1e-2 became the default)
     "grad-lr-1e-2": {"critic": False, "grad_settings": True, "lr": 1e-2},
     "grad-lr-2e-2": {"critic": False, "grad_settings": True, "lr": 2e-2},
     # the defaults' very updates, with the policy's gradient through the critic's closing
@@ -145,8 +146,9 @@ def run(env_id: str, variant: str, seed: int, runs: Path, frames: int | None = N
     kind = SHACConfig if settings.pop("critic", True) else GradConfig
     base = GradConfig if settings.pop("grad_settings", False) else SHACConfig
     if kind is not base:
+        based = configure(base, env_id)
         for name in ("squash_margin", "stagger", "num_envs", "lr", "init_scale"):
-            settings.setdefault(name, getattr(configure(base, env_id), name))
+            settings.setdefault(name, getattr(based, name))
     resume = (out / CHECKPOINT).is_file()
     cfg = configure(kind, env_id, resume=resume, **settings)
     if not resume or load_checkpoint(out)["frames"] < cfg.frames:
