@@ -371,6 +371,32 @@ def test_sweep_without_a_compiler_warns_once_and_keeps_the_tensor_path(monkeypat
     assert torch.equal(out, again)
 
 
+def test_a_compiled_loop_holds_the_tensor_sweep(monkeypatch):
+    """Without the C kernels (a GPU, or a machine with no C compiler) a compiled step
+    runs its substeps as one while_loop, which refuses a graph break: the sweep's
+    tensor recurrence is taken into the graph, with the eager loop's numbers."""
+    from beacon_torch.compiled import Kernels
+
+    monkeypatch.setenv("BEACON_TORCH_NATIVE", "0")
+    nx, ny, B = 6, 5, 2
+    cavity = Cavity(nx, ny, 1 / nx, 1 / ny, **F64)
+    assert not cavity.sweep.native
+    u, v = filled(cavity, B, 1)
+    s = random((nx + 2, ny + 2, B), 2)
+    ring = torch.ones_like(s)
+    ring[1:-1, 1:-1] = 0
+
+    def substep(i, s, u, v):
+        swept = cavity.sweep(s, u, v, 0.01, 1e-3, cavity.dx, cavity.dy)
+        return torch.nn.functional.pad(swept, (0, 0, 1, 1, 1, 1)) + ring * s
+
+    kernels = Kernels()
+    loop = kernels.loop(substep)
+    eager = loop(3, s, u, v)
+    kernels.compile()
+    torch.testing.assert_close(loop(3, s, u, v), eager, rtol=1e-13, atol=1e-13)
+
+
 def test_sweep_keeps_constants_in_a_divergence_free_flow():
     B, nx, ny = 2, 16, 12
     cavity = Cavity(nx, ny, 1 / 16, 1 / 12, **F64)

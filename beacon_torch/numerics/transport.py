@@ -70,7 +70,7 @@ class Sweep:
         c = self._skewed(s + pad(c - sc))
         a, b = self._skewed(pad(a)), self._skewed(pad(b))
         last = self.nx + self.ny  # the last anti-diagonal with interior cells
-        if recording:
+        if recording or torch.compiler.is_compiling():
             rows = _graph_rows(c, a, b, last)
         else:
             rows = _rows(c, a, b, last)
@@ -156,8 +156,10 @@ class Explicit:
         return c + a * s[:-2, 1:-1] + b * s[1:-1, :-2]
 
 
-# The two recurrences run eagerly even in a compiled substep: a chain of hundreds of
-# dependent steps cannot be fused, and unrolling it into a graph takes minutes to compile.
+# The in-place recurrence runs eagerly: a chain of hundreds of dependent steps cannot be
+# fused. A compiled step (a GPU's, or a CPU's without the C kernels) takes the
+# out-of-place one into its graph instead, unrolled: a graph break is refused there (the
+# whole step is one graph, its substeps a while_loop), and compiling it takes longer.
 @torch.compiler.disable
 def _rows(c: torch.Tensor, a: torch.Tensor, b: torch.Tensor, last: int) -> torch.Tensor:
     """The skewed rows of the swept field, in place in one buffer. Rows have width
@@ -172,9 +174,9 @@ def _rows(c: torch.Tensor, a: torch.Tensor, b: torch.Tensor, last: int) -> torch
     return buf[:, 1:]
 
 
-@torch.compiler.disable
 def _graph_rows(c: torch.Tensor, a: torch.Tensor, b: torch.Tensor, last: int) -> torch.Tensor:
-    """The same recurrence out of place, so that autograd keeps every row."""
+    """The same recurrence out of place, so that autograd keeps every row and a
+    compiled graph can hold it."""
     rows = [c[0], c[1]]  # ghosts only
     for k in range(2, last + 1):
         # roll: position i reads the previous row's i - 1 (the west cell); position 0 is
