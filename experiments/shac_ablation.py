@@ -112,6 +112,11 @@ VARIANTS = {
     # the loop at its own defaults with larger rates (1e-2 became the default)
     "grad-lr-1e-2": {"critic": False, "grad_settings": True, "lr": 1e-2},
     "grad-lr-2e-2": {"critic": False, "grad_settings": True, "lr": 2e-2},
+    # what else might carry the later, smaller sloshing into the objective: no discount
+    # within a horizon, raw observations, no clipping of its small late gradients
+    "grad-gamma-1": {"critic": False, "grad_settings": True, "gamma": 1.0},
+    "grad-raw-observations": {"critic": False, "grad_settings": True, "norm_steps": 0},
+    "grad-clip-100": {"critic": False, "grad_settings": True, "grad_clip": 100.0},
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},
