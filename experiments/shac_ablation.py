@@ -117,6 +117,16 @@ VARIANTS = {
     "grad-gamma-1": {"critic": False, "grad_settings": True, "gamma": 1.0},
     "grad-raw-observations": {"critic": False, "grad_settings": True, "norm_steps": 0},
     "grad-clip-100": {"critic": False, "grad_settings": True, "grad_clip": 100.0},
+    # half and all of sloshing's episode a horizon, with as many updates as the defaults'
+    # (its episodes start from one stored state: few members still span the episode)
+    "grad-horizon-100-members-2": {"critic": False, "grad_settings": True, "horizon": 100, "num_envs": 2},
+    "grad-horizon-200-members-1": {
+        "critic": False,
+        "grad_settings": True,
+        "horizon": 200,
+        "num_envs": 1,
+        "stagger": False,
+    },
     # the defaults' very updates, with the policy's gradient through the critic's closing
     # values and through the rest logged apart (one more backward pass an update)
     "gradient-split": {"gradient_split": True},
