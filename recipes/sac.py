@@ -43,9 +43,11 @@ def main(cfg: SACConfig) -> dict:
     )
     loss.make_value_estimator(gamma=cfg.gamma)
     target = SoftUpdate(loss, tau=cfg.tau)
-    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.lr)
-    critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr)
-    alpha_optim = torch.optim.Adam([loss.log_alpha], lr=cfg.alpha_lr)
+    # Adam's fused kernel: a gradient step a transition makes its element-wise work a
+    # tenth of the update
+    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.lr, fused=True)
+    critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr, fused=True)
+    alpha_optim = torch.optim.Adam([loss.log_alpha], lr=cfg.alpha_lr, fused=True)
 
     # the replay buffer; the actor samples its actions while collecting
     buffer = ReplayBuffer(

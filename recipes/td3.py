@@ -64,8 +64,11 @@ def main(cfg: TD3Config) -> dict:
     )
     loss.make_value_estimator(gamma=cfg.gamma)
     target = SoftUpdate(loss, tau=cfg.tau)
-    actor_optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_lr or cfg.lr)
-    critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr)
+    # Adam's fused kernel, as SAC's: its element-wise work is a tenth of an update
+    actor_optim = torch.optim.Adam(
+        loss.actor_network_params.flatten_keys().values(), lr=cfg.actor_lr or cfg.lr, fused=True
+    )
+    critic_optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=cfg.lr, fused=True)
 
     # exploration, the replay buffer and the collector
     policy = TensorDictSequential(

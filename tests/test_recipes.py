@@ -1221,6 +1221,53 @@ def test_new_networks_start_as_the_papers_agents():
     assert torch.equal(networks.qvalue_actor(discrete, 64)(discrete.reset())["action_value"], torch.zeros(3, 3))
 
 
+def test_the_critic_is_torchrls_mlp_of_the_pair_without_the_observations_gradient():
+    """TD3's and SAC's critic applies its first layer to the observation and the action
+    apart: the values and every gradient of TorchRL's MLP of their concatenation (the
+    same parameters, so older checkpoints load), but differentiating in the action no
+    longer multiplies by the observation's part of the first layer."""
+    from torch.utils.flop_counter import FlopCounterMode
+    from torchrl.modules import MLP
+
+    env = make_env("rbc2d-easy-ma-v0", 2, norm_steps=0, params={"start_run": 0.0})
+    critic = networks.action_value(env, 32).double()
+    pair = critic.module
+    concatenated = MLP(
+        in_features=pair[0].in_features, out_features=1, num_cells=[32, 32], activation_class=torch.nn.ReLU
+    )
+    concatenated = concatenated.double()
+    concatenated.load_state_dict(pair.state_dict())
+    for layer in pair:  # the zero output layer would hide a difference
+        if isinstance(layer, torch.nn.Linear):
+            torch.nn.init.normal_(layer.weight)
+    concatenated.load_state_dict(pair.state_dict())
+    td = env.reset()
+    obs = td["agents", "observation"].double()
+    assert obs.shape == (2, 12, 1408)
+    action = torch.rand(2, 12, 1, dtype=torch.float64, requires_grad=True)
+    values = critic(td.set(("agents", "action"), action).set(("agents", "observation"), obs))
+    value = values["agents", "state_action_value"]
+    assert torch.allclose(value, concatenated(obs, action), rtol=1e-12, atol=1e-12)
+    ours = torch.autograd.grad(value.square().sum(), [action, *pair.parameters()])
+    theirs = torch.autograd.grad(concatenated(obs, action).square().sum(), [action, *concatenated.parameters()])
+    assert all(torch.allclose(a, b, rtol=1e-10, atol=1e-12) for a, b in zip(ours, theirs, strict=True))
+
+    # the actor's loss: the critic's parameters held, the value differentiated in the
+    # action; its backward pass no longer multiplies by the observation's 1,408 columns
+    def backward_flops(net) -> int:
+        for p in net.parameters():
+            p.requires_grad_(False)
+        out = net(obs, action)
+        with FlopCounterMode(display=False) as counter:
+            out.sum().backward()
+        for p in net.parameters():
+            p.requires_grad_(True)
+        return counter.get_total_flops()
+
+    product = 2 * 2 * 12 * 1408 * 32  # the observation's part of the first layer's input gradient
+    assert backward_flops(concatenated) - backward_flops(pair) == product
+
+
 def test_settings_follow_the_papers_runs_where_its_table_is_silent():
     assert configure(PPOConfig, "mixing-v0").gae_lambda == 0.90 and configure(PPOConfig, "burgers-v0").critic_lr == 1e-3
     assert (
