@@ -55,10 +55,19 @@ def cell(algo: str, env_id: str) -> tuple[str, str]:
 
 def agent(algo: str, summary: dict) -> str:
     """Whose PPO a pair trained: its actor, critic and update as its run recorded them
-    (runs made before a setting existed trained the paper's); SAC's is of one kind."""
-    if algo != "ppo":
-        return "SAC's"
+    (runs made before a setting existed trained the paper's); SAC's is of one kind, its
+    gradient steps said where they are fewer than FluidGym's (one an agent transition:
+    a flow step's twelve in the multi-agent layout)."""
     config = summary["config"]
+    if algo != "ppo":
+        agents = 12 if config.get("env", "").endswith("-ma-v0") else 1
+        per_step = config.get("updates_per_batch", 1) / config.get("frames_per_batch", 1)
+        if per_step >= agents:
+            return "SAC's"
+        return (
+            f"SAC's, {per_step:g} gradient step{'s' * (per_step != 1)} a flow step "
+            f"(FluidGym's: {agents}, one an agent transition)"
+        )
     parts = (config.get("actor", "paper"), config.get("critic", "paper"), config.get("update", "paper"))
     if parts == ("free-spread", "sb3", "sb3"):
         return "Stable-Baselines3's"

@@ -257,6 +257,18 @@ def test_the_results_table_sets_each_cell_beside_fluidgyms(tmp_path):
         summary = {"config": {"threads": 1, **config}, "seeds": seeds}
         (tmp_path / "ppo" / "rbc2d-easy-v0.json").write_text(json.dumps(summary))
         assert rbc2d_table.table(rbc2d_table.recorded(tmp_path, received)).splitlines()[2].endswith(f"| {agent} |")
+    # SAC at FluidGym's gradient steps, one an agent transition, or at fewer, said
+    (tmp_path / "sac").mkdir()
+    for updates, agent in (
+        (768, "SAC's"),
+        (64, "SAC's, 1 gradient step a flow step (FluidGym's: 12, one an agent transition)"),
+    ):
+        config = {"threads": 1, "env": "rbc2d-easy-ma-v0", "updates_per_batch": updates, "frames_per_batch": 64}
+        (tmp_path / "sac" / "rbc2d-easy-ma-v0.json").write_text(json.dumps({"config": config, "seeds": seeds}))
+        assert rbc2d_table.table(rbc2d_table.recorded(tmp_path, received)).splitlines()[5].endswith(f"| {agent} |")
+    config = {"threads": 1, "env": "rbc2d-easy-v0", "updates_per_batch": 64, "frames_per_batch": 64}
+    (tmp_path / "sac" / "rbc2d-easy-v0.json").write_text(json.dumps({"config": config, "seeds": seeds}))
+    assert rbc2d_table.table(rbc2d_table.recorded(tmp_path, received)).splitlines()[3].endswith("| SAC's |")
 
 
 def test_a_levels_one_is_fluidgyms_best_nusselt_number_as_a_share_of_no_controls():
