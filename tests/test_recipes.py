@@ -1556,6 +1556,9 @@ def test_multi_agent_sac_shares_its_networks_and_learns_each_agents_value_from_i
     assert changed[:, 2].all() and not changed[:, [0, 1, *range(3, 12)]].any()
     result = evaluate_run(tmp_path, num_envs=1)
     assert result["env"] == "rbc2d-easy-ma-v0" and torch.isfinite(torch.tensor(result["score_mean"]))
+    # an interrupted run resumes with its buffer, whose agents' fields are a nested folder
+    sac.main(configure(SACConfig, "rbc2d-easy-ma-v0", out=str(tmp_path), resume=True, **{**cfg, "frames": 320}))
+    assert checkpoint(tmp_path)["frames"] == 320
 
 
 @pytest.mark.parametrize("tracker", ["wandb", "mlflow"])

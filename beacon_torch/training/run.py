@@ -340,7 +340,7 @@ def check_buffer(folder: Path, capacity: int, widest: int) -> None:
     it describes: every entry ``capacity`` long, no entry of a transition wider than
     the env's widest field (``widest``: its observation or action size), the recipes'
     dtypes, each file the size its entry says, and the whole fitting in memory."""
-    metas = sorted(folder.rglob("meta.json"))
+    metas = sorted(folder.rglob("meta.json"), key=lambda meta: len(meta.parts))
     if not metas:
         raise BadRun(f"{folder}: no description of the replay buffer's storage (meta.json)")
     total = 0
@@ -376,7 +376,18 @@ def check_buffer(folder: Path, capacity: int, widest: int) -> None:
             if file.is_symlink() or not file.is_file() or file.stat().st_size != nbytes:
                 raise BadRun(f"{file}: not the {nbytes:,} bytes its description {meta} gives")
             total += nbytes
-        if entries.get("shape") != [capacity] or entries.get("_type") != "<class 'tensordict._td.TensorDict'>":
+        # the storage's root holds one transition a row; a nested folder (the agents'
+        # fields of a multi-agent layout) may add dimensions after it
+        shape = entries.get("shape")
+        nested = meta is not metas[0]
+        if (
+            not isinstance(shape, list)
+            or shape[:1] != [capacity]
+            or (not nested and shape != [capacity])
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shape)
+            or math.prod(shape[1:]) > widest
+            or entries.get("_type") != "<class 'tensordict._td.TensorDict'>"
+        ):
             raise BadRun(f"{meta}: not a replay buffer of {capacity:,} transitions")
     fits(f"{folder}: the replay buffer", total)
 
